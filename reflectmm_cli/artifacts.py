@@ -1,0 +1,448 @@
+"""Versioned, self-describing, atomically written artifacts (DESIGN.md §5).
+
+An artifact is one file:
+
+* NPZ: arrays plus a ``__meta__`` entry holding a JSON string; always read with
+  ``allow_pickle=False``.  The zip container is written with fixed timestamps and a
+  fixed member order, so the same arrays and meta give byte-identical files.
+* EXR (through OpenImageIO): named float16/float32 channels plus the same JSON in
+  the header attribute ``reflectmm:meta``.
+
+The meta has ``schema: "reflectmm.<kind>/<major>"``, ``producer`` (stage, stage
+version, tool version), resolved ``params``, ``inputs`` (role, path relative to the
+artifact, sha256, schema) and ``cache_key``.  No timestamps or host names.
+
+Readers asked for kind X refuse kind Y, and refuse a major version newer than this
+release reads.  Writes go to a temporary file in the same folder, are fsynced and
+renamed over the target, so an interrupted run leaves the old file or none.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tempfile
+import zipfile
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+from reflectmm_cli import __version__
+from reflectmm_cli.errors import ArtifactError, ReflectmmError
+
+META_KEY = "__meta__"
+EXR_META_ATTR = "reflectmm:meta"
+
+#: Current major schema version of every artifact kind this release writes and reads.
+#: A reader refuses a file whose major version is newer than the one listed here.
+SCHEMA_MAJOR: dict[str, int] = {
+    "checksum": 1,
+    "face-model": 1,
+    "synth-truth": 1,
+    "capture": 1,
+    "geometry": 1,
+    "uv-observations": 1,
+    "reflectance-maps": 1,
+    "reflectance-model": 1,
+    "light-model": 1,
+    "render": 1,
+    "evaluation": 1,
+}
+
+_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+
+
+@dataclass
+class Artifact:
+    """An artifact in memory: its kind, arrays and meta."""
+
+    kind: str
+    arrays: dict[str, np.ndarray]
+    meta: dict[str, Any] = field(default_factory=dict)
+    path: Path | None = None
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        try:
+            return self.arrays[name]
+        except KeyError:
+            raise ArtifactError(f"{self.kind} artifact has no array '{name}' "
+                                f"(has: {', '.join(sorted(self.arrays))})", self.path) from None
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return self.meta.get("params", {})
+
+
+# --------------------------------------------------------------------------- hashing
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    """Hex sha256 of a file's content."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(chunk), b""):
+                h.update(block)
+    except FileNotFoundError:
+        raise ReflectmmError("file not found", path) from None
+    except IsADirectoryError:
+        raise ReflectmmError("is a directory, expected a file", path) from None
+    return h.hexdigest()
+
+
+def canonical_json(obj: Any) -> str:
+    """Deterministic JSON (sorted keys, no spaces) used in meta and cache keys."""
+    return json.dumps(_jsonable(obj), sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return repr(obj)
+    return obj
+
+
+def schema_of(path: str | Path) -> str | None:
+    """The schema string of an artifact file, or None if the file is not an artifact."""
+    try:
+        return read_meta(path).get("schema")
+    except ReflectmmError:
+        return None
+
+
+def input_ref(role: str, path: str | Path, relative_to: str | Path | None = None) -> dict[str, Any]:
+    """Provenance record of one input file: role, path, sha256 and schema (if an artifact).
+
+    ``path`` is stored relative to ``relative_to`` (the artifact's folder) when given, so
+    the same workspace layout in two places gives identical meta.
+    """
+    p = Path(path)
+    shown = os.path.relpath(p, relative_to) if relative_to is not None else p.name
+    ref = {"role": role, "path": shown, "sha256": sha256_file(p)}
+    if p.suffix.lower() in (".npz", ".exr"):
+        sch = schema_of(p)
+        if sch:
+            ref["schema"] = sch
+    return ref
+
+
+# --------------------------------------------------------------------------- atomic files
+
+@contextmanager
+def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success fsync it and rename it over ``path``.
+
+    On any exception the temporary file is removed and ``path`` is untouched.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=(suffix if suffix is not None else ".tmp"),
+                               dir=target.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        with open(tmp_path, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp_path, target)
+        try:
+            dfd = os.open(target.parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError:
+            pass
+    except BaseException:
+        try:
+            tmp_path.unlink()
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# --------------------------------------------------------------------------- meta
+
+def make_meta(kind: str, *, params: Mapping[str, Any] | None = None, inputs: list[dict] | None = None,
+              producer: Mapping[str, Any] | None = None, cache_key: str | None = None,
+              extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    major = SCHEMA_MAJOR.get(kind, 1)
+    prod = {"tool": "reflectmm", "version": __version__}
+    if producer:
+        prod.update(producer)
+    meta: dict[str, Any] = {
+        "schema": f"reflectmm.{kind}/{major}",
+        "producer": prod,
+        "params": dict(params or {}),
+        "inputs": list(inputs or []),
+        "cache_key": cache_key,
+    }
+    if extra:
+        meta.update(extra)
+    return json.loads(canonical_json(meta))
+
+
+def parse_schema(schema: Any, path: str | Path | None = None) -> tuple[str, int]:
+    if not isinstance(schema, str) or not schema.startswith("reflectmm.") or "/" not in schema:
+        raise ArtifactError(f"not a reflectmm artifact (schema {schema!r})", path)
+    name, _, major = schema[len("reflectmm."):].rpartition("/")
+    try:
+        return name, int(major)
+    except ValueError:
+        raise ArtifactError(f"malformed schema {schema!r}", path) from None
+
+
+def check_schema(meta: Mapping[str, Any], kind: str | None, path: str | Path | None) -> str:
+    """Return the artifact kind; refuse a wrong kind or a newer major version."""
+    found, major = parse_schema(meta.get("schema"), path)
+    if kind is not None and found != kind:
+        raise ArtifactError(f"is a '{found}' artifact, expected a '{kind}' artifact", path)
+    supported = SCHEMA_MAJOR.get(found)
+    if supported is not None and major > supported:
+        prod = meta.get("producer", {})
+        raise ArtifactError(
+            f"schema reflectmm.{found}/{major} is newer than this reflectmm {__version__} reads "
+            f"(up to /{supported}); it was written by {prod.get('tool', 'reflectmm')} "
+            f"{prod.get('version', '?')} — upgrade reflectmm to read it", path)
+    return found
+
+
+# --------------------------------------------------------------------------- NPZ
+
+def _npy_bytes(arr: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    arr = arr if arr.flags.c_contiguous else np.ascontiguousarray(arr)  # keeps 0-d arrays 0-d
+    np.lib.format.write_array(buf, arr, allow_pickle=False)
+    return buf.getvalue()
+
+
+def write_artifact(path: str | Path, kind: str, arrays: Mapping[str, Any], *,
+                   params: Mapping[str, Any] | None = None, inputs: list[dict] | None = None,
+                   producer: Mapping[str, Any] | None = None, cache_key: str | None = None,
+                   extra_meta: Mapping[str, Any] | None = None, compress: bool = True) -> Path:
+    """Write an NPZ artifact atomically and deterministically; return its path.
+
+    ``arrays`` maps names to array-likes (object arrays are refused).  Members are
+    written in sorted name order with a fixed timestamp.
+    """
+    path = Path(path)
+    meta = make_meta(kind, params=params, inputs=inputs, producer=producer, cache_key=cache_key,
+                     extra=extra_meta)
+    members: list[tuple[str, bytes]] = []
+    for name in sorted(arrays):
+        if name == META_KEY:
+            raise ReflectmmError(f"array name {META_KEY!r} is reserved", path)
+        arr = np.asarray(arrays[name])
+        if arr.dtype.hasobject:
+            raise ReflectmmError(f"array '{name}' has dtype object; artifacts hold numeric/string arrays only",
+                                 path)
+        members.append((name, _npy_bytes(arr)))
+    members.append((META_KEY, _npy_bytes(np.array(canonical_json(meta)))))
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with atomic_path(path) as tmp:
+        with zipfile.ZipFile(tmp, "w", compression=method, allowZip64=True) as zf:
+            for name, data in members:
+                info = zipfile.ZipInfo(name + ".npy", date_time=_ZIP_EPOCH)
+                info.compress_type = method
+                info.external_attr = 0o644 << 16
+                info.create_system = 3
+                zf.writestr(info, data, compress_type=method, compresslevel=6 if compress else None)
+    return path
+
+
+def _open_npz(path: Path):
+    if not path.exists():
+        raise ArtifactError("file not found", path)
+    if path.is_dir():
+        raise ArtifactError("is a directory, expected an artifact file", path)
+    try:
+        return np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+        raise ArtifactError(f"truncated or corrupt NPZ ({type(exc).__name__}: {exc})", path) from None
+
+
+def _meta_from_npz(npz, path: Path) -> dict[str, Any]:
+    if META_KEY not in npz.files:
+        raise ArtifactError("not a reflectmm artifact (no __meta__ entry)", path)
+    try:
+        meta = json.loads(str(npz[META_KEY].reshape(-1)[0]))
+    except (ValueError, zipfile.BadZipFile, EOFError, OSError) as exc:
+        raise ArtifactError(f"corrupt __meta__ entry ({exc})", path) from None
+    if not isinstance(meta, dict):
+        raise ArtifactError("corrupt __meta__ entry (not a JSON object)", path)
+    return meta
+
+
+def read_meta(path: str | Path) -> dict[str, Any]:
+    """Read only the meta of an NPZ or EXR artifact (cheap; used by planners and ``inspect``)."""
+    path = Path(path)
+    if path.suffix.lower() == ".exr":
+        return read_exr(path, meta_only=True)[1]
+    with _open_npz(path) as npz:
+        return _meta_from_npz(npz, path)
+
+
+def read_artifact(path: str | Path, kind: str | None = None) -> Artifact:
+    """Read an NPZ (or EXR) artifact, refusing a wrong ``kind`` or a too-new schema."""
+    path = Path(path)
+    if path.suffix.lower() == ".exr":
+        channels, meta = read_exr(path)
+        found = check_schema(meta, kind, path)
+        return Artifact(found, channels, meta, path)
+    with _open_npz(path) as npz:
+        meta = _meta_from_npz(npz, path)
+        found = check_schema(meta, kind, path)
+        arrays = {}
+        try:
+            for name in npz.files:
+                if name != META_KEY:
+                    arrays[name] = npz[name]
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+            raise ArtifactError(f"truncated or corrupt NPZ member ({exc})", path) from None
+    return Artifact(found, arrays, meta, path)
+
+
+# --------------------------------------------------------------------------- images (OpenImageIO)
+
+def _oiio():
+    try:
+        import OpenImageIO as oiio
+    except ImportError as exc:  # pragma: no cover - dependency is mandatory
+        raise ReflectmmError(f"OpenImageIO is required for EXR/HDR I/O: {exc}") from None
+    return oiio
+
+
+def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], meta: Mapping[str, Any] | None = None,
+              half: bool = False) -> Path:
+    """Write named 2-D channels (each H×W) to an EXR atomically, with ``meta`` as a header attribute.
+
+    Channel names follow the ``layer.channel`` convention (``albedo.R``, ``weight.p8``).
+    """
+    oiio = _oiio()
+    path = Path(path)
+    names = list(channels)
+    if not names:
+        raise ReflectmmError("no channels to write", path)
+    planes = [np.asarray(channels[n], dtype=np.float32) for n in names]
+    shape = planes[0].shape
+    for n, p in zip(names, planes):
+        if p.ndim != 2 or p.shape != shape:
+            raise ReflectmmError(f"channel '{n}' has shape {p.shape}, expected 2-D {shape}", path)
+    data = np.ascontiguousarray(np.stack(planes, axis=-1))
+    h, w = shape
+    spec = oiio.ImageSpec(w, h, len(names), "half" if half else "float")
+    spec.channelnames = tuple(names)
+    spec.attribute("compression", "zip")
+    if meta is not None:
+        spec.attribute(EXR_META_ATTR, canonical_json(meta))
+    with atomic_path(path, suffix=".exr") as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise ReflectmmError(f"cannot create EXR writer: {oiio.geterror()}", path)
+        if not out.open(str(tmp), spec):
+            raise ReflectmmError(f"cannot open EXR for writing: {out.geterror()}", path)
+        ok = out.write_image(data)
+        out.close()
+        if not ok:
+            raise ReflectmmError(f"cannot write EXR: {out.geterror()}", path)
+    return path
+
+
+def _first_line(msg: str) -> str:
+    """OpenImageIO errors can span lines and repeat the path; keep one short line."""
+    lines = [ln.strip() for ln in (msg or "").splitlines() if ln.strip()]
+    return (lines[-1] if lines else "unknown error")[:300]
+
+
+def read_exr(path: str | Path, meta_only: bool = False) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read an EXR: (channels by name as float32 H×W, meta dict — empty if none)."""
+    oiio = _oiio()
+    path = Path(path)
+    if not path.exists():
+        raise ArtifactError("file not found", path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ArtifactError(f"unreadable or corrupt EXR ({_first_line(oiio.geterror())})", path)
+    try:
+        spec = inp.spec()
+        raw = spec.getattribute(EXR_META_ATTR)
+        meta: dict[str, Any] = {}
+        if raw:
+            try:
+                meta = json.loads(raw)
+            except ValueError:
+                raise ArtifactError("corrupt reflectmm:meta header attribute", path) from None
+        if meta_only:
+            return {}, meta
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None or (hasattr(pixels, "size") and pixels.size == 0):
+            raise ArtifactError(f"truncated or corrupt EXR pixel data ({_first_line(inp.geterror())})", path)
+        pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        channels = {name: pixels[..., i].copy() for i, name in enumerate(spec.channelnames)}
+    finally:
+        inp.close()
+    return channels, meta
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read any image OpenImageIO understands (EXR, HDR, PNG, TIFF...) as float32 H×W×C.
+
+    8/16-bit files come back in [0, 1] (values as stored: no linearisation).
+    Raises ReflectmmError naming the file when it is missing or unreadable.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    if not path.exists():
+        raise ReflectmmError("file not found", path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ReflectmmError(f"not a readable image ({_first_line(oiio.geterror())})", path)
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None or (hasattr(pixels, "size") and pixels.size == 0):
+            raise ReflectmmError(f"truncated or corrupt image ({_first_line(inp.geterror())})", path)
+    finally:
+        inp.close()
+    return np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+
+
+def write_png(path: str | Path, image: np.ndarray) -> Path:
+    """Write a display image (H×W or H×W×3/4, float in [0,1] or uint8) as an 8-bit PNG atomically."""
+    import cv2
+
+    path = Path(path)
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        img = np.clip(np.nan_to_num(img.astype(np.float32)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = img[..., ::-1]
+    elif img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., [2, 1, 0, 3]]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise ReflectmmError("cannot encode PNG", path)
+    return atomic_write_bytes(path, buf.tobytes())

@@ -1,0 +1,87 @@
+"""The ``reflectmm`` executable: one group of verbs, each a thin wrapper over a library function.
+
+Results go to stdout (artifact paths one per line, or one JSON document with
+``--json``); logs and progress bars go to stderr.  Any :class:`ReflectmmError`
+becomes one line ``reflectmm: error: ...`` and exit status 1 (a traceback only with
+``-v``); usage errors exit 2.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+
+import click
+
+from reflectmm_cli import __version__
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.progress import configure_logging
+
+
+class _Group(click.Group):
+    """Loads the verbs from ``reflectmm_cli.commands`` and turns errors into one line."""
+
+    _loaded = False
+
+    def _load(self) -> None:
+        if not self._loaded:
+            from reflectmm_cli.stages import load_commands
+
+            for cmd in load_commands():
+                if cmd.name not in self.commands:
+                    self.add_command(cmd)
+            type(self)._loaded = True
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        self._load()
+        return sorted(self.commands)
+
+    def get_command(self, ctx: click.Context, name: str):
+        self._load()
+        return self.commands.get(name)
+
+    def invoke(self, ctx: click.Context):
+        verbose = ctx.params.get("verbose", 0)
+        try:
+            return super().invoke(ctx)
+        except ReflectmmError as exc:
+            if verbose:
+                traceback.print_exc(file=sys.stderr)
+            click.echo(f"reflectmm: error: {exc}", err=True)
+            ctx.exit(1)
+        except (click.exceptions.Exit, click.ClickException, click.Abort):
+            raise
+        except KeyboardInterrupt:
+            click.echo("reflectmm: interrupted", err=True)
+            ctx.exit(130)
+        except MemoryError:
+            click.echo("reflectmm: error: out of memory", err=True)
+            ctx.exit(1)
+        except Exception as exc:  # an unexpected failure is still a failure: never exit 0
+            if verbose:
+                traceback.print_exc(file=sys.stderr)
+            msg = " ".join(str(exc).split())[:400]
+            click.echo(f"reflectmm: internal error: {type(exc).__name__}: {msg} (run with -v for a traceback)",
+                       err=True)
+            ctx.exit(1)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
+@click.version_option(__version__, "--version", prog_name="reflectmm")
+@click.option("-v", "--verbose", count=True, help="More logging (debug) and tracebacks on errors.")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars.")
+@click.pass_context
+def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
+    """Build a 3D morphable face reflectance model (diffuse albedo + multi-lobe Blinn-Phong).
+
+    Every verb reads and writes versioned artifacts (NPZ/EXR) in a workspace
+    (--workspace, $REFLECTMM_WORKSPACE, or the current directory).  Results are
+    printed on stdout, logs and progress on stderr.
+    """
+    configure_logging(-1 if quiet else verbose)
+    ctx.ensure_object(dict)
+    ctx.obj["verbose"] = verbose
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,257 @@
+"""Stages: the unit of work shared by the CLI verbs and recipes.
+
+Every verb that produces artifacts registers a :class:`Stage` with
+:func:`register_stage`.  The CLI command and the recipe runner both build a
+:class:`StageContext` and call ``stage.run(ctx)``, so a verb behaves the same from
+the shell and inside ``reflectmm run``.
+
+Workspace convention (DESIGN.md §5): ``<workspace>/<stage_name>/<identity>.npz``
+(``<workspace>/<stage_name>/<name>.npz`` for stages that are not per identity),
+overridable with an explicit output path.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+from reflectmm_cli import __version__
+from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
+from reflectmm_cli.errors import ReflectmmError
+
+#: Bump when the way cache keys are computed changes (invalidates every cache).
+CACHE_HASH_VERSION = 1
+
+#: Params that never change a result (execution details) and so never invalidate a cache.
+NON_INVALIDATING = frozenset({"device", "jobs", "executor", "scheduler", "progress", "workspace"})
+
+
+def default_workspace() -> Path:
+    """``$REFLECTMM_WORKSPACE`` or the current directory."""
+    return Path(os.environ.get("REFLECTMM_WORKSPACE") or ".").resolve()
+
+
+@dataclass
+class StageContext:
+    """Everything a stage needs to run once (for one identity, or once overall).
+
+    Attributes:
+        workspace: root folder of the workspace.
+        stage_name: the recipe's name for this stage (defaults to the verb); names the
+            output folder ``<workspace>/<stage_name>/``.
+        identity: the identity this run is for (per-identity stages), else None.
+        params: resolved parameters (recipe defaults + stage params, or CLI options).
+        inputs: role -> concrete input paths (files or folders).
+        output: explicit primary output path that overrides the workspace convention.
+        device: torch device string (``cpu``, ``cuda``, ``cuda:1``, or ``auto``).
+        cache_key: the key the planner computed (stored in the artifacts' meta).
+        verb: the registered verb.
+        stage_version: the registered stage version.
+    """
+
+    workspace: Path
+    stage_name: str
+    identity: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    inputs: dict[str, list[Path]] = field(default_factory=dict)
+    output: Path | None = None
+    device: str = "cpu"
+    cache_key: str | None = None
+    verb: str = ""
+    stage_version: int = 1
+
+    def output_path(self, name: str | None = None, suffix: str = ".npz") -> Path:
+        """Primary output path: the explicit ``output`` if given (for the default name and suffix),
+        else ``<workspace>/<stage_name>/<name or identity or stage_name><suffix>``."""
+        if self.output is not None and name is None and suffix == ".npz":
+            return Path(self.output)
+        base = name or self.identity or self.stage_name
+        folder = Path(self.output).parent if self.output is not None else self.workspace / self.stage_name
+        return folder / f"{base}{suffix}"
+
+    def input(self, role: str) -> Path:
+        """The single input path for ``role``; a clear error if missing or ambiguous."""
+        paths = self.inputs.get(role) or []
+        if len(paths) != 1:
+            what = "missing" if not paths else f"given {len(paths)} times, expected once"
+            raise ReflectmmError(f"stage '{self.stage_name}': input '{role}' is {what}")
+        return Path(paths[0])
+
+    def input_list(self, role: str, required: bool = True) -> list[Path]:
+        paths = [Path(p) for p in self.inputs.get(role) or []]
+        if required and not paths:
+            raise ReflectmmError(f"stage '{self.stage_name}': input '{role}' is missing")
+        return paths
+
+    def param(self, name: str, default: Any = None) -> Any:
+        return self.params.get(name, default)
+
+    def producer(self) -> dict[str, Any]:
+        """Producer record for artifact meta."""
+        return {"stage": self.verb or self.stage_name, "stage_version": self.stage_version,
+                "version": __version__}
+
+    def input_refs(self, relative_to: Path | None = None, files: Mapping[str, Iterable[Path]] | None = None
+                   ) -> list[dict[str, Any]]:
+        """Provenance records (role, relative path, sha256, schema) of the input files."""
+        src = files if files is not None else self.inputs
+        refs = []
+        for role in sorted(src):
+            for p in src[role]:
+                p = Path(p)
+                if p.is_file():
+                    refs.append(input_ref(role, p, relative_to))
+        return refs
+
+    def resolved_params(self) -> dict[str, Any]:
+        """Params that affect results (what goes into meta and the cache key)."""
+        return {k: v for k, v in sorted(self.params.items()) if k not in NON_INVALIDATING}
+
+    def with_(self, **changes: Any) -> "StageContext":
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A registered verb that can run as a recipe stage.
+
+    Attributes:
+        verb: name used on the command line and in recipes.
+        version: bump when the stage's results change for the same inputs and params.
+        run: ``run(ctx) -> list[Path]`` does the work and returns the paths it wrote.
+        per_identity: True if the stage runs once per identity (``foreach``).
+        outputs: ``outputs(ctx) -> list[Path]`` the paths a run will write (for cache checks);
+            default ``[ctx.output_path()]``.
+        input_files: ``input_files(ctx) -> {role: [files]}`` the concrete files whose content
+            keys the cache (e.g. only one identity's images inside a dataset root);
+            default: every file in ``ctx.inputs`` (folders expanded recursively).
+        discover_ids: ``discover_ids(ctx) -> [ids]`` for ``foreach = "all found"``.
+        cache_params: names of params that invalidate results; None means all but
+            :data:`NON_INVALIDATING`.
+        help: one-line description.
+    """
+
+    verb: str
+    version: int
+    run: Callable[[StageContext], list[Path]]
+    per_identity: bool = False
+    outputs: Callable[[StageContext], list[Path]] | None = None
+    input_files: Callable[[StageContext], dict[str, list[Path]]] | None = None
+    discover_ids: Callable[[StageContext], list[str]] | None = None
+    cache_params: tuple[str, ...] | None = None
+    help: str = ""
+
+    def expected_outputs(self, ctx: StageContext) -> list[Path]:
+        return list(self.outputs(ctx)) if self.outputs else [ctx.output_path()]
+
+    def files_to_hash(self, ctx: StageContext) -> dict[str, list[Path]]:
+        if self.input_files is not None:
+            return {k: sorted(Path(p) for p in v) for k, v in self.input_files(ctx).items()}
+        out: dict[str, list[Path]] = {}
+        for role, paths in ctx.inputs.items():
+            files: list[Path] = []
+            for p in paths:
+                p = Path(p)
+                if p.is_dir():
+                    files.extend(sorted(q for q in p.rglob("*") if q.is_file() and not q.name.startswith(".")))
+                else:
+                    files.append(p)
+            out[role] = files
+        return out
+
+    def key_params(self, ctx: StageContext) -> dict[str, Any]:
+        params = ctx.resolved_params()
+        if self.cache_params is not None:
+            params = {k: v for k, v in params.items() if k in self.cache_params}
+        return params
+
+    def context(self, **kwargs: Any) -> StageContext:
+        kwargs.setdefault("stage_name", self.verb)
+        ctx = StageContext(**kwargs)
+        return ctx.with_(verb=self.verb, stage_version=self.version)
+
+
+_REGISTRY: dict[str, Stage] = {}
+
+
+def register_stage(verb: str, version: int = 1, per_identity: bool = False, **kwargs: Any
+                   ) -> Callable[[Callable[[StageContext], list[Path]]], Callable[[StageContext], list[Path]]]:
+    """Decorator registering ``run(ctx) -> list[Path]`` as the stage for ``verb``."""
+
+    def deco(fn: Callable[[StageContext], list[Path]]) -> Callable[[StageContext], list[Path]]:
+        if verb in _REGISTRY and _REGISTRY[verb].run is not fn:
+            raise RuntimeError(f"stage '{verb}' registered twice")
+        _REGISTRY[verb] = Stage(verb=verb, version=version, run=fn, per_identity=per_identity, **kwargs)
+        return fn
+
+    return deco
+
+
+def get_stage(verb: str) -> Stage:
+    load_commands()
+    try:
+        return _REGISTRY[verb]
+    except KeyError:
+        raise ReflectmmError(f"unknown stage verb '{verb}' (known: {', '.join(sorted(_REGISTRY))})") from None
+
+
+def all_stages() -> dict[str, Stage]:
+    load_commands()
+    return dict(_REGISTRY)
+
+
+def load_commands() -> list[Any]:
+    """Import every module in ``reflectmm_cli.commands``; return their click commands."""
+    import importlib
+    import pkgutil
+
+    import reflectmm_cli.commands as pkg
+
+    commands = []
+    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
+        if info.name.startswith("_"):
+            continue
+        mod = importlib.import_module(f"{pkg.__name__}.{info.name}")
+        commands.extend(getattr(mod, "COMMANDS", []))
+    return commands
+
+
+def file_digest(path: Path, cache: dict[str, Any] | None = None) -> str:
+    """sha256 of a file, memoised in ``cache`` by (path, size, mtime_ns) when given."""
+    if cache is None:
+        return sha256_file(path)
+    st = os.stat(path)
+    key = str(Path(path).resolve())
+    hit = cache.get(key)
+    if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+        return hit[2]
+    digest = sha256_file(path)
+    cache[key] = [st.st_size, st.st_mtime_ns, digest]
+    return digest
+
+
+def compute_cache_key(stage: Stage, ctx: StageContext, hash_cache: dict[str, Any] | None = None) -> str:
+    """Cache key = sha256(hash version, verb, stage version, invalidating params, input digests)."""
+    files = stage.files_to_hash(ctx)
+    digests = {role: [file_digest(p, hash_cache) for p in paths] for role, paths in sorted(files.items())}
+    doc = {"hash": CACHE_HASH_VERSION, "verb": stage.verb, "stage_version": stage.version,
+           "identity": ctx.identity, "params": stage.key_params(ctx), "inputs": digests}
+    return hashlib.sha256(canonical_json(doc).encode()).hexdigest()
+
+
+def resolve_device(device: str) -> str:
+    """``auto`` -> ``cuda`` if available else ``cpu``; anything else is checked and returned."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ReflectmmError(f"--device {device}: CUDA is not available on this machine (use --device cpu)")
+    try:
+        torch.device(device)
+    except (RuntimeError, ValueError):
+        raise ReflectmmError(f"--device {device}: not a torch device string") from None
+    return device
