@@ -1,0 +1,37 @@
+"""Shading core: multi-lobe Blinn-Phong BRDF, real spherical harmonics, SH environment lighting and the
+light model (DESIGN.md §2). Conventions and formulas: docs/shading.md.
+
+numpy in → numpy out; any torch tensor in → torch out (differentiable).
+"""
+from .brdf import DEFAULT_EXPONENTS, blinn_phong_norm, shade_directional
+from .env import band_limits, shade_env
+from .envmap import direction_to_equirect, envmap_from_sh, equirect_directions, equirect_weights, project_envmap
+from .sh import (
+    blinn_phong_sh_coeffs,
+    fibonacci_sphere,
+    lambert_sh_coeffs,
+    sh_basis,
+    sh_count,
+    sh_index,
+    sh_rotation,
+)
+
+__all__ = [
+    "DEFAULT_EXPONENTS",
+    "band_limits",
+    "blinn_phong_norm",
+    "blinn_phong_sh_coeffs",
+    "direction_to_equirect",
+    "envmap_from_sh",
+    "equirect_directions",
+    "equirect_weights",
+    "fibonacci_sphere",
+    "lambert_sh_coeffs",
+    "project_envmap",
+    "sh_basis",
+    "sh_count",
+    "sh_index",
+    "sh_rotation",
+    "shade_directional",
+    "shade_env",
+]

@@ -1,0 +1,149 @@
+"""Equirectangular environment maps ↔ real SH coefficients.
+
+Equirectangular convention (latitude–longitude, viewed from *inside* the sphere, like a panorama):
+
+- frame: right-handed, **+y up**, an un-rotated camera looks down **−z**, +x is to its right;
+- row ``i`` (0 = top) has polar angle from +y ``θ_i = π (i + ½) / H``;
+- column ``j`` has azimuth ``φ_j = 2π (j + ½) / W − π``; the image centre (φ = 0) is the −z direction,
+  φ = +π/2 (three quarters across) is +x, the left/right edges are +z (behind the camera);
+- direction ``d = (sin φ sin θ, cos θ, −cos φ sin θ)``.
+
+SH coefficients are in the convention of :mod:`reflectmm_cli.shading.sh` (polar axis +z of that same frame).
+Pixel values are radiance (linear HDR); coefficients are ``K_lm = ∫ L(d) Y_lm(d) dω``.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+from .sh import _check_order, sh_basis_into
+
+__all__ = ["equirect_directions", "equirect_weights", "project_envmap", "envmap_from_sh", "direction_to_equirect"]
+
+_CHUNK = 1 << 16
+
+
+def _angles(width: int, height: int):
+    theta = math.pi * (np.arange(height, dtype=np.float64) + 0.5) / height
+    phi = 2.0 * math.pi * (np.arange(width, dtype=np.float64) + 0.5) / width - math.pi
+    return theta, phi
+
+
+def equirect_directions(width: int, height: int, dtype=np.float64) -> np.ndarray:
+    """Unit direction of every pixel centre, (H, W, 3), in the convention of this module."""
+    theta, phi = _angles(width, height)
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    d = np.stack(np.broadcast_arrays(np.sin(phi)[None, :] * st, ct, -np.cos(phi)[None, :] * st), -1)
+    return d.astype(dtype)
+
+
+def direction_to_equirect(d):
+    """(…, 3) directions → (u, v) in [0, 1)² (u: column fraction, v: row fraction from the top)."""
+    d = np.asarray(d, dtype=np.float64)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    theta = np.arccos(np.clip(d[..., 1], -1.0, 1.0))
+    phi = np.arctan2(d[..., 0], -d[..., 2])
+    return (phi + math.pi) / (2.0 * math.pi) % 1.0, theta / math.pi
+
+
+@lru_cache(maxsize=16)
+def _fejer1(n: int) -> np.ndarray:
+    # Fejér's first rule on x = cos θ, nodes θ_k = π (k + ½)/n: exact for polynomials of degree ≤ n − 1.
+    theta = math.pi * (np.arange(n) + 0.5) / n
+    j = np.arange(1, n // 2 + 1, dtype=np.float64)
+    s = np.zeros(n)
+    for start in range(0, len(j), 512):
+        jj = j[start:start + 512]
+        s += (np.cos(2.0 * np.outer(theta, jj)) / (4.0 * jj * jj - 1.0)).sum(1)
+    return (2.0 / n) * (1.0 - 2.0 * s)
+
+
+def equirect_weights(width: int, height: int, quadrature: str = "fejer") -> np.ndarray:
+    """Solid-angle weight of each row's pixels, (H,) — multiply by every pixel of that row.
+
+    ``"fejer"``: Fejér's first rule in cos θ × uniform azimuth — the pixel centres are exactly its nodes, so the
+    projection is exact for maps band-limited to degree L when ``H ≥ 2L + 1`` and ``W ≥ 2L + 1``.
+    ``"area"``: the exact solid angle of each pixel, ``(2π/W)(cos θ_top − cos θ_bottom)`` (box filter).
+    Both sum to 4π over the map.
+    """
+    if quadrature == "fejer":
+        wt = _fejer1(int(height))
+    elif quadrature == "area":
+        edges = math.pi * np.arange(height + 1, dtype=np.float64) / height
+        wt = np.cos(edges[:-1]) - np.cos(edges[1:])
+    else:
+        raise ReflectmmError(f"project_envmap: quadrature must be 'fejer' or 'area', got {quadrature!r}")
+    return wt * (2.0 * math.pi / width)
+
+
+def _check_image(image, name="image"):
+    img = np.asarray(image)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3 or img.shape[0] < 1 or img.shape[1] < 1:
+        raise ReflectmmError(f"{name}: expected an (H, W, C) equirectangular image, got shape {img.shape}")
+    if img.dtype.kind not in "biuf":
+        raise ReflectmmError(f"{name}: expected numeric pixels, got dtype {img.dtype}")
+    if not np.isfinite(img).all():
+        raise ReflectmmError(f"{name}: contains NaN or inf pixels")
+    return img
+
+
+def project_envmap(image, order: int, *, quadrature: str = "fejer") -> np.ndarray:
+    """SH coefficients of an equirectangular HDR map.
+
+    Args:
+        image: (H, W, C) linear radiance (any H, W; C channels, typically 3), numpy.
+        order: SH order L.
+        quadrature: ``"fejer"`` (default, exact for band-limited maps) or ``"area"`` (pixel solid angles).
+    Returns:
+        (C, (L+1)²) float64 coefficients ``K_lm = Σ_pixels L(d) Y_lm(d) ΔΩ``.
+    """
+    order = _check_order(order)
+    img = _check_image(image)
+    H, W, C = img.shape
+    wrow = equirect_weights(W, H, quadrature)
+    theta, phi = _angles(W, H)
+    sphi, cphi = np.sin(phi), -np.cos(phi)
+    n = (order + 1) ** 2
+    out = np.zeros((C, n), dtype=np.float64)
+    rows_per = max(1, _CHUNK // W)
+    buf = np.empty((n, rows_per * W), dtype=np.float64)
+    for r0 in range(0, H, rows_per):
+        r1 = min(H, r0 + rows_per)
+        st, ct = np.sin(theta[r0:r1]), np.cos(theta[r0:r1])
+        x = (st[:, None] * sphi[None, :]).ravel()
+        y = np.repeat(ct, W)
+        z = (st[:, None] * cphi[None, :]).ravel()
+        Y = sh_basis_into(x, y, z, order, buf[:, : x.shape[0]])
+        L = (img[r0:r1].astype(np.float64) * wrow[r0:r1, None, None]).reshape(-1, C)
+        out += (Y @ L).T
+    return out
+
+
+def envmap_from_sh(coeffs, width: int, height: int) -> np.ndarray:
+    """Evaluate SH coefficients (C, (L+1)²) on an equirectangular grid → (height, width, C) float32."""
+    K = np.asarray(coeffs, dtype=np.float64)
+    if K.ndim == 1:
+        K = K[None]
+    if K.ndim != 2:
+        raise ReflectmmError(f"envmap_from_sh: coeffs must be (C, (L+1)^2), got shape {K.shape}")
+    order = int(round(math.sqrt(K.shape[1]))) - 1
+    if (order + 1) ** 2 != K.shape[1]:
+        raise ReflectmmError(f"envmap_from_sh: {K.shape[1]} coefficients is not a square (L+1)^2")
+    width, height = int(width), int(height)
+    if width < 1 or height < 1:
+        raise ReflectmmError(f"envmap_from_sh: width and height must be ≥ 1, got {width}×{height}")
+    d = equirect_directions(width, height).reshape(-1, 3)
+    out = np.empty((d.shape[0], K.shape[0]), dtype=np.float32)
+    n = K.shape[1]
+    buf = np.empty((n, min(_CHUNK, d.shape[0])), dtype=np.float64)
+    for s in range(0, d.shape[0], _CHUNK):
+        dd = d[s:s + _CHUNK]
+        Y = sh_basis_into(dd[:, 0].copy(), dd[:, 1].copy(), dd[:, 2].copy(), order, buf[:, : dd.shape[0]])
+        out[s:s + dd.shape[0]] = (K @ Y).T
+    return out.reshape(height, width, K.shape[0])
