@@ -21,7 +21,7 @@ DEFAULT_EXPONENTS = (1.0, 8.0, 64.0)
 def _check_exponents(p, tm):
     if p.ndim != 1 or p.shape[0] < 1:
         raise ReflectmmError(f"shading: argument 'exponents' must have shape (K,), got {tuple(p.shape)}")
-    pmin = float(p.min())
+    pmin = float((p.detach() if tm else p).min())
     if pmin <= 0:
         raise ReflectmmError(f"shading: argument 'exponents' must be > 0, got min {pmin}")
 
