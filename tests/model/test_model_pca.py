@@ -1,0 +1,184 @@
+"""PCA reflectance model: orthonormality, exact reconstruction, specular transfer, σ, caps, vertex sampling."""
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.model import (
+    add_vertex_model,
+    fit_reflectance_pca,
+    model_arrays,
+    model_from_arrays,
+    project_maps,
+    sample_model,
+    sample_uv_bilinear,
+)
+
+
+def _data(n=6, S=8, K=3, seed=0, mask=None):
+    rng = np.random.default_rng(seed)
+    A = [rng.uniform(0.1, 0.9, (3, S, S)) for _ in range(n)]
+    W = [rng.uniform(0.0, 0.5, (K, S, S)) for _ in range(n)]
+    if mask is not None:
+        for a, w in zip(A, W):
+            a[:, ~mask] = 0
+            w[:, ~mask] = 0
+    return A, W
+
+
+def test_diffuse_bases_orthonormal_and_sigma_is_sample_std():
+    A, W = _data(n=7)
+    m = fit_reflectance_pca(A, W, (1, 8, 64), components=80)
+    assert m.n_components == 6
+    B = m.albedo_basis.reshape(m.n_components, -1).astype(np.float64)
+    np.testing.assert_allclose(B @ B.T, np.eye(6), atol=1e-5)
+    # σ_k = sample std (ddof=1) of the projections of the training data on b_k (independent computation)
+    X = np.stack(A).reshape(7, -1)
+    proj = (X - X.mean(0)) @ B.T
+    np.testing.assert_allclose(m.sigma, proj.std(0, ddof=1), rtol=1e-5)
+    np.testing.assert_allclose(m.explained_variance, m.sigma ** 2, rtol=1e-6)
+    # ratios sum to 1 when all N-1 components are kept
+    assert abs(m.explained_variance_ratio.sum() - 1) < 1e-5
+    # descending order
+    assert np.all(np.diff(m.sigma) <= 1e-7)
+
+
+def test_exact_reconstruction_with_all_components():
+    A, W = _data(n=5, K=2)
+    m = fit_reflectance_pca(A, W, (4, 32), components=4)
+    for j in range(5):
+        alb, wts = sample_model(m, m.train_coeffs[j])
+        np.testing.assert_allclose(alb, A[j], atol=2e-5)
+        np.testing.assert_allclose(wts, W[j], atol=2e-5)
+        # projecting the albedo gives back the same β
+        np.testing.assert_allclose(project_maps(m, A[j]), m.train_coeffs[j], atol=1e-3)
+
+
+def test_specular_bases_are_the_same_combination_of_samples():
+    """Independent computation: a_kj from a least-squares solve b_k = Σ_j a_kj (x_j − μ) (sklearn-free),
+    then compare Σ_j a_kj (y_j − μ_y) with the model's specular basis."""
+    A, W = _data(n=6, K=3, seed=3)
+    m = fit_reflectance_pca(A, W, (1, 8, 64), components=3)
+    X = np.stack(A).reshape(6, -1)
+    Y = np.stack(W).reshape(6, -1)
+    Xc, Yc = X - X.mean(0), Y - Y.mean(0)
+    for k in range(3):
+        b = m.albedo_basis[k].reshape(-1).astype(np.float64)
+        a, *_ = np.linalg.lstsq(Xc.T, b, rcond=None)  # minimum-norm combination (rows of Xc sum to 0)
+        np.testing.assert_allclose(Xc.T @ a, b, atol=1e-5)
+        np.testing.assert_allclose(m.weights_basis[k].reshape(-1), Yc.T @ a, atol=1e-5)
+    # and the means are the sample means
+    np.testing.assert_allclose(m.weights_mean.reshape(-1), Y.mean(0), atol=1e-6)
+
+
+def test_specular_transfer_against_sklearn_pca():
+    from sklearn.decomposition import PCA
+
+    A, W = _data(n=9, K=3, seed=5)
+    X = np.stack(A).reshape(9, -1)
+    m = fit_reflectance_pca(A, W, (1, 8, 64), components=4)
+    p = PCA(n_components=4, svd_solver="full").fit(X)
+    for k in range(4):
+        b = m.albedo_basis[k].reshape(-1)
+        assert abs(abs(b @ p.components_[k]) - 1) < 1e-5
+    np.testing.assert_allclose(m.explained_variance, p.explained_variance_, rtol=1e-4)
+
+
+def test_component_cap_message_and_rank():
+    A, W = _data(n=4)
+    msgs = []
+    m = fit_reflectance_pca(A, W, (1, 8, 64), components=80, log=msgs.append)
+    assert m.n_components == 3
+    assert any("N - 1 = 3" in s for s in msgs)
+    # duplicated identities reduce the rank: 4 samples, only 2 distinct → rank 1
+    A2, W2 = [A[0], A[0], A[1], A[1]], [W[0], W[0], W[1], W[1]]
+    msgs = []
+    m2 = fit_reflectance_pca(A2, W2, (1, 8, 64), components=3, log=msgs.append)
+    assert m2.n_components == 1
+    assert any("rank 1" in s for s in msgs)
+
+
+def test_bad_input_is_named():
+    A, W = _data(n=3)
+    with pytest.raises(ReflectmmError, match="at least 2"):
+        fit_reflectance_pca(A[:1], W[:1], (1, 8, 64))
+    W[2] = W[2][:2]
+    with pytest.raises(ReflectmmError, match="c: weights have shape"):
+        fit_reflectance_pca(A, W, (1, 8, 64), ids=["a", "b", "c"])
+    A, W = _data(n=3)
+    A[1][0, 0, 0] = np.nan
+    with pytest.raises(ReflectmmError, match="b: albedo contains NaN"):
+        fit_reflectance_pca(A, W, (1, 8, 64), ids=["a", "b", "c"])
+    with pytest.raises(ReflectmmError, match="exponents"):
+        fit_reflectance_pca(*_data(n=3), (1, 8))
+
+
+def test_mask_domain_and_fill():
+    S = 8
+    mask = np.zeros((S, S), bool)
+    mask[1:7, 2:6] = True
+    A, W = _data(n=5, S=S, mask=mask)
+    m = fit_reflectance_pca(A, W, (1, 8, 64), masks=[mask] * 5)
+    assert np.all(m.albedo_basis[:, :, ~mask] == 0) and np.all(m.weights_mean[:, ~mask] == 0)
+    assert m.stats["domain_texels"] == mask.sum() == m.stats["texels_valid_in_all"]
+    # one identity misses a texel: it is filled with the others' mean → that texel's variance comes only
+    # from the identities that cover it
+    masks = [mask.copy() for _ in range(5)]
+    masks[0][3, 3] = False
+    m2 = fit_reflectance_pca(A, W, (1, 8, 64), masks=masks, components=4)
+    mean_others = np.mean([a[:, 3, 3] for a in A[1:]], axis=0)
+    np.testing.assert_allclose(m2.albedo_mean[:, 3, 3], mean_others, atol=1e-6)
+    rec, _ = sample_model(m2, m2.train_coeffs[0])
+    np.testing.assert_allclose(rec[:, 3, 3], mean_others, atol=1e-5)
+    assert m2.stats["texels_valid_in_all"] == mask.sum() - 1
+
+
+def test_torch_sampling_matches_numpy_and_is_differentiable():
+    import torch
+
+    A, W = _data(n=6)
+    m = fit_reflectance_pca(A, W, (1, 8, 64))
+    beta = np.random.default_rng(1).normal(size=(2, 3))
+    a_np, w_np = sample_model(m, beta)
+    bt = torch.tensor(beta, dtype=torch.float64, requires_grad=True)
+    a_t, w_t = sample_model(model_arrays(m), bt)
+    np.testing.assert_allclose(a_t.detach().numpy(), a_np, atol=1e-6)
+    np.testing.assert_allclose(w_t.detach().numpy(), w_np, atol=1e-6)
+    (a_t.sum() + w_t.sum()).backward()
+    # d/dβ_k of Σ albedo = σ_k Σ b_k (closed form)
+    expect = m.sigma[:3] * (m.albedo_basis[:3].reshape(3, -1).sum(1) + m.weights_basis[:3].reshape(3, -1).sum(1))
+    np.testing.assert_allclose(bt.grad.numpy()[0], expect, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ReflectmmError, match="beta must have shape"):
+        sample_model(m, np.zeros(9))
+
+
+@given(st.floats(0.0, 1.0), st.floats(0.0, 1.0))
+def test_bilinear_sampler_reproduces_linear_maps(u, v):
+    """A map linear in (u, v) is reproduced exactly inside the texel-centre range (independent closed form)."""
+    S = 16
+    rows, cols = np.mgrid[0:S, 0:S]
+    uu, vv = (cols + 0.5) / S, (rows + 0.5) / S
+    m = np.stack([2 * uu - 3 * vv + 1, 0.5 * uu + vv])
+    got = sample_uv_bilinear(m, np.array([[u, v]]))[0]
+    uc, vc = np.clip(u, 0.5 / S, 1 - 0.5 / S), np.clip(v, 0.5 / S, 1 - 0.5 / S)
+    np.testing.assert_allclose(got, [2 * uc - 3 * vc + 1, 0.5 * uc + vc], atol=1e-9)
+
+
+def test_vertex_model_is_consistent_with_uv_model():
+    A, W = _data(n=5, S=16)
+    m = fit_reflectance_pca(A, W, (1, 8, 64))
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(0, 1, (50, 2))
+    add_vertex_model(m, uv)
+    assert m.vertex_albedo_basis.shape == (4, 50, 3) and m.vertex_weights_basis.shape == (4, 50, 3)
+    beta = rng.normal(size=4)
+    a_uv, w_uv = sample_model(m, beta)
+    a_v, w_v = sample_model(m, beta, space="vertex")
+    # sampling the UV sample at the vertices = the vertex model's sample (linearity)
+    np.testing.assert_allclose(a_v, sample_uv_bilinear(a_uv, uv), atol=1e-5)
+    np.testing.assert_allclose(w_v, sample_uv_bilinear(w_uv, uv), atol=1e-5)
+    # round trip through the artifact arrays keeps everything
+    m2 = model_from_arrays(model_arrays(m))
+    np.testing.assert_array_equal(m2.vertex_weights_basis, m.vertex_weights_basis)
+    assert m2.ids == m.ids
