@@ -1,0 +1,1 @@
+"""The synthetic world: rig renders, skin reflectance, GGX ground truth and HDR environment maps."""
