@@ -233,13 +233,22 @@ def file_digest(path: Path, cache: dict[str, Any] | None = None) -> str:
     return digest
 
 
-def compute_cache_key(stage: Stage, ctx: StageContext, hash_cache: dict[str, Any] | None = None) -> str:
-    """Cache key = sha256(hash version, verb, stage version, invalidating params, input digests)."""
+def cache_key_doc(stage: Stage, ctx: StageContext, hash_cache: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The document whose canonical JSON the cache key hashes (the planner compares its parts to say why)."""
     files = stage.files_to_hash(ctx)
     digests = {role: [file_digest(p, hash_cache) for p in paths] for role, paths in sorted(files.items())}
-    doc = {"hash": CACHE_HASH_VERSION, "verb": stage.verb, "stage_version": stage.version,
-           "identity": ctx.identity, "params": stage.key_params(ctx), "inputs": digests}
+    return {"hash": CACHE_HASH_VERSION, "verb": stage.verb, "stage_version": stage.version,
+            "identity": ctx.identity, "params": stage.key_params(ctx), "inputs": digests}
+
+
+def key_of_doc(doc: Mapping[str, Any]) -> str:
+    """sha256 of the canonical JSON of a :func:`cache_key_doc` document."""
     return hashlib.sha256(canonical_json(doc).encode()).hexdigest()
+
+
+def compute_cache_key(stage: Stage, ctx: StageContext, hash_cache: dict[str, Any] | None = None) -> str:
+    """Cache key = sha256(hash version, verb, stage version, invalidating params, input digests)."""
+    return key_of_doc(cache_key_doc(stage, ctx, hash_cache))
 
 
 def resolve_device(device: str) -> str:

@@ -38,9 +38,12 @@ def run_checksum(ctx: StageContext) -> list[Path]:
     out = ctx.output_path()
     files = ctx.input_list("files")
     if ctx.param("fail_if_contains"):
+        marker = str(ctx.param("fail_if_contains")).encode()
         for f in files:
-            if f.is_file() and ctx.param("fail_if_contains").encode() in f.read_bytes():
-                raise ReflectmmError(f"contains the marker {ctx.param('fail_if_contains')!r}", f)
+            walk = sorted(q for q in f.rglob("*") if q.is_file() and not q.name.startswith(".")) if f.is_dir() else [f]
+            for q in walk:
+                if q.is_file() and marker in q.read_bytes():
+                    raise ReflectmmError(f"contains the marker {ctx.param('fail_if_contains')!r}", q)
     names, digests, sizes = checksum_files(files)
     write_artifact(out, "checksum", {"names": np.array(names, dtype=str), "sha256": np.array(digests, dtype=str),
                                      "size": np.array(sizes, dtype=np.int64)},

@@ -1,0 +1,293 @@
+"""Executors: run task specs (with dependencies) serially, in a local process pool, or on Dask.
+
+All three share one interface, :meth:`Executor.run`, which takes task specs in a
+topological order and calls ``on_result`` as each finishes.  A task spec is a small
+picklable description (verb + :class:`~reflectmm_cli.stages.StageContext`); the worker
+imports ``reflectmm_cli``, looks the verb up with :func:`~reflectmm_cli.stages.get_stage`
+and calls ``stage.run(ctx)`` (:func:`execute_task`).  A failure travels back as a message
+in the result, never as a pickled exception, and a task whose upstream failed is
+"blocked" without running.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import time
+import traceback
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages import StageContext
+
+log = logging.getLogger("reflectmm")
+
+OK, FAILED, BLOCKED = "ok", "failed", "blocked"
+
+
+@dataclass
+class TaskSpec:
+    """What a worker needs to run one task."""
+
+    tid: str
+    verb: str
+    ctx: StageContext
+    deps: list[str] = field(default_factory=list)
+    key_doc: dict[str, Any] | None = None
+    resources: dict[str, Any] = field(default_factory=dict)
+
+
+def _result(spec: TaskSpec, status: str, *, outputs: list[str] | None = None, cache_key: str | None = None,
+            key_doc: dict[str, Any] | None = None, duration: float = 0.0, error: str | None = None
+            ) -> dict[str, Any]:
+    return {"tid": spec.tid, "status": status, "outputs": outputs or [], "cache_key": cache_key,
+            "key_doc": key_doc, "duration": duration, "error": error}
+
+
+def _error_message(exc: BaseException) -> str:
+    if isinstance(exc, ReflectmmError):
+        return str(exc)
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())[:400]}"
+
+
+def blocked_by(spec: TaskSpec, upstream: list[dict[str, Any]]) -> dict[str, Any] | None:
+    bad = [u for u in upstream if u["status"] != OK]
+    if not bad:
+        return None
+    return _result(spec, BLOCKED, error=f"upstream {bad[0]['tid']} {bad[0]['status']}")
+
+
+def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
+    """Run one task in this process; return a plain result dict (never raises).
+
+    ``upstream`` are the results of the tasks this one depends on (a failed or blocked
+    one blocks this task).  The cache key is computed here when the planner could not
+    (its inputs did not exist yet).
+    """
+    blocked = blocked_by(spec, list(upstream))
+    if blocked is not None:
+        return blocked
+    from reflectmm_cli.stages import cache_key_doc, get_stage, key_of_doc
+
+    t0 = time.perf_counter()
+    doc = spec.key_doc
+    key = None
+    try:
+        stage = get_stage(spec.verb)
+        if doc is None:
+            doc = cache_key_doc(stage, spec.ctx)
+        key = key_of_doc(doc)
+        ctx = spec.ctx.with_(cache_key=key)
+        if ctx.device and ctx.device != "cpu":
+            from reflectmm_cli.stages import resolve_device
+
+            ctx = ctx.with_(device=resolve_device(ctx.device))
+        written = [str(p) for p in (stage.run(ctx) or [])]
+        missing = [str(p) for p in stage.expected_outputs(ctx) if not Path(p).exists()]
+        if missing:
+            raise ReflectmmError(f"stage '{spec.verb}' finished without writing {missing[0]}")
+        return _result(spec, OK, outputs=written, cache_key=key, key_doc=doc,
+                       duration=time.perf_counter() - t0)
+    except FileNotFoundError as exc:
+        return _result(spec, FAILED, cache_key=key, duration=time.perf_counter() - t0,
+                       error=f"{exc.filename}: file not found" if exc.filename else _error_message(exc))
+    except Exception as exc:  # noqa: BLE001 - any failure of one task is reported, the others go on
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s failed:\n%s", spec.tid, traceback.format_exc())
+        return _result(spec, FAILED, cache_key=key, duration=time.perf_counter() - t0, error=_error_message(exc))
+
+
+OnResult = Callable[[dict[str, Any]], None]
+
+
+class Executor:
+    """Runs task specs with dependencies.  Use as a context manager (pools/clusters are shut down)."""
+
+    name = "base"
+
+    def __enter__(self) -> "Executor":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        pass
+
+    def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
+        """Run ``specs`` (topologically ordered; ``deps`` name specs in the same list)."""
+        raise NotImplementedError
+
+
+class SerialExecutor(Executor):
+    """In this process, one task after another (the reference for the others)."""
+
+    name = "serial"
+
+    def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
+        results: dict[str, dict[str, Any]] = {}
+        for spec in specs:
+            res = execute_task(spec, *[results[d] for d in spec.deps])
+            results[spec.tid] = res
+            on_result(res)
+        return results
+
+
+def _mp_context():
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+class PoolExecutor(Executor):
+    """A local process pool (``--jobs N``) started with forkserver/spawn (no forked torch state)."""
+
+    name = "pool"
+
+    def __init__(self, jobs: int = 1):
+        self.jobs = max(1, int(jobs))
+        self._pool: ProcessPoolExecutor | None = None
+
+    def _get_pool(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=_mp_context())
+        return self._pool
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
+        results: dict[str, dict[str, Any]] = {}
+        pending = list(specs)
+        running: dict[Any, TaskSpec] = {}
+        pool = self._get_pool() if specs else None
+        while pending or running:
+            still: list[TaskSpec] = []
+            for spec in pending:
+                if all(d in results for d in spec.deps):
+                    blocked = blocked_by(spec, [results[d] for d in spec.deps])
+                    if blocked is not None:
+                        results[spec.tid] = blocked
+                        on_result(blocked)
+                    else:
+                        running[pool.submit(execute_task, spec)] = spec
+                else:
+                    still.append(spec)
+            pending = still
+            if not running:
+                if pending:  # deps outside the batch would never finish
+                    raise ReflectmmError(f"internal: task {pending[0].tid} waits on unknown {pending[0].deps}")
+                break
+            done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for fut in done:
+                spec = running.pop(fut)
+                try:
+                    res = fut.result()
+                except Exception as exc:  # noqa: BLE001 - e.g. a worker killed by the OOM killer
+                    res = _result(spec, FAILED, error=f"worker process failed: {_error_message(exc)}")
+                results[spec.tid] = res
+                on_result(res)
+        return results
+
+
+class DaskExecutor(Executor):
+    """Dask distributed: an existing scheduler (``tcp://host:port``) or a new ``LocalCluster``.
+
+    Tasks are submitted with their upstream futures as arguments, so Dask schedules the
+    DAG; results are collected as they complete.  Recipe ``resources`` are passed to Dask
+    only for resource names the cluster's workers declare (``dask worker --resources
+    "cpus=8,memory=64e9"``), so a cluster without them still runs every task.
+    """
+
+    name = "dask"
+
+    def __init__(self, jobs: int = 1, scheduler: str | None = None):
+        self.jobs = max(1, int(jobs))
+        self.scheduler = scheduler
+        self._client = None
+        self._cluster = None
+
+    def _get_client(self):
+        if self._client is None:
+            try:
+                from distributed import Client, LocalCluster
+            except ImportError as exc:  # pragma: no cover - dependency is mandatory
+                raise ReflectmmError(f"--executor dask needs dask[distributed]: {exc}") from None
+            if self.scheduler:
+                try:
+                    self._client = Client(self.scheduler, timeout="20s")
+                except (OSError, TimeoutError) as exc:
+                    raise ReflectmmError(f"--scheduler {self.scheduler}: cannot connect ({exc})") from None
+            else:
+                self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
+                                             dashboard_address=None)
+                self._client = Client(self._cluster)
+            log.info("dask: %s", self._client.dashboard_link if self._client.dashboard_link else self._client)
+        return self._client
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def _worker_resources(self, client) -> set[str]:
+        names: set[str] = set()
+        try:
+            for w in client.scheduler_info().get("workers", {}).values():
+                names.update((w.get("resources") or {}).keys())
+        except Exception:  # noqa: BLE001 - informational only
+            pass
+        return names
+
+    def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
+        if not specs:
+            return {}
+        from dask.utils import parse_bytes
+        from distributed import as_completed
+
+        client = self._get_client()
+        known = self._worker_resources(client)
+        token = os.urandom(4).hex()
+        futures: dict[str, Any] = {}
+        by_key: dict[str, TaskSpec] = {}
+        for spec in specs:
+            res = {}
+            for k, v in (spec.resources or {}).items():
+                if k in known:
+                    res[k] = parse_bytes(v) if isinstance(v, str) else float(v)
+            fut = client.submit(execute_task, spec, *[futures[d] for d in spec.deps],
+                                key=f"reflectmm-{spec.tid.replace('/', '-')}-{token}", pure=False,
+                                resources=res or None, retries=0)
+            futures[spec.tid] = fut
+            by_key[fut.key] = spec
+        results: dict[str, dict[str, Any]] = {}
+        for fut in as_completed(list(futures.values())):
+            spec = by_key[fut.key]
+            try:
+                res = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a lost worker, a deserialisation error...
+                res = _result(spec, FAILED, error=f"dask: {_error_message(exc)}")
+            results[spec.tid] = res
+            on_result(res)
+        return results
+
+
+def make_executor(kind: str = "serial", jobs: int = 1, scheduler: str | None = None) -> Executor:
+    kind = (kind or "serial").lower()
+    if scheduler and kind != "dask":
+        raise ReflectmmError("--scheduler needs --executor dask")
+    if kind == "serial":
+        return SerialExecutor()
+    if kind == "pool":
+        return PoolExecutor(jobs)
+    if kind == "dask":
+        return DaskExecutor(jobs, scheduler)
+    raise ReflectmmError(f"unknown executor '{kind}' (serial, pool, dask)")

@@ -1,0 +1,439 @@
+"""The planner: a recipe + a workspace -> tasks (stage, identity) that run or skip, and why.
+
+A task is skipped when its cache key (:func:`reflectmm_cli.stages.cache_key_doc`: hash
+version, verb, stage version, invalidating params, sha256 of every input file) is
+unchanged *and* its outputs are present and valid: the primary output's meta carries
+that cache key (NPZ/EXR artifacts), or the sidecar record in
+``<workspace>/.reflectmm/records/`` does and the outputs' sha256 still match.
+
+File hashes are memoised by (path, size, mtime_ns) in ``<workspace>/.reflectmm/hashes.json``
+so a no-op rerun reads no file content it has hashed before.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from reflectmm_cli.artifacts import atomic_write_text, canonical_json, read_meta
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.recipes.recipe import ALL_FOUND, Recipe, Ref, StageSpec
+from reflectmm_cli.stages import Stage, StageContext, cache_key_doc, file_digest, get_stage, key_of_doc
+
+log = logging.getLogger("reflectmm")
+
+STATE_DIR = ".reflectmm"
+HASHES_FILE = "hashes.json"
+RECORDS_DIR = "records"
+RUNLOG_FILE = "runlog.jsonl"
+
+# task actions
+RUN, SKIP, BLOCKED, ERROR, DEFERRED, FAILED = "run", "skip", "blocked", "error", "deferred", "failed"
+
+
+def state_dir(workspace: Path) -> Path:
+    return Path(workspace) / STATE_DIR
+
+
+def task_id(stage: str, identity: str | None) -> str:
+    return stage if identity is None else f"{stage}/{identity}"
+
+
+# --------------------------------------------------------------------------- persistent state
+
+def load_hash_memo(workspace: Path) -> dict[str, Any]:
+    """The stat-keyed sha256 memo of the workspace (empty if none or unreadable)."""
+    p = state_dir(workspace) / HASHES_FILE
+    try:
+        memo = json.loads(p.read_text())
+        return memo if isinstance(memo, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def save_hash_memo(workspace: Path, memo: dict[str, Any]) -> None:
+    live = {k: v for k, v in memo.items() if os.path.exists(k)}
+    atomic_write_text(state_dir(workspace) / HASHES_FILE, json.dumps(live, sort_keys=True, separators=(",", ":")))
+
+
+def record_path(workspace: Path, stage: str, identity: str | None) -> Path:
+    return state_dir(workspace) / RECORDS_DIR / stage / f"{identity if identity is not None else '_'}.json"
+
+
+def read_record(workspace: Path, stage: str, identity: str | None) -> dict[str, Any] | None:
+    try:
+        rec = json.loads(record_path(workspace, stage, identity).read_text())
+        return rec if isinstance(rec, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def write_record(workspace: Path, stage: str, identity: str | None, cache_key: str, key_doc: dict[str, Any] | None,
+                 outputs: list[Path], memo: dict[str, Any] | None) -> None:
+    """Sidecar record of a successful task: its key, the key's parts and its outputs' sha256."""
+    outs = []
+    for p in outputs:
+        p = Path(p)
+        if p.is_file():
+            outs.append({"path": os.path.relpath(p, workspace), "sha256": file_digest(p, memo)})
+    rec = {"cache_key": cache_key, "doc": key_doc, "outputs": outs}
+    atomic_write_text(record_path(workspace, stage, identity), canonical_json(rec))
+
+
+# --------------------------------------------------------------------------- plan data
+
+@dataclass
+class Task:
+    """One stage run for one identity (or once), with its planned action and reason."""
+
+    tid: str
+    stage_name: str
+    verb: str
+    identity: str | None
+    ctx: StageContext | None
+    deps: list[str] = field(default_factory=list)
+    resources: dict[str, Any] = field(default_factory=dict)
+    action: str = RUN
+    reason: str = ""
+    cache_key: str | None = None
+    key_doc: dict[str, Any] | None = None
+    outputs: list[Path] = field(default_factory=list)
+    selected: bool = True
+
+    def row(self) -> dict[str, Any]:
+        return {"stage": self.stage_name, "id": self.identity, "action": self.action, "reason": self.reason,
+                "cache_key": self.cache_key, "outputs": [str(p) for p in self.outputs]}
+
+
+@dataclass
+class Plan:
+    recipe: Recipe
+    workspace: Path
+    tasks: dict[str, Task]
+    stage_tasks: dict[str, list[str]]
+    deferred: list[str]
+
+    def selected(self) -> list[Task]:
+        return [t for t in self.tasks.values() if t.selected]
+
+    def counts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for t in self.selected():
+            out[t.action] = out.get(t.action, 0) + 1
+        return out
+
+
+class _PlanError(Exception):
+    """A problem with one task (it fails at run time; other tasks go on)."""
+
+
+# --------------------------------------------------------------------------- planner
+
+def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only: str | None = None,
+              ids: list[str] | None = None, hash_memo: dict[str, Any] | None = None,
+              prior: dict[str, str] | None = None) -> Plan:
+    """Plan a run.
+
+    Args:
+        force: ``"*"`` forces every task, a stage name forces that stage's tasks.
+        only: run only this stage's tasks; upstream outputs must already exist.
+        ids: restrict per-identity stages to these identities; aggregate stages that
+            depend on per-identity stages are then not run.
+        hash_memo: the stat-keyed sha256 memo (updated in place).
+        prior: task id -> status from an earlier round of the same run (failed tasks are
+            not retried, their dependents are blocked).
+    """
+    workspace = Path(workspace).resolve()
+    prior = prior or {}
+    stages: dict[str, Stage] = {}
+    for name, spec in recipe.stages.items():
+        try:
+            stages[name] = get_stage(spec.verb)
+        except ReflectmmError as exc:
+            raise ReflectmmError(f"[stages.{name}]: {exc}", recipe.path) from None
+        if stages[name].per_identity and not spec.per_identity:
+            raise ReflectmmError(f"[stages.{name}]: verb '{spec.verb}' runs per identity; give foreach "
+                                 f'(a list of ids, {{ file = "ids.txt" }} or "{ALL_FOUND}")', recipe.path)
+    for opt, val in (("--force", force), ("--only", only)):
+        if val is not None and val != "*" and val not in recipe.stages:
+            raise ReflectmmError(f"{opt}: unknown stage '{val}' (stages: {', '.join(recipe.stages)})")
+
+    order = recipe.order()
+    per_id_closure: dict[str, bool] = {}
+    for name in order:
+        spec = recipe.stages[name]
+        per_id_closure[name] = spec.per_identity or any(per_id_closure[u] for u in spec.upstream())
+
+    tasks: dict[str, Task] = {}
+    stage_tasks: dict[str, list[str]] = {}
+    deferred: list[str] = []
+    for name in order:
+        spec, stage = recipe.stages[name], stages[name]
+        if any(u in deferred for u in spec.upstream()):
+            deferred.append(name)
+            continue
+        selected = (only is None or only == name)
+        if ids is not None and not spec.per_identity and per_id_closure[name]:
+            selected = False  # an aggregate over identities is never built from a --ids subset
+        stage_ids = _stage_ids(recipe, spec, stage, workspace, tasks, stage_tasks, hash_memo)
+        if stage_ids is _DEFER:
+            deferred.append(name)
+            continue
+        if ids is not None and spec.per_identity:
+            wanted = set(ids)
+            stage_ids = [i for i in stage_ids if i in wanted]
+        stage_tasks[name] = []
+        for ident in stage_ids:
+            t = _make_task(spec, stage, workspace, ident, tasks, stage_tasks)
+            t.selected = selected
+            tasks[t.tid] = t
+            stage_tasks[name].append(t.tid)
+            if t.tid in prior and prior[t.tid] in (FAILED, BLOCKED):
+                t.action, t.reason = FAILED if prior[t.tid] == FAILED else BLOCKED, "failed earlier in this run"
+                continue
+            _decide(t, stage, tasks, workspace, hash_memo, forced=(force == "*" or force == name))
+    return Plan(recipe, workspace, tasks, stage_tasks, deferred)
+
+
+_DEFER = object()
+
+
+def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, tasks: dict[str, Task],
+               stage_tasks: dict[str, list[str]], memo: dict[str, Any] | None) -> Any:
+    fe = spec.foreach
+    if fe is None:
+        return [None]
+    if isinstance(fe, list):
+        return list(fe)
+    if isinstance(fe, dict):
+        from reflectmm_cli.commands._common import parse_ids
+
+        p = Path(fe["file"])
+        p = p if p.is_absolute() else workspace / p
+        if not p.is_file():
+            raise ReflectmmError(f"[stages.{spec.name}] foreach file not found: {p}", recipe.path)
+        return parse_ids(None, p)
+    # "all found"
+    if stage.discover_ids is not None:
+        upstream_tasks = [tid for u in spec.upstream() for tid in stage_tasks.get(u, [])]
+        if any(tasks[t].action in (RUN, ERROR, BLOCKED, FAILED) if tasks[t].selected else
+               not all(Path(p).exists() for p in tasks[t].outputs) for t in upstream_tasks):
+            return _DEFER  # ids are known once the upstream outputs exist
+        ctx = stage.context(workspace=workspace, stage_name=spec.name, identity=None, params=dict(spec.params))
+        try:
+            inputs, _ = _resolve_inputs(spec, ctx, workspace, tasks, stage_tasks, identity=None, aggregate=True)
+        except _PlanError as exc:
+            raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": {exc}', recipe.path) from None
+        found = list(stage.discover_ids(ctx.with_(inputs=inputs)))
+        if not found:
+            log.warning("stage %s: foreach = \"all found\" found no identities", spec.name)
+        return [str(i) for i in found]
+    for u in spec.upstream():
+        if recipe.stages[u].per_identity:
+            return [tasks[t].identity for t in stage_tasks.get(u, [])]
+    raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": verb \'{spec.verb}\' cannot discover '
+                         f"identities and no upstream stage runs per identity; list the ids", recipe.path)
+
+
+def _make_task(spec: StageSpec, stage: Stage, workspace: Path, ident: str | None,
+               tasks: dict[str, Task], stage_tasks: dict[str, list[str]]) -> Task:
+    tid = task_id(spec.name, ident)
+    params = dict(spec.params)
+    device = str(params.get("device", "cpu"))
+    ctx = stage.context(workspace=workspace, stage_name=spec.name, identity=ident, params=params, device=device)
+    task = Task(tid, spec.name, spec.verb, ident, ctx, resources=dict(spec.resources))
+    try:
+        inputs, deps = _resolve_inputs(spec, ctx, workspace, tasks, stage_tasks, ident, aggregate=ident is None)
+        for pname, ref in spec.param_refs.items():
+            paths, pdeps = _resolve_ref(ref, spec, workspace, tasks, stage_tasks, ident, ident is None)
+            params[pname] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
+            deps += [d for d in pdeps if d not in deps]
+        task.ctx = ctx.with_(inputs=inputs, params=params)
+        task.deps = deps
+        task.outputs = [Path(p) for p in stage.expected_outputs(task.ctx)]
+    except _PlanError as exc:
+        task.action, task.reason = ERROR, str(exc)
+        task.outputs = [ctx.output_path()]
+    return task
+
+
+def _resolve_inputs(spec: StageSpec, ctx: StageContext, workspace: Path, tasks: dict[str, Task],
+                    stage_tasks: dict[str, list[str]], identity: str | None, aggregate: bool
+                    ) -> tuple[dict[str, list[Path]], list[str]]:
+    inputs: dict[str, list[Path]] = {}
+    deps: list[str] = []
+    for role, items in spec.inputs.items():
+        paths: list[Path] = []
+        for it in items:
+            if isinstance(it, Ref):
+                got, d = _resolve_ref(it, spec, workspace, tasks, stage_tasks, identity, aggregate)
+                paths += got
+                deps += [x for x in d if x not in deps]
+            else:
+                paths += _resolve_path(it, role, workspace, identity)
+        inputs[role] = paths
+    return inputs, deps
+
+
+def _resolve_path(text: str, role: str, workspace: Path, identity: str | None) -> list[Path]:
+    if "{id}" in text:
+        if identity is None:
+            raise _PlanError(f"input '{role}': '{text}' uses {{id}} but the stage has no foreach")
+        text = text.replace("{id}", identity)
+    p = Path(os.path.expanduser(text))
+    p = p if p.is_absolute() else workspace / p
+    if glob.has_magic(str(p)):
+        found = sorted(Path(q) for q in glob.glob(str(p)))
+        if not found:
+            raise _PlanError(f"input '{role}': no file matches {p}")
+        return found
+    if not p.exists():
+        raise _PlanError(f"input '{role}' not found: {p}")
+    return [p]
+
+
+def _resolve_ref(ref: Ref, spec: StageSpec, workspace: Path, tasks: dict[str, Task],
+                 stage_tasks: dict[str, list[str]], identity: str | None, aggregate: bool
+                 ) -> tuple[list[Path], list[str]]:
+    producer = stage_tasks.get(ref.stage, [])
+    if not producer:
+        raise _PlanError(f"{ref}: stage '{ref.stage}' has no tasks (no identities selected?)")
+    prod_per_id = tasks[producer[0]].identity is not None
+    if ref.what == "dir":
+        folder = tasks[producer[0]].ctx.output_path().parent if tasks[producer[0]].ctx else workspace / ref.stage
+        sub = ref.sub or ""
+        if "{id}" in sub:
+            if identity is None:
+                raise _PlanError(f"{ref} uses {{id}} but stage '{spec.name}' has no foreach")
+            sub = sub.replace("{id}", identity)
+        return [folder / sub.lstrip("/") if sub.strip("/") else folder], list(producer)
+    if prod_per_id and not aggregate:
+        tid = task_id(ref.stage, identity)
+        if tid not in tasks:
+            raise _PlanError(f"{ref}: stage '{ref.stage}' has no identity '{identity}'")
+        chosen = [tid]
+    else:
+        chosen = list(producer)
+    paths: list[Path] = []
+    for tid in chosen:
+        outs = tasks[tid].outputs
+        if ref.what == "output":
+            paths.append(outs[0])
+        else:
+            match = [p for p in outs if p.name == ref.name or p.stem == ref.name]
+            if not match:
+                raise _PlanError(f"{ref}: stage '{ref.stage}' has no output named '{ref.name}' "
+                                 f"(outputs: {', '.join(p.name for p in outs)})")
+            paths.append(match[0])
+    return paths, chosen
+
+
+def _decide(t: Task, stage: Stage, tasks: dict[str, Task], workspace: Path, memo: dict[str, Any] | None,
+            forced: bool) -> None:
+    if t.action == ERROR:
+        return
+    if not t.selected:
+        t.action, t.reason = SKIP, "not selected"
+        return
+    for d in t.deps:
+        up = tasks[d]
+        if up.selected and up.action in (ERROR, BLOCKED, FAILED):
+            t.action, t.reason = BLOCKED, f"upstream {d} {'failed' if up.action != BLOCKED else 'is blocked'}"
+            return
+        if not up.selected:
+            missing = [p for p in up.outputs if not Path(p).exists()]
+            if missing:
+                t.action = ERROR
+                t.reason = f"needs {d}, whose output {missing[0]} is missing (not selected by --only/--ids)"
+                return
+    upstream_runs = [d for d in t.deps if tasks[d].selected and tasks[d].action == RUN]
+    if forced:
+        t.action, t.reason = RUN, "forced"
+    elif upstream_runs:
+        t.action = RUN
+        more = f" +{len(upstream_runs) - 1}" if len(upstream_runs) > 1 else ""
+        t.reason = f"upstream reruns ({upstream_runs[0]}{more})"
+        return  # the key is computed once the inputs exist
+    try:
+        doc = cache_key_doc(stage, t.ctx, memo)
+    except (FileNotFoundError, ReflectmmError) as exc:
+        t.action, t.reason = ERROR, f"cannot hash inputs: {exc}"
+        return
+    t.key_doc, t.cache_key = doc, key_of_doc(doc)
+    if forced:
+        return
+    missing = [p for p in t.outputs if not Path(p).exists()]
+    if missing:
+        t.action, t.reason = RUN, "no output" if len(missing) == len(t.outputs) else f"output missing: {missing[0]}"
+        return
+    primary = Path(t.outputs[0])
+    record = read_record(workspace, t.stage_name, t.identity)
+    meta_key = None
+    if primary.suffix.lower() in (".npz", ".exr") and primary.is_file():
+        try:
+            meta = read_meta(primary)
+        except ReflectmmError as exc:
+            t.action, t.reason = RUN, f"output invalid ({_short(exc)})"
+            return
+        meta_key = meta.get("cache_key")
+        if meta_key == t.cache_key:
+            t.action, t.reason = SKIP, "up to date"
+            return
+        if meta_key is not None:
+            t.action, t.reason = RUN, _why(record, doc, meta)
+            return
+    # no key in the output itself: the sidecar record vouches for the outputs
+    if record and record.get("cache_key") == t.cache_key:
+        for o in record.get("outputs", []):
+            p = workspace / o["path"]
+            try:
+                if file_digest(p, memo) != o["sha256"]:
+                    t.action, t.reason = RUN, f"output modified: {p}"
+                    return
+            except FileNotFoundError:
+                t.action, t.reason = RUN, f"output missing: {p}"
+                return
+        t.action, t.reason = SKIP, "up to date"
+        return
+    t.action = RUN
+    t.reason = _why(record, doc, None) if record else "no record of this output (unknown provenance)"
+
+
+def _short(exc: Exception) -> str:
+    msg = str(exc)
+    return msg.split(": ", 1)[1] if ": " in msg else msg
+
+
+def _why(record: dict[str, Any] | None, doc: dict[str, Any], meta: dict[str, Any] | None) -> str:
+    old = (record or {}).get("doc")
+    if isinstance(old, dict):
+        if old.get("verb") != doc["verb"]:
+            return f"verb changed ({old.get('verb')} -> {doc['verb']})"
+        if old.get("stage_version") != doc["stage_version"]:
+            return f"stage version changed ({old.get('stage_version')} -> {doc['stage_version']})"
+        if old.get("hash") != doc["hash"]:
+            return "cache key definition changed"
+        op, np_ = old.get("params") or {}, doc["params"]
+        changed = sorted(k for k in set(op) | set(np_) if op.get(k) != np_.get(k))
+        if changed:
+            return f"params changed ({', '.join(changed)})"
+        oi, ni = old.get("inputs") or {}, doc["inputs"]
+        roles = sorted(r for r in set(oi) | set(ni) if oi.get(r) != ni.get(r))
+        if roles:
+            return f"input changed ({', '.join(roles)})"
+        return "cache key changed"
+    if meta is not None:
+        prod = meta.get("producer") or {}
+        if prod.get("stage_version") not in (None, doc["stage_version"]):
+            return f"stage version changed ({prod.get('stage_version')} -> {doc['stage_version']})"
+        mp = meta.get("params") or {}
+        changed = sorted(k for k in set(mp) | set(doc["params"]) if mp.get(k) != doc["params"].get(k))
+        if changed:
+            return f"params changed ({', '.join(changed)})"
+        return "input changed"
+    return "cache key changed"

@@ -1,0 +1,287 @@
+"""Recipe files: parsing and validation of ``reflectmm.recipe/1`` TOML.
+
+A recipe names stages, the verb each runs, its params, its inputs (references to other
+stages' outputs or workspace paths) and whether it fans out over identities::
+
+    schema = "reflectmm.recipe/1"
+    name = "demo"
+
+    [defaults]                      # merged into every stage's params (a stage's own params win)
+    device = "cpu"
+
+    [stages.manifest]
+    verb = "checksum"
+    foreach = ["001", "002"]        # or { file = "ids.txt" } or "all found"
+    inputs = { files = "data/{id}" }
+    params = { }
+    resources = { cpus = 1, memory = "2GB" }
+
+    [stages.summary]
+    verb = "checksum"
+    inputs = { files = "@manifest.output" }   # every identity's output
+
+Paths are relative to the workspace; ``{id}`` is replaced by the identity in per-identity
+stages.  See docs/recipes.md for the full semantics.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from reflectmm_cli.errors import ReflectmmError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+RECIPE_SCHEMA = "reflectmm.recipe"
+RECIPE_MAJOR = 1
+
+ALL_FOUND = "all found"
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+#: ``@stage.output``, ``@stage.outputs.<name>``, ``@stage.dir`` or ``@stage.dir/sub/path``.
+_REF_RE = re.compile(r"^@(?P<stage>[A-Za-z0-9_][A-Za-z0-9_.-]*?)\.(?P<what>output|outputs\.(?P<name>[^/]+)|dir)"
+                     r"(?P<sub>/.*)?$")
+
+_STAGE_KEYS = {"verb", "params", "inputs", "foreach", "resources", "help", "description"}
+_TOP_KEYS = {"schema", "name", "description", "defaults", "stages"}
+
+
+@dataclass(frozen=True)
+class Ref:
+    """A reference to another stage's output(s): ``@stage.output`` / ``.outputs.NAME`` / ``.dir[/sub]``."""
+
+    stage: str
+    what: str  # "output", "outputs", "dir"
+    name: str | None = None
+    sub: str | None = None
+
+    def __str__(self) -> str:
+        base = f"@{self.stage}." + ("outputs." + self.name if self.what == "outputs" else self.what)
+        return base + (self.sub or "")
+
+
+@dataclass
+class StageSpec:
+    """One ``[stages.<name>]`` table."""
+
+    name: str
+    verb: str
+    params: dict[str, Any] = field(default_factory=dict)
+    #: role -> list of items, each a :class:`Ref` or a path string (may contain ``{id}`` and globs).
+    inputs: dict[str, list[Ref | str]] = field(default_factory=dict)
+    #: None (runs once), a list of ids, ``{"file": path}``, or :data:`ALL_FOUND`.
+    foreach: list[str] | dict[str, str] | str | None = None
+    resources: dict[str, Any] = field(default_factory=dict)
+    #: params whose string values are references (name -> Ref), resolved to paths at plan time.
+    param_refs: dict[str, Ref] = field(default_factory=dict)
+
+    @property
+    def per_identity(self) -> bool:
+        return self.foreach is not None
+
+    def upstream(self) -> list[str]:
+        """Names of the stages this one references (inputs and params), in first-seen order."""
+        seen: list[str] = []
+        for items in self.inputs.values():
+            for it in items:
+                if isinstance(it, Ref) and it.stage not in seen:
+                    seen.append(it.stage)
+        for ref in self.param_refs.values():
+            if ref.stage not in seen:
+                seen.append(ref.stage)
+        return seen
+
+
+@dataclass
+class Recipe:
+    path: Path
+    name: str
+    defaults: dict[str, Any]
+    stages: dict[str, StageSpec]
+
+    def order(self) -> list[str]:
+        """Stage names in a topological order (ties keep the file's order)."""
+        return topological_order(self)
+
+
+def parse_ref(value: str, where: str, path: Path) -> Ref | None:
+    """A :class:`Ref` if ``value`` starts with ``@``, else None; a clear error if it is malformed."""
+    if not value.startswith("@"):
+        return None
+    m = _REF_RE.match(value)
+    if not m:
+        raise ReflectmmError(f"{where}: malformed reference {value!r} (expected @stage.output, "
+                             f"@stage.outputs.NAME or @stage.dir[/sub/path])", path)
+    what = m.group("what")
+    if what.startswith("outputs."):
+        return Ref(m.group("stage"), "outputs", m.group("name"), m.group("sub"))
+    if what == "output" and m.group("sub"):
+        raise ReflectmmError(f"{where}: {value!r}: a sub-path is only allowed after @stage.dir", path)
+    return Ref(m.group("stage"), what, None, m.group("sub"))
+
+
+def _type_error(where: str, expected: str, got: Any, path: Path) -> ReflectmmError:
+    return ReflectmmError(f"{where}: expected {expected}, got {type(got).__name__} {got!r}", path)
+
+
+def parse_recipe_text(text: str, path: Path) -> Recipe:
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ReflectmmError(f"invalid TOML: {exc}", path) from None
+    return _build(doc, path)
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Read and validate a recipe file; raise :class:`ReflectmmError` naming the file on any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ReflectmmError("recipe not found", path) from None
+    except IsADirectoryError:
+        raise ReflectmmError("is a directory, expected a recipe .toml file", path) from None
+    except UnicodeDecodeError:
+        raise ReflectmmError("not a text (UTF-8) file", path) from None
+    return parse_recipe_text(text, path)
+
+
+def _build(doc: dict[str, Any], path: Path) -> Recipe:
+    schema = doc.get("schema")
+    if schema is None:
+        raise ReflectmmError(f'missing schema (add: schema = "{RECIPE_SCHEMA}/{RECIPE_MAJOR}")', path)
+    if not isinstance(schema, str) or not schema.startswith(RECIPE_SCHEMA + "/"):
+        raise ReflectmmError(f"schema {schema!r} is not a reflectmm recipe "
+                             f"(expected \"{RECIPE_SCHEMA}/{RECIPE_MAJOR}\")", path)
+    try:
+        major = int(schema.rsplit("/", 1)[1])
+    except ValueError:
+        raise ReflectmmError(f"malformed schema {schema!r}", path) from None
+    if major > RECIPE_MAJOR:
+        raise ReflectmmError(f"recipe schema {schema} is newer than this reflectmm reads "
+                             f"(up to {RECIPE_SCHEMA}/{RECIPE_MAJOR}); upgrade reflectmm", path)
+    unknown = set(doc) - _TOP_KEYS
+    if unknown:
+        raise ReflectmmError(f"unknown top-level key(s): {', '.join(sorted(unknown))} "
+                             f"(allowed: {', '.join(sorted(_TOP_KEYS))})", path)
+    name = doc.get("name", path.stem)
+    if not isinstance(name, str):
+        raise _type_error("name", "a string", name, path)
+    defaults = doc.get("defaults", {})
+    if not isinstance(defaults, dict):
+        raise _type_error("[defaults]", "a table", defaults, path)
+    stages_doc = doc.get("stages")
+    if not isinstance(stages_doc, dict) or not stages_doc:
+        raise ReflectmmError("no [stages.<name>] tables", path)
+
+    stages: dict[str, StageSpec] = {}
+    for sname, sdoc in stages_doc.items():
+        where = f"[stages.{sname}]"
+        if not _NAME_RE.match(sname) or sname.startswith("."):
+            raise ReflectmmError(f"{where}: bad stage name (letters, digits, _ . - only)", path)
+        if not isinstance(sdoc, dict):
+            raise _type_error(where, "a table", sdoc, path)
+        unknown = set(sdoc) - _STAGE_KEYS
+        if unknown:
+            raise ReflectmmError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} "
+                                 f"(allowed: {', '.join(sorted(_STAGE_KEYS))})", path)
+        verb = sdoc.get("verb", sname)
+        if not isinstance(verb, str):
+            raise _type_error(f"{where} verb", "a string", verb, path)
+        params = sdoc.get("params", {})
+        if not isinstance(params, dict):
+            raise _type_error(f"{where} params", "a table", params, path)
+        merged = {**defaults, **params}
+        param_refs = {}
+        for k, v in merged.items():
+            if isinstance(v, str):
+                ref = parse_ref(v, f"{where} params.{k}", path)
+                if ref is not None:
+                    param_refs[k] = ref
+        inputs_doc = sdoc.get("inputs", {})
+        if not isinstance(inputs_doc, dict):
+            raise _type_error(f"{where} inputs", "a table { role = ... }", inputs_doc, path)
+        inputs: dict[str, list[Ref | str]] = {}
+        for role, val in inputs_doc.items():
+            items = val if isinstance(val, list) else [val]
+            out: list[Ref | str] = []
+            for it in items:
+                if not isinstance(it, str):
+                    raise _type_error(f"{where} inputs.{role}", "a path string or a list of them", it, path)
+                ref = parse_ref(it, f"{where} inputs.{role}", path)
+                out.append(ref if ref is not None else it)
+            inputs[role] = out
+        foreach = sdoc.get("foreach")
+        if foreach is not None:
+            if isinstance(foreach, str):
+                if foreach.strip().lower() != ALL_FOUND:
+                    raise ReflectmmError(f'{where} foreach: expected a list of ids, {{ file = "ids.txt" }} '
+                                         f'or "{ALL_FOUND}", got {foreach!r}', path)
+                foreach = ALL_FOUND
+            elif isinstance(foreach, list):
+                if not all(isinstance(i, (str, int)) for i in foreach):
+                    raise _type_error(f"{where} foreach", "a list of id strings", foreach, path)
+                foreach = [str(i) for i in foreach]
+                dup = sorted({i for i in foreach if foreach.count(i) > 1})
+                if dup:
+                    raise ReflectmmError(f"{where} foreach: duplicate id(s) {', '.join(dup)}", path)
+            elif isinstance(foreach, dict):
+                if set(foreach) != {"file"} or not isinstance(foreach["file"], str):
+                    raise ReflectmmError(f'{where} foreach: expected {{ file = "ids.txt" }}, got {foreach!r}',
+                                         path)
+            else:
+                raise _type_error(f"{where} foreach", 'a list, { file = ... } or "all found"', foreach, path)
+        resources = sdoc.get("resources", {})
+        if not isinstance(resources, dict):
+            raise _type_error(f"{where} resources", "a table { cpus = 1, memory = \"4GB\" }", resources, path)
+        stages[sname] = StageSpec(sname, verb, merged, inputs, foreach, dict(resources), param_refs)
+
+    recipe = Recipe(path, name, dict(defaults), stages)
+    for spec in stages.values():
+        for up in spec.upstream():
+            if up not in stages:
+                raise ReflectmmError(f"[stages.{spec.name}] refers to unknown stage '{up}' "
+                                     f"(stages: {', '.join(stages)})", path)
+    topological_order(recipe)  # raises on a cycle
+    return recipe
+
+
+def topological_order(recipe: Recipe) -> list[str]:
+    """Kahn's order over stage references; a cycle raises an error naming it."""
+    names = list(recipe.stages)
+    ups = {n: recipe.stages[n].upstream() for n in names}
+    order: list[str] = []
+    done: set[str] = set()
+    remaining = list(names)
+    while remaining:
+        ready = [n for n in remaining if all(u in done for u in ups[n])]
+        if not ready:
+            raise ReflectmmError(f"recipe has a cycle: {' -> '.join(_find_cycle(remaining, ups))}", recipe.path)
+        for n in ready:
+            order.append(n)
+            done.add(n)
+        remaining = [n for n in remaining if n not in done]
+    return order
+
+
+def _find_cycle(nodes: list[str], ups: dict[str, list[str]]) -> list[str]:
+    """One cycle among ``nodes`` (each has an upstream within ``nodes``), written producer -> consumer."""
+    node_set = set(nodes)
+    start = nodes[0]
+    path: list[str] = []
+    seen: dict[str, int] = {}
+    cur = start
+    while cur not in seen:
+        seen[cur] = len(path)
+        path.append(cur)
+        cur = next(u for u in ups[cur] if u in node_set)
+    cycle = path[seen[cur]:] + [cur]
+    # path follows "depends on" edges; print the data flow direction
+    return list(reversed(cycle))

@@ -1,0 +1,230 @@
+"""Run a recipe: plan, execute what is missing or stale, record results, log every task.
+
+The run log is ``<workspace>/.reflectmm/runlog.jsonl``: one JSON object per task and run
+(``run``, ``time``, ``recipe``, ``stage``, ``id``, ``cache_key``, ``status``, ``reason``,
+``duration``, ``error``).  Status is ``ok``, ``failed``, ``blocked`` or ``skipped``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+import uuid
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from reflectmm_cli.recipes.executors import BLOCKED as R_BLOCKED
+from reflectmm_cli.recipes.executors import FAILED as R_FAILED
+from reflectmm_cli.recipes.executors import OK, Executor, TaskSpec, make_executor
+from reflectmm_cli.recipes.plan import (BLOCKED, DEFERRED, ERROR, FAILED, RUN, RUNLOG_FILE, SKIP, Plan, make_plan,
+                                        load_hash_memo, save_hash_memo, state_dir, write_record)
+from reflectmm_cli.recipes.recipe import Recipe, load_recipe
+
+log = logging.getLogger("reflectmm")
+
+SKIPPED = "skipped"
+
+
+@dataclass
+class TaskOutcome:
+    stage: str
+    id: str | None
+    status: str  # ok, failed, blocked, skipped, (dry run:) run, skip, error, deferred
+    reason: str = ""
+    cache_key: str | None = None
+    duration: float = 0.0
+    error: str | None = None
+    outputs: list[str] = field(default_factory=list)
+
+    @property
+    def tid(self) -> str:
+        return self.stage if self.id is None else f"{self.stage}/{self.id}"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"stage": self.stage, "id": self.id, "status": self.status, "reason": self.reason,
+                "cache_key": self.cache_key, "duration": round(self.duration, 4), "error": self.error,
+                "outputs": self.outputs}
+
+
+@dataclass
+class RunReport:
+    recipe: str
+    workspace: Path
+    dry_run: bool
+    tasks: list[TaskOutcome]
+    plan_seconds: float = 0.0
+    run_seconds: float = 0.0
+
+    def by_status(self, status: str) -> list[TaskOutcome]:
+        return [t for t in self.tasks if t.status == status]
+
+    def counts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for t in self.tasks:
+            out[t.status] = out.get(t.status, 0) + 1
+        return out
+
+    @property
+    def ok(self) -> bool:
+        return not any(t.status in (R_FAILED, R_BLOCKED, ERROR, DEFERRED) for t in self.tasks)
+
+    def outputs(self) -> list[str]:
+        return [p for t in self.tasks if t.status == OK for p in t.outputs]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"recipe": self.recipe, "workspace": str(self.workspace), "dry_run": self.dry_run,
+                "counts": self.counts(), "plan_seconds": round(self.plan_seconds, 4),
+                "run_seconds": round(self.run_seconds, 4), "tasks": [t.as_dict() for t in self.tasks],
+                "outputs": self.outputs()}
+
+
+class RunLog:
+    """Appends one JSON line per task outcome to ``<workspace>/.reflectmm/runlog.jsonl``."""
+
+    def __init__(self, workspace: Path, recipe: str):
+        self.path = state_dir(workspace) / RUNLOG_FILE
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.run_id = uuid.uuid4().hex[:12]
+        self.recipe = recipe
+
+    def write(self, o: TaskOutcome) -> None:
+        rec = {"run": self.run_id, "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+               "recipe": self.recipe, "stage": o.stage, "id": o.id, "cache_key": o.cache_key,
+               "status": o.status, "reason": o.reason, "duration": round(o.duration, 4), "error": o.error}
+        with open(self.path, "a", encoding="utf-8") as f:
+            f.write(json.dumps(rec, sort_keys=True) + "\n")
+
+
+def plan_recipe(recipe: Recipe | str | Path, workspace: Path, **kwargs: Any) -> Plan:
+    """Plan without running (uses and updates the workspace's hash memo)."""
+    if not isinstance(recipe, Recipe):
+        recipe = load_recipe(recipe)
+    memo = load_hash_memo(workspace)
+    plan = make_plan(recipe, workspace, hash_memo=memo, **kwargs)
+    _save_memo(workspace, memo)
+    return plan
+
+
+def _save_memo(workspace: Path, memo: dict[str, Any]) -> None:
+    try:
+        save_hash_memo(workspace, memo)
+    except OSError as exc:  # a read-only workspace still plans
+        log.warning("cannot save the hash memo: %s", exc)
+
+
+def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: bool = False,
+               force: str | None = None, only: str | None = None, ids: list[str] | None = None,
+               executor: str | Executor = "serial", jobs: int = 1, scheduler: str | None = None) -> RunReport:
+    """Plan and run a recipe in ``workspace``; the Python API behind ``reflectmm run``.
+
+    Returns a :class:`RunReport`; failed tasks do not raise (check ``report.ok``).
+    """
+    if not isinstance(recipe, Recipe):
+        recipe = load_recipe(recipe)
+    workspace = Path(workspace).resolve()
+    workspace.mkdir(parents=True, exist_ok=True)
+    memo = load_hash_memo(workspace)
+    t0 = time.perf_counter()
+    plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo)
+    plan_seconds = time.perf_counter() - t0
+    if dry_run:
+        _save_memo(workspace, memo)
+        rows = [TaskOutcome(t.stage_name, t.identity, t.action, t.reason, t.cache_key,
+                            outputs=[str(p) for p in t.outputs]) for t in plan.selected()]
+        rows += [TaskOutcome(s, None, DEFERRED, _deferred_reason(plan, s)) for s in plan.deferred]
+        return RunReport(recipe.name, workspace, True, rows, plan_seconds)
+
+    runlog = RunLog(workspace, recipe.name)
+    outcomes: dict[str, TaskOutcome] = {}
+    prior: dict[str, str] = {}
+    own_executor = not isinstance(executor, Executor)
+    ex = make_executor(executor, jobs, scheduler) if own_executor else executor
+    t1 = time.perf_counter()
+    try:
+        while True:
+            batch = _outcomes_from_plan(plan, outcomes, runlog)
+            if batch:
+                _execute(plan, batch, ex, memo, outcomes, runlog)
+            _save_memo(workspace, memo)
+            if not plan.deferred or not batch:
+                break
+            # some stages discover their identities from upstream outputs: plan again
+            prior = {tid: o.status for tid, o in outcomes.items()}
+            t0 = time.perf_counter()
+            plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo, prior=prior)
+            plan_seconds += time.perf_counter() - t0
+        for s in plan.deferred:
+            o = TaskOutcome(s, None, R_BLOCKED, _deferred_reason(plan, s), error=_deferred_reason(plan, s))
+            outcomes[s] = o
+            runlog.write(o)
+    finally:
+        if own_executor:
+            ex.close()
+    return RunReport(recipe.name, workspace, False, list(outcomes.values()), plan_seconds,
+                     time.perf_counter() - t1)
+
+
+def _deferred_reason(plan: Plan, stage: str) -> str:
+    ups = [u for u in plan.recipe.stages[stage].upstream()]
+    return f"identities are found once {', '.join(ups) or 'upstream'} has run"
+
+
+def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: RunLog) -> list[TaskSpec]:
+    """Record skipped/erroneous tasks; return the specs to execute."""
+    batch: list[TaskSpec] = []
+    runnable = {t.tid for t in plan.selected() if t.action == RUN and t.tid not in outcomes}
+    for t in plan.selected():
+        if t.tid in outcomes:
+            continue
+        if t.action == SKIP:
+            o = TaskOutcome(t.stage_name, t.identity, SKIPPED, t.reason, t.cache_key,
+                            outputs=[str(p) for p in t.outputs])
+        elif t.action in (ERROR, FAILED):
+            o = TaskOutcome(t.stage_name, t.identity, R_FAILED, t.reason, t.cache_key, error=t.reason)
+        elif t.action == BLOCKED:
+            o = TaskOutcome(t.stage_name, t.identity, R_BLOCKED, t.reason, error=t.reason)
+        elif t.action == RUN and t.tid in runnable:
+            key_doc = t.key_doc
+            batch.append(TaskSpec(t.tid, t.verb, t.ctx, [d for d in t.deps if d in runnable], key_doc,
+                                  t.resources))
+            continue
+        else:
+            continue
+        outcomes[t.tid] = o
+        if t.action != SKIP or t.reason != "not selected":
+            runlog.write(o)
+    return batch
+
+
+def _execute(plan: Plan, batch: list[TaskSpec], ex: Executor, memo: dict[str, Any],
+             outcomes: dict[str, TaskOutcome], runlog: RunLog) -> None:
+    from reflectmm_cli.progress import progress
+
+    total = len(batch)
+    bar = progress(range(total), desc=f"{plan.recipe.name}", total=total, unit="task")
+    log.info("running %d task(s) with the %s executor", total, ex.name)
+
+    def on_result(res: dict[str, Any]) -> None:
+        t = plan.tasks[res["tid"]]
+        status = res["status"]
+        o = TaskOutcome(t.stage_name, t.identity, status, t.reason, res.get("cache_key"), res.get("duration", 0.0),
+                        res.get("error"), list(res.get("outputs") or []))
+        if status == OK:
+            try:
+                write_record(plan.workspace, t.stage_name, t.identity, res["cache_key"], res.get("key_doc"),
+                             [Path(p) for p in t.outputs], memo)
+            except OSError as exc:
+                log.warning("%s: cannot write its record: %s", t.tid, exc)
+            log.info("done %s (%.2f s)", t.tid, o.duration)
+        elif status == R_FAILED:
+            log.info("FAILED %s: %s", t.tid, o.error)
+        outcomes[t.tid] = o
+        runlog.write(o)
+        next(bar, None)
+
+    ex.run(batch, on_result)
+    for _ in bar:  # close the bar
+        pass
