@@ -1,0 +1,228 @@
+"""SH environment shading against quadrature of the rendering equation; equirect projection."""
+import math
+
+import numpy as np
+import pytest
+
+from _shading_ref import bp_norm_ref, bp_sh_ref, hemisphere_quadrature, real_sh_matrix_ref, real_sh_ref
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.shading import (
+    band_limits,
+    direction_to_equirect,
+    envmap_from_sh,
+    equirect_directions,
+    equirect_weights,
+    project_envmap,
+    shade_directional,
+    shade_env,
+)
+
+torch = pytest.importorskip("torch")
+P = np.array([1.0, 8.0, 64.0])
+ORDER = 6
+
+
+def _lighting(seed, order=ORDER):
+    rng = np.random.default_rng(seed)
+    K = rng.normal(size=(3, (order + 1) ** 2)) / (1 + np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1))
+    K[:, 0] += 3.0
+    return K
+
+
+def _radiance(K, d):
+    order = int(math.sqrt(K.shape[1])) - 1
+    return real_sh_matrix_ref(d, order) @ K.T  # (N, 3), scipy-based, independent of the code under test
+
+
+def test_diffuse_exact_against_hemisphere_quadrature():
+    K = _lighting(0)
+    rng = np.random.default_rng(5)
+    for _ in range(4):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        d, w = hemisphere_quadrature(n, 2 * ORDER + 4, 4 * ORDER + 4)
+        c = np.array([0.8, 0.5, 0.3])
+        ref = c / math.pi * ((_radiance(K, d) * (d @ n)[:, None]) * w[:, None]).sum(0)
+        dif, _ = shade_env(c, np.zeros(3), P, n, n, K)
+        np.testing.assert_allclose(dif, ref, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("p", [1.0, 8.0, 64.0, 500.0])
+def test_specular_exact_at_normal_view(p):
+    # at v = n the SH specular equals the true half-vector lobe integral, ∫ L(l) w f (n·h)^p [n·l > 0] dω,
+    # here integrated with the directional shader as integrand (irradiance L(l) dω from each direction).
+    K = _lighting(1)
+    n = np.array([0.2, 0.5, -0.8])
+    n /= np.linalg.norm(n)
+    d, w = hemisphere_quadrature(n, 320, 4 * ORDER + 4)
+    _, _, spec = shade_directional(np.zeros(3), [0.9], [p], n, d, n, _radiance(K, d), return_parts=True)
+    ref = (spec * w[:, None]).sum(0)
+    _, s = shade_env(np.zeros(3), [0.9], [p], n, n, K)
+    np.testing.assert_allclose(s, ref, rtol=1e-7)
+
+
+def test_specular_formula_oblique_view():
+    # away from normal view the contract is Σ_l B_l Σ_m K_lm Y_lm(r), r = 2(n·v)n − v
+    K = _lighting(2)
+    rng = np.random.default_rng(7)
+    n = rng.normal(size=(20, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + 0.8 * rng.normal(size=(20, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    w = rng.random((20, 3))
+    _, s = shade_env(np.zeros((20, 3)), w, P, n, v, K)
+    ndv = (n * v).sum(1)
+    r = 2 * ndv[:, None] * n - v
+    lvl = np.repeat(np.arange(ORDER + 1), 2 * np.arange(ORDER + 1) + 1)
+    Y = real_sh_matrix_ref(r, ORDER)
+    ref = np.zeros((20, 3))
+    for i, p in enumerate(P):
+        B = np.array([bp_sh_ref(p, l) for l in range(ORDER + 1)])[lvl]
+        ref += w[:, i:i + 1] * (Y @ (K * B).T)
+    ref[ndv <= 0] = 0
+    np.testing.assert_allclose(s, ref, rtol=1e-8, atol=1e-10)
+
+
+def test_paths_agree_mask_skip_and_dtypes():
+    K = _lighting(3)
+    rng = np.random.default_rng(11)
+    N = 3000
+    c, w = rng.random((N, 3)), rng.random((N, 3))
+    w[:, 1] = 0  # an all-zero lobe is skipped, result unchanged
+    n, v = rng.normal(size=(N, 3)), rng.normal(size=(N, 3))
+    d64, s64 = shade_env(c, w, P, n, v, K, chunk=512)
+    # numpy broadcasting path (per-texel lighting) and torch agree with the blocked fast path
+    d2, s2 = shade_env(c, w, P, n, v, np.broadcast_to(K, (N, 3, K.shape[1])))
+    dt_, st_ = shade_env(*(torch.tensor(a) for a in (c, w, P, n, v, K)))
+    for a, b in ((d2, d64), (s2, s64), (dt_.numpy(), d64), (st_.numpy(), s64)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    assert np.all(s64[(n * v).sum(1) <= 0] == 0)
+    mask = rng.random(N) < 0.3
+    dm, sm = shade_env(c, w, P, n, v, K, mask=mask)
+    np.testing.assert_array_equal(dm[~mask], 0)
+    np.testing.assert_array_equal(sm[~mask], 0)
+    np.testing.assert_allclose(dm[mask], d64[mask], rtol=1e-12)
+    np.testing.assert_allclose(sm[mask], s64[mask], rtol=1e-12, atol=1e-14)
+    dmt, smt = shade_env(*(torch.tensor(a) for a in (c, w, P, n, v, K)), mask=mask)
+    np.testing.assert_allclose(smt.numpy(), sm, rtol=1e-10, atol=1e-12)
+    d32, s32 = shade_env(*(a.astype(np.float32) for a in (c, w, P, n, v, K)))
+    assert d32.dtype == np.float32 and s32.dtype == np.float32
+    np.testing.assert_allclose(s32, s64, rtol=1e-4, atol=1e-4)
+    d16, s16 = shade_env(*(a.astype(np.float16) for a in (c, w, P, n, v, K)))
+    assert d16.dtype == np.float32 and np.isfinite(s16).all()
+
+
+def test_band_tolerance_bounds_the_change():
+    K = _lighting(4, 8)
+    rng = np.random.default_rng(2)
+    n, v = rng.normal(size=(500, 3)), rng.normal(size=(500, 3))
+    w = np.ones((500, 3))
+    _, s0 = shade_env(np.ones((500, 3)), w, P, n, v, K)
+    for tol in (1e-2, 1e-3):
+        Ld, Ls = band_limits(P, 8, tol)
+        if tol == 1e-2:  # the sharp lobe keeps all bands, the broader ones lose some
+            assert Ls == [7, 3, 8] and Ld == 6
+        _, s1 = shade_env(np.ones((500, 3)), w, P, n, v, K, band_tol=tol)
+        # each dropped band changes a lobe by ≤ tol·|Σ_m K_lm Y_lm| ≤ tol·‖K_l‖·sqrt((2l+1)/4π)
+        bound = sum(tol * np.linalg.norm(K[:, l * l:(l + 1) ** 2], axis=1).max() * math.sqrt((2 * l + 1) / (4 * math.pi))
+                    for l in range(9)) * 3
+        assert np.abs(s1 - s0).max() <= bound
+    assert band_limits(P, 8, 0.0) == (8, [8, 8, 8])
+
+
+def test_gradcheck_shade_env_float64():
+    rng = np.random.default_rng(9)
+    N = 5
+    args = [torch.tensor(a, dtype=torch.float64, requires_grad=True) for a in (
+        rng.random((N, 3)), rng.random((N, 3)), [1.0, 8.0, 64.0],
+        np.tile([0, 0, 1.0], (N, 1)) + 0.2 * rng.normal(size=(N, 3)),
+        np.tile([0, 0.3, 1.0], (N, 1)) + 0.2 * rng.normal(size=(N, 3)), _lighting(5, 3))]
+    args[2].requires_grad_(False)
+    assert torch.autograd.gradcheck(lambda *a: shade_env(*a), args, eps=1e-6, atol=1e-5)
+
+
+def test_rejects_nonfinite_and_bad_shapes():
+    K = _lighting(0)
+    with pytest.raises(ReflectmmError, match="sh_coeffs"):
+        shade_env(np.ones(3), np.ones(3), P, [0, 0, 1.0], [0, 0, 1.0], np.where(K > 1, np.nan, K))
+    with pytest.raises(ReflectmmError, match="sh_coeffs"):
+        shade_env(np.ones(3), np.ones(3), P, [0, 0, 1.0], [0, 0, 1.0], K[:, :10])
+    with pytest.raises(ReflectmmError, match="view_dir"):
+        shade_env(np.ones(3), np.ones(3), P, [0, 0, 1.0], [0, np.inf, 1.0], K)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# equirectangular maps
+
+
+@pytest.mark.parametrize("wh", [(17, 9), (32, 16), (50, 31)])
+def test_projection_exact_for_band_limited_maps(wh):
+    W, H = wh
+    order = 4
+    K = _lighting(6, order)
+    img = envmap_from_sh(K, W, H).astype(np.float64)
+    # the map itself is the SH function sampled at pixel centres (checked independently with scipy)
+    d = equirect_directions(W, H).reshape(-1, 3)
+    np.testing.assert_allclose(img.reshape(-1, 3), _radiance(K, d), rtol=1e-5, atol=1e-5)
+    img = _radiance(K, d).reshape(H, W, 3)
+    np.testing.assert_allclose(project_envmap(img, order), K, atol=1e-11)
+    # pixel-area weights are the exact pixel solid angles (sum 4π) and converge to the same coefficients
+    assert abs(equirect_weights(W, H, "area").sum() * W - 4 * math.pi) < 1e-12
+    assert abs(equirect_weights(W, H, "fejer").sum() * W - 4 * math.pi) < 1e-12
+    assert np.abs(project_envmap(img, order, quadrature="area") - K).max() < 30.0 / H ** 2
+
+
+def test_equirect_convention():
+    W, H = 64, 32
+    d = equirect_directions(W, H)
+    assert d[0, W // 2, 1] > 0.99  # top row is +y (up)
+    np.testing.assert_allclose(d[H // 2, W // 2], [0, 0, -1], atol=0.1)  # centre looks down −z
+    np.testing.assert_allclose(d[H // 2, 3 * W // 4], [1, 0, 0], atol=0.1)  # three quarters across is +x
+    u, v = direction_to_equirect(d)
+    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
+    np.testing.assert_allclose(u, (jj + 0.5) / W, atol=1e-12)
+    np.testing.assert_allclose(v, (ii + 0.5) / H, atol=1e-12)
+    # a map bright at the top: the +y dipole term dominates, and Y_1,-1 = −√(3/4π) y → negative coefficient
+    img = np.zeros((H, W, 3))
+    img[:4] = 1.0
+    K = project_envmap(img, 1)
+    assert K[0, 1] < 0 and abs(K[0, 2]) < 1e-12 and abs(K[0, 3]) < 1e-12
+
+
+def test_projection_rejects_nonfinite():
+    img = np.ones((8, 16, 3))
+    img[2, 3, 1] = np.nan
+    with pytest.raises(ReflectmmError, match="NaN"):
+        project_envmap(img, 2)
+
+
+def _ducc_vs_ours(ducc0, alm, order, coeffs, rng):
+    # compare as functions: evaluate both expansions at random directions
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    u, v = direction_to_equirect(d)
+    loc = np.stack([v * math.pi, (u * 2 * math.pi - math.pi) % (2 * math.pi)], -1)
+    vals = ducc0.sht.experimental.synthesis_general(alm=alm, spin=0, lmax=order, loc=loc, epsilon=1e-12)[0]
+    return vals, real_sh_matrix_ref(d, order) @ coeffs
+
+
+def test_projection_agrees_with_ducc0():
+    ducc0 = pytest.importorskip("ducc0")
+    rng = np.random.default_rng(0)
+    W, H, order = 96, 48, 8
+    phi0 = math.pi / W - math.pi  # our first column's azimuth in ducc0's (θ from up, φ along columns) frame
+    # map band-limited to the order (ducc0's analysis_2d is exact only then): both recover the same coefficients
+    Kbig = _lighting(8, order)[:1]
+    img = _radiance(Kbig, equirect_directions(W, H).reshape(-1, 3))[:, 0].reshape(H, W)
+    ours = project_envmap(img[..., None], order)[0]
+    alm = ducc0.sht.experimental.analysis_2d(map=img[None], spin=0, lmax=order, geometry="F1", phi0=phi0)
+    a, b = _ducc_vs_ours(ducc0, alm, order, ours, rng)
+    np.testing.assert_allclose(b, a, atol=1e-9)
+    # arbitrary (not band-limited) map: same quadrature rule through ducc0's adjoint synthesis
+    img = rng.random((H, W))
+    ours = project_envmap(img[..., None], order)[0]
+    wq = ducc0.sht.experimental.get_gridweights("F1", H)  # per ring, sums to 4π
+    alm = ducc0.sht.experimental.adjoint_synthesis_2d(map=(img * wq[:, None] / W)[None], spin=0, lmax=order,
+                                                      geometry="F1", phi0=phi0)
+    a, b = _ducc_vs_ours(ducc0, alm, order, ours, rng)
+    np.testing.assert_allclose(b, a, atol=1e-9)
