@@ -1,0 +1,173 @@
+"""Reading capture images: 8/16-bit PNG (OpenCV) and camera RAW (rawpy), landmark files."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from reflectmm_cli.capture.layout import RAW_EXTS
+from reflectmm_cli.capture.transfer import Transfer
+from reflectmm_cli.errors import ReflectmmError
+
+#: Allowed per-camera rotations (degrees clockwise, applied right after reading).
+ROTATIONS = (0, 90, 180, 270)
+
+
+@dataclass
+class Image:
+    """A decoded image: ``linear (H, W, 3)`` float32, ``saturated (H, W)`` bool (any channel at the code max)."""
+
+    linear: np.ndarray
+    saturated: np.ndarray
+    bits: int
+    path: Path
+
+
+def _rotate(a: np.ndarray, rotate: int) -> np.ndarray:
+    k = {0: 0, 90: 3, 180: 2, 270: 1}[rotate]  # np.rot90 turns counter-clockwise
+    return np.ascontiguousarray(np.rot90(a, k, axes=(0, 1))) if k else a
+
+
+def read_codes(path: str | Path) -> tuple[np.ndarray, int]:
+    """Raw integer codes ``(H, W, 3)`` (RGB order) and bit depth of a PNG/TIFF (8 or 16 bit)."""
+    import cv2
+
+    path = Path(path)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise ReflectmmError(f"cannot read image ({exc.strerror})", path) from None
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise ReflectmmError("not a readable image (OpenCV cannot decode it)", path)
+    if img.dtype == np.uint8:
+        bits = 8
+    elif img.dtype == np.uint16:
+        bits = 16
+    else:
+        raise ReflectmmError(f"unsupported image sample type {img.dtype} (expected 8- or 16-bit)", path)
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    elif img.shape[2] == 4:
+        img = img[:, :, 2::-1]
+    elif img.shape[2] == 3:
+        img = img[:, :, ::-1]
+    else:
+        raise ReflectmmError(f"unsupported channel count {img.shape[2]}", path)
+    return np.ascontiguousarray(img), bits
+
+
+def read_raw(path: str | Path) -> tuple[np.ndarray, int]:
+    """Demosaiced linear 16-bit RGB of a camera RAW file (camera white balance, no auto-brightening)."""
+    import rawpy
+
+    path = Path(path)
+    try:
+        with rawpy.imread(str(path)) as raw:
+            rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=True)
+    except Exception as exc:  # rawpy raises its own LibRawError hierarchy
+        raise ReflectmmError(f"not a readable RAW image ({type(exc).__name__}: {exc})", path) from None
+    return np.ascontiguousarray(rgb), 16
+
+
+def read_image(path: str | Path, transfer: Transfer, rotate: int = 0) -> Image:
+    """Read one shot, mark saturated pixels and linearise it.
+
+    RAW files are linear by construction: ``transfer`` is ignored for them (documented).
+    """
+    path = Path(path)
+    if path.suffix.lower() in RAW_EXTS:
+        codes, bits = read_raw(path)
+        lut = Transfer("linear", 1.0).lut(bits)
+    else:
+        codes, bits = read_codes(path)
+        lut = transfer.lut(bits)
+    if rotate:
+        codes = _rotate(codes, rotate)
+    top = (1 << bits) - 1
+    sat = (codes == top).any(axis=2)
+    return Image(lut[codes], sat, bits, path)
+
+
+def read_landmarks(path: str | Path, n: int = 68) -> np.ndarray:
+    """``(n, 2)`` float32 landmarks (x, y pixels) from an iBUG ``.pts``, a text (n×2 numbers) or ``.npy`` file."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".npy":
+            pts = np.load(path, allow_pickle=False)
+        else:
+            text = path.read_text()
+            if path.suffix.lower() == ".pts" or "{" in text:
+                if "{" not in text or "}" not in text:
+                    raise ReflectmmError("malformed .pts file (no { ... } block)", path)
+                body = text[text.index("{") + 1:text.rindex("}")]
+            else:
+                body = text
+            rows = [ln.replace(",", " ").split() for ln in body.splitlines()]
+            rows = [r for r in rows if r and not r[0].startswith("#")]
+            pts = np.array([[float(x) for x in r] for r in rows], dtype=np.float64)
+    except ReflectmmError:
+        raise
+    except (ValueError, OSError) as exc:
+        raise ReflectmmError(f"cannot parse landmarks ({exc})", path) from None
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ReflectmmError(f"landmarks must be {n} rows of x y, got shape {pts.shape}", path)
+    if pts.shape[0] != n:
+        raise ReflectmmError(f"expected {n} landmarks, found {pts.shape[0]}", path)
+    if not np.isfinite(pts).all():
+        raise ReflectmmError("landmarks contain NaN or inf", path)
+    return pts.astype(np.float32)
+
+
+def rotate_points(pts: np.ndarray, rotate: int, width: int, height: int) -> np.ndarray:
+    """Pixel coordinates in an image of size (width, height) as stored on disk → coordinates in the image
+    rotated clockwise by ``rotate`` degrees (as :func:`read_image` rotates it)."""
+    x, y = pts[:, 0], pts[:, 1]
+    if rotate == 0:
+        return pts
+    if rotate == 90:
+        out = np.stack([height - 1 - y, x], 1)
+    elif rotate == 180:
+        out = np.stack([width - 1 - x, height - 1 - y], 1)
+    else:
+        out = np.stack([y, width - 1 - x], 1)
+    return out.astype(np.float32)
+
+
+def encode_linear(linear: np.ndarray, transfer: Transfer, bits: int = 8) -> np.ndarray:
+    """Inverse of decoding: linear RGB → integer codes (clipped to [0, 1], rounded to nearest)."""
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    if transfer.gamma is None:
+        import colour
+
+        enc = np.asarray(colour.cctf_encoding(x, function="sRGB"), dtype=np.float64)
+    else:
+        enc = x ** (1.0 / transfer.gamma)
+    top = (1 << bits) - 1
+    return np.round(enc * top).astype(np.uint8 if bits == 8 else np.uint16)
+
+
+def write_png(path: str | Path, codes: np.ndarray) -> Path:
+    """Write RGB integer codes ``(H, W, 3)`` (uint8/uint16) as a PNG, creating folders (Multi-PIE writer helper)."""
+    import cv2
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(np.asarray(codes)[..., ::-1]))
+    if not ok:  # pragma: no cover
+        raise ReflectmmError("cannot encode PNG", path)
+    path.write_bytes(buf.tobytes())
+    return path
+
+
+def write_landmarks_pts(path: str | Path, pts: np.ndarray) -> Path:
+    """Write an iBUG ``.pts`` file (``version: 1``, ``n_points``, ``{ x y … }``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pts = np.asarray(pts, dtype=np.float64)
+    body = "\n".join(f"{x:.3f} {y:.3f}" for x, y in pts)
+    path.write_text(f"version: 1\nn_points:  {len(pts)}\n{{\n{body}\n}}\n")
+    return path

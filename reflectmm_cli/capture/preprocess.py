@@ -1,0 +1,259 @@
+"""``preprocess-multipie`` library: one identity's Multi-PIE shots → linear OLAT stack (``capture`` artifact).
+
+``olat = max(decode(flash) − decode(room), 0)`` per view and flash, in linear units; a pixel is marked
+``saturated`` when any channel sits at the integer maximum (255 / 65535) in the flash or the room shot.
+Arrays are cropped to a window around the face (same size for every view) to keep the artifact small;
+``crop_origin (V, 2)`` gives the window's top-left pixel ``(x0, y0)`` in the full frame, and every pixel
+coordinate stored (landmarks) is in the full frame: stored pixel ``[y, x]`` is full-frame ``(x + x0, y + y0)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from reflectmm_cli.artifacts import sha256_file
+from reflectmm_cli.capture.images import ROTATIONS, read_image, read_landmarks, rotate_points
+from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, ShotPlan, plan_identity
+from reflectmm_cli.capture.transfer import Transfer, parse_transfer
+from reflectmm_cli.errors import ReflectmmError
+
+log = logging.getLogger("reflectmm")
+
+N_LANDMARKS = 68
+CROP_MODES = ("auto", "landmarks", "signal", "none")
+#: Linear OLAT level above which a pixel counts as lit by a flash (signal crop).
+SIGNAL_THRESHOLD = 0.01
+
+
+class MissingShotsError(ReflectmmError):
+    """An identity lacks required images (it is skipped; the others are processed)."""
+
+
+@dataclass
+class CaptureOptions:
+    """Options of :func:`preprocess_identity` (CLI flags of ``preprocess-multipie``)."""
+
+    session: str = "auto"
+    recording: str = "01"
+    views: tuple[str, ...] = DEFAULT_VIEWS
+    flashes: tuple[str, ...] = DEFAULT_FLASHES
+    transfer: str = "gamma1.2"
+    rotate: Mapping[str, int] = field(default_factory=dict)
+    landmarks_dir: Path | None = None
+    crop: str = "auto"
+    crop_margin: float = 0.3
+
+    def params(self) -> dict[str, Any]:
+        """The options as artifact params (canonical values)."""
+        return {"session": self.session, "recording": self.recording, "views": list(self.views),
+                "flashes": list(self.flashes), "transfer": parse_transfer(self.transfer).name,
+                "rotate": {k: int(v) for k, v in sorted(self.rotate.items())}, "crop": self.crop,
+                "crop_margin": float(self.crop_margin)}
+
+
+def parse_rotate(items) -> dict[str, int]:
+    """``["08_1=90", ...]`` or a mapping → ``{camera: degrees clockwise}`` (0/90/180/270)."""
+    if isinstance(items, Mapping):
+        pairs = list(items.items())
+    else:
+        pairs = []
+        for it in items or []:
+            for tok in str(it).split(","):
+                tok = tok.strip()
+                if not tok:
+                    continue
+                if "=" not in tok:
+                    raise ReflectmmError(f"--rotate {tok!r}: expected CAMERA=DEGREES (e.g. 08_1=90)")
+                k, v = tok.split("=", 1)
+                pairs.append((k.strip(), v.strip()))
+    out = {}
+    for k, v in pairs:
+        try:
+            deg = int(v) % 360
+        except ValueError:
+            deg = -1
+        if deg not in ROTATIONS:
+            raise ReflectmmError(f"--rotate {k}={v}: degrees must be 0, 90, 180 or 270 (clockwise)")
+        out[str(k)] = deg
+    return out
+
+
+def _crop_box(box, width: int, height: int, margin: float):
+    x0, y0, x1, y1 = box
+    m = margin * max(x1 - x0, y1 - y0)
+    return (max(0, int(np.floor(x0 - m))), max(0, int(np.floor(y0 - m))),
+            min(width, int(np.ceil(x1 + m)) + 1), min(height, int(np.ceil(y1 + m)) + 1))
+
+
+def _common_windows(boxes, width: int, height: int) -> tuple[np.ndarray, int, int]:
+    """Same-size windows (origin per view) covering each view's box, clamped to the frame."""
+    cw = min(width, max(b[2] - b[0] for b in boxes))
+    ch = min(height, max(b[3] - b[1] for b in boxes))
+    origins = []
+    for x0, y0, x1, y1 in boxes:
+        cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
+        ox = int(np.clip(round(cx - cw / 2.0), 0, width - cw))
+        oy = int(np.clip(round(cy - ch / 2.0), 0, height - ch))
+        origins.append((ox, oy))
+    return np.array(origins, dtype=np.int32), cw, ch
+
+
+def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | None = None
+                        ) -> tuple[dict[str, np.ndarray], ShotPlan, dict[str, Any]]:
+    """Read one identity's shots and build the ``capture`` arrays.
+
+    Returns ``(arrays, plan, report)``; raises :class:`MissingShotsError` naming the missing files, or
+    :class:`ReflectmmError` naming an unreadable / wrongly sized image or a bad landmark file.
+    """
+    opts = opts or CaptureOptions()
+    transfer: Transfer = parse_transfer(opts.transfer)
+    if opts.crop not in CROP_MODES:
+        raise ReflectmmError(f"--crop {opts.crop!r}: expected one of {', '.join(CROP_MODES)}")
+    for cam in opts.rotate:
+        if cam not in opts.views:
+            log.debug("rotate: camera %s is not among the selected views", cam)
+    plan = plan_identity(root, identity, session=opts.session, recording=opts.recording, views=opts.views,
+                         flashes=opts.flashes, landmarks_dir=opts.landmarks_dir)
+    missing = plan.missing()
+    if missing:
+        shown = ", ".join(str(p) for p in missing[:4]) + (f", … ({len(missing)} in all)" if len(missing) > 4 else "")
+        raise MissingShotsError(f"identity {plan.identity} (session {plan.session}, recording {plan.recording}): "
+                                f"{len(missing)} required shot(s) missing: {shown}")
+    V, F = len(plan.views), len(plan.flashes)
+    size = None
+    ref_file = None
+    olat_full: list[np.ndarray] = []
+    sat_full: list[np.ndarray] = []
+    room_full: list[np.ndarray] = []
+    landmarks = np.full((V, N_LANDMARKS, 2), np.nan, dtype=np.float32)
+    bits_seen: set[int] = set()
+
+    def check_size(img, path):
+        nonlocal size, ref_file
+        h, w = img.linear.shape[:2]
+        if size is None:
+            size, ref_file = (w, h), path
+        elif (w, h) != size:
+            raise ReflectmmError(f"image is {w}x{h}, but the other views are {size[0]}x{size[1]} "
+                                 f"(first read: {ref_file.name})", path)
+
+    for vi, view in enumerate(plan.views):
+        rot = int(opts.rotate.get(view, 0))
+        row = plan.images[vi]
+        room = read_image(row[0], transfer, rot)
+        check_size(room, row[0])
+        bits_seen.add(room.bits)
+        olat = np.empty((F,) + room.linear.shape, dtype=np.float16)
+        sat = np.empty((F,) + room.saturated.shape, dtype=bool)
+        for fi in range(F):
+            fl = read_image(row[1 + fi], transfer, rot)
+            check_size(fl, row[1 + fi])
+            bits_seen.add(fl.bits)
+            diff = fl.linear - room.linear
+            np.maximum(diff, 0.0, out=diff)
+            olat[fi] = diff
+            np.logical_or(fl.saturated, room.saturated, out=sat[fi])
+        olat_full.append(olat)
+        sat_full.append(sat)
+        room_full.append(room.linear.astype(np.float16))
+        lp = plan.landmarks[vi]
+        if lp is not None:
+            pts = read_landmarks(lp, N_LANDMARKS)
+            if rot:
+                # landmark files annotate the image as stored on disk: rotate them with the image
+                h, w = room.linear.shape[:2]
+                wo, ho = (h, w) if rot in (90, 270) else (w, h)
+                pts = rotate_points(pts, rot, wo, ho)
+            landmarks[vi] = pts
+    W, H = size
+    have_lm = np.isfinite(landmarks).all(axis=(1, 2))
+    mode = opts.crop
+    if mode == "auto":
+        mode = "landmarks" if have_lm.all() else "signal"
+    if mode == "landmarks" and not have_lm.all():
+        raise ReflectmmError(f"identity {plan.identity}: --crop landmarks but no landmarks for view(s) "
+                             f"{', '.join(v for v, h in zip(plan.views, have_lm) if not h)}")
+    if mode == "none":
+        boxes = [(0, 0, W, H)] * V
+    elif mode == "landmarks":
+        boxes = [_crop_box((lm[:, 0].min(), lm[:, 1].min(), lm[:, 0].max(), lm[:, 1].max()), W, H,
+                           opts.crop_margin) for lm in landmarks]
+    else:
+        boxes = []
+        for vi in range(V):
+            lit = (olat_full[vi].max(axis=(0, 3)) > SIGNAL_THRESHOLD)
+            ys, xs = np.nonzero(lit)
+            if ys.size == 0:
+                boxes.append((0, 0, W, H))
+            else:
+                boxes.append(_crop_box((xs.min(), ys.min(), xs.max(), ys.max()), W, H, 0.02))
+    origins, cw, ch = _common_windows(boxes, W, H)
+    olat = np.empty((V, F, ch, cw, 3), dtype=np.float16)
+    sat = np.empty((V, F, ch, cw), dtype=bool)
+    room = np.empty((V, ch, cw, 3), dtype=np.float16)
+    for vi, (ox, oy) in enumerate(origins):
+        olat[vi] = olat_full[vi][:, oy:oy + ch, ox:ox + cw]
+        sat[vi] = sat_full[vi][:, oy:oy + ch, ox:ox + cw]
+        room[vi] = room_full[vi][oy:oy + ch, ox:ox + cw]
+    arrays = {
+        "olat": olat, "room": room, "saturated": sat,
+        "view_names": np.array(plan.views, dtype=str), "flash_ids": np.array(plan.flashes, dtype=str),
+        "image_size": np.array([W, H], dtype=np.int32), "crop_origin": origins,
+        "landmarks": landmarks, "bits": np.int32(max(bits_seen)),
+        "session": np.array(plan.session), "recording": np.array(plan.recording),
+    }
+    report = {"identity": plan.identity, "session": plan.session, "recording": plan.recording,
+              "views": V, "flashes": F, "image_size": [W, H], "crop": mode, "crop_size": [cw, ch],
+              "landmark_views": int(have_lm.sum()),
+              "saturated_fraction": float(sat.mean()) if sat.size else 0.0}
+    return arrays, plan, report
+
+
+def source_refs(root: str | Path, plan: ShotPlan, relative_to: Path) -> list[dict[str, Any]]:
+    """Provenance of the source files: role ``root`` (the dataset folder), ``image`` and ``landmarks`` with sha256
+    (paths relative to the dataset root)."""
+    root = Path(root)
+    refs: list[dict[str, Any]] = [{"role": "root", "path": os.path.relpath(root, relative_to)}]
+    for role, files in (("image", plan.files()), ("landmarks", plan.landmark_files())):
+        for p in files:
+            refs.append({"role": role, "path": os.path.relpath(p, root), "sha256": sha256_file(p)})
+    return refs
+
+
+def _tonemap(x: np.ndarray, scale: float) -> np.ndarray:
+    y = np.clip(np.asarray(x, dtype=np.float32) / max(scale, 1e-8), 0.0, 1.0) ** (1 / 2.2)
+    return (y * 255.0 + 0.5).astype(np.uint8)
+
+
+def contact_sheet(arrays: Mapping[str, np.ndarray], n_flashes: int = 3, thumb_width: int = 160) -> np.ndarray:
+    """RGB uint8 sheet: one row per view — room light, then ``n_flashes`` OLATs spread over the flash list."""
+    import cv2
+
+    olat, room = arrays["olat"], arrays["room"]
+    V, F, h, w = olat.shape[:4]
+    tw = min(thumb_width, w)
+    th = max(1, int(round(h * tw / w)))
+    picks = sorted(set(np.linspace(0, F - 1, min(n_flashes, F)).round().astype(int).tolist())) if F else []
+    room_scale = float(np.percentile(room.astype(np.float32), 99.5)) if room.size else 1.0
+    olat_scale = float(np.percentile(olat[:, picks].astype(np.float32), 99.5)) if picks else 1.0
+    rows = []
+    for vi in range(V):
+        tiles = [_tonemap(room[vi], room_scale)] + [_tonemap(olat[vi, fi], olat_scale) for fi in picks]
+        tiles = [cv2.resize(t, (tw, th), interpolation=cv2.INTER_AREA) for t in tiles]
+        rows.append(np.concatenate(tiles, axis=1))
+    return np.concatenate(rows, axis=0)
+
+
+def encode_png(rgb: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:  # pragma: no cover
+        raise ReflectmmError("cannot encode PNG")
+    return buf.tobytes()

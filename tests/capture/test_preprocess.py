@@ -1,0 +1,214 @@
+import json
+
+import numpy as np
+import pytest
+
+from _capture_tree import FLASHES, VIEWS, make_tree, shot_file
+from reflectmm_cli.artifacts import read_artifact, sha256_file
+from reflectmm_cli.capture.images import encode_linear, write_png
+from reflectmm_cli.capture.preprocess import CaptureOptions, preprocess_identity
+from reflectmm_cli.capture.transfer import parse_transfer
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages import StageContext, get_stage
+
+VIEWS_ARG = ",".join(VIEWS)
+FLASH_ARG = ",".join(FLASHES)
+
+
+def run(cli, root, ws, *extra):
+    return cli("preprocess-multipie", "--root", root, "--views", VIEWS_ARG, "--flashes", FLASH_ARG,
+               "--workspace", ws, *extra)
+
+
+def test_olat_equals_flash_minus_room_within_quantisation(tmp_path, cli):
+    truth = make_tree(tmp_path / "mp", ("042",))["042"]
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--id", "042", "--crop", "none")
+    assert res.exit_code == 0, res.stderr
+    out = tmp_path / "ws" / "preprocess-multipie" / "042.npz"
+    assert res.stdout.split() == [str(out), str(out.with_name("042_contact.png"))]
+    art = read_artifact(out, "capture")
+    V, F = len(VIEWS), len(FLASHES)
+    assert art["olat"].shape == (V, F, 32, 48, 3) and art["olat"].dtype == np.float16
+    assert art["room"].shape == (V, 32, 48, 3) and art["saturated"].shape == (V, F, 32, 48)
+    assert list(art["view_names"]) == list(VIEWS) and list(art["flash_ids"]) == list(FLASHES)
+    assert art["image_size"].tolist() == [48, 32]
+    assert art["crop_origin"].tolist() == [[0, 0]] * V
+    # independent computation: decode(encode(x)) with x**1.2, error bound from half an 8-bit step
+    want = np.maximum(truth["flash"] - truth["room"][:, None], 0)
+    err = np.abs(art["olat"].astype(np.float64) - want)
+    assert err.max() < 2 * 1.2 * 0.5 / 255 + 2e-3  # two quantised images, float16 storage
+    np.testing.assert_allclose(art["room"].astype(np.float64), truth["room"], atol=1.2 * 0.5 / 255 + 1e-3)
+    assert art.params["transfer"] == "gamma1.2" and art.params["session"] == "01"
+    roles = {r["role"] for r in art.meta["inputs"]}
+    assert roles == {"root", "image", "landmarks"}
+    img_refs = [r for r in art.meta["inputs"] if r["role"] == "image"]
+    assert len(img_refs) == V * (F + 1)
+    ref0 = img_refs[0]
+    assert ref0["sha256"] == sha256_file(tmp_path / "mp" / ref0["path"])
+    lm = art["landmarks"]
+    assert lm.shape == (V, 68, 2) and lm.dtype == np.float32 and np.isfinite(lm).all()
+    np.testing.assert_allclose(lm[0, 0], [0.3 * 48, 0.25 * 32], atol=1e-3)
+    # rerun: byte-identical
+    before = out.read_bytes()
+    assert run(cli, tmp_path / "mp", tmp_path / "ws", "--id", "042", "--crop", "none").exit_code == 0
+    assert out.read_bytes() == before
+
+
+def test_olat_clamped_and_saturation(tmp_path):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",), views=("05_1",), flashes=("07",), size=(8, 6))
+    room = np.full((6, 8, 3), 100, np.uint8)
+    flash = np.full((6, 8, 3), 150, np.uint8)
+    flash[0, 0] = (50, 50, 50)  # darker than the room: OLAT clamps to 0
+    flash[1, 1] = (255, 20, 20)  # clipped in the flash shot
+    room[2, 2] = (10, 255, 10)  # clipped in the room shot
+    write_png(shot_file(root, "001", "05_1", "00"), room)
+    write_png(shot_file(root, "001", "05_1", "07"), flash)
+    arrays, _, _ = preprocess_identity(root, "001", CaptureOptions(views=("05_1",), flashes=("07",), crop="none"))
+    o = arrays["olat"][0, 0].astype(np.float64)
+    assert np.all(o[0, 0] == 0)
+    np.testing.assert_allclose(o[3, 3], (150 / 255) ** 1.2 - (100 / 255) ** 1.2, rtol=2e-3)
+    sat = arrays["saturated"][0, 0]
+    assert sat[1, 1] and sat[2, 2] and sat.sum() == 2
+
+
+def test_srgb_transfer_option(tmp_path, cli):
+    truth = make_tree(tmp_path / "mp", ("007",), transfer="srgb")["007"]
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--id", "007", "--transfer", "srgb", "--crop", "none")
+    assert res.exit_code == 0, res.stderr
+    art = read_artifact(tmp_path / "ws" / "preprocess-multipie" / "007.npz")
+    np.testing.assert_allclose(art["room"].astype(np.float64), truth["room"], atol=0.5 / 255 + 1e-3)
+    assert art.params["transfer"] == "srgb"
+
+
+def test_landmark_crop_window(tmp_path):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",), size=(64, 48))
+    a_full, _, _ = preprocess_identity(root, "001", CaptureOptions(views=VIEWS, flashes=FLASHES, crop="none"))
+    a, _, rep = preprocess_identity(root, "001", CaptureOptions(views=VIEWS, flashes=FLASHES, crop_margin=0.1))
+    assert rep["crop"] == "landmarks"
+    V, F, h, w, _ = a["olat"].shape
+    assert h < 48 and w < 64
+    for vi, (ox, oy) in enumerate(a["crop_origin"]):
+        np.testing.assert_array_equal(a["olat"][vi], a_full["olat"][vi][:, oy:oy + h, ox:ox + w])
+        lm = a["landmarks"][vi]
+        assert (lm[:, 0] >= ox).all() and (lm[:, 0] < ox + w).all()
+        assert (lm[:, 1] >= oy).all() and (lm[:, 1] < oy + h).all()
+
+
+def test_missing_flash_shot_one_identity_skipped(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001", "002", "003"))
+    missing = shot_file(root, "002", "05_1", "14")
+    missing.unlink()
+    res = run(cli, root, tmp_path / "ws", "--ids", "001-003")
+    assert res.exit_code == 1
+    assert "002_01_01_051_14.png" in res.stderr and "missing" in res.stderr
+    assert "1 of 3 identities failed" in res.stderr
+    ws = tmp_path / "ws" / "preprocess-multipie"
+    assert (ws / "001.npz").exists() and (ws / "003.npz").exists() and not (ws / "002.npz").exists()
+    assert str(ws / "001.npz") in res.stdout
+
+
+def test_missing_view(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    for p in (root / "data/session01/multiview/001/01/08_1").iterdir():
+        p.unlink()
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert res.exit_code == 1
+    assert "001_01_01_081_00.png" in res.stderr and "4 required shot(s) missing" in res.stderr
+
+
+def test_wrong_size_names_file(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    bad = shot_file(root, "001", "08_1", "07")
+    write_png(bad, np.zeros((30, 48, 3), np.uint8))
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert res.exit_code == 1
+    assert str(bad) in res.stderr and "48x30" in res.stderr and "48x32" in res.stderr
+
+
+def test_non_image_file_names_file(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    bad = shot_file(root, "001", "13_0", "05")
+    bad.write_text("this is not a PNG")
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert res.exit_code == 1
+    assert str(bad) in res.stderr and "not a readable image" in res.stderr
+
+
+@pytest.mark.parametrize("n", [67, 69])
+def test_landmarks_wrong_count(tmp_path, cli, n):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    lm = shot_file(root, "001", "05_1", "00", ext="_lm.pts")
+    lm.write_text("version: 1\nn_points: %d\n{\n" % n + "\n".join("1 2" for _ in range(n)) + "\n}\n")
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert res.exit_code == 1
+    assert str(lm) in res.stderr and f"expected 68 landmarks, found {n}" in res.stderr
+
+
+def test_landmarks_txt_npy_and_override_dir(tmp_path):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",), landmarks=False)
+    pts = np.stack([np.arange(68.0), np.arange(68.0) / 2 + 3], 1)
+    np.savetxt(shot_file(root, "001", "13_0", "00", ext="_lm.txt"), pts)
+    np.save(shot_file(root, "001", "05_1", "00", ext="_lm.npy"), pts + 1)
+    a, plan, rep = preprocess_identity(root, "001", CaptureOptions(views=VIEWS, flashes=FLASHES))
+    np.testing.assert_allclose(a["landmarks"][0], pts)
+    np.testing.assert_allclose(a["landmarks"][1], pts + 1)
+    assert np.isnan(a["landmarks"][2]).all()
+    assert rep["crop"] == "signal" and rep["landmark_views"] == 2
+    other = tmp_path / "lms"
+    other.mkdir()
+    np.savetxt(other / "001_01_01_081_00_lm.txt", pts + 2)
+    a, _, _ = preprocess_identity(root, "001", CaptureOptions(views=VIEWS, flashes=FLASHES, landmarks_dir=other))
+    np.testing.assert_allclose(a["landmarks"][2], pts + 2)
+    assert np.isnan(a["landmarks"][0]).all()
+
+
+def test_rotate_option(tmp_path):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",), views=("05_1", "08_1"), flashes=("07",), size=(40, 40))
+    opts = dict(views=("05_1", "08_1"), flashes=("07",), crop="none")
+    a0, _, _ = preprocess_identity(root, "001", CaptureOptions(**opts))
+    a1, _, _ = preprocess_identity(root, "001", CaptureOptions(rotate={"08_1": 90}, **opts))
+    np.testing.assert_array_equal(a1["olat"][1, 0], np.rot90(a0["olat"][1, 0], -1))
+    np.testing.assert_array_equal(a1["olat"][0], a0["olat"][0])
+    lm0, lm1 = a0["landmarks"][1], a1["landmarks"][1]
+    np.testing.assert_allclose(lm1, np.stack([40 - 1 - lm0[:, 1], lm0[:, 0]], 1), atol=1e-4)
+
+
+def test_stage_input_files_and_discovery(tmp_path):
+    root = tmp_path / "mp"
+    make_tree(root, ("001", "002"))
+    make_tree(root, ("005",), session="02")
+    stage = get_stage("preprocess-multipie")
+    ctx = stage.context(workspace=tmp_path / "ws", identity="002", inputs={"root": [root]},
+                        params={"views": list(VIEWS), "flashes": list(FLASHES)})
+    files = stage.files_to_hash(ctx)
+    allf = files["image"] + files["landmarks"]
+    assert len(files["image"]) == len(VIEWS) * (len(FLASHES) + 1) and len(files["landmarks"]) == len(VIEWS)
+    assert all("/002/" in str(p) for p in allf)
+    assert stage.discover_ids(ctx) == ["001", "002", "005"]
+    from reflectmm_cli.stages import compute_cache_key
+
+    k2 = compute_cache_key(stage, ctx)
+    k1 = compute_cache_key(stage, ctx.with_(identity="001"))
+    # changing identity 001's image changes only 001's key
+    write_png(shot_file(root, "001", "05_1", "07"), np.zeros((32, 48, 3), np.uint8))
+    assert compute_cache_key(stage, ctx) == k2
+    assert compute_cache_key(stage, ctx.with_(identity="001")) != k1
+
+
+def test_usage_errors(tmp_path, cli):
+    make_tree(tmp_path / "mp", ("001",))
+    res = cli("preprocess-multipie", "--root", tmp_path / "mp", "--workspace", tmp_path / "ws")
+    assert res.exit_code == 2
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--id", "001", "--rotate", "08_1=45")
+    assert res.exit_code == 1 and "degrees must be" in res.stderr
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--id", "001", "--session", "03")
+    assert res.exit_code == 1 and "not in session 03" in res.stderr
