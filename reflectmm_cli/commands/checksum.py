@@ -33,6 +33,13 @@ def checksum_files(paths: list[Path]) -> tuple[list[str], list[str], list[int]]:
     return [f.name for f in files], [sha256_file(f) for f in files], [f.stat().st_size for f in files]
 
 
+def _walk(ctx: StageContext) -> dict[str, list[Path]]:
+    """The input files with folders expanded (so provenance lists every file checksummed)."""
+    from reflectmm_cli.stages import get_stage
+
+    return get_stage("checksum").files_to_hash(ctx)
+
+
 @register_stage("checksum", version=1, per_identity=False, help="sha256 manifest of input files")
 def run_checksum(ctx: StageContext) -> list[Path]:
     out = ctx.output_path()
@@ -47,7 +54,7 @@ def run_checksum(ctx: StageContext) -> list[Path]:
     names, digests, sizes = checksum_files(files)
     write_artifact(out, "checksum", {"names": np.array(names, dtype=str), "sha256": np.array(digests, dtype=str),
                                      "size": np.array(sizes, dtype=np.int64)},
-                   params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent), producer=ctx.producer(),
+                   params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent, files=_walk(ctx)), producer=ctx.producer(),
                    cache_key=ctx.cache_key)
     return [out]
 

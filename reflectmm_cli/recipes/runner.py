@@ -163,8 +163,9 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
     finally:
         if own_executor:
             ex.close()
-    return RunReport(recipe.name, workspace, False, list(outcomes.values()), plan_seconds,
-                     time.perf_counter() - t1)
+    order = {tid: i for i, tid in enumerate(plan.tasks)}
+    ordered = sorted(outcomes.values(), key=lambda o: order.get(o.tid, len(order)))
+    return RunReport(recipe.name, workspace, False, ordered, plan_seconds, time.perf_counter() - t1)
 
 
 def _deferred_reason(plan: Plan, stage: str) -> str:
