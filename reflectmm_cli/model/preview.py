@@ -1,0 +1,150 @@
+"""PNG previews of a reflectance model: principal components (paper Fig. 1 style) and random samples rendered
+under a white frontal point light.
+
+Display conventions: diffuse albedo in sRGB (linear → sRGB transfer, clipped), lobe weights ×3 shown as RGB
+(lobe i → channel i for K = 3; for other K the sum Σw ×3 as grey), background grey.
+
+Renders: the per-vertex model on the face model's mean shape, seen by a perspective camera on +z at 600 mm
+(focal chosen to frame the face) with a point light of radiant intensity ``I = π · d0²`` at the camera centre
+(so that a frontal texel at the head centre distance d0 receives irradiance π: white albedo shades to 1).
+Shading is :func:`reflectmm_cli.shading.shade_directional` per surface sample; visibility is resolved by a
+z-buffered splat of dense barycentric samples of every triangle (a point-based rasteriser: every pixel a
+triangle covers receives at least one sample, so there are no holes at the chosen density).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+from .pca import ReflectanceModel, sample_model
+
+__all__ = ["linear_to_srgb", "weights_to_rgb", "component_grid", "render_vertex_colors", "render_samples"]
+
+BG = 0.5
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def weights_to_rgb(w: np.ndarray, gain: float = 3.0) -> np.ndarray:
+    """(K,S,S) lobe weights → (S,S,3) display image (×gain, clipped)."""
+    w = np.asarray(w, np.float64)
+    if w.shape[0] == 3:
+        img = np.moveaxis(w, 0, -1)
+    else:
+        img = np.repeat(w.sum(0)[..., None], 3, -1)
+    return np.clip(img * gain, 0, 1)
+
+
+def component_grid(model: ReflectanceModel, n_components: int = 3, spread: float = 2.0, pad: int = 2
+                   ) -> np.ndarray:
+    """Rows: mean, then component k at −spread·σ and +spread·σ. Columns: albedo (sRGB) −/mean/+ and weights ×3
+    −/mean/+. Returns (H,W,3) in [0,1]."""
+    m = min(n_components, model.n_components)
+    mask = model.mask
+    S = model.size
+
+    def tile(img):
+        t = np.where(mask[..., None], img, BG)
+        return np.pad(t, ((pad, pad), (pad, pad), (0, 0)), constant_values=1.0)
+
+    rows = []
+    for k in range(m):
+        beta_m = np.zeros(k + 1)
+        beta_m[k] = -spread
+        beta_p = -beta_m
+        am, wm = sample_model(model, beta_m)
+        ap, wp = sample_model(model, beta_p)
+        a0, w0 = model.albedo_mean, model.weights_mean
+        cells = [linear_to_srgb(np.moveaxis(a, 0, -1)) for a in (am, a0, ap)]
+        cells += [weights_to_rgb(w) for w in (wm, w0, wp)]
+        rows.append(np.concatenate([tile(c) for c in cells], 1))
+    if not rows:
+        raise ReflectmmError("component_grid: the model has no component")
+    assert rows[0].shape[0] == S + 2 * pad
+    return np.concatenate(rows, 0)
+
+
+def _frontal_camera(vertices: np.ndarray, width: int, distance: float = 600.0):
+    lo, hi = vertices.min(0), vertices.max(0)
+    centre = 0.5 * (lo + hi)
+    extent = max(hi[0] - lo[0], hi[1] - lo[1]) * 1.08
+    eye = np.array([centre[0], centre[1], hi[2] + distance])
+    f = width * (distance + (hi[2] - centre[2])) / max(extent, 1e-6)
+    return eye, centre, f
+
+
+def render_vertex_colors(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray, width: int = 160,
+                         eye: np.ndarray | None = None, focal: float | None = None, centre=None) -> np.ndarray:
+    """Z-buffered splat of per-vertex colours (N,C) over dense barycentric samples of the triangles, seen by a
+    pinhole camera at ``eye`` looking down −z. Returns (width, width, C) with NaN where nothing is visible."""
+    V = np.asarray(vertices, np.float64)
+    T = np.asarray(triangles, np.int64)
+    C = np.asarray(colors, np.float64)
+    if eye is None or focal is None:
+        eye, centre, focal = _frontal_camera(V, width)
+    c = width / 2.0
+    rel = V - eye
+    z = -rel[:, 2]
+    if np.any(z <= 1e-6):
+        raise ReflectmmError("render: vertices behind the preview camera")
+    px = np.stack([focal * rel[:, 0] / z + c - 0.5, -focal * rel[:, 1] / z + c - 0.5], -1)
+    # subdivision level from the largest projected edge so every covered pixel gets a sample
+    e = np.concatenate([np.linalg.norm(px[T[:, a]] - px[T[:, b]], axis=1) for a, b in ((0, 1), (1, 2), (2, 0))])
+    n = int(np.clip(np.ceil(np.percentile(e, 99.5) * 1.5), 1, 64))
+    ij = np.array([(i, j) for i in range(n + 1) for j in range(n + 1 - i)], np.float64) / n
+    bary = np.stack([1 - ij.sum(1), ij[:, 0], ij[:, 1]], -1)  # (B,3)
+    out = np.full((width * width, C.shape[1]), np.nan)
+    zbuf = np.full(width * width, np.inf)
+    for a in range(0, T.shape[0], max(1, 200000 // len(bary))):
+        t = T[a:a + max(1, 200000 // len(bary))]
+        p = np.einsum("bk,tkd->tbd", bary, px[t]).reshape(-1, 2)
+        zz = np.einsum("bk,tk->tb", bary, z[t]).reshape(-1)
+        col = np.einsum("bk,tkd->tbd", bary, C[t]).reshape(-1, C.shape[1])
+        ix = np.rint(p).astype(np.int64)
+        ok = (ix[:, 0] >= 0) & (ix[:, 0] < width) & (ix[:, 1] >= 0) & (ix[:, 1] < width)
+        lin = ix[ok, 1] * width + ix[ok, 0]
+        zz, col = zz[ok], col[ok]
+        order = np.lexsort((zz, lin))
+        lin, zz, col = lin[order], zz[order], col[order]
+        first = np.ones(lin.size, bool)
+        first[1:] = lin[1:] != lin[:-1]
+        lin, zz, col = lin[first], zz[first], col[first]
+        closer = zz < zbuf[lin]
+        zbuf[lin[closer]] = zz[closer]
+        out[lin[closer]] = col[closer]
+    return out.reshape(width, width, C.shape[1])
+
+
+def render_samples(model: ReflectanceModel, vertices: np.ndarray, triangles: np.ndarray, n: int = 30,
+                   seed: int = 0, width: int = 128, cols: int = 6, spread: float = 1.0) -> np.ndarray:
+    """Grid of ``n`` random samples (β ~ N(0, spread²)) rendered under a white frontal point light (sRGB)."""
+    from reflectmm_cli.geometry.face_model import vertex_normals
+    from reflectmm_cli.shading import shade_directional
+
+    if not model.has_vertex_model:
+        raise ReflectmmError("render_samples: the model has no per-vertex part (build it with --face-model)")
+    V = np.asarray(vertices, np.float64)
+    nrm = np.asarray(vertex_normals(V, triangles), np.float64)
+    eye, centre, focal = _frontal_camera(V, width)
+    d0 = float(np.linalg.norm(eye - centre))
+    intensity = np.pi * d0 ** 2
+    ld = eye - V
+    E = intensity / np.sum(ld * ld, -1)
+    rng = np.random.default_rng(seed)
+    tiles = []
+    for _ in range(n):
+        beta = rng.normal(0.0, spread, model.n_components)
+        alb, wts = sample_model(model, beta, space="vertex")
+        alb, wts = np.clip(alb, 0, None), np.clip(wts, 0, None)
+        s = shade_directional(alb, wts, model.exponents, nrm, ld, ld, np.repeat(E[:, None], 3, -1))
+        img = render_vertex_colors(V, triangles, s, width, eye, focal, centre)
+        img = np.where(np.isnan(img), BG, linear_to_srgb(np.nan_to_num(img)))
+        tiles.append(np.pad(img, ((1, 1), (1, 1), (0, 0)), constant_values=1.0))
+    while len(tiles) % cols:
+        tiles.append(np.ones_like(tiles[0]))
+    rows = [np.concatenate(tiles[i:i + cols], 1) for i in range(0, len(tiles), cols)]
+    return np.concatenate(rows, 0)
