@@ -11,6 +11,7 @@ specular part of texels facing away from the viewer (n·v ≤ 0, where it is 0 b
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
@@ -79,7 +80,7 @@ def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask):
 
 
 def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=None, band_tol: float = 0.0,
-              chunk: int = DEFAULT_CHUNK):
+              chunk: int = DEFAULT_CHUNK, threads: int | None = None):
     """Diffuse and specular shading of texels under SH environment lighting.
 
     Args:
@@ -93,6 +94,8 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         mask: optional boolean (...) texel mask; texels outside it are 0 and cost nothing.
         band_tol: drop bands whose Funk–Hecke coefficient is ≤ band_tol (see :func:`band_limits`). 0 = exact.
         chunk: texels per block in the numpy fast path (cache blocking).
+        threads: worker threads for the numpy fast path (blocks run in parallel; numpy releases the GIL);
+            default: the CPUs this process may use (at most 8).
     Returns:
         ``(diffuse, specular)``, each (..., 3). The specular part is 0 where n·v ≤ 0. numpy in → numpy out,
         torch in → torch out (differentiable w.r.t. every input, including the SH coefficients).
@@ -105,7 +108,22 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
     A = lambert_sh_coeffs(order)
     B = blinn_phong_sh_coeffs(p, order)
     if not tm and K.ndim == 2:
-        return _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk)
+        return _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads)
+    if tm and mask is not None and K.ndim == 2:
+        # gather the masked texels, shade only those, scatter back (differentiable)
+        import torch
+
+        idx = torch.as_tensor(np.flatnonzero(np.broadcast_to(mask, lead).reshape(-1)), device=n.device)
+
+        def sel(a):
+            return a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1])[idx]
+
+        d_m, s_m = _shade_env_generic(tm, sel(c), sel(w), sel(n), sel(v), K, A, B, Ld, Ls,
+                                      (int(idx.numel()),), None, dt)
+        N = int(np.prod(lead)) if lead else 1
+        zero = torch.zeros((N, 3), dtype=d_m.dtype, device=d_m.device)
+        return (zero.index_put((idx,), d_m).reshape(lead + (3,)),
+                zero.index_put((idx,), s_m).reshape(lead + (3,)))
     return _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt)
 
 
@@ -113,7 +131,14 @@ def _flat(a, lead, k):
     return np.broadcast_to(a, lead + (k,)).reshape(-1, k)
 
 
-def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk):
+def _default_threads() -> int:
+    try:
+        return max(1, min(len(os.sched_getaffinity(0)), 8))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, min(os.cpu_count() or 1, 8))
+
+
+def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads):
     N = int(np.prod(lead)) if lead else 1
     Kn = w.shape[-1]
     c2, w2, n2, v2 = _flat(c, lead, 3), _flat(w, lead, Kn), _flat(n, lead, 3), _flat(v, lead, 3)
@@ -128,47 +153,66 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk):
     active = [i for i in range(Kn) if np.any(wsel[:, i] != 0)] if Ntex else []
     nd = (Ld + 1) ** 2
     lvl = np.repeat(np.arange(len(A)), 2 * np.arange(len(A)) + 1)
-    KA = (K[:, :nd] * A[lvl[:nd]]).astype(dt)  # (3, nd)
+    KA = (K[:, :nd] * A[lvl[:nd]] / math.pi).astype(dt)  # (3, nd), 1/π folded in
     Lsmax = max([Ls[i] for i in active], default=-1)
     ns = (Lsmax + 1) ** 2
-    KB = [(K[:, :(Ls[i] + 1) ** 2] * B[i][lvl[:(Ls[i] + 1) ** 2]]).astype(dt) for i in range(Kn)]
-    inv_pi = dt(1.0 / math.pi)
-    buf_d = np.empty((nd, chunk), dt)
-    buf_s = np.empty((max(ns, 1), chunk), dt)
-    for s in range(0, Ntex, chunk):
-        sl = slice(s, min(Ntex, s + chunk))
-        rows = sl if idx is None else idx[sl]
+    # Lobes with the same band limit share one matmul: rows (3·lobes) × coefficients.
+    groups = {}
+    for i in active:
+        groups.setdefault(Ls[i], []).append(i)
+    KBg = [(lobes, (Lg + 1) ** 2,
+            np.concatenate([K[:, :(Lg + 1) ** 2] * B[i][lvl[:(Lg + 1) ** 2]] for i in lobes]).astype(dt))
+           for Lg, lobes in sorted(groups.items())]
+    tiny = dt(1e-30)
+
+    def block(s0, s1):
+        buf_d = np.empty((nd, s1 - s0), dt)
+        rows = slice(s0, s1) if idx is None else idx[s0:s1]
         nn = n2[rows]
-        nn = nn / np.sqrt(np.maximum((nn * nn).sum(1, keepdims=True), dt(1e-30)))
+        nn = nn / np.sqrt(np.maximum((nn * nn).sum(1, keepdims=True), tiny))
         nT = np.ascontiguousarray(nn.T)
-        m = nT.shape[1]
-        Yn = sh_basis_into(nT[0], nT[1], nT[2], Ld, buf_d[:, :m])
+        Yn = sh_basis_into(nT[0], nT[1], nT[2], Ld, buf_d)
         D = KA @ Yn  # (3, m)
-        diffuse[rows] = c2[rows] * (D.T * inv_pi)
+        D *= c2[rows].T
+        diffuse[rows] = D.T
         if not active:
-            continue
+            return
         vv = v2[rows]
-        vv = vv / np.sqrt(np.maximum((vv * vv).sum(1, keepdims=True), dt(1e-30)))
+        vv = vv / np.sqrt(np.maximum((vv * vv).sum(1, keepdims=True), tiny))
         ndv = (nn * vv).sum(1)
         front = ndv > 0
         if not front.all():
             sub = np.flatnonzero(front)
             if sub.size == 0:
-                continue
+                return
             nn, vv, ndv = nn[sub], vv[sub], ndv[sub]
-            rows_s = (np.arange(sl.start, sl.stop) if idx is None else idx[sl])[sub]
+            rows_s = (np.arange(s0, s1) if idx is None else idx[s0:s1])[sub]
         else:
             rows_s = rows
         r = (2.0 * ndv)[:, None] * nn - vv
         rT = np.ascontiguousarray(r.T)
         ms = rT.shape[1]
-        Yr = sh_basis_into(rT[0], rT[1], rT[2], Lsmax, buf_s[:, :ms])
-        wr = w2[rows_s]
+        Yr = sh_basis_into(rT[0], rT[1], rT[2], Lsmax, np.empty((ns, ms), dt))
+        wT = np.ascontiguousarray(w2[rows_s].T)  # (K, ms)
         acc = np.zeros((3, ms), dt)
-        for i in active:
-            ni = (Ls[i] + 1) ** 2
-            acc += (KB[i] @ Yr[:ni]) * wr[:, i]
+        for lobes, ng, KB in KBg:
+            S = KB @ Yr[:ng]  # (3·len(lobes), ms)
+            for j, i in enumerate(lobes):
+                Sj = S[3 * j:3 * j + 3]
+                Sj *= wT[i]
+                acc += Sj
         specular[rows_s] = acc.T
+
+    starts = list(range(0, Ntex, chunk))
+    nthreads = min(threads if threads else _default_threads(), len(starts))
+    if nthreads > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(nthreads) as ex:
+            list(ex.map(lambda s0: block(s0, min(Ntex, s0 + chunk)), starts))
+    else:
+        for s0 in starts:
+            block(s0, min(Ntex, s0 + chunk))
     return diffuse.reshape(lead + (3,)), specular.reshape(lead + (3,))
 
 
@@ -202,7 +246,12 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt):
     vv = norm(v)
     Yn = sh_basis(nn, Ld, normalize=False)
     KA = K[..., :nd] * As[lvl[:nd]]
-    diffuse = c * einsum("...cn,...n->...c", KA, Yn) * (1.0 / math.pi)
+    glob = K.ndim == 2
+
+    def apply(Kx, Y):  # Σ_n Kx[c, n] Y[..., n]
+        return Y @ Kx.T if glob else einsum("...cn,...n->...c", Kx, Y)
+
+    diffuse = c * apply(KA, Yn) * (1.0 / math.pi)
     ndv = (nn * vv).sum(-1)
     r = (2.0 * ndv)[..., None] * nn - vv
     spec = None
@@ -211,7 +260,7 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt):
         Yr = sh_basis(r, Lsmax, normalize=False)
         for i in active:
             ni = (Ls[i] + 1) ** 2
-            Si = einsum("...cn,...n->...c", K[..., :ni] * Bs[i][lvl[:ni]], Yr[..., :ni]) * w[..., i:i + 1]
+            Si = apply(K[..., :ni] * Bs[i][lvl[:ni]], Yr[..., :ni]) * w[..., i:i + 1]
             spec = Si if spec is None else spec + Si
         spec = xp_where((ndv > 0)[..., None], spec, spec * 0)
     if tm:
