@@ -40,7 +40,21 @@ def _walk(ctx: StageContext) -> dict[str, list[Path]]:
     return get_stage("checksum").files_to_hash(ctx)
 
 
-@register_stage("checksum", version=1, per_identity=False, help="sha256 manifest of input files")
+def discover_checksum_ids(ctx: StageContext) -> list[str] | None:
+    """``foreach = "all found"``: the names (stems) of the paths matching the ``discover`` param,
+    a glob relative to the workspace (e.g. ``"data/*"`` gives one identity per folder); without
+    that param, None (the recipe planner then takes the upstream per-identity stage's ids)."""
+    import glob
+
+    pattern = ctx.param("discover")
+    if not pattern:
+        return None  # no opinion: the planner uses the upstream per-identity stage's ids
+    full = Path(pattern) if Path(pattern).is_absolute() else Path(ctx.workspace) / pattern
+    return sorted({Path(p).stem for p in glob.glob(str(full))})
+
+
+@register_stage("checksum", version=1, per_identity=False, discover_ids=discover_checksum_ids,
+                help="sha256 manifest of input files")
 def run_checksum(ctx: StageContext) -> list[Path]:
     out = ctx.output_path()
     files = ctx.input_list("files")

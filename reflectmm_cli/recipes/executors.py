@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import socket
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -45,7 +46,8 @@ def _result(spec: TaskSpec, status: str, *, outputs: list[str] | None = None, ca
             key_doc: dict[str, Any] | None = None, duration: float = 0.0, error: str | None = None
             ) -> dict[str, Any]:
     return {"tid": spec.tid, "status": status, "outputs": outputs or [], "cache_key": cache_key,
-            "key_doc": key_doc, "duration": duration, "error": error}
+            "key_doc": key_doc, "duration": duration, "error": error,
+            "worker": f"{socket.gethostname()}:{os.getpid()}"}
 
 
 def _error_message(exc: BaseException) -> str:

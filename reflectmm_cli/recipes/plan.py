@@ -221,22 +221,31 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
     # "all found"
     if stage.discover_ids is not None:
         upstream_tasks = [tid for u in spec.upstream() for tid in stage_tasks.get(u, [])]
-        if any(tasks[t].action in (RUN, ERROR, BLOCKED, FAILED) if tasks[t].selected else
-               not all(Path(p).exists() for p in tasks[t].outputs) for t in upstream_tasks):
-            return _DEFER  # ids are known once the upstream outputs exist
+        pending = any(tasks[t].action in (RUN, ERROR, BLOCKED, FAILED) if tasks[t].selected else
+                      not all(Path(p).exists() for p in tasks[t].outputs) for t in upstream_tasks)
         ctx = stage.context(workspace=workspace, stage_name=spec.name, identity=None, params=dict(spec.params))
+        # discovery sees the stage's inputs as an aggregate would; per-identity paths ({id}) are left out
+        lenient = StageSpec(spec.name, spec.verb, spec.params, {
+            role: [it for it in items if isinstance(it, Ref) or "{id}" not in it]
+            for role, items in spec.inputs.items()}, spec.foreach, spec.resources, spec.param_refs)
         try:
-            inputs, _ = _resolve_inputs(spec, ctx, workspace, tasks, stage_tasks, identity=None, aggregate=True)
+            inputs, _ = _resolve_inputs(lenient, ctx, workspace, tasks, stage_tasks, identity=None, aggregate=True)
         except _PlanError as exc:
+            if pending:
+                return _DEFER
             raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": {exc}', recipe.path) from None
-        found = list(stage.discover_ids(ctx.with_(inputs=inputs)))
-        if not found:
-            log.warning("stage %s: foreach = \"all found\" found no identities", spec.name)
-        return [str(i) for i in found]
+        found = stage.discover_ids(ctx.with_(inputs=inputs))
+        if found is not None and pending:
+            return _DEFER  # the identities are known once the upstream outputs exist
+        if found is not None:
+            found = [str(i) for i in found]
+            if not found:
+                log.warning("stage %s: foreach = \"all found\" found no identities", spec.name)
+            return found
     for u in spec.upstream():
         if recipe.stages[u].per_identity:
             return [tasks[t].identity for t in stage_tasks.get(u, [])]
-    raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": verb \'{spec.verb}\' cannot discover '
+    raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": verb \'{spec.verb}\' did not discover '
                          f"identities and no upstream stage runs per identity; list the ids", recipe.path)
 
 

@@ -38,6 +38,7 @@ class TaskOutcome:
     duration: float = 0.0
     error: str | None = None
     outputs: list[str] = field(default_factory=list)
+    worker: str | None = None
 
     @property
     def tid(self) -> str:
@@ -46,7 +47,7 @@ class TaskOutcome:
     def as_dict(self) -> dict[str, Any]:
         return {"stage": self.stage, "id": self.id, "status": self.status, "reason": self.reason,
                 "cache_key": self.cache_key, "duration": round(self.duration, 4), "error": self.error,
-                "outputs": self.outputs}
+                "outputs": self.outputs, "worker": self.worker}
 
 
 @dataclass
@@ -93,7 +94,8 @@ class RunLog:
     def write(self, o: TaskOutcome) -> None:
         rec = {"run": self.run_id, "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                "recipe": self.recipe, "stage": o.stage, "id": o.id, "cache_key": o.cache_key,
-               "status": o.status, "reason": o.reason, "duration": round(o.duration, 4), "error": o.error}
+               "status": o.status, "reason": o.reason, "duration": round(o.duration, 4), "error": o.error,
+               "worker": o.worker}
         with open(self.path, "a", encoding="utf-8") as f:
             f.write(json.dumps(rec, sort_keys=True) + "\n")
 
@@ -212,7 +214,7 @@ def _execute(plan: Plan, batch: list[TaskSpec], ex: Executor, memo: dict[str, An
         t = plan.tasks[res["tid"]]
         status = res["status"]
         o = TaskOutcome(t.stage_name, t.identity, status, t.reason, res.get("cache_key"), res.get("duration", 0.0),
-                        res.get("error"), list(res.get("outputs") or []))
+                        res.get("error"), list(res.get("outputs") or []), res.get("worker"))
         if status == OK:
             try:
                 write_record(plan.workspace, t.stage_name, t.identity, res["cache_key"], res.get("key_doc"),

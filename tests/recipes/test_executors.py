@@ -1,0 +1,80 @@
+"""Process pool and Dask executors give the same, byte-identical artifacts as the serial one."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import pytest
+from recipe_testdata import IDS, make_workspace
+
+from reflectmm_cli.recipes import run_recipe
+
+
+def _artifacts(ws):
+    return {str(p.relative_to(ws)): p.read_bytes() for d in ("manifest", "summary") for p in sorted((ws / d).iterdir())}
+
+
+@pytest.fixture
+def serial_reference(tmp_path):
+    ref = make_workspace(tmp_path / "serial")
+    rep = run_recipe(ref / "recipe.toml", ref, executor="serial")
+    assert rep.ok
+    return _artifacts(ref)
+
+
+def _workers(ws):
+    lines = [json.loads(x) for x in (ws / ".reflectmm" / "runlog.jsonl").read_text().splitlines()]
+    return {x["worker"] for x in lines if x["status"] == "ok"}
+
+
+def test_pool_matches_serial_bytes(tmp_path, serial_reference):
+    ws = make_workspace(tmp_path / "pool")
+    rep = run_recipe(ws / "recipe.toml", ws, executor="pool", jobs=2)
+    assert rep.ok
+    assert _artifacts(ws) == serial_reference
+    workers = _workers(ws)
+    assert all(not w.endswith(f":{os.getpid()}") for w in workers)  # ran in other processes
+
+
+def test_pool_failure_isolation_and_resume(tmp_path):
+    ws = make_workspace(tmp_path / "pool")
+    (ws / "data" / "001" / "a.txt").write_text("BAD")
+    rep = run_recipe(ws / "recipe.toml", ws, executor="pool", jobs=2)
+    st = {t.tid: t.status for t in rep.tasks}
+    assert st == {"manifest/001": "failed", "manifest/002": "ok", "manifest/003": "ok", "manifest/004": "ok",
+                  "summary": "blocked"}
+    (ws / "data" / "001" / "a.txt").write_text("fine")
+    rep = run_recipe(ws / "recipe.toml", ws, executor="pool", jobs=2)
+    assert rep.ok and sum(t.status == "ok" for t in rep.tasks) == 2
+
+
+def test_dask_localcluster_matches_serial_bytes(tmp_path, serial_reference):
+    from distributed import LocalCluster
+
+    ws = make_workspace(tmp_path / "dask")
+    (ws / "data" / "003" / "b.txt").write_text("BAD")  # one failing identity travels back as a message
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        rep = run_recipe(ws / "recipe.toml", ws, executor="dask", scheduler=cluster.scheduler_address)
+        st = {t.tid: t.status for t in rep.tasks}
+        assert st["manifest/003"] == "failed" and st["summary"] == "blocked"
+        assert "BAD" in next(t.error for t in rep.tasks if t.tid == "manifest/003")
+        (ws / "data" / "003" / "b.txt").write_text((tmp_path / "serial" / "data" / "003" / "b.txt").read_text())
+        rep = run_recipe(ws / "recipe.toml", ws, executor="dask", scheduler=cluster.scheduler_address)
+        assert rep.ok
+        assert {t.tid for t in rep.tasks if t.status == "ok"} == {"manifest/003", "summary"}
+    assert _artifacts(ws) == serial_reference
+    workers = _workers(ws)
+    assert all(not w.endswith(f":{os.getpid()}") for w in workers)
+
+
+def test_dask_without_scheduler_starts_a_localcluster(tmp_path, serial_reference):
+    ws = make_workspace(tmp_path / "dask2")
+    rep = run_recipe(ws / "recipe.toml", ws, executor="dask", jobs=2)
+    assert rep.ok and len(rep.tasks) == len(IDS) + 1
+    assert _artifacts(ws) == serial_reference
+    assert len(_workers(ws)) >= 1 and all(not w.endswith(f":{os.getpid()}") for w in _workers(ws))
+    shutil.rmtree(ws / "manifest")
+    rep = run_recipe(ws / "recipe.toml", ws, executor="dask", jobs=2)
+    assert rep.ok and _artifacts(ws) == serial_reference

@@ -1,0 +1,119 @@
+"""Bad recipes give one clear error naming the file and the problem, and run nothing."""
+
+from __future__ import annotations
+
+import pytest
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.recipes import load_recipe, run_recipe
+from reflectmm_cli.recipes.recipe import Ref
+
+HEAD = 'schema = "reflectmm.recipe/1"\n'
+
+
+def write(ws, text):
+    p = ws / "r.toml"
+    p.write_text(text)
+    return p
+
+
+def err(ws, text, **kw):
+    p = write(ws, text)
+    with pytest.raises(ReflectmmError) as ei:
+        run_recipe(p, ws, dry_run=True, **kw)
+    msg = str(ei.value)
+    assert "\n" not in msg
+    return msg
+
+
+def test_bad_toml_names_file_line_and_column(ws):
+    msg = err(ws, HEAD + '[stages.a]\nverb = "checksum"\ninputs = { files = "data" \n')
+    assert str(ws / "r.toml") in msg and "invalid TOML" in msg
+    assert "line 4" in msg and "column" in msg
+
+
+def test_cycle_is_named(ws):
+    msg = err(ws, HEAD + """
+[stages.a]
+verb = "checksum"
+inputs = { files = "@c.output" }
+[stages.b]
+verb = "checksum"
+inputs = { files = "@a.output" }
+[stages.c]
+verb = "checksum"
+inputs = { files = ["@b.output", "data"] }
+[stages.d]
+verb = "checksum"
+inputs = { files = "@a.output" }
+""")
+    assert "cycle" in msg
+    cycle = msg.split("cycle: ", 1)[1]
+    nodes = cycle.split(" -> ")
+    assert nodes[0] == nodes[-1] and sorted(nodes[:-1]) == ["a", "b", "c"]
+    # written in data-flow order: each stage feeds the next
+    flows = {("a", "b"), ("b", "c"), ("c", "a")}
+    assert all((x, y) in flows for x, y in zip(nodes, nodes[1:]))
+
+
+def test_self_reference_is_a_cycle(ws):
+    msg = err(ws, HEAD + '[stages.a]\nverb = "checksum"\ninputs = { files = "@a.output" }\n')
+    assert "cycle: a -> a" in msg
+
+
+def test_unknown_stage_reference(ws):
+    msg = err(ws, HEAD + '[stages.a]\nverb = "checksum"\ninputs = { files = "@nope.output" }\n')
+    assert "unknown stage 'nope'" in msg and str(ws / "r.toml") in msg
+
+
+def test_unknown_verb(ws):
+    msg = err(ws, HEAD + '[stages.a]\nverb = "no-such-verb"\n')
+    assert "[stages.a]" in msg and "unknown stage verb 'no-such-verb'" in msg and "checksum" in msg
+
+
+@pytest.mark.parametrize("text, what", [
+    ('name = "x"\n[stages.a]\nverb = "checksum"\n', "missing schema"),
+    ('schema = "other/1"\n[stages.a]\nverb = "checksum"\n', "not a reflectmm recipe"),
+    ('schema = "reflectmm.recipe/9"\n[stages.a]\nverb = "checksum"\n', "newer than this reflectmm reads"),
+    (HEAD, "no [stages.<name>] tables"),
+    (HEAD + 'stage = 1\n[stages.a]\nverb = "checksum"\n', "unknown top-level key(s): stage"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nparam = { x = 1 }\n', "unknown key(s) param"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nforeach = "everything"\n', '"all found"'),
+    (HEAD + '[stages.a]\nverb = "checksum"\nforeach = ["1", "1"]\n', "duplicate id(s) 1"),
+    (HEAD + '[stages.a]\nverb = "checksum"\ninputs = { files = 3 }\n', "inputs.files"),
+    (HEAD + '[stages.a]\nverb = "checksum"\ninputs = { files = "@b.result" }\n', "malformed reference"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nforeach = { file = "nope.txt" }\n', "foreach file not found"),
+])
+def test_malformed_recipes(ws, text, what):
+    msg = err(ws, text)
+    assert what in msg and str(ws / "r.toml") in msg
+
+
+def test_missing_recipe_file(ws):
+    with pytest.raises(ReflectmmError, match="recipe not found"):
+        load_recipe(ws / "absent.toml")
+
+
+def test_unknown_force_or_only_stage(ws):
+    msg = err(ws, (ws / "recipe.toml").read_text(), force="nope")
+    assert "--force: unknown stage 'nope'" in msg and "manifest" in msg
+    msg = err(ws, (ws / "recipe.toml").read_text(), only="nope")
+    assert "--only: unknown stage 'nope'" in msg
+
+
+def test_reference_parsing():
+    r = load_recipe.__globals__["parse_ref"]("@synth.dir/multipie/{id}", "x", None)
+    assert r == Ref("synth", "dir", None, "/multipie/{id}")
+    assert str(r) == "@synth.dir/multipie/{id}"
+    r = load_recipe.__globals__["parse_ref"]("@synth.outputs.face_model", "x", None)
+    assert r == Ref("synth", "outputs", "face_model", None)
+    assert load_recipe.__globals__["parse_ref"]("data/x", "x", None) is None
+
+
+def test_bad_recipe_loses_nothing(ws):
+    run_recipe(ws / "recipe.toml", ws)
+    before = {p: p.read_bytes() for p in (ws / "manifest").iterdir()}
+    write(ws, HEAD + "[stages.a\n")
+    with pytest.raises(ReflectmmError):
+        run_recipe(ws / "r.toml", ws)
+    assert {p: p.read_bytes() for p in (ws / "manifest").iterdir()} == before

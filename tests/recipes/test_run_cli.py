@@ -1,0 +1,83 @@
+"""``reflectmm run`` through the CLI: dry-run text, JSON, exit codes, failures on stderr."""
+
+from __future__ import annotations
+
+import json
+
+from recipe_testdata import IDS
+
+
+def test_dry_run_table(cli, ws):
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--dry-run")
+    assert r.exit_code == 0
+    lines = r.stdout.splitlines()
+    assert lines[0] == "recipe basic: 5 task(s): 5 run"
+    assert lines[1].split() == ["stage", "id", "action", "reason"]
+    rows = [ln.split(None, 3) for ln in lines[2:]]
+    assert rows == [["manifest", i, "run", "no output"] for i in IDS] + \
+        [["summary", "-", "run", "upstream reruns (manifest/001 +3)"]]
+    assert not (ws / "manifest").exists()
+
+
+def test_run_prints_written_paths_then_noop(cli, ws):
+    r = cli("run", ws / "recipe.toml", "-w", ws)
+    assert r.exit_code == 0
+    assert r.stdout.splitlines() == [str(ws / "manifest" / f"{i}.npz") for i in IDS] + \
+        [str(ws / "summary" / "summary.npz")]
+    r = cli("run", ws / "recipe.toml", "-w", ws)
+    assert r.exit_code == 0 and r.stdout == ""
+    r = cli("run", ws / "recipe.toml", "-w", ws, "-n")
+    assert "5 skip" in r.stdout.splitlines()[0]
+
+
+def test_force_option_forms(cli, ws):
+    cli("run", ws / "recipe.toml", "-w", ws)
+    r = cli("run", ws / "recipe.toml", "-w", ws, "-n", "--force")
+    assert [ln.split(None, 3)[3] for ln in r.stdout.splitlines()[2:]] == ["forced"] * 5
+    r = cli("run", ws / "recipe.toml", "-w", ws, "-n", "--force=summary")
+    rows = {tuple(ln.split(None, 3)[:2]): ln.split(None, 3)[3] for ln in r.stdout.splitlines()[2:]}
+    assert rows[("summary", "-")] == "forced" and rows[("manifest", "001")] == "up to date"
+    r = cli("run", "-w", ws, "-n", "--force", "summary", ws / "recipe.toml")
+    assert r.exit_code == 0 and "forced" in r.stdout
+
+
+def test_only_and_ids(cli, ws):
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--ids", "002-003", "--json")
+    doc = json.loads(r.stdout)
+    assert r.exit_code == 0
+    assert [(t["stage"], t["id"], t["status"]) for t in doc["tasks"]] == [("manifest", "002", "ok"),
+                                                                         ("manifest", "003", "ok")]
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--only", "summary")
+    assert r.exit_code == 1
+    assert "summary" in r.stderr and "not selected by --only" in r.stderr
+
+
+def test_failure_lines_and_exit_status(cli, ws):
+    (ws / "data" / "004" / "a.txt").write_text("BAD")
+    r = cli("run", ws / "recipe.toml", "-w", ws)
+    assert r.exit_code == 1
+    assert r.stdout.splitlines() == [str(ws / "manifest" / f"{i}.npz") for i in ("001", "002", "003")]
+    err = r.stderr.strip().splitlines()
+    assert any(ln.startswith("reflectmm: failed: manifest/004: ") and "a.txt" in ln for ln in err)
+    assert any(ln.startswith("reflectmm: blocked: summary: upstream manifest/004 failed") for ln in err)
+    assert err[-1].startswith("reflectmm: error: 1 task(s) failed, 1 blocked")
+    (ws / "data" / "004" / "a.txt").write_text("ok")
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--json")
+    assert r.exit_code == 0
+    doc = json.loads(r.stdout)
+    assert doc["counts"] == {"ok": 2, "skipped": 3}
+
+
+def test_bad_recipe_exit_1_one_line(cli, ws):
+    (ws / "bad.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.a]\nverb = "checksum"\n'
+                                 'inputs = { files = "@a.output" }\n')
+    r = cli("run", ws / "bad.toml", "-w", ws)
+    assert r.exit_code == 1 and r.stdout == ""
+    assert r.stderr.strip().count("\n") == 0 and "cycle: a -> a" in r.stderr
+    r = cli("run", ws / "nope.toml", "-w", ws)
+    assert r.exit_code == 1 and "recipe not found" in r.stderr
+
+
+def test_scheduler_needs_dask(cli, ws):
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--executor", "pool", "--scheduler", "tcp://127.0.0.1:1")
+    assert r.exit_code == 1 and "--scheduler needs --executor dask" in r.stderr
