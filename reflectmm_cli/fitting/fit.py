@@ -1,0 +1,347 @@
+"""Multi-view morphable-model fit: shared shape/expression, one pose per view, landmarks + photometric + priors.
+
+Unknowns (optimised with L-BFGS, strong-Wolfe line search, in torch):
+
+* ``zs`` (Ks,), ``ze`` (Ke,): shape and expression coefficients in units of their prior σ
+  (``shape_coeffs = zs · shape_sigma``);
+* per view ``δ_v`` (3,) and ``τ_v`` (3,): ``R_v = exp([δ_v]×) R0_v``, ``t_v = t0_v + τ_v · t_unit``
+  (the pose of the head in camera ``v``, which is the camera's extrinsics in model space);
+* photometric stage only: per-view SH lighting (V, 9, 3) and, without a model texture, a per-vertex albedo.
+
+Loss (docs/fit-geometry.md):
+``w_lm · Σ w_i huber(‖π(R_v X_i + t_v) − x_vi‖, δ_px) / Σ w_i`` +
+``w_photo · mean_visible Σ_c charbonnier((ρ_vm − I_v(π(X_m)))/s)`` + ``w_shape ‖zs‖² + w_exp ‖ze‖²``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.fitting.camera_math import axis_angle_to_matrix, camera_centers, huber, project
+from reflectmm_cli.fitting.init import rigid_align
+from reflectmm_cli.fitting.landmarks import landmark_weights
+from reflectmm_cli.fitting.model import ShapeModel, vertex_normals, vertex_normals_torch
+from reflectmm_cli.fitting.photometric import (
+    N_SH,
+    SH_ORDER,
+    inside_image,
+    photometric_loss,
+    sh_kernel,
+    solve_albedo,
+    solve_lighting,
+)
+from reflectmm_cli.fitting.visibility import vertex_visibility
+
+log = logging.getLogger("reflectmm")
+
+#: Skin colour (linear RGB) used as the albedo when the model has no texture and a per-vertex estimate is off.
+DEFAULT_SKIN = np.array([0.55, 0.38, 0.30])
+
+
+@dataclass
+class FitConfig:
+    """Weights and schedule of :func:`fit_geometry` (defaults measured on the synthetic Multi-PIE rig)."""
+
+    landmark_iters: int = 500       # L-BFGS iterations, landmarks + priors only
+    photo_rounds: int = 2           # visibility refreshes in the photometric stage (0 = landmarks only)
+    photo_iters: int = 40           # L-BFGS iterations per round
+    landmark_sigma_px: float = 1.0  # assumed landmark noise (px): scales the landmark term against the priors
+    huber_px: float = 3.0           # Huber threshold of the landmark residual (px)
+    w_landmark: float = 1.0
+    w_photo: float = 1.0
+    w_shape: float = 1.0            # weight of ½‖shape/σ‖² (1 = Gaussian prior, MAP with landmark_sigma_px)
+    w_exp: float = 1.0              # weight of ½‖exp/σ‖²
+    rig_sigma_mm: float = 10.0      # soft rig constraint: camera centres within ~σ of the rig moved rigidly
+                                    # (0 disables; needs rig_centers in the ViewSet)
+    fit_expression: bool = True
+    photo_vertices: int = 4000      # at most this many skin vertices in the photometric term
+    photo_blur_px: tuple[float, ...] = (1.5, 0.0)  # Gaussian blur of the images per photometric round
+    albedo: str = "auto"            # "auto": model texture if any else per-vertex estimate; "texture",
+                                    # "per-vertex", "constant"
+    group_weights: dict[str, float] | None = None
+    dtype: str = "float64"
+    threads: int = 1                # torch intra-op threads during the fit (the tensors are small: one thread
+                                    # is several times faster than two on a loaded 2-core machine)
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["photo_blur_px"] = list(self.photo_blur_px)
+        return d
+
+
+@dataclass
+class ViewSet:
+    """The views of one identity: names, intrinsics, initial poses, landmarks and (optional) images.
+
+    K, R0: (V, 3, 3); t0: (V, 3); landmarks: (V, 68, 2) pixels, NaN where missing;
+    images: (V, H, W, 3) linear room-light images or None; image_size (W, H).
+    """
+
+    names: list[str]
+    K: np.ndarray
+    R0: np.ndarray
+    t0: np.ndarray
+    landmarks: np.ndarray
+    image_size: tuple[int, int]
+    images: np.ndarray | None = None
+    rig_centers: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        V = len(self.names)
+        if self.rig_centers is not None:
+            self.rig_centers = np.asarray(self.rig_centers, dtype=np.float64).reshape(V, 3)
+        self.K = np.asarray(self.K, dtype=np.float64).reshape(V, 3, 3)
+        self.R0 = np.asarray(self.R0, dtype=np.float64).reshape(V, 3, 3)
+        self.t0 = np.asarray(self.t0, dtype=np.float64).reshape(V, 3)
+        self.landmarks = np.asarray(self.landmarks, dtype=np.float64)
+        if self.landmarks.shape != (V, 68, 2):
+            raise ReflectmmError(f"landmarks must be (V=68 per view) (V, 68, 2), got {self.landmarks.shape}")
+        if self.images is not None and self.images.shape[0] != V:
+            raise ReflectmmError(f"{self.images.shape[0]} images for {V} views")
+
+
+@dataclass
+class GeometryFit:
+    """Result of :func:`fit_geometry` (numpy, float64)."""
+
+    shape_coeffs: np.ndarray
+    exp_coeffs: np.ndarray
+    vertices: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    K: np.ndarray
+    landmark_rmse_px: np.ndarray
+    landmark_px: np.ndarray          # (V, 68, 2) fitted landmark projections
+    photo_residual: np.ndarray       # (V,) RMS linear residual over visible skin vertices (NaN if no images)
+    visible_count: np.ndarray        # (V,) visible photometric samples
+    sh: np.ndarray | None = None     # (V, 9, 3)
+    albedo: np.ndarray | None = None  # (M, 3) at ``photo_sample``
+    photo_sample: np.ndarray | None = None
+    history: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def cam_centers(self) -> np.ndarray:
+        return camera_centers(self.R, self.t)
+
+
+def _blur(images: np.ndarray, sigma: float) -> np.ndarray:
+    if sigma <= 0:
+        return images
+    import cv2
+
+    return np.stack([cv2.GaussianBlur(im, (0, 0), sigma) for im in images])
+
+
+def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = None, device: str = "cpu"
+                 ) -> GeometryFit:
+    """Fit shape, expression and per-view poses to landmarks (and images) of one identity.
+
+    Args:
+        model: the linear face model; views: landmarks, intrinsics, initial poses and images of each view.
+        config: weights and schedule; device: torch device.
+    Returns:
+        A :class:`GeometryFit` (coefficients, vertices, per-view R, t, residuals).
+    """
+    cfg = config or FitConfig()
+    prev_threads = torch.get_num_threads()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    try:
+        return _fit(model, views, cfg, device)
+    finally:
+        torch.set_num_threads(prev_threads)
+
+
+def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> GeometryFit:
+    t_start = time.perf_counter()
+    dtype = {"float64": torch.float64, "float32": torch.float32}[cfg.dtype]
+    V = len(views.names)
+    W, H = int(views.image_size[0]), int(views.image_size[1])
+
+    def tt(a):
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
+
+    ts = model.torch_parts(dtype, device)
+    lm_obs = views.landmarks
+    valid = np.isfinite(lm_obs).all(-1)
+    for v in range(V):
+        if valid[v].sum() < 6:
+            raise ReflectmmError(f"view {views.names[v]}: only {int(valid[v].sum())} valid landmarks "
+                                 "(at least 6 needed)")
+    wl = landmark_weights(cfg.group_weights)[None, :] * valid
+    wl_t = tt(wl)
+    wsum = float(wl.sum())
+    obs_t = tt(np.where(valid[..., None], lm_obs, 0.0))
+    K_t, R0_t, t0_t = tt(views.K), tt(views.R0), tt(views.t0)
+
+    # parameter scaling: one unit of τ moves a point ≈ 10 px sideways, one unit of δ is 0.1 rad
+    depth = np.abs(views.t0[:, 2]).mean()
+    f = float(views.K[:, 0, 0].mean())
+    t_unit = 10.0 * depth / f
+    r_unit = 0.1
+
+    zs = torch.zeros(model.n_shape, dtype=dtype, device=device, requires_grad=True)
+    ze = torch.zeros(model.n_exp if cfg.fit_expression else 0, dtype=dtype, device=device, requires_grad=True)
+    dw = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
+    dtr = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
+    # rigid rig → model transform (the head pose in the rig frame), for the soft rig constraint
+    use_rig = views.rig_centers is not None and cfg.rig_sigma_mm > 0 and V >= 3
+    if use_rig:
+        Rh0, th0, _ = rigid_align(views.rig_centers, camera_centers(views.R0, views.t0))
+    else:
+        Rh0, th0 = np.eye(3), np.zeros(3)
+    Rh0_t, th0_t = tt(Rh0), tt(th0)
+    rig_t = tt(views.rig_centers) if use_rig else None
+    dwh = torch.zeros(3, dtype=dtype, device=device, requires_grad=use_rig)
+    dth = torch.zeros(3, dtype=dtype, device=device, requires_grad=use_rig)
+    pose_params = [dw, dtr] + ([dwh, dth] if use_rig else [])
+
+    def poses():
+        R = axis_angle_to_matrix(dw * r_unit) @ R0_t
+        return R, t0_t + dtr * t_unit
+
+    def verts():
+        return ts.vertices(zs, ze)
+
+    def lm_loss(X, R, t, landmarks_only=False):
+        L = X if landmarks_only else X[ts.landmarks]
+        uv, _ = project(L[None].expand(V, -1, -1), K_t, R, t)
+        d = uv - obs_t
+        r = torch.sqrt((d * d).sum(-1) + 1e-12)
+        return (wl_t * huber(r, cfg.huber_px)).sum() / (wsum * cfg.landmark_sigma_px ** 2), uv
+
+    def prior(R, t):
+        """Negative log priors (½‖z‖², rig), divided by the landmark weight sum like the landmark term."""
+        p = 0.5 * cfg.w_shape * (zs * zs).sum() + 0.5 * cfg.w_exp * (ze * ze).sum()
+        if use_rig:
+            c = camera_centers(R, t)
+            Rh = axis_angle_to_matrix(dwh * r_unit) @ Rh0_t
+            ch = rig_t @ Rh.T + th0_t + dth * t_unit
+            p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
+        return p / wsum
+
+    history: list[dict] = []
+
+    def run_lbfgs(params, closure_loss, iters, stage):
+        if iters <= 0:
+            return
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=30, tolerance_grad=1e-9,
+                                tolerance_change=1e-12, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            loss = closure_loss()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        with torch.no_grad():
+            final = float(closure_loss())
+        history.append({"stage": stage, "loss": final, "evals": int(opt.state[opt._params[0]]["func_evals"])})
+        log.debug("fit-geometry: %s loss %.6g after %d evaluations", stage, final, history[-1]["evals"])
+
+    # ---- stage 1: landmarks + priors
+    def stage1():
+        R, t = poses()
+        return cfg.w_landmark * lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0] + prior(R, t)
+
+    run_lbfgs([zs, ze] + pose_params, stage1, cfg.landmark_iters, "landmarks")
+
+    # ---- stage 2: + photometric
+    sh = albedo = sample = None
+    photo_res = np.full(V, np.nan)
+    vis_count = np.zeros(V, dtype=np.int64)
+    if views.images is not None and cfg.photo_rounds > 0 and cfg.w_photo > 0:
+        kernel = sh_kernel(dtype, device)
+        kernel_np = kernel.cpu().numpy()
+        skin = model.skin_mask if model.skin_mask is not None else np.ones(model.n_vertices, dtype=bool)
+        sample = np.nonzero(skin)[0]
+        if len(sample) > cfg.photo_vertices:
+            sample = sample[np.linspace(0, len(sample) - 1, cfg.photo_vertices).round().astype(np.int64)]
+        sample_t = torch.as_tensor(sample, dtype=torch.long, device=device)
+        mode = cfg.albedo
+        if mode == "auto":
+            mode = "texture" if model.mean_tex is not None else "per-vertex"
+        if mode == "texture" and model.mean_tex is None:
+            raise ReflectmmError("--albedo texture: the face model has no mean texture")
+        base_albedo = model.mean_tex[sample] if mode == "texture" else np.broadcast_to(DEFAULT_SKIN,
+                                                                                      (len(sample), 3)).copy()
+        blurs = list(cfg.photo_blur_px) + [cfg.photo_blur_px[-1] if cfg.photo_blur_px else 0.0] * cfg.photo_rounds
+        for rnd in range(cfg.photo_rounds):
+            imgs_np = _blur(np.asarray(views.images, dtype=np.float32), blurs[rnd])
+            images_t = tt(np.ascontiguousarray(imgs_np.transpose(0, 3, 1, 2)))
+            with torch.no_grad():
+                X = verts()
+                R, t = poses()
+                Xn, Rn, tn = X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
+            nrm = vertex_normals(Xn, model.triangles)
+            centers = camera_centers(Rn, tn)
+            vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample)
+            uv, _ = project(Xn[sample][None].repeat(V, 0), views.K, Rn, tn)
+            vis &= inside_image(uv, W, H)
+            vis_t = tt(vis.astype(np.float64))
+            # closed-form lighting/albedo at the current geometry
+            from reflectmm_cli.fitting.photometric import sample_images
+            from reflectmm_cli.shading import sh_basis
+
+            obs = sample_images(images_t, tt(uv)).cpu().numpy().astype(np.float64)
+            Y = sh_basis(nrm[sample], SH_ORDER)
+            alb = base_albedo.copy() if albedo is None else albedo
+            for _ in range(3):
+                L = solve_lighting(Y, alb, obs, vis, kernel_np)
+                if mode == "per-vertex":
+                    alb = solve_albedo(Y, L, obs, vis, kernel_np, base_albedo)
+            seen = obs[vis]
+            scale = float(np.median(seen)) if seen.size else 1.0
+            scale = max(scale, 1e-3)
+            sh_t = tt(L).requires_grad_(True)
+            alb_t = tt(alb).requires_grad_(mode == "per-vertex")
+
+            def stage2():
+                X = verts()
+                R, t = poses()
+                nv = vertex_normals_torch(X, ts.triangles)
+                lp, _ = photometric_loss(X, nv, sample_t, vis_t, K_t, R, t, images_t, alb_t, sh_t, kernel, scale)
+                return cfg.w_landmark * lm_loss(X, R, t)[0] + cfg.w_photo * lp + prior(R, t)
+
+            params = [zs, ze] + pose_params + [sh_t] + ([alb_t] if mode == "per-vertex" else [])
+            run_lbfgs(params, stage2, cfg.photo_iters, f"photometric round {rnd + 1}")
+            sh = sh_t.detach().cpu().numpy()
+            albedo = alb_t.detach().cpu().numpy()
+            # residuals on the unblurred images at the final estimate of this round
+            with torch.no_grad():
+                X = verts()
+                R, t = poses()
+                nv = vertex_normals_torch(X, ts.triangles)
+                raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
+                _, r = photometric_loss(X, nv, sample_t, vis_t, K_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
+                r = r.cpu().numpy()
+            vis_count = vis.sum(1)
+            for v in range(V):
+                photo_res[v] = float(np.sqrt((r[v][vis[v]] ** 2).mean())) if vis[v].any() else np.nan
+
+    with torch.no_grad():
+        X = verts()
+        R, t = poses()
+        _, uv = lm_loss(X, R, t)
+    uv = uv.cpu().numpy().astype(np.float64)
+    err = np.linalg.norm(uv - lm_obs, axis=-1)
+    rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) for v in range(V)])
+    zs_np = zs.detach().cpu().numpy().astype(np.float64)
+    ze_np = ze.detach().cpu().numpy().astype(np.float64)
+    shape_coeffs = zs_np * model.shape_sigma
+    exp_coeffs = ze_np * model.exp_sigma[:len(ze_np)] if cfg.fit_expression else np.zeros(model.n_exp)
+    return GeometryFit(shape_coeffs=shape_coeffs, exp_coeffs=exp_coeffs,
+                       vertices=model.vertices(shape_coeffs, exp_coeffs),
+                       R=R.cpu().numpy().astype(np.float64), t=t.cpu().numpy().astype(np.float64),
+                       K=views.K.copy(), landmark_rmse_px=rmse, landmark_px=uv, photo_residual=photo_res,
+                       visible_count=vis_count, sh=sh, albedo=albedo, photo_sample=sample, history=history,
+                       seconds=time.perf_counter() - t_start)

@@ -1,0 +1,117 @@
+"""Pose initialisation (rig nominal pose refined by PnP) and the rig → model-space transform for flashes."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from reflectmm_cli.fitting.camera_math import camera_centers, project
+
+log = logging.getLogger("reflectmm")
+
+
+def pnp_pose(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray, R0: np.ndarray, t0: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Refine a pose (R0, t0) with ``cv2.solvePnP`` (iterative LM from the initial guess) on the finite
+    correspondences; keep the better of the initial and refined pose by reprojection RMS.
+
+    Returns (R, t, rms_px).
+    """
+    import cv2
+
+    ok = np.isfinite(image_points).all(-1) & np.isfinite(object_points).all(-1)
+    obj = np.ascontiguousarray(object_points[ok], dtype=np.float64)
+    img = np.ascontiguousarray(image_points[ok], dtype=np.float64)
+
+    def rms(R, t):
+        uv, z = project(obj, K, R, t)
+        if np.any(z <= 0):
+            return np.inf
+        return float(np.sqrt(((uv - img) ** 2).sum(-1).mean()))
+
+    best = (R0, t0, rms(R0, t0))
+    if len(obj) < 6:
+        return best
+    rvec0, _ = cv2.Rodrigues(np.asarray(R0, dtype=np.float64))
+    tvec0 = np.asarray(t0, dtype=np.float64).reshape(3, 1).copy()
+    try:
+        found, rvec, tvec = cv2.solvePnP(obj, img, np.asarray(K, dtype=np.float64), None, rvec0.copy(), tvec0,
+                                         useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    except cv2.error as exc:  # pragma: no cover - degenerate input
+        log.debug("solvePnP failed: %s", exc)
+        return best
+    if found:
+        R = cv2.Rodrigues(rvec)[0]
+        t = tvec.reshape(3)
+        e = rms(R, t)
+        if e < best[2]:
+            best = (R, t, e)
+    return best
+
+
+def initial_poses(landmarks3d: np.ndarray, landmarks2d: np.ndarray, K: np.ndarray, R_rig: np.ndarray,
+                  t_rig: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-view initial (R, t) from the rig's nominal pose refined by PnP on the mean-shape landmarks.
+
+    landmarks3d (68, 3) model space; landmarks2d (V, 68, 2); K, R_rig (V, 3, 3); t_rig (V, 3).
+    Returns R (V, 3, 3), t (V, 3), rms (V,) px of the initial pose.
+    """
+    V = len(K)
+    R = np.zeros((V, 3, 3))
+    t = np.zeros((V, 3))
+    err = np.zeros(V)
+    for v in range(V):
+        R[v], t[v], err[v] = pnp_pose(landmarks3d, landmarks2d[v], K[v], R_rig[v], t_rig[v])
+    return R, t, err
+
+
+def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares rigid transform (Kabsch, no scale) with ``dst ≈ src @ Rᵀ + t``.
+
+    Returns (R (3, 3), t (3,), residual (n,) distances after alignment).  Needs ≥ 3 non-collinear points.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    ms, md = src.mean(0), dst.mean(0)
+    H = (src - ms).T @ (dst - md)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    D = np.diag([1.0, 1.0, d])
+    R = Vt.T @ D @ U.T
+    t = md - R @ ms
+    res = np.linalg.norm(src @ R.T + t - dst, axis=-1)
+    return R, t, res
+
+
+def flash_positions(rig, flash_ids: list[str], view_names: list[str], R: np.ndarray, t: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+    """Flash positions in the fitted model space.
+
+    A flash attached to a fitted view sits at that view's fitted centre ``−Rᵀt``.  Every other flash (the
+    raised cameras' flashes 14/18 when 08_1/19_1 are not fitted views, stand-alone flashes 15–17) is mapped
+    from the rig frame with the rigid transform that best aligns the rig camera positions of the fitted views
+    to their fitted centres (needs ≥ 3 views, else the rig frame is used as model space).
+
+    Returns (flash_pos (F, 3), flash_intensity (F,), source per flash ("view" / "rig"), rig→model residual (V,)).
+    """
+    centers = camera_centers(R, t)
+    rig_pos = np.array([rig.camera(n).position for n in view_names], dtype=np.float64)
+    if len(view_names) >= 3:
+        Ra, ta, res = rigid_align(rig_pos, centers)
+    else:
+        Ra, ta, res = np.eye(3), np.zeros(3), np.linalg.norm(rig_pos - centers, axis=-1)
+    pos = np.zeros((len(flash_ids), 3))
+    inten = np.zeros(len(flash_ids))
+    source = []
+    for i, fid in enumerate(flash_ids):
+        fl = rig.flash(fid)
+        inten[i] = fl.intensity
+        if fl.camera is not None and fl.camera in view_names:
+            pos[i] = centers[view_names.index(fl.camera)]
+            source.append("view")
+        else:
+            p = rig.camera(fl.camera).position if fl.camera is not None else fl.position
+            pos[i] = Ra @ np.asarray(p, dtype=np.float64) + ta
+            source.append("rig")
+    return pos, inten, source, res
