@@ -1,0 +1,113 @@
+"""``reflectmm unwrap-uv``: capture + fitted geometry → per-texel observations (``uv-observations`` artifact)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import click
+
+from reflectmm_cli.artifacts import atomic_write_bytes, read_artifact, write_artifact
+from reflectmm_cli.commands._common import emit, json_option, output_option, run_stage_cli, workspace_option
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages import StageContext, default_workspace, register_stage
+
+log = logging.getLogger("reflectmm")
+
+VERB = "unwrap-uv"
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    out = ctx.output_path()
+    return [out, out.with_name(out.stem + "_preview.png")]
+
+
+def face_model_from_geometry(geometry_path: Path) -> Path | None:
+    """The face model a geometry artifact was fitted with (its meta inputs), if recorded and present."""
+    art_meta = read_artifact(geometry_path, "geometry").meta
+    for ref in art_meta.get("inputs", []):
+        role = str(ref.get("role", "")).replace("-", "_")
+        if role in ("face_model", "model") or "face" in role:
+            p = (Path(geometry_path).parent / ref.get("path", "")).resolve()
+            if p.is_file():
+                return p
+    return None
+
+
+@register_stage(VERB, version=1, per_identity=True, outputs=_outputs,
+                help="capture + geometry -> per-texel OLAT observations in UV space")
+def run_unwrap(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.geometry.face_model import load_face_model
+    from reflectmm_cli.observations.unwrap import previews, unwrap_observations
+    from reflectmm_cli.capture.preprocess import encode_png
+
+    t0 = time.perf_counter()
+    cap_path = ctx.input("capture")
+    geo_path = ctx.input("geometry")
+    fm_path = ctx.input("face_model")
+    cap = read_artifact(cap_path, "capture")
+    geo = read_artifact(geo_path, "geometry")
+    model = load_face_model(fm_path)
+    exps = tuple(float(e) for e in ctx.param("exponents", (1.0, 8.0, 64.0)))
+    arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
+                                         uv_size=int(ctx.param("uv_size", 256)),
+                                         grazing_deg=float(ctx.param("grazing_deg", 80.0)), exponents=exps,
+                                         geometry_path=geo_path)
+    out, prev = _outputs(ctx)
+    write_artifact(out, "uv-observations", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
+                   producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
+    atomic_write_bytes(prev, encode_png(previews(arrays)))
+    log.info("unwrap-uv %s: %d texels, %d views x %d flashes, %d observed texel-pairs; rays: %d view, %d shadow "
+             "(skipped %d back-facing, %d unseen); %d texels unseen by every view; %.2f s", ctx.identity,
+             report["texels"], report["views"], report["flashes"], report["observed_pairs"], report["rays_view"],
+             report["rays_shadow"], report["skipped_backfacing_light"], report["skipped_unseen"],
+             report["texels_unseen"], time.perf_counter() - t0)
+    return [out, prev]
+
+
+@click.command(VERB)
+@click.option("--id", "identity", required=True, help="Identity (e.g. 042).")
+@click.option("--uv-size", type=click.IntRange(8, 4096), default=256, show_default=True, help="UV map size S.")
+@click.option("--capture", "capture", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="capture artifact (default <ws>/preprocess-multipie/<id>.npz).")
+@click.option("--geometry", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="geometry artifact (default <ws>/fit-geometry/<id>.npz).")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="face model (face-model artifact or BFM .mat; default: the one the geometry was fitted with).")
+@click.option("--grazing-deg", type=float, default=80.0, show_default=True,
+              help="A view sees a texel only if the angle between normal and view direction is below this.")
+@click.option("--exponents", default="1,8,64", show_default=True,
+              help="Lobe exponents used for the conditioning map.")
+@workspace_option
+@output_option
+@json_option
+def unwrap_uv_cmd(identity, uv_size, capture, geometry, face_model, grazing_deg, exponents, workspace, output,
+                  as_json):
+    """Unwrap one identity's OLAT images into UV space with visibility, shadow and saturation masks."""
+    ws = (workspace or default_workspace()).resolve()
+    capture = capture or ws / "preprocess-multipie" / f"{identity}.npz"
+    geometry = geometry or ws / "fit-geometry" / f"{identity}.npz"
+    for role, p in (("capture", capture), ("geometry", geometry)):
+        if not Path(p).exists():
+            raise ReflectmmError(f"{role} artifact not found (run {'preprocess-multipie' if role == 'capture' else 'fit-geometry'} "
+                                 f"first or pass --{role})", p)
+    if face_model is None:
+        face_model = face_model_from_geometry(geometry)
+        if face_model is None:
+            raise ReflectmmError("the geometry artifact does not record an existing face model: pass --face-model",
+                                 geometry)
+    try:
+        exps = [float(e) for e in exponents.replace(" ", "").split(",") if e]
+    except ValueError:
+        raise click.BadParameter(f"not a comma-separated list of numbers: {exponents!r}", param_hint="--exponents")
+    if not exps or min(exps) <= 0:
+        raise click.BadParameter("exponents must be > 0", param_hint="--exponents")
+    params = {"uv_size": uv_size, "grazing_deg": grazing_deg, "exponents": exps}
+    paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=params,
+                          inputs={"capture": [capture], "geometry": [geometry], "face_model": [face_model]},
+                          output=output)
+    emit(paths, as_json)
+
+
+COMMANDS = [unwrap_uv_cmd]

@@ -1,0 +1,307 @@
+"""``unwrap-uv`` library: capture + fitted geometry → per-texel observations (``uv-observations`` artifact).
+
+For every texel of the S×S UV map (position ``x``, unit normal ``n``) and every (view, flash) pair j:
+
+* ``visible[v]``: ``n·v > cos(grazing)``, in front of the camera, and the segment from ``x`` to the camera
+  centre is not blocked by the mesh (Embree ray, origin offset along ``n``) — the ray-traced equivalent of a
+  depth test;
+* ``lit[f]``: ``n·l > 0`` and the segment from ``x`` to the flash is not blocked (Embree shadow ray).  No ray is
+  traced for texels with ``n·l ≤ 0`` or texels invisible to every view (counted and logged);
+* ``radiance[j]``: the OLAT image of the pair sampled bilinearly at the projection of ``x`` (OpenCV pinhole,
+  minus the capture's crop origin);
+* ``saturated[j]``: any of the 4 bilinear taps saturated;
+* ``observed[j] = visible ∧ lit ∧ n·l > 0 ∧ n·v > cut-off ∧ unsaturated ∧ inside the stored image``.
+
+Rays: the scene is the fitted face mesh only; an occluder *behind* a light or the camera cannot exist in it, so a
+hit anywhere along the ray counts as blocked.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.observations.uvmap import interpolate, uv_rasterize
+
+log = logging.getLogger("reflectmm")
+
+DEFAULT_EXPONENTS = (1.0, 8.0, 64.0)
+
+
+@dataclass
+class UVGeometry:
+    """UV maps of a mesh: ``position (S,S,3)``, ``normal (S,S,3)`` (unit), ``mask (S,S)``, ``tri``, ``bary``."""
+
+    position: np.ndarray
+    normal: np.ndarray
+    mask: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+
+
+def uv_geometry(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, size: int) -> UVGeometry:
+    """Rasterise the mesh in UV space; positions and (area-weighted vertex) normals interpolated per texel."""
+    from reflectmm_cli.geometry.face_model import vertex_normals
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    tri, bary = uv_rasterize(uv, triangles, size)
+    pos = interpolate(vertices, triangles, tri, bary)
+    vn = vertex_normals(vertices, triangles).astype(np.float64)
+    nrm = interpolate(vn, triangles, tri, bary)
+    ln = np.linalg.norm(nrm, axis=-1)
+    mask = (tri >= 0) & (ln > 1e-8)
+    nrm = np.where(mask[..., None], nrm / np.where(ln > 1e-8, ln, 1.0)[..., None], 0.0)
+    pos = np.where(mask[..., None], pos, 0.0)
+    return UVGeometry(pos.astype(np.float32), nrm.astype(np.float32), mask, tri, bary)
+
+
+class RayOccluder:
+    """Any-hit ray queries against a triangle mesh (Embree through trimesh)."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
+        import trimesh
+
+        self.mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles, dtype=np.int64),
+                                    process=False, validate=False)
+        try:
+            from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+            self.intersector = RayMeshIntersector(self.mesh)
+            self.engine = "embree"
+        except Exception:  # pragma: no cover - embreex is a declared dependency
+            from trimesh.ray.ray_triangle import RayMeshIntersector
+
+            self.intersector = RayMeshIntersector(self.mesh)
+            self.engine = "python"
+        ext = np.ptp(np.asarray(vertices, dtype=np.float64), axis=0)
+        #: offset of ray origins (along the normal and the ray), relative to the mesh size
+        self.eps = 1e-3 * float(np.linalg.norm(ext)) if ext.size else 1e-3
+
+    def blocked(self, points: np.ndarray, normals: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """(N,) bool: the segment from each point (offset along its normal) towards ``targets`` ((3,) or (N,3))
+        hits the mesh."""
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.shape[0] == 0:
+            return np.zeros(0, bool)
+        d = np.asarray(targets, dtype=np.float64) - pts
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        origins = pts + self.eps * (np.asarray(normals, dtype=np.float64) + d)
+        return np.asarray(self.intersector.intersects_any(origins, d), dtype=bool)
+
+
+def project(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV pinhole projection: (N,2) pixel coordinates ``(u, v)`` and (N,) depth Z."""
+    X = np.asarray(points, dtype=np.float64) @ np.asarray(R, dtype=np.float64).T + np.asarray(t, dtype=np.float64)
+    Z = X[:, 2]
+    Zs = np.where(np.abs(Z) > 1e-12, Z, 1e-12)
+    x, y = X[:, 0] / Zs, X[:, 1] / Zs
+    K = np.asarray(K, dtype=np.float64)
+    u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
+    v = K[1, 1] * y + K[1, 2]
+    return np.stack([u, v], 1), Z
+
+
+def bilinear(images: np.ndarray, uv: np.ndarray, saturated: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample ``images (F, H, W, C)`` at pixel coordinates ``uv (N, 2)`` (pixel centres at integers).
+
+    Returns ``(values (F, N, C) float32, inside (N,) bool, sat (F, N) bool)``; ``inside`` means all four taps
+    exist (``0 ≤ u ≤ W−1``, ``0 ≤ v ≤ H−1``); ``sat`` is true when any tap is saturated.  Outside: 0.
+    """
+    F, H, W = images.shape[:3]
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1) & np.isfinite(u) & np.isfinite(v)
+    uc = np.where(inside, u, 0.0)
+    vc = np.where(inside, v, 0.0)
+    x0 = np.minimum(np.floor(uc).astype(np.int64), max(W - 2, 0))
+    y0 = np.minimum(np.floor(vc).astype(np.int64), max(H - 2, 0))
+    x1 = np.minimum(x0 + 1, W - 1)
+    y1 = np.minimum(y0 + 1, H - 1)
+    fx = (uc - x0).astype(np.float32)[None, :, None]
+    fy = (vc - y0).astype(np.float32)[None, :, None]
+    flat = images.reshape(F, H * W, -1)
+    i00, i01, i10, i11 = y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1
+    g = lambda i: flat[:, i].astype(np.float32)  # noqa: E731
+    val = (g(i00) * (1 - fx) + g(i01) * fx) * (1 - fy) + (g(i10) * (1 - fx) + g(i11) * fx) * fy
+    val[:, ~inside] = 0.0
+    if saturated is None:
+        sat = np.zeros((F, uv.shape[0]), bool)
+    else:
+        sflat = saturated.reshape(F, H * W)
+        sat = sflat[:, i00] | sflat[:, i01] | sflat[:, i10] | sflat[:, i11]
+        sat &= inside[None, :]
+    return val, inside, sat
+
+
+def _index_of(names: Sequence[str], wanted: Sequence[str], what: str, where) -> np.ndarray:
+    names = [str(n) for n in names]
+    idx = []
+    for w in wanted:
+        if str(w) not in names:
+            raise ReflectmmError(f"{what} {w} of the capture is not in the geometry ({', '.join(names)})", where)
+        idx.append(names.index(str(w)))
+    return np.array(idx, dtype=np.int64)
+
+
+def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
+                        triangles: np.ndarray, uv: np.ndarray, *, uv_size: int = 256, grazing_deg: float = 80.0,
+                        exponents: Sequence[float] = DEFAULT_EXPONENTS, geometry_path=None,
+                        with_conditioning: bool = True) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Build the ``uv-observations`` arrays of docs/pipeline.md.
+
+    Args:
+        capture: arrays of a ``capture`` artifact (``olat``, ``saturated``, ``view_names``, ``flash_ids``,
+            ``crop_origin``, ``image_size``).
+        geometry: arrays of a ``geometry`` artifact (``vertices``, ``view_names``, ``K``, ``R``, ``t``,
+            ``cam_centers``, ``flash_ids``, ``flash_pos``, ``flash_intensity``, ``image_size``).
+        triangles, uv: the face model's topology and texture coordinates.
+        grazing_deg: views with ``n·v ≤ cos(grazing_deg)`` do not see the texel.
+    Returns:
+        ``(arrays, report)``.
+    """
+    if not 0.0 < grazing_deg <= 90.0:
+        raise ReflectmmError(f"--grazing-deg must be in (0, 90], got {grazing_deg}")
+    verts = np.asarray(geometry["vertices"], dtype=np.float64)
+    if verts.ndim != 2 or verts.shape[1] != 3:
+        raise ReflectmmError(f"geometry 'vertices' must be (N, 3), got {verts.shape}", geometry_path)
+    if np.asarray(uv).shape[0] != verts.shape[0]:
+        raise ReflectmmError(f"geometry has {verts.shape[0]} vertices but the face model has "
+                             f"{np.asarray(uv).shape[0]}", geometry_path)
+    views = [str(v) for v in capture["view_names"]]
+    flashes = [str(f) for f in capture["flash_ids"]]
+    gv = _index_of(geometry["view_names"], views, "view", geometry_path)
+    gf = _index_of(geometry["flash_ids"], flashes, "flash", geometry_path)
+    cap_size = np.asarray(capture["image_size"]).reshape(-1)
+    geo_size = np.asarray(geometry["image_size"]).reshape(-1)
+    if geo_size.size >= 2 and tuple(cap_size[:2]) != tuple(geo_size[:2]):
+        raise ReflectmmError(f"geometry image_size {tuple(geo_size[:2])} differs from the capture's "
+                             f"{tuple(cap_size[:2])}", geometry_path)
+    K = np.asarray(geometry["K"], dtype=np.float64)[gv]
+    R = np.asarray(geometry["R"], dtype=np.float64)[gv]
+    t = np.asarray(geometry["t"], dtype=np.float64)[gv]
+    cam_centers = np.asarray(geometry["cam_centers"], dtype=np.float64)[gv]
+    flash_pos = np.asarray(geometry["flash_pos"], dtype=np.float64)[gf]
+    flash_int = np.asarray(geometry["flash_intensity"], dtype=np.float64).reshape(-1)[gf]
+    olat = capture["olat"]
+    satur = capture["saturated"]
+    crop = np.asarray(capture.get("crop_origin", np.zeros((len(views), 2))), dtype=np.float64)
+    V, F = len(views), len(flashes)
+    S = int(uv_size)
+
+    g = uv_geometry(verts, triangles, uv, S)
+    m = g.mask.reshape(-1)
+    idx = np.flatnonzero(m)
+    N = idx.size
+    x = g.position.reshape(-1, 3)[idx].astype(np.float64)
+    n = g.normal.reshape(-1, 3)[idx].astype(np.float64)
+    occ = RayOccluder(verts, triangles)
+    cos_cut = math.cos(math.radians(grazing_deg))
+
+    vis = np.zeros((V, N), bool)
+    rays_view = 0
+    for vi in range(V):
+        dv = cam_centers[vi] - x
+        ndv = np.einsum("nk,nk->n", n, dv) / np.linalg.norm(dv, axis=1)
+        _, Z = project(x, K[vi], R[vi], t[vi])
+        cand = (ndv > cos_cut) & (Z > 0)
+        ci = np.flatnonzero(cand)
+        vis[vi, ci] = ~occ.blocked(x[ci], n[ci], cam_centers[vi])
+        rays_view += ci.size
+    seen = vis.any(0)
+    lit = np.zeros((F, N), bool)
+    rays_flash = skipped_back = skipped_unseen = 0
+    for fi in range(F):
+        dl = flash_pos[fi] - x
+        ndl = np.einsum("nk,nk->n", n, dl)
+        front = ndl > 0
+        skipped_back += int((~front).sum())
+        skipped_unseen += int((front & ~seen).sum())
+        ci = np.flatnonzero(front & seen)
+        lit[fi, ci] = ~occ.blocked(x[ci], n[ci], flash_pos[fi])
+        rays_flash += ci.size
+
+    P = V * F
+    pair_view = np.repeat(np.arange(V, dtype=np.int32), F)
+    pair_flash = np.tile(np.arange(F, dtype=np.int32), V)
+    radiance = np.zeros((P, S * S, 3), dtype=np.float16)
+    observed = np.zeros((P, S * S), bool)
+    saturated = np.zeros((P, S * S), bool)
+    inside_any = np.zeros(N, bool)
+    for vi in range(V):
+        pix, _ = project(x, K[vi], R[vi], t[vi])
+        pix = pix - crop[vi][None, :]
+        vals, inside, sat = bilinear(olat[vi], pix, satur[vi])
+        inside_any |= inside
+        for fi in range(F):
+            p = vi * F + fi
+            ob = vis[vi] & lit[fi] & inside & ~sat[fi]
+            observed[p, idx] = ob
+            saturated[p, idx] = sat[fi]
+            radiance[p, idx] = np.where(ob[:, None], vals[fi], 0.0).astype(np.float16)
+    obs_count = observed.sum(0).astype(np.int32).reshape(S, S)
+    arrays: dict[str, np.ndarray] = {
+        "position": g.position, "normal": g.normal, "mask": g.mask,
+        "view_names": np.array(views, dtype=str), "flash_ids": np.array(flashes, dtype=str),
+        "cam_centers": cam_centers.astype(np.float32), "flash_pos": flash_pos.astype(np.float32),
+        "flash_intensity": flash_int.astype(np.float32),
+        "pair_view": pair_view, "pair_flash": pair_flash,
+        "radiance": radiance.reshape(P, S, S, 3), "observed": observed.reshape(P, S, S),
+        "visible": _scatter(vis, idx, S), "lit": _scatter(lit, idx, S),
+        "saturated": saturated.reshape(P, S, S), "obs_count": obs_count,
+    }
+    report = {"texels": int(N), "uv_size": S, "views": V, "flashes": F, "grazing_deg": float(grazing_deg),
+              "rays_view": int(rays_view), "rays_shadow": int(rays_flash),
+              "skipped_backfacing_light": int(skipped_back), "skipped_unseen": int(skipped_unseen),
+              "texels_unseen": int((~seen).sum()), "texels_outside_images": int((~inside_any).sum()),
+              "observed_pairs": int(observed.sum()), "saturated_pairs": int(saturated.sum()),
+              "ray_engine": occ.engine}
+    if with_conditioning:
+        from reflectmm_cli.reflectance.design import conditioning
+
+        cond = conditioning(arrays["position"], arrays["normal"], arrays["cam_centers"], arrays["flash_pos"],
+                            arrays["flash_intensity"], pair_view, pair_flash, arrays["observed"], exponents,
+                            mask=g.mask)
+        arrays["conditioning"] = cond.conditioning.astype(np.float32)
+        arrays["conditioning_exponents"] = np.asarray(cond.exponents, dtype=np.float32)
+        arrays["observability"] = cond.observability.astype(np.float32)
+    return arrays, report
+
+
+def _scatter(a: np.ndarray, idx: np.ndarray, S: int) -> np.ndarray:
+    out = np.zeros((a.shape[0], S * S), dtype=a.dtype)
+    out[:, idx] = a
+    return out.reshape(a.shape[0], S, S)
+
+
+def previews(arrays: Mapping[str, np.ndarray], n_radiance: int = 3, tile: int = 256) -> np.ndarray:
+    """RGB uint8 preview row: observation count, conditioning (log10, 1e-6..1), and a few radiance maps."""
+    import cv2
+
+    S = arrays["mask"].shape[0]
+    mask = arrays["mask"]
+    tiles = []
+    cnt = arrays["obs_count"].astype(np.float32)
+    cmax = max(float(cnt.max()), 1.0)
+    c8 = (np.clip(cnt / cmax, 0, 1) * 255).astype(np.uint8)
+    tiles.append(cv2.applyColorMap(c8, cv2.COLORMAP_VIRIDIS)[..., ::-1] * mask[..., None])
+    if "conditioning" in arrays:
+        lc = (np.log10(np.clip(arrays["conditioning"], 1e-6, 1.0)) + 6.0) / 6.0
+        tiles.append(cv2.applyColorMap((lc * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1]
+                     * mask[..., None])
+    rad = arrays["radiance"]
+    obs = arrays["observed"]
+    counts = obs.reshape(obs.shape[0], -1).sum(1)
+    picks = np.argsort(-counts, kind="stable")[:n_radiance]
+    if picks.size:
+        scale = float(np.percentile(rad[picks].astype(np.float32)[obs[picks]], 99.5)) if obs[picks].any() else 1.0
+        for p in sorted(picks.tolist()):
+            img = np.clip(rad[p].astype(np.float32) / max(scale, 1e-8), 0, 1) ** (1 / 2.2)
+            tiles.append((img * 255 + 0.5).astype(np.uint8))
+    tiles = [cv2.resize(np.ascontiguousarray(t), (tile, tile), interpolation=cv2.INTER_NEAREST)
+             if S != tile else np.ascontiguousarray(t) for t in tiles]
+    return np.concatenate(tiles, axis=1)

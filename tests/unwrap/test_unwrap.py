@@ -1,0 +1,223 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from _sphere_scene import RADIUS, make_scene, quad, seg_hits_quad, shading
+from reflectmm_cli.artifacts import read_artifact, write_artifact
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.observations.unwrap import bilinear, project
+from reflectmm_cli.observations.uvmap import interpolate, uv_rasterize
+
+QUANT = 2 * 1.2 * 0.5 / 255  # flash and room shot each within half an 8-bit step of x**(1/1.2)
+
+
+def _pipeline(cli, tmp_path, scene, *extra, uv=64):
+    root, ws = tmp_path / "mp", tmp_path / "ws"
+    res = cli("preprocess-multipie", "--root", root, "--id", "001", "--views", ",".join(scene["views"]),
+              "--flashes", ",".join(scene["flashes"]), "--workspace", ws)
+    assert res.exit_code == 0, res.stderr
+    res = cli("unwrap-uv", "--id", "001", "--uv-size", uv, "--face-model", scene["face_model_path"],
+              "--workspace", ws, *extra)
+    assert res.exit_code == 0, res.stderr
+    out = ws / "unwrap-uv" / "001.npz"
+    assert res.stdout.split() == [str(out), str(ws / "unwrap-uv" / "001_preview.png")]
+    return read_artifact(out, "uv-observations")
+
+
+def _truth(obs, geo, p):
+    """Exact shading of the sphere point each observed texel's projection sees (ray–sphere intersection)."""
+    vi, fi = int(obs["pair_view"][p]), int(obs["pair_flash"][p])
+    ob = obs["observed"][p]
+    x = obs["position"][ob].astype(np.float64)
+    c = geo["cam_centers"][vi]
+    d = x - c
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    b = d @ c
+    t = -b - np.sqrt(b * b - (c @ c - RADIUS ** 2))
+    xs = c + t[:, None] * d
+    return ob, shading(xs, xs / RADIUS, c, geo["flash_pos"][fi], geo["flash_intensity"][fi])
+
+
+def test_unwrapped_radiance_equals_shading(tmp_path, cli):
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws")
+    obs = _pipeline(cli, tmp_path, scene)
+    S, V, F = 64, 2, 2
+    P = V * F
+    assert obs["radiance"].shape == (P, S, S, 3) and obs["radiance"].dtype == np.float16
+    assert obs["observed"].shape == (P, S, S) and obs["visible"].shape == (V, S, S) and obs["lit"].shape == (F, S, S)
+    assert obs["position"].shape == (S, S, 3) and obs["mask"].dtype == bool
+    assert obs["pair_view"].tolist() == [0, 0, 1, 1] and obs["pair_flash"].tolist() == [0, 1, 0, 1]
+    assert obs["conditioning"].shape == (S, S) and obs["conditioning_exponents"].tolist() == [1, 8, 64]
+    np.testing.assert_array_equal(obs["obs_count"], obs["observed"].sum(0))
+    np.testing.assert_allclose(np.linalg.norm(obs["normal"][obs["mask"]], axis=-1), 1, atol=1e-5)
+    # positions lie on the cap (chords are at most the sag below the sphere)
+    r = np.linalg.norm(obs["position"][obs["mask"]], axis=-1)
+    assert np.all(r <= RADIUS + 1e-3) and np.all(r > RADIUS - 0.2)
+    assert not obs["radiance"][~obs["observed"]].any()
+    geo = scene["geometry"]
+    n_obs = 0
+    for p in range(P):
+        ob, want = _truth(obs, geo, p)
+        got = obs["radiance"][p][ob].astype(np.float64)
+        err = np.abs(got - want)
+        n_obs += ob.sum()
+        assert err.max() < QUANT + 1.5e-3, (p, err.max())
+        assert np.median(err) < 0.3 * QUANT
+    assert n_obs > 0.8 * P * obs["mask"].sum()
+    # the sphere is convex: lit = n·l > 0 (up to the mesh's facets near the terminator)
+    for f in range(F):
+        x = obs["position"][obs["mask"]].astype(np.float64)
+        ndl = np.einsum("nk,nk->n", obs["normal"][obs["mask"]], geo["flash_pos"][f] - x)
+        lit = obs["lit"][f][obs["mask"]]
+        assert not lit[ndl <= 0].any()
+        assert lit[ndl > 0.02 * np.linalg.norm(geo["flash_pos"][f] - x, axis=1)].all()
+
+
+def test_occluder_visibility_and_shadow(tmp_path, cli):
+    # a 14 mm square floating 25 mm above the cap, facing the raised flash "14"
+    flash = np.array([250.0, 180.0, 300.0])
+    top = np.array([0.0, 0.0, RADIUS])
+    d = (flash - top) / np.linalg.norm(flash - top)
+    occ = quad(top + 25 * d, d, 14.0)
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws", occluder=occ)
+    obs = _pipeline(cli, tmp_path, scene)
+    geo = scene["geometry"]
+    m = obs["mask"]
+    x = obs["position"][m].astype(np.float64)
+    n = obs["normal"][m].astype(np.float64)
+    for fi in range(2):
+        fpos = geo["flash_pos"][fi]
+        want = (np.einsum("nk,nk->n", n, fpos - x) > 0) & ~seg_hits_quad(x, fpos, occ[0])
+        got = obs["lit"][fi][m]
+        seen = obs["visible"][:, m].any(0)
+        mism = (got != want) & seen
+        assert mism.sum() <= 0.01 * seen.sum(), (fi, mism.sum())
+        if fi == 1:
+            assert (~want & seen & (np.einsum("nk,nk->n", n, fpos - x) > 0)).sum() > 50  # a real cast shadow
+    for vi in range(2):
+        c = geo["cam_centers"][vi]
+        v = c - x
+        ndv = np.einsum("nk,nk->n", n, v) / np.linalg.norm(v, axis=1)
+        want = (ndv > math.cos(math.radians(80))) & ~seg_hits_quad(x, c, occ[0])
+        got = obs["visible"][vi][m]
+        assert (got != want).sum() <= 0.01 * m.sum()
+        assert (~seg_hits_quad(x, c, occ[0])).sum() < m.sum() - 50  # the occluder hides texels from this view
+    # observed radiance still equals the shading away from the occluder's outline
+    for p in range(4):
+        ob, want = _truth(obs, geo, p)
+        err = np.abs(obs["radiance"][p][ob].astype(np.float64) - want)
+        assert np.median(err) < 0.3 * QUANT
+        assert np.mean(err > QUANT + 1.5e-3) < 0.02
+
+
+def test_grazing_cutoff_and_saturation(tmp_path, cli):
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws")
+    obs = _pipeline(cli, tmp_path, scene, "--grazing-deg", "30")
+    geo = scene["geometry"]
+    for p in range(4):
+        vi = obs["pair_view"][p]
+        ob = obs["observed"][p]
+        x = obs["position"][ob].astype(np.float64)
+        v = geo["cam_centers"][vi] - x
+        ndv = np.einsum("nk,nk->n", obs["normal"][ob], v) / np.linalg.norm(v, axis=1)
+        assert ndv.min() > math.cos(math.radians(30)) - 1e-6
+    assert obs.params["grazing_deg"] == 30
+
+
+def test_saturated_pixels_are_not_observed(tmp_path, cli):
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws")
+    # brighten the frontal flash shot of the frontal view so its highlight clips
+    import cv2
+    png = tmp_path / "mp/data/session01/multiview/001/01/05_1/001_01_01_051_07.png"
+    img = cv2.imread(str(png))
+    img = np.clip(img.astype(np.int32) + 60, 0, 255).astype(np.uint8)
+    cv2.imwrite(str(png), img)
+    obs = _pipeline(cli, tmp_path, scene)
+    sat = obs["saturated"][0]
+    assert sat.sum() > 20
+    assert not (obs["observed"][0] & sat).any()
+    assert not obs["saturated"][3].any()
+
+
+def test_mismatched_geometry_errors(tmp_path, cli):
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws")
+    root, ws = tmp_path / "mp", tmp_path / "ws"
+    assert cli("preprocess-multipie", "--root", root, "--id", "001", "--views", "05_1,14_0", "--flashes", "07,14",
+               "--workspace", ws).exit_code == 0
+    g = dict(scene["geometry"])
+    g["view_names"] = np.array(["05_1", "13_0"])
+    bad = write_artifact(tmp_path / "bad_geo.npz", "geometry", g)
+    res = cli("unwrap-uv", "--id", "001", "--geometry", bad, "--face-model", scene["face_model_path"],
+              "--workspace", ws)
+    assert res.exit_code == 1 and "bad_geo.npz" in res.stderr and "view 14_0" in res.stderr
+    res = cli("unwrap-uv", "--id", "002", "--face-model", scene["face_model_path"], "--workspace", ws)
+    assert res.exit_code == 1 and "002.npz" in res.stderr and "capture" in res.stderr
+    res = cli("unwrap-uv", "--id", "001", "--geometry", scene["face_model_path"],
+              "--face-model", scene["face_model_path"], "--workspace", ws)
+    assert res.exit_code == 1 and "expected a 'geometry' artifact" in res.stderr
+
+
+def test_uv_rasterize_square_and_interpolation():
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    tri = np.array([[0, 1, 2], [0, 2, 3]])
+    t, b = uv_rasterize(uv, tri, 16)
+    assert (t >= 0).all()
+    vals = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * [2.0, 3.0] + [1.0, -1.0]  # linear in uv
+    got = interpolate(vals, tri, t, b)
+    rows, cols = np.mgrid[0:16, 0:16]
+    want = np.stack([(cols + 0.5) / 16 * 2 + 1, (rows + 0.5) / 16 * 3 - 1], -1)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+@settings(max_examples=40)
+@given(st.lists(st.floats(0.0, 1.0), min_size=6, max_size=6), st.integers(4, 40))
+def test_uv_rasterize_matches_point_in_triangle(coords, S):
+    from scipy.spatial import Delaunay, QhullError
+
+    pts = np.array(coords).reshape(3, 2)
+    cross2 = lambda a, b: a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]  # noqa: E731
+    area = abs(cross2(pts[1] - pts[0], pts[2] - pts[0]))
+    if area < 1e-3:
+        return
+    t, b = uv_rasterize(pts, np.array([[0, 1, 2]]), S)
+    rows, cols = np.mgrid[0:S, 0:S]
+    centers = np.stack([(cols + 0.5) / S, (rows + 0.5) / S], -1).reshape(-1, 2)
+    try:
+        inside = Delaunay(pts).find_simplex(centers, tol=1e-9) >= 0
+    except QhullError:
+        return
+    got = t.reshape(-1) >= 0
+    # texel centres within 1e-6 of an edge may go either way
+    e = np.min([np.abs(cross2(pts[(k + 1) % 3] - pts[k], centers - pts[k])) /
+                np.linalg.norm(pts[(k + 1) % 3] - pts[k]) for k in range(3)], axis=0)
+    sure = e > 1e-6
+    np.testing.assert_array_equal(got[sure], inside[sure])
+    bb = b.reshape(-1, 3)[got]
+    np.testing.assert_allclose(bb @ pts, centers[got], atol=1e-5)
+
+
+def test_bilinear_matches_cv2_remap():
+    import cv2
+
+    rng = np.random.default_rng(1)
+    img = rng.random((2, 9, 11, 3)).astype(np.float32)
+    uv = np.stack([rng.uniform(-1, 11, 300), rng.uniform(-1, 9, 300)], 1)
+    val, inside, _ = bilinear(img, uv)
+    assert inside.sum() > 100 and (~inside).sum() > 10
+    for f in range(2):
+        ref = cv2.remap(img[f], uv[:, 0].astype(np.float32).reshape(1, -1), uv[:, 1].astype(np.float32).reshape(1, -1),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        np.testing.assert_allclose(val[f][inside], ref[inside], atol=2e-3)  # cv2 uses 5-bit fractional weights
+        assert not val[f][~inside].any()
+
+
+def test_project_matches_closed_form():
+    K = np.array([[500.0, 0.0, 10.0], [0, 400.0, 20.0], [0, 0, 1]])
+    R = np.eye(3)
+    t = np.array([0.0, 0.0, 100.0])
+    uv, Z = project(np.array([[10.0, -5.0, 0.0]]), K, R, t)
+    np.testing.assert_allclose(uv[0], [500 * 0.1 + 10, 400 * -0.05 + 20])
+    assert Z[0] == 100.0
