@@ -1,8 +1,5 @@
 """Per-texel observations from captures and fitted geometry (``unwrap-uv``)."""
 
-from reflectmm_cli.observations.unwrap import (RayOccluder, bilinear, previews, project, unwrap_observations,
-                                               uv_geometry)
-from reflectmm_cli.observations.uvmap import interpolate, uv_rasterize
+from reflectmm_cli.observations.unwrap import bilinear, previews, project, unwrap_observations, uv_geometry
 
-__all__ = ["RayOccluder", "bilinear", "interpolate", "previews", "project", "unwrap_observations", "uv_geometry",
-           "uv_rasterize"]
+__all__ = ["bilinear", "previews", "project", "unwrap_observations", "uv_geometry"]

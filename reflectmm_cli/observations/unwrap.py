@@ -12,8 +12,8 @@ For every texel of the S×S UV map (position ``x``, unit normal ``n``) and every
 * ``saturated[j]``: any of the 4 bilinear taps saturated;
 * ``observed[j] = visible ∧ lit ∧ n·l > 0 ∧ n·v > cut-off ∧ unsaturated ∧ inside the stored image``.
 
-Rays: the scene is the fitted face mesh only; an occluder *behind* a light or the camera cannot exist in it, so a
-hit anywhere along the ray counts as blocked.
+Rays (``reflectmm_cli.geometry.RayScene``, Embree): the scene is the fitted mesh; a ray from a texel (offset by
+1e-4 of the mesh diagonal along the normal and the ray) is blocked if it hits a triangle before its target.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.observations.uvmap import interpolate, uv_rasterize
 
 log = logging.getLogger("reflectmm")
 
@@ -46,52 +45,15 @@ class UVGeometry:
 
 def uv_geometry(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, size: int) -> UVGeometry:
     """Rasterise the mesh in UV space; positions and (area-weighted vertex) normals interpolated per texel."""
-    from reflectmm_cli.geometry.face_model import vertex_normals
+    from reflectmm_cli.geometry import rasterize_uv, uv_positions, vertex_normals
 
     vertices = np.asarray(vertices, dtype=np.float64)
-    tri, bary = uv_rasterize(uv, triangles, size)
-    pos = interpolate(vertices, triangles, tri, bary)
-    vn = vertex_normals(vertices, triangles).astype(np.float64)
-    nrm = interpolate(vn, triangles, tri, bary)
-    ln = np.linalg.norm(nrm, axis=-1)
-    mask = (tri >= 0) & (ln > 1e-8)
-    nrm = np.where(mask[..., None], nrm / np.where(ln > 1e-8, ln, 1.0)[..., None], 0.0)
-    pos = np.where(mask[..., None], pos, 0.0)
-    return UVGeometry(pos.astype(np.float32), nrm.astype(np.float32), mask, tri, bary)
-
-
-class RayOccluder:
-    """Any-hit ray queries against a triangle mesh (Embree through trimesh)."""
-
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
-        import trimesh
-
-        self.mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles, dtype=np.int64),
-                                    process=False, validate=False)
-        try:
-            from trimesh.ray.ray_pyembree import RayMeshIntersector
-
-            self.intersector = RayMeshIntersector(self.mesh)
-            self.engine = "embree"
-        except Exception:  # pragma: no cover - embreex is a declared dependency
-            from trimesh.ray.ray_triangle import RayMeshIntersector
-
-            self.intersector = RayMeshIntersector(self.mesh)
-            self.engine = "python"
-        ext = np.ptp(np.asarray(vertices, dtype=np.float64), axis=0)
-        #: offset of ray origins (along the normal and the ray), relative to the mesh size
-        self.eps = 1e-3 * float(np.linalg.norm(ext)) if ext.size else 1e-3
-
-    def blocked(self, points: np.ndarray, normals: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """(N,) bool: the segment from each point (offset along its normal) towards ``targets`` ((3,) or (N,3))
-        hits the mesh."""
-        pts = np.asarray(points, dtype=np.float64)
-        if pts.shape[0] == 0:
-            return np.zeros(0, bool)
-        d = np.asarray(targets, dtype=np.float64) - pts
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        origins = pts + self.eps * (np.asarray(normals, dtype=np.float64) + d)
-        return np.asarray(self.intersector.intersects_any(origins, d), dtype=bool)
+    ras = rasterize_uv(uv, triangles, size)
+    pos, nrm = uv_positions(vertices, vertex_normals(vertices, triangles), ras)
+    mask = ras.mask & (np.linalg.norm(nrm, axis=-1) > 0.5)
+    pos = np.where(mask[..., None], pos, 0.0).astype(np.float32)
+    nrm = np.where(mask[..., None], nrm, 0.0).astype(np.float32)
+    return UVGeometry(pos, nrm, mask, ras.tri_id, ras.bary)
 
 
 def project(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -199,7 +161,9 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     N = idx.size
     x = g.position.reshape(-1, 3)[idx].astype(np.float64)
     n = g.normal.reshape(-1, 3)[idx].astype(np.float64)
-    occ = RayOccluder(verts, triangles)
+    from reflectmm_cli.geometry import RayScene, shadow_mask, visibility
+
+    scene = RayScene(verts, triangles)
     cos_cut = math.cos(math.radians(grazing_deg))
 
     vis = np.zeros((V, N), bool)
@@ -210,7 +174,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         _, Z = project(x, K[vi], R[vi], t[vi])
         cand = (ndv > cos_cut) & (Z > 0)
         ci = np.flatnonzero(cand)
-        vis[vi, ci] = ~occ.blocked(x[ci], n[ci], cam_centers[vi])
+        vis[vi, ci] = visibility(scene, x[ci], n[ci], cam_centers[vi])
         rays_view += ci.size
     seen = vis.any(0)
     lit = np.zeros((F, N), bool)
@@ -222,7 +186,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         skipped_back += int((~front).sum())
         skipped_unseen += int((front & ~seen).sum())
         ci = np.flatnonzero(front & seen)
-        lit[fi, ci] = ~occ.blocked(x[ci], n[ci], flash_pos[fi])
+        lit[fi, ci] = shadow_mask(scene, x[ci], n[ci], flash_pos[fi])
         rays_flash += ci.size
 
     P = V * F
@@ -259,7 +223,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
               "skipped_backfacing_light": int(skipped_back), "skipped_unseen": int(skipped_unseen),
               "texels_unseen": int((~seen).sum()), "texels_outside_images": int((~inside_any).sum()),
               "observed_pairs": int(observed.sum()), "saturated_pairs": int(saturated.sum()),
-              "ray_engine": occ.engine}
+              "ray_engine": "embree"}
     if with_conditioning:
         from reflectmm_cli.reflectance.design import conditioning
 

@@ -2,14 +2,11 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from _sphere_scene import RADIUS, make_scene, quad, seg_hits_quad, shading
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.observations.unwrap import bilinear, project
-from reflectmm_cli.observations.uvmap import interpolate, uv_rasterize
 
 QUANT = 2 * 1.2 * 0.5 / 255  # flash and room shot each within half an 8-bit step of x**(1/1.2)
 
@@ -158,45 +155,6 @@ def test_mismatched_geometry_errors(tmp_path, cli):
     res = cli("unwrap-uv", "--id", "001", "--geometry", scene["face_model_path"],
               "--face-model", scene["face_model_path"], "--workspace", ws)
     assert res.exit_code == 1 and "expected a 'geometry' artifact" in res.stderr
-
-
-def test_uv_rasterize_square_and_interpolation():
-    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
-    tri = np.array([[0, 1, 2], [0, 2, 3]])
-    t, b = uv_rasterize(uv, tri, 16)
-    assert (t >= 0).all()
-    vals = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float) * [2.0, 3.0] + [1.0, -1.0]  # linear in uv
-    got = interpolate(vals, tri, t, b)
-    rows, cols = np.mgrid[0:16, 0:16]
-    want = np.stack([(cols + 0.5) / 16 * 2 + 1, (rows + 0.5) / 16 * 3 - 1], -1)
-    np.testing.assert_allclose(got, want, atol=1e-5)
-
-
-@settings(max_examples=40)
-@given(st.lists(st.floats(0.0, 1.0), min_size=6, max_size=6), st.integers(4, 40))
-def test_uv_rasterize_matches_point_in_triangle(coords, S):
-    from scipy.spatial import Delaunay, QhullError
-
-    pts = np.array(coords).reshape(3, 2)
-    cross2 = lambda a, b: a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]  # noqa: E731
-    area = abs(cross2(pts[1] - pts[0], pts[2] - pts[0]))
-    if area < 1e-3:
-        return
-    t, b = uv_rasterize(pts, np.array([[0, 1, 2]]), S)
-    rows, cols = np.mgrid[0:S, 0:S]
-    centers = np.stack([(cols + 0.5) / S, (rows + 0.5) / S], -1).reshape(-1, 2)
-    try:
-        inside = Delaunay(pts).find_simplex(centers, tol=1e-9) >= 0
-    except QhullError:
-        return
-    got = t.reshape(-1) >= 0
-    # texel centres within 1e-6 of an edge may go either way
-    e = np.min([np.abs(cross2(pts[(k + 1) % 3] - pts[k], centers - pts[k])) /
-                np.linalg.norm(pts[(k + 1) % 3] - pts[k]) for k in range(3)], axis=0)
-    sure = e > 1e-6
-    np.testing.assert_array_equal(got[sure], inside[sure])
-    bb = b.reshape(-1, 3)[got]
-    np.testing.assert_allclose(bb @ pts, centers[got], atol=1e-5)
 
 
 def test_bilinear_matches_cv2_remap():
