@@ -338,7 +338,7 @@ def save_rig(rig: Rig, path: str | Path, header: str = "") -> Path:
 
 DEFAULT_RADIUS_MM = 1300.0
 DEFAULT_FOCAL_PX = 1000.0
-DEFAULT_FLASH_INTENSITY = 3.4e6
+DEFAULT_FLASH_INTENSITY = 4.5e6
 RAISED_ELEVATION_DEG = 30.0
 
 

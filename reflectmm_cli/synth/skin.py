@@ -1,0 +1,193 @@
+"""Ground-truth skin reflectance in UV space, driven by the face model's 68 landmarks.
+
+Per identity, maps of size S×S (texel ``(row, col)`` ↔ ``u = (col + ½)/S``, ``v = (row + ½)/S``, row 0 at the
+forehead; docs/pipeline.md):
+
+* ``albedo (3, S, S)``: linear diffuse RGB from a two-pigment absorption model
+  ``c = c0 · exp(−m·k_mel − h·k_hb)`` (melanin m sets the tone from light to dark skin, haemoglobin h the
+  redness), with redder lips and cheeks, darker brows, a slight darkening at the jaw line and low-frequency
+  mottling;
+* ``roughness (S, S)``: GGX width α — low (sharp highlights) on the nose tip, nose ridge and forehead, high on
+  the cheeks and brows;
+* ``spec_intensity (S, S)``: specular scale ρ — strong on the nose and forehead (oily T-zone), weak on cheeks;
+* ``spec_albedo (S, S)``: ρ × the GGX directional albedo at normal view (comparable to Σ w_i);
+* ``weights (3, S, S)``: 3-lobe weights for exponents (1, 8, 64) — the NNLS fit of the GGX lobe at normal view
+  (:func:`reflectmm_cli.synth.ggx.fit_lobes_to_ggx`).  In ``model`` mode these *are* the rendering BRDF
+  (exact), in ``ggx`` mode they are only the closest 3-lobe reference.
+
+Regions are soft masks in UV space built from the landmarks' UV coordinates (polygons and thickened polylines,
+blurred), so any face model with UVs and iBUG landmarks works.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_specular_albedo
+
+__all__ = ["SkinParams", "SkinMaps", "region_masks", "sample_skin_params", "skin_maps", "LOBE_EXPONENTS"]
+
+LOBE_EXPONENTS = (1.0, 8.0, 64.0)
+
+# absorption per unit pigment (R, G, B): melanin absorbs more towards blue, haemoglobin mostly green/blue
+_C0 = np.array([0.72, 0.60, 0.52])
+_K_MEL = np.array([1.6, 2.3, 3.0])
+_K_HB = np.array([0.25, 2.0, 1.6])
+
+
+@dataclass
+class SkinParams:
+    """Scalar parameters of one identity's skin (drawn by :func:`sample_skin_params`)."""
+
+    melanin: float          # 0.02 (very light) … 1.0 (very dark)
+    haemoglobin: float      # 0.04 … 0.14
+    oiliness: float         # global specular scale, 0.7 … 1.4
+    roughness_scale: float  # global α scale, 0.85 … 1.15
+    brow_darkness: float    # albedo factor inside the brows, 0.25 … 0.6
+    seed: int               # seed of the low-frequency variation
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class SkinMaps:
+    albedo: np.ndarray          # (3, S, S) float32
+    roughness: np.ndarray       # (S, S) float32, GGX α
+    spec_intensity: np.ndarray  # (S, S) float32, ρ
+    spec_albedo: np.ndarray     # (S, S) float32
+    weights: np.ndarray         # (3, S, S) float32 for LOBE_EXPONENTS
+    regions: dict[str, np.ndarray]
+    params: SkinParams
+
+
+def sample_skin_params(rng: np.random.Generator, tone: float | None = None) -> SkinParams:
+    """Draw one identity's skin parameters; ``tone`` in [0, 1] fixes the melanin (0 light … 1 dark)."""
+    t = rng.uniform(0.0, 1.0) if tone is None else float(tone)
+    melanin = 0.03 * (1.0 / 0.03) ** (t ** 1.2)   # log-spaced 0.03 … 1.0
+    return SkinParams(melanin=float(melanin), haemoglobin=float(rng.uniform(0.04, 0.14)),
+                      oiliness=float(rng.uniform(0.7, 1.4)), roughness_scale=float(rng.uniform(0.85, 1.15)),
+                      brow_darkness=float(rng.uniform(0.25, 0.6)), seed=int(rng.integers(0, 2**31 - 1)))
+
+
+def _px(uv: np.ndarray, size: int) -> np.ndarray:
+    """UV → texel coordinates (x = col, y = row) in the pixel-centre convention."""
+    return np.asarray(uv, np.float64) * size - 0.5
+
+
+def _blur(mask: np.ndarray, sigma_px: float) -> np.ndarray:
+    import cv2
+
+    if sigma_px <= 0.3:
+        return mask
+    k = int(2 * math.ceil(3 * sigma_px) + 1)
+    return cv2.GaussianBlur(mask, (k, k), sigma_px, borderType=cv2.BORDER_REPLICATE)
+
+
+def _poly(size: int, pts: np.ndarray, shift: int = 4) -> np.ndarray:
+    import cv2
+
+    m = np.zeros((size, size), np.float32)
+    cv2.fillPoly(m, [np.round(pts * (1 << shift)).astype(np.int32)], 1.0, lineType=cv2.LINE_AA, shift=shift)
+    return m
+
+
+def _polyline(size: int, pts: np.ndarray, thickness: float, shift: int = 4) -> np.ndarray:
+    import cv2
+
+    m = np.zeros((size, size), np.float32)
+    cv2.polylines(m, [np.round(pts * (1 << shift)).astype(np.int32)], False, 1.0,
+                  thickness=max(1, int(round(thickness))), lineType=cv2.LINE_AA, shift=shift)
+    return m
+
+
+def _disc(size: int, centre: np.ndarray, radius: float) -> np.ndarray:
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    r = np.hypot(xx - centre[0], yy - centre[1])
+    return np.clip((radius - r) / max(radius * 0.5, 1e-6) + 0.5, 0, 1).astype(np.float32)
+
+
+def region_masks(landmark_uv: np.ndarray, size: int) -> dict[str, np.ndarray]:
+    """Soft region masks (S, S) in [0, 1] from the 68 iBUG landmarks' UV coordinates.
+
+    Regions: ``lips``, ``brows``, ``eyes``, ``nose_tip``, ``nose`` (ridge and alae), ``forehead``, ``cheeks``,
+    ``chin``, ``jaw`` (near the face outline).  Sizes scale with the inter-ocular distance in UV.
+    """
+    lm = np.asarray(landmark_uv, np.float64)
+    if lm.shape != (68, 2) or not np.all(np.isfinite(lm)):
+        raise ReflectmmError(f"skin maps need 68 finite landmark UVs, got shape {lm.shape}")
+    p = _px(lm, size)
+    iod = float(np.linalg.norm(p[36] - p[45]))
+    if iod < 2.0:
+        raise ReflectmmError(f"landmark UVs are degenerate (inter-ocular distance {iod:.2f} texels at S={size})")
+    soft = 0.06 * iod
+    m: dict[str, np.ndarray] = {}
+    m["lips"] = _blur(_poly(size, p[48:60]), soft * 0.6)
+    m["brows"] = _blur(_polyline(size, p[17:22], 0.12 * iod) + _polyline(size, p[22:27], 0.12 * iod), soft * 0.5)
+    m["eyes"] = _blur(_poly(size, p[36:42]) + _poly(size, p[42:48]), soft * 0.3)
+    tip = p[30]
+    m["nose_tip"] = _blur(_disc(size, tip, 0.17 * iod), soft)
+    m["nose"] = _blur(np.maximum(_polyline(size, p[27:31], 0.16 * iod), _poly(size, p[[31, 32, 33, 34, 35, 30]])),
+                      soft)
+    brow_y = p[17:27, 1].min()
+    top = brow_y - 0.95 * iod
+    x0, x1 = p[17, 0], p[26, 0]
+    fh = np.array([[x0, brow_y - 0.15 * iod], [x1, brow_y - 0.15 * iod], [x1 - 0.1 * iod, top],
+                   [x0 + 0.1 * iod, top]])
+    m["forehead"] = _blur(_poly(size, fh), soft * 2)
+    cheeks = np.zeros((size, size), np.float32)
+    for eye, corner, jaw in ((p[36:42].mean(0), p[48], p[3]), (p[42:48].mean(0), p[54], p[13])):
+        c = 0.45 * eye + 0.35 * corner + 0.2 * jaw
+        cheeks = np.maximum(cheeks, _disc(size, c, 0.33 * iod))
+    m["cheeks"] = _blur(cheeks, soft * 2.5)
+    chin_c = 0.6 * p[8] + 0.4 * p[57]
+    m["chin"] = _blur(_disc(size, chin_c, 0.28 * iod), soft * 1.5)
+    m["jaw"] = _blur(_polyline(size, p[0:17], 0.25 * iod), soft * 3)
+    return {k: np.clip(v, 0, 1).astype(np.float32) for k, v in m.items()}
+
+
+def _low_freq(rng: np.random.Generator, size: int, scale_px: float) -> np.ndarray:
+    """Zero-mean, unit-std smooth random field (Gaussian-blurred white noise)."""
+    f = _blur(rng.normal(size=(size, size)).astype(np.float32), scale_px)
+    s = float(f.std())
+    return (f - f.mean()) / (s if s > 0 else 1.0)
+
+
+def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f0: float = SKIN_F0,
+              exponents=LOBE_EXPONENTS) -> SkinMaps:
+    """The reflectance maps of one identity (see the module docstring); deterministic in (landmarks, params)."""
+    if size < 16:
+        raise ReflectmmError(f"--uv-size must be ≥ 16, got {size}")
+    R = region_masks(landmark_uv, size)
+    rng = np.random.default_rng(params.seed)
+    iod = float(np.linalg.norm(_px(landmark_uv, size)[36] - _px(landmark_uv, size)[45]))
+    n1 = _low_freq(rng, size, 0.35 * iod)
+    n2 = _low_freq(rng, size, 0.12 * iod)
+    n3 = _low_freq(rng, size, 0.25 * iod)
+
+    mel = params.melanin * np.exp(0.12 * n1 + 0.05 * n2) * (1 + 0.15 * R["jaw"])
+    hb = params.haemoglobin * (1 + 1.2 * R["cheeks"] + 0.4 * R["nose_tip"] + 0.2 * R["chin"]) * np.exp(0.15 * n3)
+    hb = hb + 0.35 * R["lips"]
+    mel = mel * (1 + 0.25 * R["lips"])
+    alb = _C0[:, None, None] * np.exp(-mel[None] * _K_MEL[:, None, None] - hb[None] * _K_HB[:, None, None])
+    # brows: hair is darker and browner (independent of the skin's melanin)
+    alb = alb * (1 - R["brows"] * (1 - params.brow_darkness * np.array([1.0, 0.85, 0.75])[:, None, None]))
+    # eyes (not skin): greyish sclera, a non-skin value that solvers should not treat as skin
+    alb = alb * (1 - R["eyes"]) + R["eyes"] * np.array([0.45, 0.42, 0.40])[:, None, None]
+
+    rough = 0.42 + 0.06 * R["cheeks"] - 0.14 * R["nose_tip"] - 0.08 * R["nose"] - 0.07 * R["forehead"] \
+        - 0.05 * R["lips"] + 0.2 * R["brows"] - 0.03 * R["chin"] - 0.2 * R["eyes"]
+    rough = np.clip(rough * params.roughness_scale * np.exp(0.05 * n2), 0.12, 0.8)
+    rho = 1.0 - 0.4 * R["cheeks"] + 1.0 * R["nose_tip"] + 0.5 * R["nose"] + 0.6 * R["forehead"] \
+        + 0.2 * R["lips"] - 0.6 * R["brows"] + 0.2 * R["chin"] + 0.8 * R["eyes"]
+    rho = np.clip(rho * params.oiliness * np.exp(0.1 * n1), 0.05, 4.0)
+
+    spec_alb = ggx_specular_albedo(rough, rho, f0)
+    w = np.moveaxis(fit_lobes_to_ggx(rough, rho, exponents, f0), -1, 0)
+    return SkinMaps(albedo=alb.astype(np.float32), roughness=rough.astype(np.float32),
+                    spec_intensity=rho.astype(np.float32), spec_albedo=spec_alb.astype(np.float32),
+                    weights=w.astype(np.float32), regions=R, params=params)
