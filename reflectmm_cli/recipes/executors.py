@@ -18,6 +18,7 @@ import socket
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -186,14 +187,28 @@ class PoolExecutor(Executor):
                     raise ReflectmmError(f"internal: task {pending[0].tid} waits on unknown {pending[0].deps}")
                 break
             done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            broken = False
             for fut in done:
                 spec = running.pop(fut)
                 try:
                     res = fut.result()
-                except Exception as exc:  # noqa: BLE001 - e.g. a worker killed by the OOM killer
+                except BrokenProcessPool:  # a worker died (OOM killer, segfault): the pool is unusable
+                    broken = True
+                    res = _result(spec, FAILED, error="worker process died while running this task")
+                except Exception as exc:  # noqa: BLE001 - e.g. the task spec could not be sent
                     res = _result(spec, FAILED, error=f"worker process failed: {_error_message(exc)}")
                 results[spec.tid] = res
                 on_result(res)
+            if broken:
+                # every task running in the broken pool is lost; the remaining ones go to a new pool
+                for fut, spec in list(running.items()):
+                    res = _result(spec, FAILED, error="worker pool broke while running this task")
+                    results[spec.tid] = res
+                    on_result(res)
+                running.clear()
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = None
+                pool = self._get_pool()
         return results
 
 

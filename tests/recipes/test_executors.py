@@ -78,3 +78,39 @@ def test_dask_without_scheduler_starts_a_localcluster(tmp_path, serial_reference
     shutil.rmtree(ws / "manifest")
     rep = run_recipe(ws / "recipe.toml", ws, executor="dask", jobs=2)
     assert rep.ok and _artifacts(ws) == serial_reference
+
+
+def test_pool_survives_a_killed_worker(tmp_path):
+    """A worker killed mid-task fails that task with a message; the executor carries on with a new pool."""
+    import signal
+    import threading
+
+    from reflectmm_cli.recipes import PoolExecutor, TaskSpec
+    from reflectmm_cli.stages import get_stage
+
+    stage = get_stage("checksum")
+    fifo = tmp_path / "blocks.fifo"
+    os.mkfifo(fifo)  # opening it for reading blocks until someone writes: the task hangs in the worker
+    ok_file = tmp_path / "ok.txt"
+    ok_file.write_text("fine")
+
+    def spec(name, path):
+        ctx = stage.context(workspace=tmp_path, stage_name=name, inputs={"files": [path]})
+        return TaskSpec(name, "checksum", ctx)
+
+    results = {}
+    with PoolExecutor(jobs=2) as ex:
+        def on_result(res):
+            results[res["tid"]] = res
+            if res["tid"] == "quick":  # the hanging task is still running: kill every worker of the pool
+                def kill():
+                    for pid in list(ex._pool._processes):
+                        os.kill(pid, signal.SIGKILL)
+                threading.Timer(0.3, kill).start()
+
+        ex.run([spec("hang", fifo), spec("quick", ok_file)], on_result)
+        assert results["quick"]["status"] == "ok"
+        assert results["hang"]["status"] == "failed" and "died" in results["hang"]["error"]
+        again = ex.run([spec("after", ok_file)], lambda r: None)
+        assert again["after"]["status"] == "ok"
+    assert (tmp_path / "after" / "after.npz").exists()
