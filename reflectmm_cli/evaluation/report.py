@@ -1,0 +1,221 @@
+"""The closing report of a run (``reflectmm evaluate report``): per-identity and mean errors against ground truth
+for every stage that has outputs in a workspace, with the PNG previews linked.
+
+Sections (each only when its outputs exist):
+
+* geometry (``fit-geometry/<id>.npz``): landmark RMSE (px, as stored by the fit), vertex error (mm, raw and
+  rigidly aligned) and camera-centre error (mm) against ``truth/<id>.npz``;
+* reflectance (``fit-reflectance/<id>.npz``): diffuse albedo and specular albedo errors, observable and flagged
+  texels, raw and after the global scale (:mod:`.truth`);
+* PCA model (``build-pca/*.npz``): explained variance, reconstruction error of the held-in maps (the training
+  identities' fitted maps, projected on the first k diffuse components; specular by the same β);
+* representation comparison (``evaluate-representation/*.npz``): its table.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from reflectmm_cli.artifacts import read_artifact
+from reflectmm_cli.errors import ReflectmmError
+
+from .truth import geometry_errors, reflectance_errors
+
+__all__ = ["find_truth_dir", "discover_inputs", "build_report", "pca_reconstruction"]
+
+TRUTH_CANDIDATES = ("truth", "synth/truth", "synth-multipie/truth")
+
+
+def find_truth_dir(workspace: Path) -> Path | None:
+    for c in TRUTH_CANDIDATES:
+        p = Path(workspace) / c
+        if p.is_dir():
+            return p
+    return None
+
+
+def _npz(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.glob("*.npz") if not p.name.startswith(".")) if folder.is_dir() else []
+
+
+def discover_inputs(workspace: Path, truth_dir: Path | None = None) -> dict[str, list[Path]]:
+    ws = Path(workspace)
+    td = truth_dir if truth_dir is not None else find_truth_dir(ws)
+    return {"geometry": _npz(ws / "fit-geometry"), "maps": _npz(ws / "fit-reflectance"),
+            "model": _npz(ws / "build-pca"), "representation": _npz(ws / "evaluate-representation"),
+            "truth": _npz(Path(td)) if td is not None else []}
+
+
+def pca_reconstruction(model_arrays, maps_list: Sequence[dict], ks: Sequence[int] = (1, 3, 10)) -> dict[str, Any]:
+    """RMSE of the held-in maps reconstructed with the first k components (albedo over the model domain, linear
+    RGB; Σw with the same β). Returns {k: {albedo_rmse, spec_rmse}} plus 'all'."""
+    from reflectmm_cli.model import model_from_arrays, project_maps, sample_model
+
+    m = model_from_arrays(model_arrays)
+    d = m.mask
+    out: dict[str, Any] = {}
+    kk = sorted({min(k, m.n_components) for k in ks} | {m.n_components})
+    for k in kk:
+        ea, es = [], []
+        for mp in maps_list:
+            beta = project_maps(m, mp["albedo"], k)
+            alb, wts = sample_model(m, beta)
+            ea.append(np.mean((alb[:, d] - mp["albedo"][:, d]) ** 2))
+            es.append(np.mean((wts.sum(0)[d] - np.asarray(mp["weights"]).sum(0)[d]) ** 2))
+        key = "all" if k == m.n_components else str(k)
+        out[key] = {"k": int(k), "albedo_rmse": float(np.sqrt(np.mean(ea))), "spec_rmse": float(np.sqrt(np.mean(es)))}
+    return out
+
+
+def _rel(p: Path, base: Path) -> str:
+    return os.path.relpath(p, base).replace(os.sep, "/")
+
+
+def _f(x, fmt="{:.4f}") -> str:
+    return "–" if x is None or (isinstance(x, float) and not np.isfinite(x)) else fmt.format(x)
+
+
+def _ident(art, path: Path) -> str:
+    return str(art.meta.get("identity") or Path(path).stem)
+
+
+def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), maps: Sequence[Path] = (),
+                 models: Sequence[Path] = (), truth: Sequence[Path] = (), representation: Sequence[Path] = (),
+                 progress: Callable = lambda it, **k: it) -> tuple[str, dict[str, Any]]:
+    """Markdown text and a document of numbers. ``truth`` files are matched to identities by file stem."""
+    base = Path(out_md).parent
+    truth_by_id: dict[str, Path] = {}
+    for t in truth:
+        t = Path(t)
+        if t.is_dir():
+            for q in _npz(t):
+                truth_by_id[q.stem] = q
+        else:
+            truth_by_id[t.stem] = t
+    doc: dict[str, Any] = {}
+    lines = [f"# reflectmm report — `{Path(workspace).name}`", ""]
+    if not truth_by_id:
+        lines += ["No ground truth found: errors against truth are not available.", ""]
+
+    # ------------------------------------------------------------------ geometry
+    if geometry:
+        rows, vals = [], []
+        for g in progress(list(geometry), desc="geometry"):
+            art = read_artifact(g, "geometry")
+            ident = _ident(art, g)
+            tr = truth_by_id.get(ident)
+            e = geometry_errors(art.arrays, read_artifact(tr).arrays if tr else {})
+            vals.append(e)
+            doc.setdefault("geometry", {})[ident] = e
+            rows.append(f"| {ident} | {_f(e.get('landmark_rmse_px'), '{:.2f}')} | "
+                        f"{_f(e.get('vertex_mean_mm'), '{:.2f}')} | {_f(e.get('vertex_aligned_mean_mm'), '{:.2f}')} | "
+                        f"{_f(e.get('camera_mean_mm'), '{:.2f}')} |")
+        mean = {k: float(np.mean([v[k] for v in vals if k in v])) for k in
+                ("landmark_rmse_px", "vertex_mean_mm", "vertex_aligned_mean_mm", "camera_mean_mm")
+                if any(k in v for v in vals)}
+        doc.setdefault("geometry_mean", mean)
+        lines += ["## Geometry", "",
+                  "| identity | landmark RMSE (px) | vertex error (mm) | vertex error, rigidly aligned (mm) | "
+                  "camera centre error (mm) |", "|---|---:|---:|---:|---:|", *rows,
+                  f"| **mean** | {_f(mean.get('landmark_rmse_px'), '{:.2f}')} | {_f(mean.get('vertex_mean_mm'), '{:.2f}')}"
+                  f" | {_f(mean.get('vertex_aligned_mean_mm'), '{:.2f}')} | {_f(mean.get('camera_mean_mm'), '{:.2f}')} |",
+                  ""]
+
+    # ------------------------------------------------------------------ reflectance
+    maps_arrays = []
+    if maps:
+        rows, vals = [], []
+        previews = []
+        for mp in progress(list(maps), desc="reflectance"):
+            art = read_artifact(mp, "reflectance-maps")
+            ident = _ident(art, mp)
+            maps_arrays.append(art.arrays)
+            previews += [q for q in sorted(Path(mp).parent.glob(f"{Path(mp).stem}*.png"))]
+            tr = truth_by_id.get(ident)
+            if tr is None:
+                continue
+            e = reflectance_errors(art.arrays, read_artifact(tr).arrays)
+            doc.setdefault("reflectance", {})[ident] = e
+            vals.append(e)
+            o, fl, so = e["raw"]["observable"], e["raw"]["flagged"], e["scaled"]["observable"]
+            frac = e["texels"]["flagged"] / max(e["texels"]["all"], 1)
+            rows.append(f"| {ident} | {_f(o['albedo_rmse'])} | {_f(o['albedo_rel'], '{:.2%}')} | "
+                        f"{_f(o.get('spec_rmse'))} | {_f(o.get('spec_rel'), '{:.2%}')} | "
+                        f"{_f(fl['albedo_rel'], '{:.2%}')} | {_f(fl.get('spec_rel'), '{:.2%}')} | "
+                        f"{_f(e['scale'], '{:.3f}')} | {_f(so['albedo_rel'], '{:.2%}')} | "
+                        f"{_f(so.get('spec_rel'), '{:.2%}')} | {frac:.1%} |")
+        if vals:
+            def mean_of(mode, reg, key):
+                xs = [v[mode][reg].get(key) for v in vals]
+                xs = [x for x in xs if x is not None and np.isfinite(x)]
+                return float(np.mean(xs)) if xs else float("nan")
+
+            mean = {f"{mode}.{reg}.{key}": mean_of(mode, reg, key) for mode in ("raw", "scaled")
+                    for reg in ("observable", "flagged", "all")
+                    for key in ("albedo_rmse", "albedo_rel", "spec_rmse", "spec_rel")}
+            doc["reflectance_mean"] = mean
+            lines += ["## Reflectance maps", "",
+                      "Diffuse albedo: RMSE over texels and linear RGB channels, relative = RMSE / RMS(truth). "
+                      "Specular albedo: Σw against the truth's directional albedo at normal view. *Flagged* texels "
+                      "were ill-conditioned and filled from the mirror/neighbourhood. *Scaled*: after one global "
+                      "least-squares scale (flash intensity ↔ reflectance ambiguity).", "",
+                      "| identity | albedo RMSE | albedo rel. | spec RMSE | spec rel. | albedo rel. (flagged) | "
+                      "spec rel. (flagged) | scale | albedo rel. (scaled) | spec rel. (scaled) | flagged |",
+                      "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|", *rows,
+                      f"| **mean** | {_f(mean['raw.observable.albedo_rmse'])} | "
+                      f"{_f(mean['raw.observable.albedo_rel'], '{:.2%}')} | {_f(mean['raw.observable.spec_rmse'])} | "
+                      f"{_f(mean['raw.observable.spec_rel'], '{:.2%}')} | {_f(mean['raw.flagged.albedo_rel'], '{:.2%}')}"
+                      f" | {_f(mean['raw.flagged.spec_rel'], '{:.2%}')} | | "
+                      f"{_f(mean['scaled.observable.albedo_rel'], '{:.2%}')} | "
+                      f"{_f(mean['scaled.observable.spec_rel'], '{:.2%}')} | |", ""]
+        else:
+            lines += ["## Reflectance maps", "", f"{len(maps)} fitted identities; no matching ground truth.", ""]
+        if previews:
+            lines += ["Previews: " + ", ".join(f"[{q.name}]({_rel(q, base)})" for q in previews[:60]), ""]
+
+    # ------------------------------------------------------------------ PCA
+    for mpath in models:
+        try:
+            art = read_artifact(mpath, "reflectance-model")
+        except ReflectmmError:
+            continue
+        ev = np.asarray(art["explained_variance_ratio"], np.float64)
+        cum = np.cumsum(ev)
+        ids = [str(x) for x in art["ids"]]
+        entry: dict[str, Any] = {"n_components": int(ev.size), "n_identities": len(ids),
+                                 "explained_variance_ratio": ev[:10].tolist()}
+        lines += [f"## PCA reflectance model (`{_rel(Path(mpath), base)}`)", "",
+                  f"{len(ids)} identities, {ev.size} components. Explained variance of the diffuse albedo "
+                  "(cumulative): " + ", ".join(f"k={k + 1}: {100 * cum[k]:.1f}%" for k in range(min(10, ev.size))),
+                  ""]
+        # held-in maps: those of the training ids among the reflectance maps
+        held = [a for a, mp in zip(maps_arrays, maps) if Path(mp).stem in ids]
+        if held:
+            rec = pca_reconstruction(art.arrays, held)
+            entry["reconstruction"] = rec
+            lines += ["Reconstruction of the held-in maps from the first k components (RMSE, linear):", "",
+                      "| k | albedo RMSE | spec albedo RMSE |", "|---:|---:|---:|"]
+            lines += [f"| {v['k']} | {v['albedo_rmse']:.2e} | {v['spec_rmse']:.2e} |" for v in rec.values()]
+            lines.append("")
+        pngs = sorted(Path(mpath).parent.glob(f"{Path(mpath).stem}*.png"))
+        if pngs:
+            lines += ["Previews: " + ", ".join(f"[{q.name}]({_rel(q, base)})" for q in pngs), ""]
+        doc.setdefault("pca", {})[Path(mpath).stem] = entry
+
+    # ------------------------------------------------------------------ representation comparison
+    for rpath in representation:
+        try:
+            art = read_artifact(rpath, "evaluation")
+        except ReflectmmError:
+            continue
+        if art.meta.get("evaluation") != "representation":
+            continue
+        lines += [f"## Representation comparison (`{_rel(Path(rpath), base)}`)", "", art.meta.get("table", ""), ""]
+        png = Path(rpath).with_suffix(".png")
+        if png.is_file():
+            lines += [f"![representations]({_rel(png, base)})", ""]
+        doc.setdefault("representation", {})[Path(rpath).stem] = art.meta.get("margin")
+    return "\n".join(lines) + "\n", doc

@@ -1,0 +1,407 @@
+"""The representation comparison — the paper's Table 1 on our own data (DESIGN.md §1 step 8).
+
+Protocol (documented in docs/model.md):
+
+* Input: one ``uv-observations`` mapping per identity.
+* Held-out set: every (view, flash) pair whose flash id is in ``holdout`` (default flashes ``05`` and ``09``:
+  the flashes on cameras 13_0 and 04_1, ±30° from frontal), all views. Everything else is training data.
+* Every representation is fitted on the *same* training pairs with ``reflectance.fit_maps(..., pair_mask=...)``
+  (same solver, symmetry, loss and prior): K = 1 with a global exponent p ∈ {8, 16, 32, 64}, the 3-lobe default
+  (1, 8, 64), and the paper's baselines "diffuse only" (C alone, the same loss, solved here per texel) and
+  "spec albedo + global shininess 20" (K = 1, p = 20 — a white specular albedo with one global exponent, which
+  is exactly our K = 1 representation with p = 20).
+* Re-rendering is in **UV space**: for each held-out pair the fitted maps are shaded with
+  :func:`reflectmm_cli.shading.shade_directional` at the texel positions/normals of the observations (point
+  flash, ``E = I/d²``) and compared with the observed radiance over the texels observed in that pair. Image-space
+  re-rendering (rasterising the fitted mesh into the captured OLAT images) is not done here: on the synthetic
+  data the UV observations are resampled from those images, so the two differ only by the resampling.
+* Metrics per held-out pair on the display encoding ``clip(x,0,1)^(1/1.2)`` (peak 1): PSNR, SSIM (and LPIPS if
+  weights are given), region = texels observed in that pair; reported as the mean over held-out pairs, then the
+  mean over identities.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+from .metrics import LPIPS, encode_display, psnr, ssim
+
+__all__ = ["Representation", "parse_exponent_sets", "default_representations", "holdout_pairs",
+           "render_pairs_uv", "fit_diffuse_only", "compare_representations", "RepresentationResult",
+           "markdown_table", "comparison_figure", "DEFAULT_HOLDOUT"]
+
+DEFAULT_HOLDOUT = ("05", "09")
+
+
+@dataclass(frozen=True)
+class Representation:
+    """A fitted representation: a name and its lobe exponents (empty = diffuse only)."""
+
+    name: str
+    exponents: tuple[float, ...]
+
+
+def parse_exponent_sets(text: str) -> list[Representation]:
+    """``"8;16;32;64;1,8,64"`` → K = 1 reps with p = 8…64 and the 3-lobe set; ``diffuse`` / ``0`` = diffuse only."""
+    reps = []
+    for tok in str(text).split(";"):
+        tok = tok.strip()
+        if not tok:
+            continue
+        if tok.lower() in ("diffuse", "0", "none"):
+            reps.append(Representation("diffuse only", ()))
+            continue
+        try:
+            exps = tuple(float(x) for x in tok.split(","))
+        except ValueError:
+            raise ReflectmmError(f"--exponents-sets: cannot parse {tok!r} (use e.g. \"8;16;32;64;1,8,64\")") from None
+        if any(not np.isfinite(p) or p <= 0 for p in exps):
+            raise ReflectmmError(f"--exponents-sets: exponents must be > 0, got {tok!r}")
+        name = (f"global p={exps[0]:g}" if len(exps) == 1 else f"{len(exps)}-lobe ({','.join(f'{p:g}' for p in exps)})")
+        reps.append(Representation(name, exps))
+    if not reps:
+        raise ReflectmmError("--exponents-sets: no representation given")
+    return reps
+
+
+def default_representations(sets: str = "8;16;32;64;1,8,64", baselines: bool = True) -> list[Representation]:
+    reps = parse_exponent_sets(sets)
+    if baselines:
+        names = {r.name for r in reps}
+        if "diffuse only" not in names:
+            reps.append(Representation("diffuse only", ()))
+        reps.append(Representation("spec albedo + shininess 20", (20.0,)))
+    return reps
+
+
+def holdout_pairs(obs: Mapping[str, np.ndarray], holdout: Sequence[str] = DEFAULT_HOLDOUT) -> np.ndarray:
+    """(P,) bool: pairs whose flash id is in ``holdout``. Refuses ids the observations do not have."""
+    fids = [str(f) for f in np.asarray(obs["flash_ids"]).reshape(-1)]
+    missing = [h for h in holdout if h not in fids]
+    if missing:
+        raise ReflectmmError(f"--holdout: flash id(s) {', '.join(missing)} not in the observations "
+                             f"(flashes: {', '.join(fids)})")
+    if len(set(holdout)) >= len(fids):
+        raise ReflectmmError("--holdout: holding out every flash leaves nothing to fit")
+    hold_f = np.array([f in set(holdout) for f in fids])
+    return hold_f[np.asarray(obs["pair_flash"], np.int64)]
+
+
+def _pair_geometry(obs, j):
+    pos = np.asarray(obs["position"], np.float64)
+    f = int(obs["pair_flash"][j])
+    v = int(obs["pair_view"][j])
+    ld = np.asarray(obs["flash_pos"], np.float64)[f] - pos
+    vd = np.asarray(obs["cam_centers"], np.float64)[v] - pos
+    E = float(np.asarray(obs["flash_intensity"], np.float64).reshape(-1)[f]) / np.maximum(
+        np.sum(ld * ld, -1), 1e-12)
+    return ld, vd, E
+
+
+def render_pairs_uv(albedo: np.ndarray, weights: np.ndarray | None, exponents: Sequence[float],
+                    obs: Mapping[str, np.ndarray], pairs: Sequence[int]) -> np.ndarray:
+    """(len(pairs), S, S, 3) radiance of the maps for the given pairs with the shading core (UV space).
+
+    ``albedo`` (3,S,S), ``weights`` (K,S,S) or None/empty for diffuse only. Texels outside the mask are 0.
+    """
+    from reflectmm_cli.shading import shade_directional
+
+    c = np.moveaxis(np.asarray(albedo, np.float64), 0, -1)
+    nrm = np.asarray(obs["normal"], np.float64)
+    mask = np.asarray(obs["mask"], bool)
+    if weights is None or len(exponents) == 0:
+        w, p = np.zeros(c.shape[:2] + (1,)), np.array([1.0])
+    else:
+        w, p = np.moveaxis(np.asarray(weights, np.float64), 0, -1), np.asarray(exponents, np.float64)
+    out = np.zeros((len(pairs),) + c.shape, np.float64)
+    for i, j in enumerate(pairs):
+        ld, vd, E = _pair_geometry(obs, j)
+        s = shade_directional(c, w, p, nrm, ld, vd, np.repeat(E[..., None], 3, -1))
+        out[i] = np.where(mask[..., None], s, 0.0)
+    return out
+
+
+def _weighted_median(vals: np.ndarray, wts: np.ndarray) -> np.ndarray:
+    """Row-wise weighted median (the minimiser of Σ w |x − v|); rows with no weight give 0."""
+    order = np.argsort(vals, axis=1)
+    v = np.take_along_axis(vals, order, 1)
+    w = np.take_along_axis(wts, order, 1)
+    cw = np.cumsum(w, 1)
+    tot = cw[:, -1:]
+    k = np.argmax(cw >= 0.5 * tot, axis=1)
+    out = v[np.arange(v.shape[0]), k]
+    return np.where(tot[:, 0] > 0, out, 0.0)
+
+
+def fit_diffuse_only(obs: Mapping[str, np.ndarray], pair_mask: np.ndarray | None = None, symmetry: float = 1.0,
+                     loss: str = "l1") -> np.ndarray:
+    """Diffuse-only baseline: per texel and channel the C ≥ 0 minimising the cos-weighted L1 misfit
+    ``Σ_j ⟨l_j,n⟩ |d_j C − I_j|`` (weighted median of I/d with weights ⟨l,n⟩·d; ``loss="l2"``: the weighted
+    least-squares ``Σ ⟨l,n⟩ d I / Σ ⟨l,n⟩ d²``) over the training pairs, the mirror texel's
+    observations pooled with weight ``symmetry`` (as fit-reflectance's mirror pooling). Returns (3,S,S)."""
+    from reflectmm_cli.reflectance.design import design_columns, mirror_index
+
+    S = np.asarray(obs["position"]).shape[0]
+    P = np.asarray(obs["pair_view"]).shape[0]
+    pm = np.ones(P, bool) if pair_mask is None else np.asarray(pair_mask, bool)
+    sel = np.flatnonzero(pm)
+    mask = np.asarray(obs["mask"], bool).reshape(-1)
+    observed = np.asarray(obs["observed"], bool).reshape(P, -1)[sel].T  # (S², P')
+    des = design_columns(np.asarray(obs["position"]).reshape(-1, 3), np.asarray(obs["normal"]).reshape(-1, 3),
+                         obs["cam_centers"], obs["flash_pos"], obs["flash_intensity"],
+                         np.asarray(obs["pair_view"])[sel], np.asarray(obs["pair_flash"])[sel], [1.0], observed)
+    d = des.diffuse  # (S², P')
+    cw = des.cos_l  # the paper's per-observation weight ⟨l, n⟩ (as fit_maps)
+    rad = np.asarray(obs["radiance"], np.float64).reshape(P, S * S, 3)[sel].transpose(1, 0, 2)  # (S², P', 3)
+    mir = mirror_index(S)
+    if symmetry:
+        d2 = np.concatenate([d, d[mir]], 1)
+        r2 = np.concatenate([rad, rad[mir]], 1)
+        wt = np.concatenate([cw, float(symmetry) * cw[mir]], 1)
+    else:
+        d2, r2, wt = d, rad, cw
+    out = np.zeros((S * S, 3))
+    ok = d2 > 0
+    for ch in range(3):
+        if loss == "l1":
+            vals = np.where(ok, r2[..., ch] / np.where(ok, d2, 1.0), 0.0)
+            out[:, ch] = _weighted_median(vals, np.where(ok, d2 * wt, 0.0))
+        else:
+            num = (wt * d2 * r2[..., ch]).sum(1)
+            den = (wt * d2 * d2).sum(1)
+            out[:, ch] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    out = np.clip(out, 0.0, None)
+    out[~mask] = 0.0
+    return out.T.reshape(3, S, S)
+
+
+@dataclass
+class RepresentationResult:
+    """Results of :func:`compare_representations` (R representations, N identities, H held-out pairs each)."""
+
+    representations: list[Representation]
+    ids: list[str]
+    holdout: list[str]
+    psnr: np.ndarray  # (N, R) mean over held-out pairs
+    ssim: np.ndarray  # (N, R)
+    lpips: np.ndarray | None  # (N, R) or None when no LPIPS weights
+    psnr_pairs: np.ndarray  # (N, R, H)
+    ssim_pairs: np.ndarray  # (N, R, H)
+    train_psnr: np.ndarray  # (N, R) PSNR on the training pairs (fit quality)
+    fit_seconds: np.ndarray  # (N, R)
+    n_holdout_pairs: int
+    figure: dict[str, Any] = field(default_factory=dict)  # renders of the first identity for the figure
+    space: str = "uv"
+
+    def mean(self, what: str = "psnr") -> np.ndarray:
+        arr = getattr(self, what)
+        return None if arr is None else np.nanmean(arr, axis=0)
+
+
+def _default_fit(obs, exponents, pair_mask, **kw):
+    from reflectmm_cli.reflectance.fit import fit_maps
+
+    maps = fit_maps(obs, exponents=tuple(exponents), pair_mask=pair_mask, **kw)
+    return np.asarray(maps.albedo, np.float64), np.asarray(maps.weights, np.float64)
+
+
+def _metrics(pred, truth, observed, lp: LPIPS | None):
+    P = pred.shape[0]
+    out = np.zeros((3, P))
+    for i in range(P):
+        m = observed[i]
+        if not m.any():
+            out[:, i] = np.nan
+            continue
+        a, b = encode_display(pred[i]), encode_display(truth[i])
+        out[0, i] = psnr(a, b, m)
+        out[1, i] = ssim(a, b, m)
+        out[2, i] = lp(a, b, m) if lp is not None else np.nan
+    return out
+
+
+def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], ids: Sequence[str],
+                            representations: Sequence[Representation] | None = None,
+                            holdout: Sequence[str] = DEFAULT_HOLDOUT, lpips: LPIPS | None = None,
+                            fit_kwargs: Mapping[str, Any] | None = None,
+                            fit_fn: Callable | None = None, progress: Callable = lambda it, **k: it,
+                            figure_pair: tuple[str, str] | None = None) -> RepresentationResult:
+    """Fit every representation on the training pairs of every identity and score the held-out pairs.
+
+    Args:
+        observations: per identity a uv-observations mapping.
+        ids: identity names (same order).
+        representations: default :func:`default_representations`.
+        holdout: flash ids held out (all views).
+        lpips: an :class:`LPIPS` with weights, or None (no LPIPS).
+        fit_kwargs: passed to ``fit_maps`` (solver, symmetry, loss, prior) for every representation; symmetry
+            and loss are also used by the diffuse-only baseline.
+        fit_fn: ``fit_fn(obs, exponents, pair_mask, **fit_kwargs) -> (albedo, weights)`` (default: fit_maps).
+        figure_pair: (view name, flash id) of the pair shown in the figure (default: the held-out pair of the
+            most frontal view with the first held-out flash).
+    """
+    reps = list(representations or default_representations())
+    fit_fn = fit_fn or _default_fit
+    kw = dict(fit_kwargs or {})
+    N, R = len(observations), len(reps)
+    if N == 0:
+        raise ReflectmmError("evaluate representation: no identities")
+    ps, ss, lp, tp, secs = (np.full((N, R), np.nan) for _ in range(5))
+    per_pair_p, per_pair_s = [], []
+    fig: dict[str, Any] = {}
+    H = None
+    for n, (obs, ident) in enumerate(progress(list(zip(observations, ids)), desc="identities")):
+        held = holdout_pairs(obs, holdout)
+        train = ~held
+        hp = np.flatnonzero(held)
+        tr = np.flatnonzero(train)
+        if H is None:
+            H = hp.size
+        elif hp.size != H:
+            raise ReflectmmError(f"evaluate representation: identity {ident} has {hp.size} held-out pairs, "
+                                 f"the first had {H} (all identities must share the rig)")
+        truth = np.asarray(obs["radiance"], np.float64)
+        observed = np.asarray(obs["observed"], bool)
+        if not observed[hp].any():
+            raise ReflectmmError(f"evaluate representation: identity {ident}: no observed texel in the held-out "
+                                 "pairs")
+        pp, sp = np.full((R, H), np.nan), np.full((R, H), np.nan)
+        if n == 0:
+            fj = _figure_pair_index(obs, hp, figure_pair)
+            fig = {"identity": ident, "pair": int(fj), "truth": truth[fj], "mask": observed[fj],
+                   "view": str(np.asarray(obs["view_names"])[int(obs["pair_view"][fj])]),
+                   "flash": str(np.asarray(obs["flash_ids"])[int(obs["pair_flash"][fj])]), "renders": []}
+        for r, rep in enumerate(reps):
+            t0 = time.perf_counter()
+            if rep.exponents:
+                alb, wts = fit_fn(obs, rep.exponents, train, **kw)
+            else:
+                alb = fit_diffuse_only(obs, train, symmetry=float(kw.get("symmetry", 1.0)),
+                                       loss=str(kw.get("loss", "l1")))
+                wts = None
+            secs[n, r] = time.perf_counter() - t0
+            pred = render_pairs_uv(alb, wts, rep.exponents, obs, hp)
+            m = _metrics(pred, truth[hp], observed[hp], lpips)
+            pp[r], sp[r] = m[0], m[1]
+            ps[n, r], ss[n, r] = np.nanmean(m[0]), np.nanmean(m[1])
+            if lpips is not None:
+                lp[n, r] = np.nanmean(m[2])
+            # fit quality on (a subsample of) the training pairs
+            sub = tr[:: max(1, tr.size // 12)]
+            pr_t = render_pairs_uv(alb, wts, rep.exponents, obs, sub)
+            vals = [psnr(encode_display(pr_t[i]), encode_display(truth[j]), observed[j])
+                    for i, j in enumerate(sub) if observed[j].any()]
+            tp[n, r] = float(np.mean(vals)) if vals else np.nan
+            if n == 0:
+                k = int(np.flatnonzero(hp == fig["pair"])[0])
+                fig["renders"].append((rep.name, pred[k]))
+        per_pair_p.append(pp)
+        per_pair_s.append(sp)
+    return RepresentationResult(reps, list(ids), list(holdout), ps, ss, lp if lpips is not None else None,
+                                np.stack(per_pair_p), np.stack(per_pair_s), tp, secs, int(H or 0), fig)
+
+
+def _figure_pair_index(obs, hp, figure_pair):
+    names = [str(x) for x in np.asarray(obs["view_names"])]
+    fids = [str(x) for x in np.asarray(obs["flash_ids"])]
+    if figure_pair is not None:
+        for j in hp:
+            if names[int(obs["pair_view"][j])] == figure_pair[0] and fids[int(obs["pair_flash"][j])] == figure_pair[1]:
+                return int(j)
+        raise ReflectmmError(f"figure pair {figure_pair} is not a held-out pair")
+    # most frontal view: the camera centre with the largest z relative to its distance
+    cams = np.asarray(obs["cam_centers"], np.float64)
+    frontal = int(np.argmax(cams[:, 2] / np.linalg.norm(cams, axis=1)))
+    cand = [int(j) for j in hp if int(obs["pair_view"][j]) == frontal]
+    if not cand:
+        cand = [int(hp[0])]
+    counts = [np.asarray(obs["observed"])[j].sum() for j in cand]
+    return cand[int(np.argmax(counts))]
+
+
+def markdown_table(res: RepresentationResult) -> str:
+    """The comparison as a markdown table (mean over identities; best value per column in bold)."""
+    has_lp = res.lpips is not None
+    mp, ms = res.mean("psnr"), res.mean("ssim")
+    ml = res.mean("lpips") if has_lp else None
+    mt, sec = res.mean("train_psnr"), res.mean("fit_seconds")
+    head = "| representation | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train PSNR (dB) | fit time (s) |"
+    lines = [head, "|---|---:|---:|---:|---:|---:|"]
+    bp, bs = np.nanargmax(mp), np.nanargmax(ms)
+    bl = int(np.nanargmin(ml)) if has_lp else -1
+    for r, rep in enumerate(res.representations):
+        b = lambda s, ok: f"**{s}**" if ok else s  # noqa: E731
+        lp_s = b(f"{ml[r]:.4f}", r == bl) if has_lp else "off"
+        lines.append(f"| {rep.name} | {b(f'{mp[r]:.2f}', r == bp)} | {b(f'{ms[r]:.4f}', r == bs)} | {lp_s} | "
+                     f"{mt[r]:.2f} | {sec[r]:.2f} |")
+    foot = (f"\n{len(res.ids)} identities; held-out flashes {', '.join(res.holdout)} (all views, "
+            f"{res.n_holdout_pairs} pairs per identity); re-rendered in UV space over the texels observed in each "
+            f"held-out pair; metrics on clip(x,0,1)^(1/1.2), peak 1.")
+    if not has_lp:
+        foot += " LPIPS: off (no weights given)."
+    return "\n".join(lines) + "\n" + foot + "\n"
+
+
+def margin_of_multilobe(res: RepresentationResult) -> dict[str, Any] | None:
+    """PSNR/SSIM margin of the best multi-lobe representation over the best global-exponent one (K = 1)."""
+    mp, ms = res.mean("psnr"), res.mean("ssim")
+    multi = [r for r, rep in enumerate(res.representations) if len(rep.exponents) > 1]
+    glob = [r for r, rep in enumerate(res.representations) if len(rep.exponents) == 1]
+    if not multi or not glob:
+        return None
+    m = max(multi, key=lambda r: mp[r])
+    g = max(glob, key=lambda r: mp[r])
+    gs = max(glob, key=lambda r: ms[r])
+    per_id = res.psnr[:, m][:, None] - res.psnr[:, glob]
+    return {"multilobe": res.representations[m].name, "best_global": res.representations[g].name,
+            "psnr_margin_db": float(mp[m] - mp[g]), "ssim_margin": float(ms[m] - ms[gs]),
+            "beats_every_global_psnr": bool(np.all(mp[m] > mp[glob])),
+            "beats_every_global_ssim": bool(np.all(ms[m] > ms[glob])),
+            "identities_where_multilobe_wins_psnr": int(np.sum(np.all(per_id > 0, axis=1)))}
+
+
+def _error_colormap(err: np.ndarray, vmax: float) -> np.ndarray:
+    import cv2
+
+    x = np.clip(err / max(vmax, 1e-12), 0, 1)
+    cm = cv2.applyColorMap((x * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
+    return cm.astype(np.float64) / 255.0
+
+
+def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float = 0.1,
+                      labels: Sequence[str] | None = None) -> np.ndarray:
+    """Figure (H,W,3) in [0,1]: top row truth | each representation (display encoding), bottom row the absolute
+    error of each (display encoding, mean over channels; ``err_max`` → full scale, i.e. ×10 by default, inferno
+    colormap) over the observed texels; a label above each column."""
+    import cv2
+
+    fig = res.figure
+    if not fig:
+        raise ReflectmmError("no figure data")
+    m = fig["mask"]
+    tr = encode_display(fig["truth"])
+    tiles_top = [np.where(m[..., None], tr, 0.0)]
+    tiles_bot = [np.zeros_like(tr)]
+    for _name, img in fig["renders"]:
+        e = encode_display(img)
+        tiles_top.append(np.where(m[..., None], e, 0.0))
+        err = np.abs(e - tr).mean(-1)
+        tiles_bot.append(np.where(m[..., None], _error_colormap(err, err_max), 0.0))
+    names = ["truth"] + list(labels if labels is not None else [n for n, _ in fig["renders"]])
+    S = tr.shape[0]
+    size = max(S * scale, 96)
+    pad, lab_h = 2, 16
+    cols = []
+    for name, top, bot in zip(names, tiles_top, tiles_bot):
+        t = [cv2.resize(x.astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST) for x in (top, bot)]
+        label = np.ones((lab_h, size, 3), np.float32)
+        txt = name if len(name) <= size // 6 else name[: size // 6 - 1] + "."
+        cv2.putText(label, txt, (2, lab_h - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
+        col = np.concatenate([label, t[0], np.ones((pad, size, 3), np.float32), t[1]], 0)
+        cols.append(np.pad(col, ((pad, pad), (pad, pad), (0, 0)), constant_values=1.0))
+    return np.concatenate(cols, 1)
