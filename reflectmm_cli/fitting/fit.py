@@ -81,7 +81,10 @@ class ViewSet:
     """The views of one identity: names, intrinsics, initial poses, landmarks and (optional) images.
 
     K, R0: (V, 3, 3); t0: (V, 3); landmarks: (V, 68, 2) pixels, NaN where missing;
-    images: (V, H, W, 3) linear room-light images or None; image_size (W, H).
+    images: (V, h, w, 3) linear room-light images or None; image_size (W, H) of the full frame;
+    rig_centers: (V, 3) nominal camera positions in the rig frame (soft rig constraint) or None;
+    image_origin: (V, 2) full-frame pixel (x0, y0) of each image's top-left pixel when the images are crops
+    (capture ``crop_origin``); landmarks and K are always in full-frame pixels.
     """
 
     names: list[str]
@@ -92,6 +95,7 @@ class ViewSet:
     image_size: tuple[int, int]
     images: np.ndarray | None = None
     rig_centers: np.ndarray | None = None
+    image_origin: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         V = len(self.names)
@@ -105,6 +109,15 @@ class ViewSet:
             raise ReflectmmError(f"landmarks must be (V=68 per view) (V, 68, 2), got {self.landmarks.shape}")
         if self.images is not None and self.images.shape[0] != V:
             raise ReflectmmError(f"{self.images.shape[0]} images for {V} views")
+        self.image_origin = (np.zeros((V, 2)) if self.image_origin is None
+                             else np.asarray(self.image_origin, dtype=np.float64).reshape(V, 2))
+
+    def image_K(self) -> np.ndarray:
+        """(V, 3, 3) intrinsics in the pixel frame of the stored (possibly cropped) images."""
+        K = self.K.copy()
+        K[:, 0, 2] -= self.image_origin[:, 0]
+        K[:, 1, 2] -= self.image_origin[:, 1]
+        return K
 
 
 @dataclass
@@ -164,7 +177,6 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
     t_start = time.perf_counter()
     dtype = {"float64": torch.float64, "float32": torch.float32}[cfg.dtype]
     V = len(views.names)
-    W, H = int(views.image_size[0]), int(views.image_size[1])
 
     def tt(a):
         return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
@@ -260,6 +272,9 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
     photo_res = np.full(V, np.nan)
     vis_count = np.zeros(V, dtype=np.int64)
     if views.images is not None and cfg.photo_rounds > 0 and cfg.w_photo > 0:
+        Kimg = views.image_K()
+        Kimg_t = tt(Kimg)
+        Hc, Wc = views.images.shape[1:3]
         kernel = sh_kernel(dtype, device)
         kernel_np = kernel.cpu().numpy()
         skin = model.skin_mask if model.skin_mask is not None else np.ones(model.n_vertices, dtype=bool)
@@ -285,8 +300,8 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             nrm = vertex_normals(Xn, model.triangles)
             centers = camera_centers(Rn, tn)
             vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample)
-            uv, _ = project(Xn[sample][None].repeat(V, 0), views.K, Rn, tn)
-            vis &= inside_image(uv, W, H)
+            uv, _ = project(Xn[sample][None].repeat(V, 0), Kimg, Rn, tn)
+            vis &= inside_image(uv, Wc, Hc)
             vis_t = tt(vis.astype(np.float64))
             # closed-form lighting/albedo at the current geometry
             from reflectmm_cli.fitting.photometric import sample_images
@@ -309,7 +324,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                 X = verts()
                 R, t = poses()
                 nv = vertex_normals_torch(X, ts.triangles)
-                lp, _ = photometric_loss(X, nv, sample_t, vis_t, K_t, R, t, images_t, alb_t, sh_t, kernel, scale)
+                lp, _ = photometric_loss(X, nv, sample_t, vis_t, Kimg_t, R, t, images_t, alb_t, sh_t, kernel, scale)
                 return cfg.w_landmark * lm_loss(X, R, t)[0] + cfg.w_photo * lp + prior(R, t)
 
             params = [zs, ze] + pose_params + [sh_t] + ([alb_t] if mode == "per-vertex" else [])
@@ -322,7 +337,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                 R, t = poses()
                 nv = vertex_normals_torch(X, ts.triangles)
                 raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
-                _, r = photometric_loss(X, nv, sample_t, vis_t, K_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
+                _, r = photometric_loss(X, nv, sample_t, vis_t, Kimg_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
                 r = r.cpu().numpy()
             vis_count = vis.sum(1)
             for v in range(V):

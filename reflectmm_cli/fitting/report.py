@@ -1,0 +1,96 @@
+"""Errors of a fitted geometry against ground truth (synthetic data) and overlay images."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reflectmm_cli.fitting.camera_math import camera_centers, project
+
+
+def inter_ocular_mm(vertices: np.ndarray, landmarks: np.ndarray) -> float:
+    """Distance between the eye centres (mean of iBUG landmarks 36–41 and 42–47), mm."""
+    lm = np.asarray(vertices, dtype=np.float64)[np.asarray(landmarks)]
+    return float(np.linalg.norm(lm[36:42].mean(0) - lm[42:48].mean(0)))
+
+
+def truth_errors(vertices: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, truth_vertices: np.ndarray,
+                 truth_K: np.ndarray, truth_R: np.ndarray, truth_t: np.ndarray, landmark_ids: np.ndarray
+                 ) -> dict[str, np.ndarray]:
+    """Errors of a fit against ground truth, all in model space without any alignment (we fit in model space).
+
+    Returns arrays: ``err_landmark_px (V,)`` RMS distance between the fitted and the true projections of the 68
+    landmark vertices; ``err_vertex_px (V,)`` the same over every vertex in front of the camera;
+    ``err_vertex_rmse_mm ()`` and ``err_vertex_max_mm ()`` 3-D vertex error; ``err_vertex_rmse_iod ()`` the RMSE
+    as a fraction of the true inter-ocular distance; ``err_cam_center_mm (V,)``; ``truth_iod_mm ()``.
+    """
+    V = len(K)
+    v_fit = np.asarray(vertices, dtype=np.float64)
+    v_true = np.asarray(truth_vertices, dtype=np.float64)
+    d3 = np.linalg.norm(v_fit - v_true, axis=-1)
+    iod = inter_ocular_mm(v_true, landmark_ids)
+    lm_err = np.zeros(V)
+    vx_err = np.zeros(V)
+    for v in range(V):
+        uf, zf = project(v_fit, K[v], R[v], t[v])
+        ut, zt = project(v_true, truth_K[v], truth_R[v], truth_t[v])
+        e = np.linalg.norm(uf - ut, axis=-1)
+        lm_err[v] = np.sqrt(np.mean(e[landmark_ids] ** 2))
+        front = (zf > 0) & (zt > 0)
+        vx_err[v] = np.sqrt(np.mean(e[front] ** 2)) if front.any() else np.nan
+    cc = np.linalg.norm(camera_centers(R, t) - camera_centers(truth_R, truth_t), axis=-1)
+    rmse = float(np.sqrt(np.mean(d3 ** 2)))
+    return {"err_landmark_px": lm_err, "err_vertex_px": vx_err, "err_vertex_rmse_mm": np.float64(rmse),
+            "err_vertex_max_mm": np.float64(d3.max()), "err_vertex_rmse_iod": np.float64(rmse / iod),
+            "err_cam_center_mm": cc, "truth_iod_mm": np.float64(iod)}
+
+
+def display_image(linear: np.ndarray) -> np.ndarray:
+    """Linear image → uint8 for display (99.5th percentile to 1, gamma 1/2.2)."""
+    x = np.nan_to_num(np.asarray(linear, dtype=np.float32))
+    hi = float(np.percentile(x, 99.5)) if x.size else 1.0
+    y = np.clip(x / max(hi, 1e-6), 0.0, 1.0) ** (1.0 / 2.2)
+    return (y * 255.0 + 0.5).astype(np.uint8)
+
+
+def overlay(image: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray, K: np.ndarray,
+            R: np.ndarray, t: np.ndarray, landmarks_given: np.ndarray, landmarks_fit: np.ndarray,
+            origin=(0.0, 0.0), max_edges: int = 6000, scale: int = 1) -> np.ndarray:
+    """RGB uint8 overlay: the camera-facing wireframe of the fitted mesh (thin, cyan) over the room-light image,
+    given landmarks (green dots), fitted landmark projections (red crosses) and their differences (yellow).
+
+    ``K`` is full-frame; ``origin`` (x0, y0) is the full-frame pixel of the image's top-left pixel.
+    """
+    import cv2
+
+    img = display_image(image) if image.dtype != np.uint8 else image.copy()
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    H, W = img.shape[:2]
+    if scale != 1:
+        img = cv2.resize(img, (W * scale, H * scale), interpolation=cv2.INTER_NEAREST)
+    off = np.asarray(origin, dtype=np.float64)
+    uv, z = project(vertices, K, R, t)
+    uv = (uv - off + 0.5) * scale - 0.5
+    c = camera_centers(R, t)
+    tri = np.asarray(triangles)
+    cen = np.asarray(vertices)[tri].mean(1)
+    fn = np.cross(vertices[tri[:, 1]] - vertices[tri[:, 0]], vertices[tri[:, 2]] - vertices[tri[:, 0]])
+    facing = ((c[None] - cen) * fn).sum(-1) > 0
+    tri = tri[facing & (z[tri] > 0).all(1)]
+    step = max(1, int(np.ceil(len(tri) / max(max_edges // 3, 1))))
+    tri = tri[::step]
+    canvas = img.copy()
+    pts = np.round(uv[tri] * 16).astype(np.int32)  # 4 bits of sub-pixel precision
+    cv2.polylines(canvas, list(pts), True, (0, 200, 255), 1, cv2.LINE_AA, shift=4)
+    img = cv2.addWeighted(canvas, 0.45, img, 0.55, 0.0)
+    lg = (np.asarray(landmarks_given, dtype=np.float64) - off + 0.5) * scale - 0.5
+    lf = (np.asarray(landmarks_fit, dtype=np.float64) - off + 0.5) * scale - 0.5
+    r = max(2, scale + 1)
+    for a, b in zip(lg, lf):
+        if np.all(np.isfinite(a)):
+            cv2.line(img, tuple(int(round(x)) for x in a), tuple(int(round(x)) for x in b), (255, 255, 0), 1,
+                     cv2.LINE_AA)
+            cv2.circle(img, tuple(int(round(x)) for x in a), r, (0, 255, 0), -1, cv2.LINE_AA)
+        bb = tuple(int(round(x)) for x in b)
+        cv2.drawMarker(img, bb, (255, 0, 0), cv2.MARKER_TILTED_CROSS, 2 * r + 1, 1, cv2.LINE_AA)
+    return img
