@@ -165,7 +165,7 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
                                "margin": margin, "table": table})
     head = ("# Representation comparison\n\nFigure: `" + out.with_suffix(".png").name + "` — identity "
             f"{res.figure.get('identity')}, view {res.figure.get('view')}, flash {res.figure.get('flash')}: "
-            "truth | " + " | ".join(r.name for r in reps) + " (top), absolute error ×10 (bottom).\n\n")
+            "truth | " + " | ".join(r.name for r in reps) + " (top), absolute error of the display encoding ×20, inferno colormap (bottom).\n\n")
     md = head + table
     if margin:
         md += (f"\n{margin['multilobe']} vs the best global exponent ({margin['best_global']}): "

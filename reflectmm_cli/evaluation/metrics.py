@@ -290,8 +290,17 @@ class LPIPS:
                                  f"got {a.shape[:2]}")
         t = lambda z: torch.as_tensor(np.where(m[..., None], z, 0.0) * 2 - 1,  # noqa: E731
                                       dtype=torch.float32).permute(2, 0, 1)[None]
-        with torch.no_grad():
-            dmap = self.distance_map(t(a), t(b))[0, 0].numpy()
+        # small images: one thread is much faster than several contending ones (measured 70× on 2 busy cores)
+        threads = torch.get_num_threads()
+        small = a.shape[0] * a.shape[1] <= 256 * 256
+        try:
+            if small:
+                torch.set_num_threads(1)
+            with torch.no_grad():
+                dmap = self.distance_map(t(a), t(b))[0, 0].numpy()
+        finally:
+            if small:
+                torch.set_num_threads(threads)
         return float(dmap[m].mean())
 
 

@@ -373,10 +373,10 @@ def _error_colormap(err: np.ndarray, vmax: float) -> np.ndarray:
     return cm.astype(np.float64) / 255.0
 
 
-def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float = 0.1,
+def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float = 0.05,
                       labels: Sequence[str] | None = None) -> np.ndarray:
     """Figure (H,W,3) in [0,1]: top row truth | each representation (display encoding), bottom row the absolute
-    error of each (display encoding, mean over channels; ``err_max`` → full scale, i.e. ×10 by default, inferno
+    error of each (display encoding, mean over channels; ``err_max`` → full scale, i.e. ×20 by default, inferno
     colormap) over the observed texels; a label above each column."""
     import cv2
 
@@ -399,9 +399,10 @@ def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float 
     cols = []
     for name, top, bot in zip(names, tiles_top, tiles_bot):
         t = [cv2.resize(x.astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST) for x in (top, bot)]
-        label = np.ones((lab_h, size, 3), np.float32)
+        label = np.full((lab_h, size, 3), 255, np.uint8)
         txt = name if len(name) <= size // 6 else name[: size // 6 - 1] + "."
         cv2.putText(label, txt, (2, lab_h - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
+        label = label.astype(np.float32) / 255.0
         col = np.concatenate([label, t[0], np.ones((pad, size, 3), np.float32), t[1]], 0)
         cols.append(np.pad(col, ((pad, pad), (pad, pad), (0, 0)), constant_values=1.0))
     return np.concatenate(cols, 1)
