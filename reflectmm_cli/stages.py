@@ -128,7 +128,9 @@ class Stage:
         input_files: ``input_files(ctx) -> {role: [files]}`` the concrete files whose content
             keys the cache (e.g. only one identity's images inside a dataset root);
             default: every file in ``ctx.inputs`` (folders expanded recursively).
-        discover_ids: ``discover_ids(ctx) -> [ids]`` for ``foreach = "all found"``.
+        discover_ids: ``discover_ids(ctx) -> [ids]`` for ``foreach = "all found"`` (``ctx.inputs``
+            holds the stage's inputs resolved as for an aggregate; return None to let the recipe
+            planner use the identities of the upstream per-identity stage).
         cache_params: names of params that invalidate results; None means all but
             :data:`NON_INVALIDATING`.
         help: one-line description.

@@ -104,6 +104,7 @@ class Task:
     key_doc: dict[str, Any] | None = None
     outputs: list[Path] = field(default_factory=list)
     selected: bool = True
+    outputs_error: str | None = None
 
     def row(self) -> dict[str, Any]:
         return {"stage": self.stage_name, "id": self.identity, "action": self.action, "reason": self.reason,
@@ -264,7 +265,11 @@ def _make_task(spec: StageSpec, stage: Stage, workspace: Path, ident: str | None
             deps += [d for d in pdeps if d not in deps]
         task.ctx = ctx.with_(inputs=inputs, params=params)
         task.deps = deps
-        task.outputs = [Path(p) for p in stage.expected_outputs(task.ctx)]
+        try:
+            task.outputs = [Path(p) for p in stage.expected_outputs(task.ctx)]
+        except Exception as exc:  # noqa: BLE001 - a hook may need inputs that do not exist yet
+            task.outputs = [task.ctx.output_path()]
+            task.outputs_error = f"cannot list the stage's outputs: {exc}"
     except _PlanError as exc:
         task.action, task.reason = ERROR, str(exc)
         task.outputs = [ctx.output_path()]
@@ -368,6 +373,9 @@ def _decide(t: Task, stage: Stage, tasks: dict[str, Task], workspace: Path, memo
         more = f" +{len(upstream_runs) - 1}" if len(upstream_runs) > 1 else ""
         t.reason = f"upstream reruns ({upstream_runs[0]}{more})"
         return  # the key is computed once the inputs exist
+    if t.outputs_error:
+        t.action, t.reason = ERROR, t.outputs_error
+        return
     try:
         doc = cache_key_doc(stage, t.ctx, memo)
     except (FileNotFoundError, ReflectmmError) as exc:
