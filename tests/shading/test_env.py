@@ -226,3 +226,12 @@ def test_projection_agrees_with_ducc0():
                                                       geometry="F1", phi0=phi0)
     a, b = _ducc_vs_ours(ducc0, alm, order, ours, rng)
     np.testing.assert_allclose(b, a, atol=1e-9)
+
+
+@pytest.mark.parametrize("quadrature", ["fejer", "area"])
+def test_separable_projection_equals_per_pixel_sum(quadrature):
+    from reflectmm_cli.shading.envmap import _project_envmap_direct
+
+    img = np.random.default_rng(4).random((21, 38, 2)) * 5
+    np.testing.assert_allclose(project_envmap(img, 7, quadrature=quadrature),
+                               _project_envmap_direct(img, 7, quadrature=quadrature), atol=1e-12)
