@@ -204,15 +204,14 @@ def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: Ru
 
 def _execute(plan: Plan, batch: list[TaskSpec], ex: Executor, memo: dict[str, Any],
              outcomes: dict[str, TaskOutcome], runlog: RunLog) -> None:
-    from reflectmm_cli.progress import progress
-
     total = len(batch)
-    bar = progress(range(total), desc=f"{plan.recipe.name}", total=total, unit="task")
+    finished = [0]
     log.info("running %d task(s) with the %s executor", total, ex.name)
 
     def on_result(res: dict[str, Any]) -> None:
         t = plan.tasks[res["tid"]]
         status = res["status"]
+        finished[0] += 1
         o = TaskOutcome(t.stage_name, t.identity, status, t.reason, res.get("cache_key"), res.get("duration", 0.0),
                         res.get("error"), list(res.get("outputs") or []), res.get("worker"))
         if status == OK:
@@ -221,13 +220,10 @@ def _execute(plan: Plan, batch: list[TaskSpec], ex: Executor, memo: dict[str, An
                              [Path(p) for p in t.outputs], memo)
             except OSError as exc:
                 log.warning("%s: cannot write its record: %s", t.tid, exc)
-            log.info("done %s (%.2f s)", t.tid, o.duration)
-        elif status == R_FAILED:
-            log.info("FAILED %s: %s", t.tid, o.error)
+            log.info("[%d/%d] done %s (%.2f s)", finished[0], total, t.tid, o.duration)
+        else:
+            log.info("[%d/%d] %s %s: %s", finished[0], total, status.upper(), t.tid, o.error)
         outcomes[t.tid] = o
         runlog.write(o)
-        next(bar, None)
 
     ex.run(batch, on_result)
-    for _ in bar:  # close the bar
-        pass
