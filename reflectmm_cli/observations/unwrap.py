@@ -100,6 +100,42 @@ def bilinear(images: np.ndarray, uv: np.ndarray, saturated: np.ndarray | None = 
     return val, inside, sat
 
 
+def _footprint_on_surface(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, R, t, crop, H: int, W: int
+                          ) -> tuple[np.ndarray, int]:
+    """(M,) bool: each of the four bilinear taps around ``pix`` (crop-window pixels) sees a surface point at the
+    texel's depth ``Z`` within ``tol = (Z/f)·(1 + 1.5·√2·tanθ)`` (θ = angle between normal and view).  Taps outside
+    the window count as failing here only if they miss the mesh.  Returns the mask and the number of rays cast."""
+    M = pix.shape[0]
+    if M == 0:
+        return np.zeros(0, bool), 0
+    x0 = np.floor(pix[:, 0]).astype(np.int64)
+    y0 = np.floor(pix[:, 1]).astype(np.int64)
+    taps_x = np.stack([x0, x0 + 1, x0, x0 + 1], 1)
+    taps_y = np.stack([y0, y0, y0 + 1, y0 + 1], 1)
+    inwin = (taps_x >= 0) & (taps_x < W) & (taps_y >= 0) & (taps_y < H)
+    key = np.where(inwin, taps_y * W + taps_x, -1)
+    uniq, inv = np.unique(key[inwin], return_inverse=True)
+    # one primary ray per distinct tap pixel (full-frame pixel centre = window pixel + crop origin)
+    px = (uniq % W).astype(np.float64) + crop[0]
+    py = (uniq // W).astype(np.float64) + crop[1]
+    Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
+    d_cam = np.stack([px, py, np.ones_like(px)], 1) @ Kinv.T
+    d = d_cam @ np.asarray(R, dtype=np.float64)  # camera → model: Rᵀ d
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c = -np.asarray(R, dtype=np.float64).T @ np.asarray(t, dtype=np.float64)
+    hit = scene.intersect(np.broadcast_to(c, d.shape), d)
+    depth = np.where(hit["tri"] >= 0, hit["t"].astype(np.float64) * (d @ np.asarray(R, dtype=np.float64)[2]),
+                     np.inf)
+    tap_depth = np.full(key.shape, np.inf)
+    tap_depth[inwin] = depth[inv]
+    f = float(np.asarray(K)[1, 1])
+    cosv = np.clip(ndv, 1e-3, 1.0)
+    tan = np.sqrt(np.clip(1.0 - cosv ** 2, 0.0, None)) / cosv
+    tol = (Z / f) * (1.0 + 1.5 * math.sqrt(2.0) * tan)
+    good = np.all(np.where(inwin, np.abs(tap_depth - Z[:, None]) <= tol[:, None], True), axis=1)
+    return good, int(uniq.size)
+
+
 def _index_of(names: Sequence[str], wanted: Sequence[str], what: str, where) -> np.ndarray:
     names = [str(n) for n in names]
     idx = []
@@ -167,15 +203,25 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     cos_cut = math.cos(math.radians(grazing_deg))
 
     vis = np.zeros((V, N), bool)
-    rays_view = 0
+    pix_all = np.zeros((V, N, 2))
+    rays_view = rays_depth = footprint_rejected = 0
     for vi in range(V):
         dv = cam_centers[vi] - x
         ndv = np.einsum("nk,nk->n", n, dv) / np.linalg.norm(dv, axis=1)
-        _, Z = project(x, K[vi], R[vi], t[vi])
-        cand = (ndv > cos_cut) & (Z > 0)
-        ci = np.flatnonzero(cand)
-        vis[vi, ci] = visibility(scene, x[ci], n[ci], cam_centers[vi])
-        rays_view += ci.size
+        pix, Z = project(x, K[vi], R[vi], t[vi])
+        pix -= crop[vi][None, :]
+        pix_all[vi] = pix
+        cand = np.flatnonzero((ndv > cos_cut) & (Z > 0))
+        ok = visibility(scene, x[cand], n[cand], cam_centers[vi])
+        rays_view += cand.size
+        ci = cand[ok]
+        # depth test of the bilinear footprint: all four taps must see this surface (not a silhouette or an
+        # occluding edge), else the sample would mix surfaces
+        good, nr = _footprint_on_surface(scene, pix[ci], Z[ci], ndv[ci], K[vi], R[vi], t[vi], crop[vi],
+                                         olat.shape[2], olat.shape[3])
+        rays_depth += nr
+        footprint_rejected += int((~good).sum())
+        vis[vi, ci[good]] = True
     seen = vis.any(0)
     lit = np.zeros((F, N), bool)
     rays_flash = skipped_back = skipped_unseen = 0
@@ -197,16 +243,16 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     saturated = np.zeros((P, S * S), bool)
     inside_any = np.zeros(N, bool)
     for vi in range(V):
-        pix, _ = project(x, K[vi], R[vi], t[vi])
-        pix = pix - crop[vi][None, :]
-        vals, inside, sat = bilinear(olat[vi], pix, satur[vi])
-        inside_any |= inside
+        ci = np.flatnonzero(vis[vi])
+        vals, inside, sat = bilinear(np.asarray(olat[vi], dtype=np.float32), pix_all[vi][ci], satur[vi])
+        inside_any[ci] |= inside
+        tex = idx[ci]
         for fi in range(F):
             p = vi * F + fi
-            ob = vis[vi] & lit[fi] & inside & ~sat[fi]
-            observed[p, idx] = ob
-            saturated[p, idx] = sat[fi]
-            radiance[p, idx] = np.where(ob[:, None], vals[fi], 0.0).astype(np.float16)
+            ob = lit[fi, ci] & inside & ~sat[fi]
+            observed[p, tex] = ob
+            saturated[p, tex] = sat[fi]
+            radiance[p, tex] = np.where(ob[:, None], vals[fi], 0.0)
     obs_count = observed.sum(0).astype(np.int32).reshape(S, S)
     arrays: dict[str, np.ndarray] = {
         "position": g.position, "normal": g.normal, "mask": g.mask,
@@ -219,7 +265,8 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         "saturated": saturated.reshape(P, S, S), "obs_count": obs_count,
     }
     report = {"texels": int(N), "uv_size": S, "views": V, "flashes": F, "grazing_deg": float(grazing_deg),
-              "rays_view": int(rays_view), "rays_shadow": int(rays_flash),
+              "rays_view": int(rays_view), "rays_shadow": int(rays_flash), "rays_depth": int(rays_depth),
+              "footprint_rejected": int(footprint_rejected),
               "skipped_backfacing_light": int(skipped_back), "skipped_unseen": int(skipped_unseen),
               "texels_unseen": int((~seen).sum()), "texels_outside_images": int((~inside_any).sum()),
               "observed_pairs": int(observed.sum()), "saturated_pairs": int(saturated.sum()),

@@ -69,8 +69,10 @@ def test_unwrapped_radiance_equals_shading(tmp_path, cli):
         x = obs["position"][obs["mask"]].astype(np.float64)
         ndl = np.einsum("nk,nk->n", obs["normal"][obs["mask"]], geo["flash_pos"][f] - x)
         lit = obs["lit"][f][obs["mask"]]
-        assert not lit[ndl <= 0].any()
-        assert lit[ndl > 0.02 * np.linalg.norm(geo["flash_pos"][f] - x, axis=1)].all()
+        seen = obs["visible"][:, obs["mask"]].any(0)  # shadow rays are traced only for texels some view sees
+        assert seen.mean() > 0.9
+        assert not lit[ndl <= 0].any() and not lit[~seen].any()
+        assert lit[(ndl > 0.02 * np.linalg.norm(geo["flash_pos"][f] - x, axis=1)) & seen].all()
 
 
 def test_occluder_visibility_and_shadow(tmp_path, cli):
@@ -100,7 +102,10 @@ def test_occluder_visibility_and_shadow(tmp_path, cli):
         ndv = np.einsum("nk,nk->n", n, v) / np.linalg.norm(v, axis=1)
         want = (ndv > math.cos(math.radians(80))) & ~seg_hits_quad(x, c, occ[0])
         got = obs["visible"][vi][m]
-        assert (got != want).sum() <= 0.01 * m.sum()
+        assert (got & ~want).sum() <= 0.005 * m.sum()  # never visible where the analytic test says hidden
+        # hidden in addition: texels whose bilinear footprint leaves the mesh (cap border) or crosses the
+        # occluder's outline (depth test of the four taps)
+        assert (want & ~got).sum() <= 0.08 * m.sum()
         assert (~seg_hits_quad(x, c, occ[0])).sum() < m.sum() - 50  # the occluder hides texels from this view
     # observed radiance still equals the shading away from the occluder's outline
     for p in range(4):
