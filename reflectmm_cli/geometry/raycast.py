@@ -80,7 +80,7 @@ class RayScene:
         self.triangles = t
         self.normals = (vertex_normals(v, t) if normals is None else np.asarray(normals, dtype=np.float32))
         self.diag = float(np.linalg.norm(v.max(0) - v.min(0))) if len(v) else 1.0
-        self._scene = rtcore_scene.EmbreeScene()
+        self._scene = rtcore_scene.EmbreeScene(robust=True)  # watertight: rays through vertices/edges hit
         TriangleMesh(self._scene, v.astype(np.float32), t)
         self.stats = RayStats()
 
@@ -88,18 +88,45 @@ class RayScene:
     def default_eps(self) -> float:
         return 1e-4 * self.diag
 
-    def intersect(self, origins, dirs, tfar=None) -> dict:
+    def intersect(self, origins, dirs, tfar=None, *, retry=None) -> dict:
         """First hits of rays: dict with ``tri`` (M,) int32 (−1 miss), ``u``, ``v`` (Embree barycentrics, hit =
-        (1−u−v)·v0 + u·v1 + v·v2) and ``t`` (M,) distance along the unit direction."""
+        (1−u−v)·v0 + u·v1 + v·v2) and ``t`` (M,) distance along the unit direction.
+
+        Embree (even in its robust mode, which is used) misses about 1 % of rays that pass *exactly* through a
+        vertex.  ``retry`` — True for all misses, or a boolean (M,) array selecting which misses — re-casts those
+        rays once with the direction tilted by 1e-6 rad (≈ 0.6 µm at 600 mm).
+        """
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(dirs, dtype=np.float32)
+        tf = None if tfar is None else np.ascontiguousarray(np.broadcast_to(tfar, (len(o),)), dtype=np.float32)
         t0 = time.perf_counter()
-        if tfar is None:
-            res = self._scene.run(o, d, output=1)
-        else:
-            res = self._scene.run(o, d, dists=np.ascontiguousarray(tfar, dtype=np.float32), output=1)
-        self.stats = RayStats(len(o), 0, time.perf_counter() - t0)
+        res = self._run(o, d, tf)
+        n = len(o)
+        if retry is not None and retry is not False:
+            miss = res["primID"] < 0
+            if retry is not True:
+                miss &= np.asarray(retry, dtype=bool)
+            idx = np.nonzero(miss)[0]
+            if idx.size:
+                dd = d[idx].astype(np.float64)
+                perp = np.cross(dd, np.where(np.abs(dd[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+                perp /= np.linalg.norm(perp, axis=1, keepdims=True)
+                d2 = dd + 1e-6 * perp
+                d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
+                r2 = self._run(o[idx], d2.astype(np.float32), None if tf is None else tf[idx])
+                for k in ("primID", "u", "v", "tfar"):
+                    res[k][idx] = r2[k]
+                n += idx.size
+        self.stats = RayStats(n, 0, time.perf_counter() - t0)
         return {"tri": res["primID"].astype(np.int32), "u": res["u"], "v": res["v"], "t": res["tfar"]}
+
+    def _run(self, o, d, tf):
+        if len(o) == 0:
+            z = np.zeros(0, dtype=np.float32)
+            return {"primID": np.zeros(0, dtype=np.int32), "u": z, "v": z.copy(), "tfar": z.copy()}
+        if tf is None:
+            return self._scene.run(o, d, output=1)
+        return self._scene.run(o, d, dists=tf, output=1)
 
     def occluded(self, origins, dirs, tfar) -> np.ndarray:
         """(M,) bool: is anything hit along each ray before distance ``tfar``?"""
@@ -148,6 +175,21 @@ def rasterize(scene: RayScene, camera: Camera) -> Raster:
     o, d = camera.rays()
     hit = scene.intersect(o, d)
     tri = hit["tri"].reshape(H, W)
+    miss = tri < 0
+    if miss.any() and (~miss).any():
+        # a miss with a hit 4-neighbour may be a ray exactly through a vertex: retry those only
+        near = np.zeros_like(miss)
+        near[1:] |= ~miss[:-1]
+        near[:-1] |= ~miss[1:]
+        near[:, 1:] |= ~miss[:, :-1]
+        near[:, :-1] |= ~miss[:, 1:]
+        sel = (miss & near).ravel()
+        if sel.any():
+            idx = np.nonzero(sel)[0]
+            h2 = scene.intersect(o[idx], d[idx], retry=True)
+            for k in hit:
+                hit[k][idx] = h2[k]
+            tri = hit["tri"].reshape(H, W)
     mask = tri >= 0
     m = mask.ravel()
     bary = np.zeros((H * W, 3), dtype=np.float32)
