@@ -235,7 +235,12 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
             if pending:
                 return _DEFER
             raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": {exc}', recipe.path) from None
-        found = stage.discover_ids(ctx.with_(inputs=inputs))
+        try:
+            found = stage.discover_ids(ctx.with_(inputs=inputs))
+        except (ReflectmmError, OSError) as exc:
+            if pending:  # e.g. the folder to search is written by an upstream task that has to run
+                return _DEFER
+            raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": {exc}', recipe.path) from None
         if found is not None and pending:
             return _DEFER  # the identities are known once the upstream outputs exist
         if found is not None:

@@ -291,3 +291,43 @@ def test_deleting_state_dir_is_safe(ws, bad):
     run_recipe(ws / "recipe.toml", ws)
     shutil.rmtree(ws / ".reflectmm")  # artifacts carry their key: still up to date
     assert set(statuses(run_recipe(ws / "recipe.toml", ws, dry_run=True)).values()) == {"skip"}
+
+
+def test_param_reference_resolves_to_path_and_orders_stages(ws):
+    (ws / "recipe.toml").write_text("""
+schema = "reflectmm.recipe/1"
+[stages.b]
+verb = "checksum"
+inputs = { files = "data/001" }
+params = { model = "@a.output" }     # a param naming another stage's output: a dependency too
+
+[stages.a]
+verb = "checksum"
+inputs = { files = "data/002" }
+""")
+    rep = run_recipe(ws / "recipe.toml", ws)
+    assert rep.ok and [t.tid for t in rep.tasks] == ["a", "b"]
+    assert read_artifact(ws / "b" / "b.npz").params["model"] == str(ws / "a" / "a.npz")
+    (ws / "data" / "002" / "a.txt").write_text("changed")
+    plan = run_recipe(ws / "recipe.toml", ws, dry_run=True)
+    assert reasons(plan) == {"a": "input changed (files)", "b": "upstream reruns (a)"}
+
+
+def test_runlog_logs_skipped_tasks_and_groups_by_run(ws):
+    run_recipe(ws / "recipe.toml", ws)
+    run_recipe(ws / "recipe.toml", ws)
+    lines = [json.loads(x) for x in (ws / ".reflectmm" / "runlog.jsonl").read_text().splitlines()]
+    runs = sorted({x["run"] for x in lines}, key=[x["run"] for x in lines].index)
+    assert len(runs) == 2
+    second = [x for x in lines if x["run"] == runs[1]]
+    assert [x["status"] for x in second] == ["skipped"] * 5
+    assert all(x["reason"] == "up to date" and x["duration"] == 0 for x in second)
+    first_keys = {(x["stage"], x["id"]): x["cache_key"] for x in lines if x["run"] == runs[0]}
+    assert {(x["stage"], x["id"]): x["cache_key"] for x in second} == first_keys
+
+
+def test_dry_run_json(cli, ws):
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--dry-run", "--json")
+    doc = json.loads(r.stdout)
+    assert doc["dry_run"] is True and doc["counts"] == {"run": 5}
+    assert doc["tasks"][0]["outputs"] == [str(ws / "manifest" / "001.npz")]
