@@ -1,0 +1,541 @@
+"""Per-identity reflectance fitting: the exact batched solver, the Adam reference, rendering (DESIGN.md §3).
+
+Model (per texel t, pair j, channel c; design columns of :mod:`.design`):
+``Î_jc = C_c · d_j + Σ_i W_i · s_ji`` — linear in the 3 + K unknowns ``x = (C_r, C_g, C_b, W_1..W_K)``.
+
+Fast solver (``solver="fast"``), per texel, exact and batched over texels:
+
+* loss ``l2``: ``Σ_jc ⟨l_j,n⟩ r_jc²``; loss ``l1``: the paper's ``Σ_jc ⟨l_j,n⟩ |r_jc|`` by IRLS with weights
+  ``⟨l_j,n⟩ / max(|r_jc|, δ)``, δ = ``irls_delta`` × RMS of the texel's observed radiance.
+* symmetry: the normal equations of texel t are pooled with its mirror's,
+  ``H_t + s · H_mirror(t)`` (s = ``symmetry``); s = 1 gives mirror texels one shared solution.
+* prior (Tikhonov): ``+ λ_t ‖x − x0_t‖²`` with ``λ_t = prior · trace(H_t)`` (the pooled data term), so
+  its relative strength is the same in every texel and every IRLS iteration.  ``x0`` is a neighbourhood
+  value: a first pass (one weighted least-squares solve with the prior towards 0) is smoothed by normalised
+  convolution (Gaussian, σ = S/16 texels) over the texels where each unknown is observable (C: every solved
+  texel; W_i: lobe observability ≥ ``observable_min``); where no such texel is near, the median of those
+  texels is used.  Both C and W are in albedo units, so one isotropic λ serves both.
+* non-negativity exactly: every solve is the non-negative QP of :func:`.nnls.nnls_batched` (KKT checked).
+* flagged texels (in the mask, pooled conditioning < ``cond_min`` or fewer than ``min_obs`` pooled
+  observations) are not solved: they are filled from the mirror texel (if it is solved and s > 0), else by
+  normalised convolution of the solved neighbours (σ = 1.5 texels, doubled until every texel is reached),
+  else the prior value.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+from .design import (DEFAULT_CHUNK, check_observations, design_columns, design_gram, gram_conditioning,
+                     iter_chunks, mirror_index, pair_irradiance)
+from .nnls import kkt_violation, nnls_batched
+
+log = logging.getLogger("reflectmm")
+
+#: Ridge of the first pass relative to the trace of each texel's data term (numerical safety only).
+PASS1_RIDGE = 1e-9
+
+__all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution"]
+
+
+@dataclass
+class ReflectanceMaps:
+    """Result of :func:`fit_maps` (the ``reflectance-maps`` arrays, docs/fit-reflectance.md).
+
+    albedo (3,S,S) linear diffuse C; weights (K,S,S) lobe weights W; exponents (K,); mask (S,S);
+    residual (S,S) RMS radiance residual over the texel's fitted observations; conditioning (S,S) pooled
+    rcond; observability (K,S,S) pooled lobe observability; flagged (S,S); obs_count (S,S) fitted observations
+    of the texel itself; prior (3+K,S,S) the prior target x0; stats: solver statistics.
+    """
+
+    albedo: np.ndarray
+    weights: np.ndarray
+    exponents: np.ndarray
+    mask: np.ndarray
+    residual: np.ndarray
+    conditioning: np.ndarray
+    flagged: np.ndarray
+    obs_count: np.ndarray
+    observability: np.ndarray | None = None
+    prior: np.ndarray | None = None
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return int(self.albedo.shape[-1])
+
+    def observable(self, observable_min: float = 0.1) -> np.ndarray:
+        """(S,S) texels in the mask, not flagged, where every lobe reaches ``observable_min`` of its peak."""
+        ok = self.mask & ~self.flagged
+        if self.observability is not None:
+            ok &= np.all(self.observability >= observable_min, axis=0)
+        return ok
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {"albedo": self.albedo.astype(np.float32), "weights": self.weights.astype(np.float32),
+               "exponents": np.asarray(self.exponents, np.float64), "mask": self.mask.astype(bool),
+               "residual": self.residual.astype(np.float32), "conditioning": self.conditioning.astype(np.float32),
+               "flagged": self.flagged.astype(bool), "obs_count": self.obs_count.astype(np.int32)}
+        if self.observability is not None:
+            out["observability"] = self.observability.astype(np.float32)
+        if self.prior is not None:
+            out["prior"] = self.prior.astype(np.float32)
+        return out
+
+
+def maps_from_arrays(arrays: Mapping[str, np.ndarray], stats: dict | None = None) -> ReflectanceMaps:
+    """A :class:`ReflectanceMaps` from artifact arrays (``read_artifact(path, 'reflectance-maps').arrays``)."""
+    a = arrays
+    alb = np.asarray(a["albedo"], np.float64)
+    S = alb.shape[-1]
+    return ReflectanceMaps(
+        albedo=alb, weights=np.asarray(a["weights"], np.float64), exponents=np.asarray(a["exponents"], np.float64),
+        mask=np.asarray(a["mask"], bool) if "mask" in a else np.ones((S, S), bool),
+        residual=np.asarray(a.get("residual", np.zeros((S, S)))),
+        conditioning=np.asarray(a.get("conditioning", np.zeros((S, S)))),
+        flagged=np.asarray(a.get("flagged", np.zeros((S, S), bool)), bool),
+        obs_count=np.asarray(a.get("obs_count", np.zeros((S, S), np.int32))),
+        observability=np.asarray(a["observability"]) if "observability" in a else None,
+        prior=np.asarray(a["prior"]) if "prior" in a else None, stats=dict(stats or {}))
+
+
+# --------------------------------------------------------------------------- helpers
+
+def normalized_convolution(values: np.ndarray, weight: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian normalised convolution of (C,S,S) ``values`` with (S,S) or (C,S,S) confidence ``weight``.
+
+    Returns (smoothed values, smoothed weight); values are meaningful where the smoothed weight > 0.
+    """
+    from scipy.ndimage import gaussian_filter
+
+    w = np.broadcast_to(np.asarray(weight, np.float64), values.shape)
+    num = np.stack([gaussian_filter(values[i] * w[i], sigma, mode="constant") for i in range(values.shape[0])])
+    den = np.stack([gaussian_filter(w[i], sigma, mode="constant") for i in range(values.shape[0])])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(den > 1e-12, num / np.where(den > 1e-12, den, 1.0), 0.0)
+    return out, den
+
+
+def _as_arrays(obj) -> Mapping[str, np.ndarray]:
+    """Arrays of an Artifact (``.arrays``) or the mapping itself."""
+    return obj.arrays if hasattr(obj, "arrays") and isinstance(obj.arrays, Mapping) else obj
+
+
+def _parse_pair_mask(pair_mask, P: int) -> np.ndarray:
+    if pair_mask is None:
+        return np.ones(P, bool)
+    pm = np.asarray(pair_mask)
+    if pm.dtype != bool:
+        idx = pm.astype(int).reshape(-1)
+        pm = np.zeros(P, bool)
+        if idx.size and (idx.min() < 0 or idx.max() >= P):
+            raise ReflectmmError(f"pair_mask indices out of range 0..{P - 1}")
+        pm[idx] = True
+    if pm.shape != (P,):
+        raise ReflectmmError(f"pair_mask must be (P,) = ({P},) bool, got {pm.shape}")
+    return pm
+
+
+def _check_exponents(exponents) -> np.ndarray:
+    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
+    if p.size < 1 or not np.all(np.isfinite(p)) or np.any(p <= 0):
+        raise ReflectmmError(f"exponents must be finite and > 0, got {p.tolist()}")
+    return p
+
+
+def _rowsum(a: np.ndarray) -> np.ndarray:
+    """Sum of the 3 columns of an (R, 3) array (faster than .sum(1) for 3 columns)."""
+    return a[:, 0] + a[:, 1] + a[:, 2]
+
+
+class _Problem:
+    """Observed (texel, pair) entries of the masked texels in compact, texel-sorted float64 arrays.
+
+    ``tex (R,)`` texel position (0..n−1, sorted), ``d (R,)``, ``s (R,K)``, ``cos (R,)``, ``y (R,3)``;
+    ``start (n+1,)`` row offsets.  Normal equations are segment sums over each texel's rows.
+    """
+
+    def __init__(self, obs, p, used, I, chunk):
+        S = np.asarray(obs["position"]).shape[0]
+        self.S = S
+        self.K = K = p.size
+        self.chunk = int(chunk)
+        mask = np.asarray(obs["mask"], bool)
+        self.idx = np.flatnonzero(mask.reshape(-1))
+        pos = np.asarray(obs["position"], np.float64).reshape(-1, 3)
+        nrm = np.asarray(obs["normal"], np.float64).reshape(-1, 3)
+        rad = np.asarray(obs["radiance"]).reshape(used.shape[0], -1, 3)
+        usedf = used.reshape(used.shape[0], -1)
+        n = self.idx.size
+        self.count = np.zeros(n, np.int64)
+        tex, rows, hh, cc = [], [], [], []
+        for sl in iter_chunks(n, chunk):
+            t = self.idx[sl]
+            des = design_columns(pos[t], nrm[t], obs["cam_centers"], obs["flash_pos"], I, obs["pair_view"],
+                                 obs["pair_flash"], p, usedf[:, t].T)
+            self.count[sl] = des.valid.sum(1)
+            ti, pj = np.nonzero(des.valid)
+            tex.append(ti + sl.start)
+            rows.append(np.concatenate([des.diffuse[ti, pj][:, None], des.lobes[ti, pj],
+                                        rad[pj, t[ti]].astype(np.float64)], axis=1))
+            hh.append(des.ndh[ti, pj])
+            cc.append(des.cos_l[ti, pj])
+        cat = (lambda a, shape: np.concatenate(a) if a else np.zeros(shape))
+        self.tex = cat(tex, (0,)).astype(np.int64)
+        #: (R, 1+K+3) rows [d, s_1..s_K, y_r, y_g, y_b]
+        self.A = np.ascontiguousarray(cat(rows, (0, 1 + K + 3)).reshape(-1, 1 + K + 3))
+        self.d = np.ascontiguousarray(self.A[:, 0])
+        self.s = np.ascontiguousarray(self.A[:, 1:1 + K])
+        self.y = np.ascontiguousarray(self.A[:, 1 + K:])
+        self.cos = cat(cc, (0,))
+        self.start = np.concatenate([[0], np.cumsum(self.count)]).astype(np.int64)
+        self.rms = np.sqrt(np.bincount(self.tex, weights=_rowsum(self.y * self.y), minlength=n)
+                           / (3 * np.maximum(self.count, 1)))
+        # Gram of the design columns and lobe observability, per texel
+        B = np.ascontiguousarray(self.A[:, :1 + K])
+        self.G = (np.stack([self._segsum(B[:, a], B) for a in range(1 + K)], axis=1) if n
+                  else np.zeros((0, 1 + K, 1 + K)))
+        ndh = cat(hh, (0,))
+        self.obsv = np.zeros((n, K))
+        has = self.count > 0
+        if ndh.size:
+            with np.errstate(under="ignore"):
+                self.obsv[has] = np.maximum.reduceat(ndh[:, None] ** p, self.start[:-1][has], axis=0)
+        self._iu = np.triu_indices(K)
+
+    def _segsum(self, w: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """(n, q) per-texel sums Σ_rows w_r · X_r (a CSR product; rows are sorted by texel)."""
+        from scipy.sparse import csr_matrix
+
+        n = self.idx.size
+        R = self.tex.size
+        M = csr_matrix((w, np.arange(R, dtype=np.int64), self.start), shape=(n, R))
+        return np.asarray(M @ X)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """(R, 3) model minus observation for the per-texel solution x (n, 3+K)."""
+        C = np.repeat(x[:, :3], self.count, axis=0)
+        W = np.repeat(x[:, 3:], self.count, axis=0)
+        spec = np.einsum("rk,rk->r", self.s, W)
+        r = C
+        r *= self.d[:, None]
+        r += spec[:, None]
+        r -= self.y
+        return r
+
+    def normal_equations(self, x: np.ndarray | None, loss: str, delta: np.ndarray):
+        """(H (n,m,m), g (n,m), objective (n,), rss (n,)) for the current solution x (n,m).
+
+        x = None: weights ⟨l,n⟩ (the least-squares system).  Objective: Σ cos·|r| (l1) or Σ cos·r² (l2).
+        """
+        n, K = self.idx.size, self.K
+        m = 3 + K
+        iu0, iu1 = self._iu
+        H = np.zeros((n, m, m))
+        g = np.zeros((n, m))
+        obj = np.zeros(n)
+        rss = np.zeros(n)
+        cos = self.cos
+        if x is not None:
+            r = self.residuals(x)
+            a = np.abs(r)
+            r2 = _rowsum(r * r)
+            if loss == "l1":
+                w = np.maximum(a, np.repeat(delta, self.count)[:, None])
+                np.divide(cos[:, None], w, out=w)
+                o = cos * _rowsum(a)
+            else:
+                w = np.repeat(cos[:, None], 3, axis=1)
+                o = cos * r2
+            obj = np.bincount(self.tex, weights=o, minlength=n)
+            rss = np.bincount(self.tex, weights=r2, minlength=n)
+        else:
+            w = np.repeat(cos[:, None], 3, axis=1)
+        X = self.A  # [d, s, y]
+        for c in range(3):
+            blk = self._segsum(w[:, c] * self.d, X)  # Σ w_c d · [d, s_1..s_K, y_0, y_1, y_2]
+            H[:, c, c] = blk[:, 0]
+            H[:, c, 3:] = blk[:, 1:1 + K]
+            H[:, 3:, c] = blk[:, 1:1 + K]
+            g[:, c] = blk[:, 1 + K + c]
+        ws = _rowsum(w)
+        for k in range(K):
+            H[:, 3 + k, 3:] = self._segsum(ws * self.s[:, k], self.s)
+        g[:, 3:] = self._segsum(_rowsum(w * self.y), self.s)
+        return H, g, obj, rss
+
+
+def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, symmetry: float,
+                  fallback: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Fill flagged texels of (m,S,S) ``xmap`` from the mirror, then solved neighbours, then ``fallback``."""
+    out = xmap.copy()
+    todo = flagged.copy()
+    n_mirror = 0
+    if symmetry > 0:
+        mir = solved[:, ::-1] & todo
+        out[:, mir] = xmap[:, :, ::-1][:, mir]
+        n_mirror = int(mir.sum())
+        todo &= ~mir
+    n_nb = 0
+    sigma = 1.5
+    while todo.any() and solved.any() and sigma <= 2 * xmap.shape[-1]:
+        sm, den = normalized_convolution(xmap, solved.astype(np.float64), sigma)
+        hit = todo & (den[0] > 1e-6)
+        out[:, hit] = sm[:, hit]
+        n_nb += int(hit.sum())
+        todo &= ~hit
+        sigma *= 2
+    out[:, todo] = fallback[:, todo]
+    return out, {"filled_mirror": n_mirror, "filled_neighbours": n_nb, "filled_prior": int(todo.sum())}
+
+
+# --------------------------------------------------------------------------- public API
+
+def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8.0, 64.0), solver: str = "fast",
+             symmetry: float = 1.0, loss: str = "l1", prior: float = 1e-4, pair_mask=None, flash_intensity=None,
+             *, irls_iterations: int = 10, irls_delta: float = 1e-3, irls_tol: float = 1e-4, cond_min: float = 1e-4,
+             min_obs: int | None = None, observable_min: float = 0.1, prior_sigma: float | None = None,
+             steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
+             device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK,
+             progress: Callable | None = None, path=None) -> ReflectanceMaps:
+    """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
+
+    Args:
+        obs: uv-observations arrays (docs/pipeline.md); ``radiance`` may be float16.
+        exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
+        solver: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
+        symmetry: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
+        loss: ``l1`` (cos-weighted L1, IRLS) or ``l2`` (cos-weighted least squares); Adam always uses L1.
+        prior: Tikhonov strength relative to the trace of each texel's data term (fast solver; 0 = off).
+        pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
+        flash_intensity: scalar or (F,) radiant intensity replacing the artifact's (global scale ambiguity:
+            multiplying it by k divides C and W by k).
+        irls_iterations, irls_delta, irls_tol: IRLS settings (l1): at most ``irls_iterations`` reweighted
+            solves, stopping when the largest change of any unknown is below ``irls_tol`` × max |x|.
+        cond_min, min_obs: flagging thresholds (default min_obs = 1 + K pooled observations).
+        observable_min: lobe observability needed to count a texel as observable for a lobe.
+        prior_sigma: σ (texels) of the neighbourhood prior (default S/16).
+        steps, lr, w_reg, init, device, seed: Adam settings (init = (C, W) constant start, default 0.3, 0.1).
+        chunk: texels per design block (memory).
+        progress: optional wrapper ``progress(iterable, desc=..., total=...)`` for progress bars.
+        path: file name used in error messages.
+    Returns:
+        :class:`ReflectanceMaps`.
+    Raises:
+        ReflectmmError on malformed observations (shapes, NaN/inf radiance in observed texels), bad options.
+    """
+    t0 = time.perf_counter()
+    obs = _as_arrays(obs)
+    S = check_observations(obs, path)
+    p = _check_exponents(exponents)
+    K = p.size
+    if solver not in ("fast", "adam"):
+        raise ReflectmmError(f"solver must be 'fast' or 'adam', got {solver!r}")
+    if loss not in ("l1", "l2"):
+        raise ReflectmmError(f"loss must be 'l1' or 'l2', got {loss!r}")
+    if not (0.0 <= float(symmetry) <= 1.0):
+        raise ReflectmmError(f"symmetry must be in [0, 1], got {symmetry}")
+    if not (np.isfinite(prior) and prior >= 0):
+        raise ReflectmmError(f"prior must be finite and >= 0, got {prior}")
+    P = np.asarray(obs["pair_view"]).shape[0]
+    pm = _parse_pair_mask(pair_mask, P)
+    used = np.asarray(obs["observed"], bool) & pm[:, None, None]
+    F = np.asarray(obs["flash_pos"]).shape[0]
+    I = pair_irradiance(obs["flash_intensity"], F, flash_intensity)
+    mask = np.asarray(obs["mask"], bool)
+    min_obs = 1 + K if min_obs is None else int(min_obs)
+    sym = float(symmetry)
+    m = 3 + K
+
+    prob = _Problem(obs, p, used, I, chunk)
+    idx = prob.idx
+    n = idx.size
+    # full-size per-texel quantities and mirror pooling
+    mirror = mirror_index(S)
+    pos_of = -np.ones(S * S, np.int64)
+    pos_of[idx] = np.arange(n)
+    mpos = pos_of[mirror[idx]]  # position of each masked texel's mirror among the masked texels (-1: none)
+    has_m = mpos >= 0
+    mp = np.where(has_m, mpos, 0)
+
+    def pool(a: np.ndarray) -> np.ndarray:
+        if sym == 0:
+            return a
+        extra = np.where(has_m.reshape((-1,) + (1,) * (a.ndim - 1)), a[mp], 0)
+        return a + sym * extra
+
+    Gp = pool(prob.G)
+    cnt_p = prob.count + (np.where(has_m, prob.count[mp], 0) if sym > 0 else 0)
+    obsv_p = np.maximum(prob.obsv, np.where(has_m[:, None], prob.obsv[mp], 0.0)) if sym > 0 else prob.obsv
+    cond = gram_conditioning(Gp) if n else np.zeros(0)
+    flag = (cnt_p < min_obs) | (cond < cond_min)
+    solve = ~flag
+    stats: dict[str, Any] = {"solver": solver, "loss": loss if solver == "fast" else "l1", "symmetry": sym,
+                             "prior": float(prior), "n_texels": int(n), "n_pairs_used": int(pm.sum()),
+                             "n_flagged": int(flag.sum()), "cond_min": cond_min, "min_obs": min_obs}
+
+    def to_map(v: np.ndarray, fill=0.0) -> np.ndarray:
+        v = np.asarray(v)
+        out = np.full((S * S,) + v.shape[1:], fill, dtype=np.float64)
+        out[idx] = v
+        return np.moveaxis(out.reshape((S, S) + v.shape[1:]), (0, 1), (-2, -1)) if v.ndim > 1 else out.reshape(S, S)
+
+    delta = irls_delta * np.maximum(prob.rms, 1e-30)
+    solved_map = to_map(solve.astype(float)) > 0
+    flagged_map = to_map(flag.astype(float)) > 0
+    obsv_map = to_map(obsv_p)
+    if prior_sigma is None:
+        prior_sigma = max(S / 16.0, 1.0)
+
+    if solver == "fast":
+        x, prior_map, info = _fast(prob, pool, solve, n, m, loss, float(prior), delta, irls_iterations,
+                                   obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol)
+        stats.update(info)
+    else:
+        from .adam import fit_adam
+
+        x, info = fit_adam(prob, idx, S, K, steps=steps, lr=lr, w_reg=w_reg, symmetry=sym, init=init,
+                           device=device, seed=seed, progress=progress)
+        prior_map = None
+        stats.update(info)
+        # Adam's own objective decides flagged texels too: report, and fill them like the fast solver
+    xmap = to_map(x)  # (m,S,S)
+    fallback = prior_map if prior_map is not None else np.broadcast_to(
+        np.median(x[solve], axis=0)[:, None, None] if solve.any() else np.zeros((m, 1, 1)), xmap.shape)
+    xfill, finfo = _fill_flagged(xmap, solved_map, flagged_map, sym, fallback)
+    stats.update(finfo)
+    xfill = np.where(mask[None], np.maximum(xfill, 0.0), 0.0)
+    # residual over the texel's own fitted observations
+    xf = np.moveaxis(xfill.reshape(m, -1), 0, 1)[idx]
+    _, _, obj, rss = prob.normal_equations(xf, "l2", delta)
+    resid = np.sqrt(rss / np.maximum(3 * prob.count, 1))
+    stats["residual_rms_median"] = float(np.median(resid[prob.count > 0])) if np.any(prob.count > 0) else 0.0
+    stats["time_s"] = time.perf_counter() - t0
+    obs_ok = solve & np.all(obsv_p >= observable_min, axis=1)
+    stats["n_observable"] = int(obs_ok.sum())
+    stats["n_unobservable_lobe"] = [int((~(obsv_p[:, k] >= observable_min) & solve).sum()) for k in range(K)]
+    return ReflectanceMaps(
+        albedo=xfill[:3], weights=xfill[3:], exponents=p, mask=mask, residual=to_map(resid),
+        conditioning=to_map(cond), flagged=flagged_map, obs_count=to_map(prob.count).astype(np.int32),
+        observability=obsv_map, prior=prior_map, stats=stats)
+
+
+def _solve_system(H, g, lam, x0):
+    m = H.shape[-1]
+    Hr = H + lam[:, None, None] * np.eye(m)
+    gr = g + lam[:, None] * x0
+    x, info = nnls_batched(Hr, gr)
+    return x, info, Hr, gr
+
+
+def _fast(prob, pool, solve, n, m, loss, prior, delta, iters, obsv_p, observable_min, prior_sigma, to_map, idx, S,
+          progress, irls_tol):
+    info: dict[str, Any] = {}
+    sel = np.flatnonzero(solve)
+    x = np.zeros((n, m))
+    # pass 1: weighted least squares with a negligible ridge (only to build the neighbourhood prior from
+    # the observable unknowns; unobservable ones never enter it)
+    H, g, _, _ = prob.normal_equations(None, loss, delta)
+    Hp, gp = pool(H), pool(g)
+    tr = np.einsum("nii->n", Hp)
+    lam = PASS1_RIDGE * tr
+    if sel.size:
+        x1, _, _, _ = _solve_system(Hp[sel], gp[sel], lam[sel], np.zeros((sel.size, m)))
+        x[sel] = x1
+    # neighbourhood prior x0 from the observable unknowns of pass 1
+    conf = np.zeros((n, m))
+    conf[sel, :3] = 1.0
+    conf[sel, 3:] = (obsv_p[sel] >= observable_min).astype(float)
+    xm = to_map(x)
+    cm = to_map(conf)
+    x0m, den = normalized_convolution(xm, cm, prior_sigma)
+    glob = np.array([np.median(x[:, j][conf[:, j] > 0]) if np.any(conf[:, j] > 0) else 0.0 for j in range(m)])
+    x0m = np.where(den > 1e-3, x0m, glob[:, None, None])
+    x0 = np.moveaxis(x0m.reshape(m, -1), 0, 1)[idx]
+    info["prior_global"] = glob.tolist()
+    if prior == 0:
+        x0 = np.zeros_like(x0)
+    # pass 2: the real objective, towards x0
+    n_it = 1 if loss == "l2" else max(int(iters), 1)
+    xs = x[sel].copy() if loss == "l1" else None
+    it_range = range(n_it)
+    if progress is not None and n_it > 1:
+        it_range = progress(it_range, desc="IRLS", total=n_it)
+    last_obj = None
+    nn_iters = 0
+    unconv = 0
+    kkt = 0.0
+    done_it = 0
+    for it in it_range:
+        done_it += 1
+        xcur = None
+        if loss == "l1" and it > 0:
+            xcur = x
+        H, g, obj, _ = prob.normal_equations(xcur, loss, delta)
+        Hp, gp = pool(H), pool(g)
+        lam = prior * np.einsum("nii->n", Hp)
+        if sel.size:
+            xs, nfo, Hr, gr = _solve_system(Hp[sel], gp[sel], lam[sel], x0[sel])
+            nn_iters = max(nn_iters, nfo["iterations"])
+            unconv += nfo["unconverged"]
+            kkt = float(kkt_violation(Hr, gr, xs).max())
+            change = np.abs(xs - x[sel]).max() / max(np.abs(xs).max(), 1e-30)
+            x[sel] = xs
+        else:
+            change = 0.0
+        if xcur is not None:
+            tot = float(obj[sel].sum())
+            if change < irls_tol or (last_obj is not None and abs(last_obj - tot) <= 1e-9 * max(abs(tot), 1e-300)):
+                break
+            last_obj = tot
+    info.update({"irls_iterations": done_it if loss == "l1" else 0, "nnls_iterations_max": nn_iters,
+                 "nnls_unconverged": unconv, "kkt_violation_max": kkt})
+    return x, x0m, info
+
+
+def render_uv(maps: ReflectanceMaps | Mapping[str, np.ndarray], obs: Mapping[str, np.ndarray], pairs=None,
+              flash_intensity=None, only_observed: bool = True, chunk: int = DEFAULT_CHUNK) -> np.ndarray:
+    """Predicted radiance (P', S, S, 3) float32 of ``maps`` for the (view, flash) pairs of ``obs``.
+
+    Args:
+        maps: :class:`ReflectanceMaps` or arrays with ``albedo``, ``weights``, ``exponents``.
+        obs: uv-observations arrays (geometry, rig, ``observed``).
+        pairs: (P,) bool mask or indices of the pairs to render (default all).
+        flash_intensity: as in :func:`fit_maps` (use the same value as the fit).
+        only_observed: zero where the pair is not observed (as the ``radiance`` array); else zero only
+            where n·l ≤ 0 or n·v ≤ 0 (shadows are not modelled).
+    """
+    obs = _as_arrays(obs)
+    if not isinstance(maps, ReflectanceMaps):
+        maps = maps_from_arrays(_as_arrays(maps))
+    pos = np.asarray(obs["position"], np.float64)
+    S = pos.shape[0]
+    if maps.albedo.shape[-1] != S:
+        raise ReflectmmError(f"render_uv: maps are {maps.albedo.shape[-1]}² but observations are {S}²")
+    P = np.asarray(obs["pair_view"]).shape[0]
+    sel = np.flatnonzero(_parse_pair_mask(pairs, P)) if pairs is not None else np.arange(P)
+    F = np.asarray(obs["flash_pos"]).shape[0]
+    I = pair_irradiance(obs["flash_intensity"], F, flash_intensity)
+    mask = np.asarray(obs.get("mask", np.ones((S, S), bool)), bool).reshape(-1)
+    idx = np.flatnonzero(mask)
+    pv = np.asarray(obs["pair_view"])[sel]
+    pf = np.asarray(obs["pair_flash"])[sel]
+    observed = np.asarray(obs["observed"], bool)[sel].reshape(sel.size, -1) if only_observed else None
+    C = maps.albedo.reshape(3, -1).T
+    W = maps.weights.reshape(maps.weights.shape[0], -1).T
+    out = np.zeros((sel.size, S * S, 3), np.float32)
+    for sl in iter_chunks(idx.size, chunk):
+        t = idx[sl]
+        des = design_columns(pos.reshape(-1, 3)[t], np.asarray(obs["normal"]).reshape(-1, 3)[t], obs["cam_centers"],
+                             obs["flash_pos"], I, pv, pf, maps.exponents,
+                             None if observed is None else observed[:, t].T)
+        pred = des.diffuse[..., None] * C[t][:, None, :] + np.einsum("npk,nk->np", des.lobes, W[t])[..., None]
+        out[:, t] = np.moveaxis(pred, 0, 1)
+    return out.reshape(sel.size, S, S, 3)

@@ -1,0 +1,63 @@
+"""PNG previews of reflectance maps (display only; the data are in the NPZ/EXR artifacts)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["srgb_encode", "albedo_preview", "weights_preview", "residual_preview", "flagged_preview"]
+
+
+def srgb_encode(x: np.ndarray) -> np.ndarray:
+    """Linear [0,1] → sRGB-encoded [0,1] (IEC 61966-2-1), clipped."""
+    x = np.clip(np.nan_to_num(np.asarray(x, np.float64)), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+def albedo_preview(albedo: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """(S,S,3) sRGB image of the (3,S,S) linear diffuse albedo (black outside the mask)."""
+    img = srgb_encode(np.moveaxis(albedo, 0, -1))
+    if mask is not None:
+        img = img * mask[..., None]
+    return img
+
+
+def weights_preview(weights: np.ndarray, mask: np.ndarray | None = None, gain: float = 3.0) -> np.ndarray:
+    """(S, K·S + 2(K−1), 3) grey panels of the lobe weights × ``gain`` (the paper's figures use ×3), side by side."""
+    K, S, _ = weights.shape
+    gap = np.ones((S, 2))
+    panels = []
+    for k in range(K):
+        w = np.clip(weights[k] * gain, 0.0, 1.0)
+        if mask is not None:
+            w = w * mask
+        panels.append(w)
+        if k < K - 1:
+            panels.append(gap)
+    grey = np.concatenate(panels, axis=1)
+    return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def residual_preview(residual: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """(S,S,3) turbo colour map of the residual scaled to its 99th percentile inside the mask."""
+    import cv2
+
+    m = np.ones(residual.shape, bool) if mask is None else mask
+    vals = residual[m]
+    top = float(np.percentile(vals, 99)) if vals.size else 1.0
+    top = top if top > 0 else 1.0
+    u8 = (np.clip(residual / top, 0, 1) * 255 + 0.5).astype(np.uint8)
+    rgb = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO)[..., ::-1].astype(np.float64) / 255.0
+    return rgb * m[..., None]
+
+
+def flagged_preview(mask: np.ndarray, flagged: np.ndarray, observability: np.ndarray | None = None,
+                    observable_min: float = 0.1) -> np.ndarray:
+    """(S,S,3): grey = fitted and observable, blue = a lobe below ``observable_min`` (prior-dominated),
+    red = flagged (ill-conditioned, filled), black = outside the mask."""
+    img = np.zeros(mask.shape + (3,))
+    img[mask] = 0.6
+    if observability is not None:
+        weak = mask & ~flagged & np.any(observability < observable_min, axis=0)
+        img[weak] = (0.15, 0.35, 0.95)
+    img[mask & flagged] = (0.95, 0.1, 0.1)
+    return img
