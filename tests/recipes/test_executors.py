@@ -70,14 +70,20 @@ def test_dask_localcluster_matches_serial_bytes(tmp_path, serial_reference):
 
 
 def test_dask_without_scheduler_starts_a_localcluster(tmp_path, serial_reference):
+    from reflectmm_cli.recipes import DaskExecutor
+
     ws = make_workspace(tmp_path / "dask2")
-    rep = run_recipe(ws / "recipe.toml", ws, executor="dask", jobs=2)
-    assert rep.ok and len(rep.tasks) == len(IDS) + 1
-    assert _artifacts(ws) == serial_reference
-    assert len(_workers(ws)) >= 1 and all(not w.endswith(f":{os.getpid()}") for w in _workers(ws))
-    shutil.rmtree(ws / "manifest")
-    rep = run_recipe(ws / "recipe.toml", ws, executor="dask", jobs=2)
-    assert rep.ok and _artifacts(ws) == serial_reference
+    with DaskExecutor(jobs=2) as ex:  # one LocalCluster of 2 worker processes, reused by two runs
+        rep = run_recipe(ws / "recipe.toml", ws, executor=ex)
+        assert rep.ok and len(rep.tasks) == len(IDS) + 1
+        assert _artifacts(ws) == serial_reference
+        cluster = ex._cluster
+        assert cluster is not None and len(cluster.workers) == 2
+        assert len(_workers(ws)) >= 1 and all(not w.endswith(f":{os.getpid()}") for w in _workers(ws))
+        shutil.rmtree(ws / "manifest")
+        rep = run_recipe(ws / "recipe.toml", ws, executor=ex)
+        assert rep.ok and {t.status for t in rep.tasks} == {"ok"} and _artifacts(ws) == serial_reference
+    assert ex._cluster is None
 
 
 def test_pool_survives_a_killed_worker(tmp_path):
