@@ -371,13 +371,13 @@ def _decide(t: Task, stage: Stage, tasks: dict[str, Task], workspace: Path, memo
                 t.reason = f"needs {d}, whose output {missing[0]} is missing (not selected by --only/--ids)"
                 return
     upstream_runs = [d for d in t.deps if tasks[d].selected and tasks[d].action == RUN]
-    if forced:
-        t.action, t.reason = RUN, "forced"
-    elif upstream_runs:
+    if upstream_runs:
         t.action = RUN
         more = f" +{len(upstream_runs) - 1}" if len(upstream_runs) > 1 else ""
-        t.reason = f"upstream reruns ({upstream_runs[0]}{more})"
-        return  # the key is computed once the inputs exist
+        t.reason = "forced" if forced else f"upstream reruns ({upstream_runs[0]}{more})"
+        return  # the key is computed by the worker, once the new inputs exist
+    if forced:
+        t.action, t.reason = RUN, "forced"
     if t.outputs_error:
         t.action, t.reason = ERROR, t.outputs_error
         return

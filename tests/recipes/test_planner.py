@@ -331,3 +331,13 @@ def test_dry_run_json(cli, ws):
     doc = json.loads(r.stdout)
     assert doc["dry_run"] is True and doc["counts"] == {"run": 5}
     assert doc["tasks"][0]["outputs"] == [str(ws / "manifest" / "001.npz")]
+
+
+def test_force_on_a_fresh_workspace_and_keys_follow_new_inputs(ws):
+    rep = run_recipe(ws / "recipe.toml", ws, force="*")  # nothing exists yet: keys are computed at run time
+    assert rep.ok and {t.status for t in rep.tasks} == {"ok"}
+    (ws / "data" / "001" / "a.txt").write_text("changed")
+    rep = run_recipe(ws / "recipe.toml", ws, force="*")
+    assert rep.ok
+    # the stored keys are those of the new inputs: a plain rerun has nothing to do
+    assert set(statuses(run_recipe(ws / "recipe.toml", ws, dry_run=True)).values()) == {"skip"}
