@@ -116,6 +116,10 @@ def accuracy(quick):
                     _, s = shade_env(np.zeros((nsamp, 3)), np.ones((nsamp, 1)), [p], n, v, coeffs[L])
                     err = np.sqrt(((s - truth) ** 2).mean()) / np.sqrt((truth ** 2).mean())
                     rows.setdefault((p, L, ang), []).append(err)
+                _, s = shade_env(np.zeros((nsamp, 3)), np.ones((nsamp, 1)), [p], n, v, coeffs[8],
+                                 view_correction=True)
+                rows.setdefault((p, "vc", ang), []).append(
+                    np.sqrt(((s - truth) ** 2).mean()) / np.sqrt((truth ** 2).mean()))
                 # lobe-shape error alone: order-12 band-limited lighting, brute force over its own map
                 bl = envmap_from_sh(coeffs[12], W, H).astype(np.float64)
                 truth_bl = brute_force_specular(bl, n, v, p)
@@ -126,13 +130,17 @@ def accuracy(quick):
            f"Relative RMS error of `shade_env` specular (unit weight) against brute-force integration of the true "
            f"lobe `f (n·h)^p [n·l>0]` over every pixel of {len(maps)} procedural HDR maps ({W}×{H}: sky, ground, "
            f"1–3 suns of increasing sharpness), {nsamp} random normals per map and view angle; median over maps. "
-           f"Error includes SH truncation of the lighting and the lobe-shape approximation.\n"]
+           f"Error includes SH truncation of the lighting and the lobe-shape approximation. The last column is "
+           f"order 8 with the opt-in `view_correction=True` (each lobe scaled by the true lobe's directional "
+           f"albedo ρ_p(n·v)).\n"]
     for p in EXPONENTS:
         out.append(f"\n**p = {p:g}**\n\n| view angle | " + " | ".join(f"L={L}" for L in orders)
-                   + " | lobe-shape only (L=12 lighting) |\n|---|" + "---|" * (len(orders) + 1))
+                   + " | lobe-shape only (L=12 lighting) | L=8 + view correction |\n|---|"
+                   + "---|" * (len(orders) + 2))
         for ang in angles:
             cells = [f"{100 * statistics.median(rows[(p, L, ang)]):.1f}%" for L in orders]
-            out.append(f"| {ang}° | " + " | ".join(cells) + f" | {100 * statistics.median(lobe_only[(p, ang)]):.1f}% |")
+            out.append(f"| {ang}° | " + " | ".join(cells) + f" | {100 * statistics.median(lobe_only[(p, ang)]):.1f}% "
+                       f"| {100 * statistics.median(rows[(p, 'vc', ang)]):.1f}% |")
     return "\n".join(out)
 
 

@@ -4,7 +4,7 @@ light model (DESIGN.md §2). Conventions and formulas: docs/shading.md.
 numpy in → numpy out; any torch tensor in → torch out (differentiable).
 """
 from .brdf import DEFAULT_EXPONENTS, blinn_phong_norm, shade_directional
-from .env import band_limits, shade_env
+from .env import band_limits, shade_env, specular_view_albedo
 from .envmap import direction_to_equirect, envmap_from_sh, equirect_directions, equirect_weights, project_envmap
 from .sh import (
     blinn_phong_sh_coeffs,
@@ -34,4 +34,5 @@ __all__ = [
     "sh_rotation",
     "shade_directional",
     "shade_env",
+    "specular_view_albedo",
 ]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+from functools import lru_cache
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_d
 from .brdf import _check_exponents
 from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, sh_basis, sh_basis_into
 
-__all__ = ["shade_env", "band_limits"]
+__all__ = ["shade_env", "band_limits", "specular_view_albedo"]
 
 DEFAULT_CHUNK = 1 << 14
 
@@ -49,6 +50,55 @@ def band_limits(exponents, order: int, band_tol: float = 0.0):
         return int(big[-1]) if big.size else 0
 
     return last(A), [last(b) for b in B]
+
+
+_VIEW_NODES = 65
+
+
+@lru_cache(maxsize=64)
+def _view_albedo_table(p: float) -> np.ndarray:
+    """ρ_p(μ_k) for μ_k = k/64: directional albedo of the true half-vector lobe, normalised so ρ(1) = 1."""
+    f = (p + 2.0) / (4.0 * math.pi * (2.0 - 2.0 ** (-p / 2.0)))
+    smax = min(1.0, 60.0 / p)  # (1 − s)^p < e^−60 beyond
+    x, wx = np.polynomial.legendre.leggauss(256)
+    s_ = (x + 1.0) / 2.0 * smax
+    ws = wx * smax / 2.0
+    t = 1.0 - s_  # n·h
+    npsi = 512
+    psi = 2.0 * math.pi * (np.arange(npsi) + 0.5) / npsi
+    st = np.sqrt(np.maximum(0.0, 1.0 - t * t))
+    cpsi = np.cos(psi)
+    lobe = f * np.exp(p * np.log(t)) * ws  # (ns,)
+    out = np.empty(_VIEW_NODES)
+    for k, mu in enumerate(np.linspace(0.0, 1.0, _VIEW_NODES)):
+        sv = math.sqrt(max(0.0, 1.0 - mu * mu))
+        hv = st[:, None] * cpsi[None, :] * sv + (t * mu)[:, None]  # h·v
+        nl = 2.0 * hv * t[:, None] - mu  # n·l for l = 2(h·v)h − v
+        # ∫ f (n·h)^p [n·l > 0] dω_l with dω_l = 4 (h·v) dω_h
+        out[k] = (np.where((hv > 0) & (nl > 0), 4.0 * hv, 0.0) * lobe[:, None]).sum() * 2.0 * math.pi / npsi
+    return out / out[-1]
+
+
+def specular_view_albedo(p, cos_view):
+    """Directional albedo ρ_p(n·v) of the true half-vector lobe under uniform unit radiance.
+
+    ``ρ_p(μ) = ∫_{n·l>0} f (n·h)^p dω_l`` for a view at ``n·v = μ``: 1 at normal view (the normalisation), ≈ μ
+    for sharp lobes towards grazing. The SH specular of DESIGN.md §2 keeps the normal-view energy (1) at every
+    view; ``shade_env(..., view_correction=True)`` multiplies each lobe by ρ_p(n·v) to follow the true lobe's
+    falloff. Tabulated (65 nodes in μ, product Gauss quadrature in the half-vector domain, ~1e-3) and
+    interpolated linearly; numpy or torch ``cos_view`` (differentiable).
+    """
+    tab = _view_albedo_table(float(p))
+    if any_torch(cos_view):
+        import torch
+
+        T = torch.as_tensor(tab, dtype=cos_view.dtype, device=cos_view.device)
+        x = cos_view.clamp(0.0, 1.0) * (_VIEW_NODES - 1)
+        i0 = x.detach().floor().clamp(0, _VIEW_NODES - 2).long()
+        fr = x - i0.to(x.dtype)
+        return T[i0] * (1 - fr) + T[i0 + 1] * fr
+    return np.interp(np.clip(cos_view, 0.0, 1.0), np.linspace(0.0, 1.0, _VIEW_NODES), tab).astype(
+        np.asarray(cos_view).dtype if np.asarray(cos_view).dtype.kind == "f" else np.float64, copy=False)
 
 
 def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask):
@@ -80,7 +130,7 @@ def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask):
 
 
 def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=None, band_tol: float = 0.0,
-              chunk: int = DEFAULT_CHUNK, threads: int | None = None):
+              chunk: int = DEFAULT_CHUNK, threads: int | None = None, view_correction: bool = False):
     """Diffuse and specular shading of texels under SH environment lighting.
 
     Args:
@@ -93,6 +143,8 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
             shape (e.g. (B, 1, 3, n) for B images of N texels each). Radiance SH coefficients.
         mask: optional boolean (...) texel mask; texels outside it are 0 and cost nothing.
         band_tol: drop bands whose Funk–Hecke coefficient is ≤ band_tol (see :func:`band_limits`). 0 = exact.
+        view_correction: multiply each lobe by the true lobe's directional albedo ρ_p(n·v)
+            (:func:`specular_view_albedo`). Off by default (the paper's model); still exact at normal view.
         chunk: texels per block in the numpy fast path (cache blocking).
         threads: worker threads for the numpy fast path (blocks run in parallel; numpy releases the GIL);
             default: the CPUs this process may use (at most 8).
@@ -108,7 +160,8 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
     A = lambert_sh_coeffs(order)
     B = blinn_phong_sh_coeffs(p, order)
     if not tm and K.ndim == 2:
-        return _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads)
+        return _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads,
+                                p if view_correction else None)
     if tm and mask is not None and K.ndim == 2:
         # gather the masked texels, shade only those, scatter back (differentiable)
         import torch
@@ -119,12 +172,12 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
             return a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1])[idx]
 
         d_m, s_m = _shade_env_generic(tm, sel(c), sel(w), sel(n), sel(v), K, A, B, Ld, Ls,
-                                      (int(idx.numel()),), None, dt)
+                                      (int(idx.numel()),), None, dt, p if view_correction else None)
         N = int(np.prod(lead)) if lead else 1
         zero = torch.zeros((N, 3), dtype=d_m.dtype, device=d_m.device)
         return (zero.index_put((idx,), d_m).reshape(lead + (3,)),
                 zero.index_put((idx,), s_m).reshape(lead + (3,)))
-    return _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt)
+    return _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, p if view_correction else None)
 
 
 def _flat(a, lead, k):
@@ -138,7 +191,7 @@ def _default_threads() -> int:
         return max(1, min(os.cpu_count() or 1, 8))
 
 
-def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads):
+def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads, vc_exponents=None):
     N = int(np.prod(lead)) if lead else 1
     Kn = w.shape[-1]
     c2, w2, n2, v2 = _flat(c, lead, 3), _flat(w, lead, Kn), _flat(n, lead, 3), _flat(v, lead, 3)
@@ -199,7 +252,7 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
             S = KB @ Yr[:ng]  # (3·len(lobes), ms)
             for j, i in enumerate(lobes):
                 Sj = S[3 * j:3 * j + 3]
-                Sj *= wT[i]
+                Sj *= wT[i] if vc_exponents is None else wT[i] * specular_view_albedo(vc_exponents[i], ndv)
                 acc += Sj
         specular[rows_s] = acc.T
 
@@ -216,7 +269,7 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
     return diffuse.reshape(lead + (3,)), specular.reshape(lead + (3,))
 
 
-def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt):
+def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_exponents=None):
     """Broadcasting path: torch (differentiable) or per-texel lighting in numpy."""
     if tm:
         import torch
@@ -261,6 +314,8 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt):
         for i in active:
             ni = (Ls[i] + 1) ** 2
             Si = apply(K[..., :ni] * Bs[i][lvl[:ni]], Yr[..., :ni]) * w[..., i:i + 1]
+            if vc_exponents is not None:
+                Si = Si * specular_view_albedo(vc_exponents[i], ndv)[..., None]
             spec = Si if spec is None else spec + Si
         spec = xp_where((ndv > 0)[..., None], spec, spec * 0)
     if tm:
