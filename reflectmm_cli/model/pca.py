@@ -8,7 +8,8 @@ own value"). A texel of ``D`` outside one map's own mask (only possible when mas
 maps that do cover it, so it adds no variance. The counts are reported (:attr:`ReflectanceModel.stats`).
 
 Method. ``x_j`` = flattened diffuse albedo over ``D`` (3·|D| values), ``y_j`` = flattened weights (K·|D|).
-With ``X̃ = X − μ`` (N × D) and its thin SVD ``X̃ = U Σ Vᵀ``:
+With ``X̃ = X − μ`` (N × D) and its thin SVD ``X̃ = U Σ Vᵀ`` (computed through the N×N Gram matrix
+``X̃ X̃ᵀ = U Σ² Uᵀ`` plus one symmetric re-orthonormalisation step, see the code):
 
 * diffuse basis ``b_k = V[:, k]`` — orthonormal, and ``b_k = Σ_j a_kj x̃_j`` with ``a_kj = U_jk / Σ_k``;
 * specular basis ``s_k = Σ_j a_kj ỹ_j = Ỹᵀ U[:, k] / Σ_k`` — the *same* linear combination of the training
@@ -43,8 +44,9 @@ __all__ = [
 
 MODEL_KIND = "reflectance-model"
 
-#: singular values below this fraction of the largest are treated as zero (rank deficiency).
-RANK_TOL = 1e-9
+#: singular values below this fraction of the largest are treated as zero (rank deficiency; the Gram route
+#: resolves singular values down to ~1e-8 of the largest).
+RANK_TOL = 1e-6
 
 
 @dataclass
@@ -147,9 +149,7 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
     _check_maps(albedos, weights, masks, names)
     if components < 1:
         raise ReflectmmError(f"build-pca: --components must be ≥ 1, got {components}")
-    A = np.stack([np.asarray(a, np.float64) for a in albedos])  # (N,3,S,S)
-    W = np.stack([np.asarray(w, np.float64) for w in weights])  # (N,K,S,S)
-    K, S = W.shape[1], A.shape[-1]
+    K, S = int(np.shape(weights[0])[0]), int(np.shape(albedos[0])[-1])
     exps = np.asarray(exponents, np.float64).reshape(-1)
     if exps.shape[0] != K:
         raise ReflectmmError(f"build-pca: {K} lobe-weight channels but {exps.shape[0]} exponents")
@@ -158,10 +158,11 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
     if not domain.any():
         raise ReflectmmError("build-pca: the union of the maps' masks is empty")
     cover = M_[:, domain]  # (N, D)
-    # fill texels of the domain that a map does not cover with the mean of the maps that cover them
-    a_dom = A[:, :, domain]  # (N,3,D)
-    w_dom = W[:, :, domain]
+    # gather the domain texels only (N × 3D and N × KD float64 — never the full float64 map stacks)
+    a_dom = np.stack([np.asarray(a)[:, domain] for a in albedos]).astype(np.float64)  # (N,3,D)
+    w_dom = np.stack([np.asarray(w)[:, domain] for w in weights]).astype(np.float64)  # (N,K,D)
     if not cover.all():
+        # fill texels of the domain that a map does not cover with the mean of the maps that cover them
         cnt = cover.sum(0)
         a_fill = (a_dom * cover[:, None]).sum(0) / cnt
         w_fill = (w_dom * cover[:, None]).sum(0) / cnt
@@ -169,10 +170,18 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
         w_dom = np.where(cover[:, None], w_dom, w_fill[None])
     X = a_dom.reshape(n, -1)
     Y = w_dom.reshape(n, -1)
+    del a_dom, w_dom
     mu_x, mu_y = X.mean(0), Y.mean(0)
-    Xc, Yc = X - mu_x, Y - mu_y
-    # thin SVD through the small N×N Gram matrix would lose precision; the direct thin SVD of N×D is cheap.
-    U, s, _Vt = np.linalg.svd(Xc, full_matrices=False)
+    X -= mu_x
+    Y -= mu_y
+    Xc, Yc = X, Y
+    # PCA through the N×N Gram matrix (one GEMM; ~50× faster than a thin SVD of N×D at D = 3·256², N ≪ D),
+    # then one step of symmetric (Löwdin) re-orthonormalisation of the bases, which restores orthonormality to
+    # machine precision (the Gram route alone loses accuracy for small singular values).
+    G = Xc @ Xc.T
+    lam, U = np.linalg.eigh(G)
+    lam, U = lam[::-1], U[:, ::-1]
+    s = np.sqrt(np.clip(lam, 0.0, None))
     cap = n - 1
     rank = int((s > RANK_TOL * max(s[0], 1e-300)).sum()) if s.size else 0
     m = min(components, cap, rank)
@@ -183,13 +192,18 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
                   f"using {m}")
     elif components > rank:
         _say(log, f"build-pca: {components} components requested but the data have rank {rank}; using {m}")
-    U, s = U[:, :m], s[:m]
-    # b_k = Xcᵀ U_k / s_k: recomputing from the combination makes the transfer exactly the same map for both parts
-    B = (Xc.T @ U) / s  # (Dx, m), orthonormal columns (= V[:, :m])
-    Sb = (Yc.T @ U) / s  # (Dy, m)
-    sigma = s / np.sqrt(n - 1)
+    # combination matrix: b_k = Σ_j a_jk x̃_j; the specular bases use the very same a (AlbedoMM transfer)
+    Acomb = U[:, :m] / s[:m]  # (N, m)
+    B = Xc.T @ Acomb  # (Dx, m)
+    C = B.T @ B
+    ev, Q = np.linalg.eigh(C)
+    Acomb = Acomb @ (Q / np.sqrt(ev)) @ Q.T  # C^(-1/2): B ← B C^(-1/2) stays a combination of the samples
+    B = Xc.T @ Acomb
+    Sb = Yc.T @ Acomb  # (Dy, m)
+    proj = Xc @ B  # (N, m) training projections
+    sigma = proj.std(0, ddof=1)
     total_var = float((Xc ** 2).sum() / (n - 1))
-    beta = U * np.sqrt(n - 1)  # (N, m) training coefficients in units of σ
+    beta = proj / sigma  # (N, m) training coefficients in units of σ
 
     D = int(domain.sum())
 

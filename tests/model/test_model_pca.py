@@ -182,3 +182,25 @@ def test_vertex_model_is_consistent_with_uv_model():
     m2 = model_from_arrays(model_arrays(m))
     np.testing.assert_array_equal(m2.vertex_weights_basis, m.vertex_weights_basis)
     assert m2.ids == m.ids
+
+
+@given(st.integers(3, 12), st.floats(1e-5, 1e-1), st.integers(0, 10_000))
+def test_gram_route_matches_svd_on_ill_conditioned_data(n, ratio, seed):
+    """Singular values spread over [ratio, 1]: bases orthonormal and σ equal to numpy's thin SVD (independent)."""
+    rng = np.random.default_rng(seed)
+    S = 6
+    D = 3 * S * S
+    U, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    U = U[:, : n - 1]
+    U -= U.mean(0)  # centred samples
+    U, _ = np.linalg.qr(U)
+    V, _ = np.linalg.qr(rng.normal(size=(D, n - 1)))
+    s = np.geomspace(1.0, ratio, n - 1)
+    X = 0.5 + (U * s) @ V.T
+    A = list(X.reshape(n, 3, S, S))
+    W = list(rng.uniform(size=(n, 2, S, S)))
+    m = fit_reflectance_pca(A, W, (8, 64))
+    ref = np.linalg.svd(X - X.mean(0), compute_uv=False)[: m.n_components] / np.sqrt(n - 1)
+    np.testing.assert_allclose(m.sigma, ref, rtol=1e-4)
+    B = m.albedo_basis.reshape(m.n_components, -1).astype(np.float64)
+    np.testing.assert_allclose(B @ B.T, np.eye(m.n_components), atol=2e-6)
