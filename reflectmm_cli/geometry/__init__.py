@@ -13,6 +13,7 @@ from .face_model import (
     vertex_normals,
 )
 from .procedural import procedural_face_model
+from .render import RenderResult, render_envmap, render_point_light, surface_reflectance, to_display
 from .raycast import Raster, RayScene, RayStats, has_embree, rasterize, shadow_mask, visibility
 from .uv import (
     UVRaster,
@@ -28,6 +29,11 @@ __all__ = [
     "Camera",
     "FaceModel",
     "Raster",
+    "RenderResult",
+    "render_envmap",
+    "render_point_light",
+    "surface_reflectance",
+    "to_display",
     "RayScene",
     "RayStats",
     "UVRaster",
