@@ -35,6 +35,19 @@ def face_model_from_geometry(geometry_path: Path) -> Path | None:
     return None
 
 
+def default_face_model(capture: Path, geometry: Path, workspace: Path) -> Path | None:
+    """--face-model default: the geometry's recorded face model, else face_model.npz of the capture's dataset
+    folder, else ``<workspace>/face_model.npz`` (the same rule as fit-geometry)."""
+    from reflectmm_cli.artifacts import Artifact, read_meta
+    from reflectmm_cli.commands.fit_geometry import default_face_model_for
+
+    found = face_model_from_geometry(geometry)
+    if found is not None:
+        return found
+    cap = Artifact("capture", {}, read_meta(capture), Path(capture))
+    return default_face_model_for(cap, workspace)
+
+
 @register_stage(VERB, version=1, per_identity=True, outputs=_outputs,
                 help="capture + geometry -> per-texel OLAT observations in UV space")
 def run_unwrap(ctx: StageContext) -> list[Path]:
@@ -74,7 +87,8 @@ def run_unwrap(ctx: StageContext) -> list[Path]:
 @click.option("--geometry", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="geometry artifact (default <ws>/fit-geometry/<id>.npz).")
 @click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="face model (face-model artifact or BFM .mat; default: the one the geometry was fitted with).")
+              help="face model (face-model artifact or BFM .mat; default: the one the geometry records, else "
+                   "face_model.npz of the capture's dataset folder, else <ws>/face_model.npz).")
 @click.option("--grazing-deg", type=float, default=80.0, show_default=True,
               help="A view sees a texel only if the angle between normal and view direction is below this.")
 @click.option("--exponents", default="1,8,64", show_default=True,
@@ -93,10 +107,10 @@ def unwrap_uv_cmd(identity, uv_size, capture, geometry, face_model, grazing_deg,
             raise ReflectmmError(f"{role} artifact not found (run {'preprocess-multipie' if role == 'capture' else 'fit-geometry'} "
                                  f"first or pass --{role})", p)
     if face_model is None:
-        face_model = face_model_from_geometry(geometry)
+        face_model = default_face_model(capture, geometry, ws)
         if face_model is None:
-            raise ReflectmmError("the geometry artifact does not record an existing face model: pass --face-model",
-                                 geometry)
+            raise ReflectmmError("no face model: the geometry does not record one, and there is no face_model.npz "
+                                 "beside the capture's dataset or in the workspace; pass --face-model", geometry)
     try:
         exps = [float(e) for e in exponents.replace(" ", "").split(",") if e]
     except ValueError:
