@@ -35,12 +35,11 @@ def format_plan(report) -> list[str]:
 
 
 @click.command("run")
-@click.argument("recipe", type=click.Path(path_type=Path))
+@click.argument("recipe", type=click.Path(path_type=Path), required=False)
 @workspace_option
 @click.option("--dry-run", "-n", is_flag=True, help="Print what would run and why; run nothing.")
 @click.option("--force", "force", is_flag=False, flag_value="*", default=None, metavar="[STAGE]",
-              help="Rerun every task (no value) or only STAGE's tasks, even if up to date. "
-                   "Write --force=STAGE or put --force after RECIPE.")
+              help="Rerun every task (no value) or only STAGE's tasks, even if up to date.")
 @click.option("--only", default=None, metavar="STAGE",
               help="Run only STAGE's tasks, using the existing outputs of the stages it reads.")
 @click.option("--ids", default=None, help="Restrict per-identity stages to these ids (001,002 or 001-010).")
@@ -60,6 +59,11 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
     """
     from reflectmm_cli.recipes import run_recipe
 
+    if recipe is None:
+        if force not in (None, "*") and (force.endswith(".toml") or Path(force).is_file()):
+            recipe, force = Path(force), "*"  # `run --force RECIPE.toml`: the value was the recipe
+        else:
+            raise click.UsageError("Missing argument 'RECIPE'.")
     ws = (workspace or default_workspace()).resolve()
     if executor == "auto":
         executor = "dask" if scheduler else ("pool" if jobs > 1 else "serial")

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 import uuid
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
+from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.recipes.executors import BLOCKED as R_BLOCKED
 from reflectmm_cli.recipes.executors import FAILED as R_FAILED
 from reflectmm_cli.recipes.executors import OK, Executor, TaskSpec, make_executor
@@ -128,17 +131,59 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
         recipe = load_recipe(recipe)
     workspace = Path(workspace).resolve()
     workspace.mkdir(parents=True, exist_ok=True)
-    memo = load_hash_memo(workspace)
-    t0 = time.perf_counter()
-    plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo)
-    plan_seconds = time.perf_counter() - t0
     if dry_run:
+        memo = load_hash_memo(workspace)
+        t0 = time.perf_counter()
+        plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo)
+        plan_seconds = time.perf_counter() - t0
         _save_memo(workspace, memo)
         rows = [TaskOutcome(t.stage_name, t.identity, t.action, t.reason, t.cache_key,
                             outputs=[str(p) for p in t.outputs]) for t in plan.selected()]
         rows += [TaskOutcome(s, None, DEFERRED, _deferred_reason(plan, s)) for s in plan.deferred]
         return RunReport(recipe.name, workspace, True, rows, plan_seconds)
 
+    with workspace_lock(workspace):
+        memo = load_hash_memo(workspace)
+        t0 = time.perf_counter()
+        plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo)
+        plan_seconds = time.perf_counter() - t0
+        return _run_locked(recipe, workspace, memo, plan, plan_seconds, force=force, only=only, ids=ids,
+                           executor=executor, jobs=jobs, scheduler=scheduler)
+
+
+@contextmanager
+def workspace_lock(workspace: Path) -> Iterator[None]:
+    """Hold ``<workspace>/.reflectmm/lock`` for a run; refuse a second concurrent run in the same workspace."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no locking
+        yield
+        return
+    path = state_dir(workspace) / "lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            holder = f.read().strip() or "?"
+            raise ReflectmmError(f"another reflectmm run is using this workspace (pid {holder}); "
+                                 f"wait for it or use another workspace", workspace) from None
+        try:
+            f.seek(0)
+            f.truncate()
+            f.write(str(os.getpid()))
+            f.flush()
+            yield
+        finally:
+            f.seek(0)
+            f.truncate()
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _run_locked(recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Plan, plan_seconds: float, *,
+                force: str | None, only: str | None, ids: list[str] | None, executor: str | Executor, jobs: int,
+                scheduler: str | None) -> RunReport:
     runlog = RunLog(workspace, recipe.name)
     outcomes: dict[str, TaskOutcome] = {}
     prior: dict[str, str] = {}

@@ -341,3 +341,29 @@ def test_force_on_a_fresh_workspace_and_keys_follow_new_inputs(ws):
     assert rep.ok
     # the stored keys are those of the new inputs: a plain rerun has nothing to do
     assert set(statuses(run_recipe(ws / "recipe.toml", ws, dry_run=True)).values()) == {"skip"}
+
+
+def test_second_concurrent_run_in_a_workspace_is_refused(ws):
+    import subprocess
+    import sys
+    import time as _time
+
+    from reflectmm_cli.errors import ReflectmmError
+
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\n"
+        "from reflectmm_cli.recipes.runner import workspace_lock\n"
+        "with workspace_lock(sys.argv[1]):\n"
+        "    print('locked', flush=True)\n"
+        "    time.sleep(60)\n"), str(ws)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(ReflectmmError, match=rf"another reflectmm run is using this workspace \(pid {holder.pid}\)"):
+            run_recipe(ws / "recipe.toml", ws)
+        assert not (ws / "manifest").exists()
+        assert run_recipe(ws / "recipe.toml", ws, dry_run=True).tasks  # planning alone is allowed
+    finally:
+        holder.kill()
+        holder.wait()
+    _time.sleep(0.05)
+    assert run_recipe(ws / "recipe.toml", ws).ok  # the lock dies with its holder

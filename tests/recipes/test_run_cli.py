@@ -81,3 +81,10 @@ def test_bad_recipe_exit_1_one_line(cli, ws):
 def test_scheduler_needs_dask(cli, ws):
     r = cli("run", ws / "recipe.toml", "-w", ws, "--executor", "pool", "--scheduler", "tcp://127.0.0.1:1")
     assert r.exit_code == 1 and "--scheduler needs --executor dask" in r.stderr
+
+
+def test_force_before_the_recipe_still_means_force_all(cli, ws):
+    r = cli("run", "-w", ws, "-n", "--force", ws / "recipe.toml")
+    assert r.exit_code == 0 and [ln.split(None, 3)[3] for ln in r.stdout.splitlines()[2:]] == ["forced"] * 5
+    r = cli("run", "-w", ws)
+    assert r.exit_code == 2 and "Missing argument 'RECIPE'" in r.stderr
