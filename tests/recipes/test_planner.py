@@ -367,3 +367,23 @@ def test_second_concurrent_run_in_a_workspace_is_refused(ws):
         holder.wait()
     _time.sleep(0.05)
     assert run_recipe(ws / "recipe.toml", ws).ok  # the lock dies with its holder
+
+
+def test_noop_rerun_of_100_identities_plans_fast_and_runs_nothing(tmp_path):
+    import time as _time
+
+    w = tmp_path / "big"
+    ids = [f"{i:03d}" for i in range(1, 101)]
+    for i in ids:
+        (w / "data" / i).mkdir(parents=True)
+        (w / "data" / i / "x.bin").write_bytes(i.encode() * 100)
+    (w / "ids.txt").write_text("\n".join(ids))
+    (w / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.m]\nverb = "checksum"\n'
+                              'foreach = { file = "ids.txt" }\ninputs = { files = "data/{id}" }\n'
+                              '[stages.all]\nverb = "checksum"\ninputs = { files = "@m.output" }\n')
+    assert run_recipe(w / "r.toml", w).ok
+    t0 = _time.perf_counter()
+    rep = run_recipe(w / "r.toml", w)
+    elapsed = _time.perf_counter() - t0
+    assert rep.counts() == {"skipped": 101}
+    assert elapsed < 2.0, f"no-op rerun took {elapsed:.2f} s"
