@@ -17,6 +17,7 @@ landmark files.  Linear pixel value = radiance (no exposure factor).
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable
@@ -235,12 +236,18 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
         H, W = cam.height, cam.width
         nrng = _identity_rng(cfg.seed, idx, 1000 + ci)
 
+        backdrop = encode_png_values(np.full((1, 1, 3), cfg.background))[0, 0]
+
         def finish(face_linear: np.ndarray) -> np.ndarray:
-            img = np.full((H, W, 3), cfg.background, np.float64)
-            img[m] = face_linear
             if cfg.noise > 0:
-                img = img + nrng.normal(0.0, cfg.noise, img.shape)
-            return encode_png_values(img)
+                img = np.full((H, W, 3), cfg.background, np.float64)
+                img[m] = face_linear
+                img += nrng.normal(0.0, cfg.noise, img.shape)
+                return encode_png_values(img)
+            out = np.empty((H, W, 3), np.uint8)
+            out[...] = backdrop
+            out[m] = encode_png_values(face_linear)
+            return out
 
         shots["00"] = finish(room)
         for fid in flashes:
@@ -328,6 +335,18 @@ def contact_sheet(thumbs: list[list[np.ndarray]], labels: list[str] | None = Non
     return sheet
 
 
+def _write_png_codes(path: Path, img: np.ndarray) -> Path:
+    """Encode uint8 RGB codes as PNG (cv2, no colour management) and write it atomically."""
+    import cv2
+
+    from reflectmm_cli.artifacts import atomic_write_bytes
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))
+    if not ok:
+        raise ReflectmmError("cannot encode PNG", path)
+    return atomic_write_bytes(path, buf.tobytes())
+
+
 def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, rig: Rig | str | Path | None = None,
                    meta_params: dict | None = None, producer: dict | None = None, cache_key: str | None = None,
                    inputs: list | None = None, progress_fn: Callable | None = None,
@@ -341,7 +360,7 @@ def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, ri
     """
     import cv2
 
-    from reflectmm_cli.artifacts import atomic_write_bytes, atomic_write_text, write_artifact, write_png
+    from reflectmm_cli.artifacts import atomic_write_text, write_artifact, write_png
     from reflectmm_cli.geometry import load_face_model, procedural_face_model, save_face_model
     from reflectmm_cli.geometry.uv import rasterize_uv
     from reflectmm_cli.progress import log, progress
@@ -383,10 +402,9 @@ def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, ri
         def on_camera(cname, shots, lm2d, ident=ident, landmarks=landmarks, row_room=row_room,
                       row_flash=row_flash):
             for shot, img in shots.items():
-                ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))
-                if not ok:
-                    raise ReflectmmError("cannot encode PNG", image_path(out, ident.code, cname, shot))
-                atomic_write_bytes(image_path(out, ident.code, cname, shot), buf.tobytes())
+                pending.append(pool.submit(_write_png_codes, image_path(out, ident.code, cname, shot), img))
+            while len(pending) > 48:  # bound the memory held by queued images
+                pending.pop(0).result()
             atomic_write_text(landmark_path(out, ident.code, cname), format_pts(lm2d))
             landmarks[cname] = lm2d
             if k < 4:
@@ -395,8 +413,12 @@ def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, ri
                     row_flash.append(cv2.resize(shots[sheet_flash], (thumb_w, thumb_h),
                                                 interpolation=cv2.INTER_AREA))
 
-        render_identity(model, ident, the_rig, cfg, room_sh, cameras=cams, flashes=fls, on_camera=on_camera,
-                        progress_fn=prog, stats=stats)
+        pending: list = []
+        with ThreadPoolExecutor(max_workers=3) as pool:  # PNG deflate and fsync release the GIL
+            render_identity(model, ident, the_rig, cfg, room_sh, cameras=cams, flashes=fls, on_camera=on_camera,
+                            progress_fn=prog, stats=stats)
+            for fut in pending:
+                fut.result()
         tpath = out / "truth" / f"{ident.code}.npz"
         write_artifact(tpath, "synth-truth", truth_arrays(model, ident, the_rig, cfg, room_sh, landmarks, uv_mask),
                        params=params, producer=producer, cache_key=cache_key, inputs=inputs,
