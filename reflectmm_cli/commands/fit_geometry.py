@@ -364,7 +364,8 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
         for v, name in enumerate(arrays["view_names"]):
             img = overlay(ex["room"][v], arrays["vertices"].astype(np.float64), model.triangles, nrm,
                           arrays["K"][v], arrays["R"][v], arrays["t"][v], arrays["landmarks_given"][v],
-                          arrays["landmarks_fit"][v], origin=ex["origin"][v])
+                          arrays["landmarks_fit"][v], origin=ex["origin"][v], max_edges=2500,
+                          scale=max(1, int(np.ceil(480 / max(ex["room"].shape[1], 1)))))
             written.append(write_png(ctx.output_path(f"{identity}_overlay_{name}", ".png"), img))
     msg = (f"fit-geometry {identity}: landmark RMS {np.median(arrays['landmark_rmse_px']):.2f} px (median of "
            f"{len(arrays['view_names'])} views), photometric RMS "

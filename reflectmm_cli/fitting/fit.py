@@ -62,6 +62,8 @@ class FitConfig:
                                     # (0 disables; needs rig_centers in the ViewSet)
     fit_expression: bool = True
     photo_vertices: int = 4000      # at most this many skin vertices in the photometric term
+    photo_min_cos: float = 0.5      # a vertex enters a view's photometric term only if n·v exceeds this
+                                    # (grazing vertices sample the silhouette, where the background bleeds in)
     photo_blur_px: tuple[float, ...] = (1.5, 0.0)  # Gaussian blur of the images per photometric round
     albedo: str = "auto"            # "auto": model texture if any else per-vertex estimate; "texture",
                                     # "per-vertex", "constant"
@@ -299,7 +301,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                 Xn, Rn, tn = X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
             nrm = vertex_normals(Xn, model.triangles)
             centers = camera_centers(Rn, tn)
-            vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample)
+            vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample, cos_cutoff=cfg.photo_min_cos)
             uv, _ = project(Xn[sample][None].repeat(V, 0), Kimg, Rn, tn)
             vis &= inside_image(uv, Wc, Hc)
             vis_t = tt(vis.astype(np.float64))

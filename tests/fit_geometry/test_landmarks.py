@@ -1,0 +1,62 @@
+"""Landmark files: formats, counts, lookup by view, weights."""
+
+import numpy as np
+import pytest
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.fitting.landmarks import (
+    DEFAULT_GROUP_WEIGHTS,
+    find_landmark_file,
+    landmark_weights,
+    read_landmarks,
+    write_pts,
+)
+
+
+def _pts(n=68, seed=0):
+    return np.random.default_rng(seed).uniform(0, 640, size=(n, 2)).round(4)
+
+
+def test_formats_round_trip(tmp_path):
+    lm = _pts()
+    write_pts(tmp_path / "a.pts", lm)
+    np.savetxt(tmp_path / "b.txt", lm)
+    (tmp_path / "c.txt").write_text("\n".join(f"{x},{y}" for x, y in lm))
+    np.save(tmp_path / "d.npy", lm)
+    for name in ("a.pts", "b.txt", "c.txt", "d.npy"):
+        assert np.allclose(read_landmarks(tmp_path / name), lm, atol=1e-4), name
+
+
+def test_wrong_count_names_file(tmp_path):
+    write_pts(tmp_path / "short.pts", _pts(60))
+    with pytest.raises(ReflectmmError, match=r"short\.pts.*expected 68 landmarks, found 60"):
+        read_landmarks(tmp_path / "short.pts")
+    np.save(tmp_path / "bad.npy", np.zeros((68, 3)))
+    with pytest.raises(ReflectmmError, match=r"bad\.npy.*68×2"):
+        read_landmarks(tmp_path / "bad.npy")
+    (tmp_path / "hdr.pts").write_text("version: 1\nn_points: 68\n{\n1 2\n}\n")
+    with pytest.raises(ReflectmmError, match="n_points: 68 but 1"):
+        read_landmarks(tmp_path / "hdr.pts")
+    with pytest.raises(ReflectmmError, match="not found"):
+        read_landmarks(tmp_path / "missing.pts")
+
+
+def test_find_by_view_name_and_multipie_name(tmp_path):
+    write_pts(tmp_path / "05_1.pts", _pts())
+    sub = tmp_path / "001" / "01" / "08_0"
+    sub.mkdir(parents=True)
+    write_pts(sub / "001_01_01_080_00_lm.pts", _pts(seed=2))
+    assert find_landmark_file(tmp_path, "05_1") == tmp_path / "05_1.pts"
+    assert find_landmark_file(tmp_path, "08_0") == sub / "001_01_01_080_00_lm.pts"
+    assert find_landmark_file(tmp_path, "19_0") is None
+
+
+def test_weights_by_group():
+    w = landmark_weights()
+    assert w.shape == (68,)
+    assert w[0] == DEFAULT_GROUP_WEIGHTS["jaw"] and w[16] == DEFAULT_GROUP_WEIGHTS["jaw"]
+    assert w[30] == DEFAULT_GROUP_WEIGHTS["nose_bridge"] and w[67] == DEFAULT_GROUP_WEIGHTS["mouth_inner"]
+    assert w[:17].max() < w[27:].min()  # jaw line lower than inner face
+    assert landmark_weights({"jaw": 0.0})[:17].sum() == 0.0
+    with pytest.raises(ReflectmmError, match="unknown landmark group"):
+        landmark_weights({"ears": 1.0})
