@@ -158,7 +158,7 @@ class Stage:
             for p in paths:
                 p = Path(p)
                 if p.is_dir():
-                    files.extend(sorted(q for q in p.rglob("*") if q.is_file() and not q.name.startswith(".")))
+                    files.extend(walk_files(p))
                 else:
                     files.append(p)
             out[role] = files
@@ -174,6 +174,14 @@ class Stage:
         kwargs.setdefault("stage_name", self.verb)
         ctx = StageContext(**kwargs)
         return ctx.with_(verb=self.verb, stage_version=self.version)
+
+
+def walk_files(folder: Path) -> list[Path]:
+    """Files under ``folder``, recursively, sorted; hidden files and hidden folders (``.reflectmm/``,
+    temporary ``.name.*.tmp`` files of atomic writes) are skipped."""
+    folder = Path(folder)
+    return sorted(q for q in folder.rglob("*")
+                  if q.is_file() and not any(part.startswith(".") for part in q.relative_to(folder).parts))
 
 
 _REGISTRY: dict[str, Stage] = {}

@@ -16,7 +16,7 @@ import numpy as np
 from reflectmm_cli.artifacts import sha256_file, write_artifact
 from reflectmm_cli.commands._common import emit, json_option, output_option, run_stage_cli, workspace_option
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages import StageContext, register_stage
+from reflectmm_cli.stages import StageContext, register_stage, walk_files
 
 
 def checksum_files(paths: list[Path]) -> tuple[list[str], list[str], list[int]]:
@@ -25,7 +25,7 @@ def checksum_files(paths: list[Path]) -> tuple[list[str], list[str], list[int]]:
     for p in paths:
         p = Path(p)
         if p.is_dir():
-            files.extend(sorted(q for q in p.rglob("*") if q.is_file() and not q.name.startswith(".")))
+            files.extend(walk_files(p))
         elif p.exists():
             files.append(p)
         else:
@@ -61,7 +61,7 @@ def run_checksum(ctx: StageContext) -> list[Path]:
     if ctx.param("fail_if_contains"):
         marker = str(ctx.param("fail_if_contains")).encode()
         for f in files:
-            walk = sorted(q for q in f.rglob("*") if q.is_file() and not q.name.startswith(".")) if f.is_dir() else [f]
+            walk = walk_files(f) if f.is_dir() else [f]
             for q in walk:
                 if q.is_file() and marker in q.read_bytes():
                     raise ReflectmmError(f"contains the marker {ctx.param('fail_if_contains')!r}", q)

@@ -387,3 +387,16 @@ def test_noop_rerun_of_100_identities_plans_fast_and_runs_nothing(tmp_path):
     elapsed = _time.perf_counter() - t0
     assert rep.counts() == {"skipped": 101}
     assert elapsed < 2.0, f"no-op rerun took {elapsed:.2f} s"
+
+
+def test_hidden_folders_in_inputs_are_ignored(ws):
+    (ws / "recipe.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.all]\nverb = "checksum"\n'
+                                    'inputs = { files = "data" }\n')
+    hidden = ws / "data" / ".state"  # like .reflectmm/ or .git/: changes without being data
+    hidden.mkdir()
+    (hidden / "x").write_text("not hashed")
+    assert run_recipe(ws / "recipe.toml", ws).ok
+    names = list(read_artifact(ws / "all" / "all.npz")["names"])
+    assert "x" not in names and len(names) == 8
+    (hidden / "x").write_text("changed, still not an input")
+    assert set(statuses(run_recipe(ws / "recipe.toml", ws)).values()) == {"skipped"}
