@@ -195,9 +195,16 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
             tasks[t.tid] = t
             stage_tasks[name].append(t.tid)
             if t.tid in prior and prior[t.tid] in (FAILED, BLOCKED):
-                t.action, t.reason = FAILED if prior[t.tid] == FAILED else BLOCKED, "failed earlier in this run"
+                t.action = FAILED if prior[t.tid] == FAILED else BLOCKED
+                t.reason = f"{'failed' if t.action == FAILED else 'blocked'} earlier in this run"
                 continue
             _decide(t, stage, tasks, workspace, hash_memo, forced=(force == "*" or force == name))
+    if ids is not None and not deferred:
+        known = {t.identity for t in tasks.values()}
+        unknown = [i for i in ids if i not in known]
+        if unknown:
+            log.warning("--ids: no stage has identit%s %s", "y" if len(unknown) == 1 else "ies",
+                        ", ".join(unknown[:10]) + (" ..." if len(unknown) > 10 else ""))
     return Plan(recipe, workspace, tasks, stage_tasks, deferred)
 
 
