@@ -95,6 +95,10 @@ def inspect_artifact(path: str | Path) -> dict[str, Any]:
     return doc
 
 
+#: Inputs shown per role in the text report (``--json`` lists all).
+MAX_INPUTS_SHOWN = 8
+
+
 def _fmt_val(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.6g}"
@@ -120,10 +124,17 @@ def format_inspection(doc: dict[str, Any]) -> list[str]:
     else:
         lines.append("  params:    (none)")
     if doc["inputs"]:
-        lines.append("  inputs:")
+        lines.append(f"  inputs ({len(doc['inputs'])}):")
+        by_role: dict[str, list[dict]] = {}
         for ref in doc["inputs"]:
-            sch = f"  [{ref['schema']}]" if ref.get("schema") else ""
-            lines.append(f"    {ref.get('role', '?')}: {ref.get('path', '?')}  sha256 {ref.get('sha256', '?')}{sch}")
+            by_role.setdefault(str(ref.get("role", "?")), []).append(ref)
+        for role, refs in by_role.items():
+            shown = refs if len(refs) <= MAX_INPUTS_SHOWN else refs[:MAX_INPUTS_SHOWN - 1]
+            for ref in shown:
+                sch = f"  [{ref['schema']}]" if ref.get("schema") else ""
+                lines.append(f"    {role}: {ref.get('path', '?')}  sha256 {ref.get('sha256', '?')}{sch}")
+            if len(shown) < len(refs):
+                lines.append(f"    {role}: ... {len(refs) - len(shown)} more (--json lists all)")
     else:
         lines.append("  inputs:    (none)")
     for k, v in sorted((doc.get("meta_extra") or {}).items()):
@@ -131,7 +142,7 @@ def format_inspection(doc: dict[str, Any]) -> list[str]:
     lines.append(f"  arrays ({len(doc['arrays'])}):")
     rows = []
     for a in doc["arrays"]:
-        shape = "(" + ", ".join(str(s) for s in a["shape"]) + ")"
+        shape = str(tuple(a["shape"]))
         if "min" in a:
             rng = f"[{_fmt_val(a['min'])}, {_fmt_val(a['max'])}]" if a["min"] is not None else "[no finite values]"
             if a.get("nonfinite"):

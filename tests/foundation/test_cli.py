@@ -154,3 +154,12 @@ def test_inspect_shows_newer_schema_with_a_note(cli, tmp_path):
                        extra_meta={"schema": f"reflectmm.geometry/{SCHEMA_MAJOR['geometry'] + 1}"})
     r = cli("inspect", p)
     assert r.exit_code == 0 and "newer than this release reads" in r.stdout
+
+
+def test_inspect_text_caps_long_input_lists(cli, tmp_path):
+    refs = [{"role": "image", "path": f"img_{k:03d}.png", "sha256": f"{k:064x}"} for k in range(30)]
+    p = write_artifact(tmp_path / "c.npz", "capture", {"x": np.zeros((2, 3))}, inputs=refs)
+    r = cli("inspect", p)
+    assert "inputs (30):" in r.stdout and "image: ... 23 more (--json lists all)" in r.stdout
+    assert "x  (2, 3)  float64  [0, 0]" in r.stdout
+    assert len(json.loads(cli("inspect", p, "--json").stdout)["artifacts"][0]["inputs"]) == 30
