@@ -241,6 +241,19 @@ def _build(doc: dict[str, Any], path: Path) -> Recipe:
         resources = sdoc.get("resources", {})
         if not isinstance(resources, dict):
             raise _type_error(f"{where} resources", "a table { cpus = 1, memory = \"4GB\" }", resources, path)
+        for rk, rv in resources.items():
+            if isinstance(rv, bool) or not isinstance(rv, (int, float, str)):
+                raise _type_error(f"{where} resources.{rk}", "a number or a size like \"4GB\"", rv, path)
+            if isinstance(rv, str):
+                from dask.utils import parse_bytes
+
+                try:
+                    parse_bytes(rv)
+                except (ValueError, TypeError):
+                    raise ReflectmmError(f"{where} resources.{rk}: cannot read {rv!r} as a size "
+                                         f"(e.g. \"512MB\", \"4GB\")", path) from None
+            elif rv < 0:
+                raise ReflectmmError(f"{where} resources.{rk}: must be >= 0, got {rv}", path)
         stages[sname] = StageSpec(sname, verb, merged, inputs, foreach, dict(resources), param_refs)
 
     recipe = Recipe(path, name, dict(defaults), stages)

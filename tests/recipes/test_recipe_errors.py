@@ -83,6 +83,8 @@ def test_unknown_verb(ws):
     (HEAD + '[stages.a]\nverb = "checksum"\ninputs = { files = 3 }\n', "inputs.files"),
     (HEAD + '[stages.a]\nverb = "checksum"\ninputs = { files = "@b.result" }\n', "malformed reference"),
     (HEAD + '[stages.a]\nverb = "checksum"\nforeach = { file = "nope.txt" }\n', "foreach file not found"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nresources = { memory = "lots" }\n', "cannot read 'lots' as a size"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nresources = { cpus = -1 }\n', "resources.cpus: must be >= 0"),
 ])
 def test_malformed_recipes(ws, text, what):
     msg = err(ws, text)
