@@ -43,13 +43,15 @@ class UVGeometry:
     bary: np.ndarray
 
 
-def uv_geometry(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, size: int) -> UVGeometry:
+def uv_geometry(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, size: int,
+                vertex_nrm: np.ndarray | None = None) -> UVGeometry:
     """Rasterise the mesh in UV space; positions and (area-weighted vertex) normals interpolated per texel."""
     from reflectmm_cli.geometry import rasterize_uv, uv_positions, vertex_normals
 
     vertices = np.asarray(vertices, dtype=np.float64)
     ras = rasterize_uv(uv, triangles, size)
-    pos, nrm = uv_positions(vertices, vertex_normals(vertices, triangles), ras)
+    vn = vertex_normals(vertices, triangles) if vertex_nrm is None else vertex_nrm
+    pos, nrm = uv_positions(vertices, vn, ras)
     mask = ras.mask & (np.linalg.norm(nrm, axis=-1) > 0.5)
     pos = np.where(mask[..., None], pos, 0.0).astype(np.float32)
     nrm = np.where(mask[..., None], nrm, 0.0).astype(np.float32)
@@ -191,15 +193,16 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     V, F = len(views), len(flashes)
     S = int(uv_size)
 
-    g = uv_geometry(verts, triangles, uv, S)
+    from reflectmm_cli.geometry import RayScene, shadow_mask, vertex_normals, visibility
+
+    vnorm = vertex_normals(verts, triangles)
+    g = uv_geometry(verts, triangles, uv, S, vnorm)
     m = g.mask.reshape(-1)
     idx = np.flatnonzero(m)
     N = idx.size
     x = g.position.reshape(-1, 3)[idx].astype(np.float64)
     n = g.normal.reshape(-1, 3)[idx].astype(np.float64)
-    from reflectmm_cli.geometry import RayScene, shadow_mask, visibility
-
-    scene = RayScene(verts, triangles)
+    scene = RayScene(verts, triangles, vnorm)
     cos_cut = math.cos(math.radians(grazing_deg))
 
     vis = np.zeros((V, N), bool)
