@@ -48,12 +48,12 @@ def bench_pca(size, ns, repeat):
     return "\n".join(rows)
 
 
-def bench_representation(size, n_ids, repeat):
+def bench_representation(size, n_ids, repeat, noise):
     from reflectmm_cli.evaluation.representation import (compare_representations, default_representations,
                                                          margin_of_multilobe, markdown_table)
     from reflectmm_cli.evaluation.synthetic import simulate_ggx_observations
 
-    obs = [simulate_ggx_observations(size=size, seed=s, noise=0.01)[0] for s in range(n_ids)]
+    obs = [simulate_ggx_observations(size=size, seed=s, noise=noise)[0] for s in range(n_ids)]
     reps = default_representations("8;16;32;64;1,8,64")
     t, res = _median_time(lambda: compare_representations(obs, [f"{i:03d}" for i in range(n_ids)], reps), repeat)
     mg = margin_of_multilobe(res)
@@ -73,6 +73,7 @@ def main(argv=None):
     ap.add_argument("--rep-size", type=int, default=64)
     ap.add_argument("--rep-ids", type=int, default=3)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--noise", default="0,0.01", help="multiplicative radiance noise levels (comma separated)")
     ap.add_argument("--skip-pca", action="store_true")
     ap.add_argument("--skip-rep", action="store_true")
     a = ap.parse_args(argv)
@@ -83,8 +84,9 @@ def main(argv=None):
         print(bench_pca(a.size, [int(x) for x in a.ns.split(",")], a.repeat))
         print()
     if not a.skip_rep:
-        print("### Representation comparison (GGX truth, 1 % noise)\n")
-        print(bench_representation(a.rep_size, a.rep_ids, max(1, a.repeat // 3)))
+        for nz in (float(x) for x in a.noise.split(",")):
+            print(f"### Representation comparison (GGX truth, noise {100 * nz:g} %)\n")
+            print(bench_representation(a.rep_size, a.rep_ids, max(1, a.repeat // 3), nz))
 
 
 if __name__ == "__main__":

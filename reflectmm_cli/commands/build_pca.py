@@ -104,7 +104,9 @@ def run_build_pca(ctx: StageContext) -> list[Path]:
         written.append(write_png(out.with_name(out.stem + "_components.png"),
                                  component_grid(model, 3, float(p["spread"]))))
         if fm is not None:
-            img = render_samples(model, fm.mean_shape, fm.triangles, n=int(p["samples"]), seed=int(p["seed"]))
+            img, renderer = render_samples(model, fm.mean_shape, fm.triangles, n=int(p["samples"]),
+                                           seed=int(p["seed"]), uv=fm.uv)
+            log.info(f"build-pca: samples rendered with {renderer}")
             written.append(write_png(out.with_name(out.stem + "_samples.png"), img))
         else:
             log.warning("build-pca: no face model given: no per-vertex model and no rendered samples "

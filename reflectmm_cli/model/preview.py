@@ -4,12 +4,12 @@ under a white frontal point light.
 Display conventions: diffuse albedo in sRGB (linear → sRGB transfer, clipped), lobe weights ×3 shown as RGB
 (lobe i → channel i for K = 3; for other K the sum Σw ×3 as grey), background grey.
 
-Renders: the per-vertex model on the face model's mean shape, seen by a perspective camera on +z at 600 mm
-(focal chosen to frame the face) with a point light of radiant intensity ``I = π · d0²`` at the camera centre
-(so that a frontal texel at the head centre distance d0 receives irradiance π: white albedo shades to 1).
-Shading is :func:`reflectmm_cli.shading.shade_directional` per surface sample; visibility is resolved by a
-z-buffered splat of dense barycentric samples of every triangle (a point-based rasteriser: every pixel a
-triangle covers receives at least one sample, so there are no holes at the chosen density).
+Renders: the face model's mean shape seen by a perspective camera on +z, 600 mm in front of the nose (focal
+chosen to frame the face), with a point light of radiant intensity ``I = π · d0²`` at the camera centre (so that
+a frontal texel at the head-centre distance d0 receives irradiance π: white albedo shades to 1). With Embree the
+geometry renderer is used (UV maps looked up per pixel); otherwise the per-vertex model is shaded with
+:func:`reflectmm_cli.shading.shade_directional` and splatted with a z-buffer over dense barycentric samples of
+every triangle (every covered pixel receives at least one sample, so there are no holes).
 """
 from __future__ import annotations
 
@@ -120,31 +120,58 @@ def render_vertex_colors(vertices: np.ndarray, triangles: np.ndarray, colors: np
 
 
 def render_samples(model: ReflectanceModel, vertices: np.ndarray, triangles: np.ndarray, n: int = 30,
-                   seed: int = 0, width: int = 128, cols: int = 6, spread: float = 1.0) -> np.ndarray:
-    """Grid of ``n`` random samples (β ~ N(0, spread²)) rendered under a white frontal point light (sRGB)."""
+                   seed: int = 0, width: int = 128, cols: int = 6, spread: float = 1.0, uv: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, str]:
+    """Grid of ``n`` random samples (β ~ N(0, spread²)) rendered under a white frontal point light (sRGB).
+
+    With Embree available and ``uv`` given, the geometry renderer
+    (:func:`reflectmm_cli.geometry.render_point_light`: ray-cast rasterisation, UV-map reflectance looked up per
+    pixel) is used; otherwise the per-vertex model is splatted (:func:`render_vertex_colors`). Returns the image
+    and the name of the renderer used.
+    """
     from reflectmm_cli.geometry.face_model import vertex_normals
     from reflectmm_cli.shading import shade_directional
 
-    if not model.has_vertex_model:
-        raise ReflectmmError("render_samples: the model has no per-vertex part (build it with --face-model)")
     V = np.asarray(vertices, np.float64)
-    nrm = np.asarray(vertex_normals(V, triangles), np.float64)
     eye, centre, focal = _frontal_camera(V, width)
     d0 = float(np.linalg.norm(eye - centre))
-    intensity = np.pi * d0 ** 2
-    ld = eye - V
-    E = intensity / np.sum(ld * ld, -1)
+    intensity = np.pi * d0 ** 2  # irradiance π at the head centre: a white Lambertian texel facing the light → 1
     rng = np.random.default_rng(seed)
+    betas = [rng.normal(0.0, spread, model.n_components) for _ in range(n)]
+    renderer = "splat"
+    scene = None
+    if uv is not None:
+        try:
+            from reflectmm_cli.geometry import RayScene, has_embree, look_at, rasterize, render_point_light
+
+            if has_embree():
+                scene = RayScene(V, triangles)
+                cam = look_at(eye, centre, focal_px=focal, width=width, height=width)
+                raster = rasterize(scene, cam)
+                renderer = "reflectmm_cli.geometry.render_point_light"
+        except ImportError:  # pragma: no cover - geometry is part of the package
+            scene = None
+    if scene is None and not model.has_vertex_model:
+        raise ReflectmmError("render_samples: the model has no per-vertex part and no renderer for UV maps")
     tiles = []
-    for _ in range(n):
-        beta = rng.normal(0.0, spread, model.n_components)
-        alb, wts = sample_model(model, beta, space="vertex")
-        alb, wts = np.clip(alb, 0, None), np.clip(wts, 0, None)
-        s = shade_directional(alb, wts, model.exponents, nrm, ld, ld, np.repeat(E[:, None], 3, -1))
-        img = render_vertex_colors(V, triangles, s, width, eye, focal, centre)
-        img = np.where(np.isnan(img), BG, linear_to_srgb(np.nan_to_num(img)))
+    if scene is None:
+        nrm = np.asarray(vertex_normals(V, triangles), np.float64)
+        ld = eye - V
+        E = intensity / np.sum(ld * ld, -1)
+    for beta in betas:
+        if scene is not None:
+            alb, wts = sample_model(model, beta)
+            res = render_point_light(scene, cam, np.clip(alb, 0, None), np.clip(wts, 0, None), model.exponents,
+                                     eye, intensity, uv=uv, raster=raster)
+            img = np.where(res.mask[..., None], linear_to_srgb(res.image), BG)
+        else:
+            alb, wts = sample_model(model, beta, space="vertex")
+            alb, wts = np.clip(alb, 0, None), np.clip(wts, 0, None)
+            s = shade_directional(alb, wts, model.exponents, nrm, ld, ld, np.repeat(E[:, None], 3, -1))
+            img = render_vertex_colors(V, triangles, s, width, eye, focal, centre)
+            img = np.where(np.isnan(img), BG, linear_to_srgb(np.nan_to_num(img)))
         tiles.append(np.pad(img, ((1, 1), (1, 1), (0, 0)), constant_values=1.0))
     while len(tiles) % cols:
         tiles.append(np.ones_like(tiles[0]))
     rows = [np.concatenate(tiles[i:i + cols], 1) for i in range(0, len(tiles), cols)]
-    return np.concatenate(rows, 0)
+    return np.concatenate(rows, 0), renderer

@@ -204,3 +204,31 @@ def test_gram_route_matches_svd_on_ill_conditioned_data(n, ratio, seed):
     np.testing.assert_allclose(m.sigma, ref, rtol=1e-4)
     B = m.albedo_basis.reshape(m.n_components, -1).astype(np.float64)
     np.testing.assert_allclose(B @ B.T, np.eye(m.n_components), atol=2e-6)
+
+
+def test_splat_renderer_covers_and_interpolates():
+    """Fallback preview renderer: a frontal plane with colour = x is covered without holes and the colour is the
+    linear function of the pixel's x back-projected (closed form of the pinhole camera)."""
+    from reflectmm_cli.model.preview import render_vertex_colors
+
+    g = 15
+    x, y = np.meshgrid(np.linspace(-50, 50, g), np.linspace(-50, 50, g))
+    V = np.stack([x.ravel(), y.ravel(), np.zeros(g * g)], -1)
+    T = []
+    for r in range(g - 1):
+        for c in range(g - 1):
+            i = r * g + c
+            T += [(i, i + 1, i + g), (i + 1, i + g + 1, i + g)]
+    col = V[:, :1].copy()
+    W = 64
+    eye, f = np.array([0.0, 0.0, 500.0]), 300.0
+    img = render_vertex_colors(V, np.array(T), col, W, eye, f)[..., 0]
+    half = f * 50 / 500  # projected half width in px
+    c = W / 2
+    inner = slice(int(c - half + 2), int(c + half - 2))
+    assert not np.isnan(img[inner, inner]).any()
+    assert np.isnan(img[0, 0])
+    cols = np.arange(W)[inner]
+    expect = (cols + 0.5 - c) * 500 / f  # x on the plane seen by pixel centre (col + 0.5)
+    got = img[W // 2, inner]
+    assert np.max(np.abs(got - expect)) <= 500 / f * 0.75  # within the splat's pixel snapping
