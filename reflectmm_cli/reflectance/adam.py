@@ -20,6 +20,9 @@ from .design import mirror_index
 
 __all__ = ["fit_adam"]
 
+#: Below this many observations Adam runs single-threaded.
+SMALL_PROBLEM_ROWS = 200_000
+
 
 def fit_adam(prob, idx: np.ndarray, S: int, K: int, *, steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0,
              symmetry: float = 1.0, init: Sequence[float] | None = None, device: str = "cpu", seed: int = 0,
@@ -27,6 +30,17 @@ def fit_adam(prob, idx: np.ndarray, S: int, K: int, *, steps: int = 1000, lr: fl
     """Run Adam on the design cached in ``prob`` (see :mod:`.fit`); return (x (n, 3+K), info)."""
     import torch
 
+    # small problems lose more to thread start-up than they gain (and the CPU is usually shared)
+    threads = torch.get_num_threads()
+    if prob.tex.size < SMALL_PROBLEM_ROWS and threads > 1:
+        torch.set_num_threads(1)
+    try:
+        return _run(torch, prob, idx, S, K, steps, lr, w_reg, symmetry, init, device, seed, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run(torch, prob, idx, S, K, steps, lr, w_reg, symmetry, init, device, seed, progress):
     dev = torch.device(device)
     n = idx.size
     tex_t = torch.as_tensor(prob.tex, device=dev)

@@ -1,0 +1,80 @@
+"""reflectmm fit-reflectance end to end on a simulated uv-observations artifact."""
+import numpy as np
+
+from reflectmm_cli.artifacts import read_artifact, read_exr, write_artifact
+from reflectmm_cli.reflectance import simulate_observations
+
+
+def _write_obs(ws, S=16, **kw):
+    obs, truth = simulate_observations(S, return_truth=True, **kw)
+    path = write_artifact(ws / "unwrap-uv" / "042.npz", "uv-observations", obs)
+    return obs, truth, path
+
+
+def test_cli_end_to_end(cli, tmp_path):
+    ws = tmp_path / "ws"
+    obs, truth, _ = _write_obs(ws)
+    r = cli("fit-reflectance", "--id", "042", "--workspace", ws, "--prior", "1e-6")
+    assert r.exit_code == 0, r.output
+    outs = r.stdout.split()
+    npz = ws / "fit-reflectance" / "042.npz"
+    assert str(npz) in outs
+    for name in ("042.exr", "042_albedo.png", "042_weights.png", "042_residual.png", "042_flagged.png"):
+        assert (ws / "fit-reflectance" / name).is_file()
+    art = read_artifact(npz, "reflectance-maps")
+    for k, shape in {"albedo": (3, 16, 16), "weights": (3, 16, 16), "exponents": (3,), "mask": (16, 16),
+                     "residual": (16, 16), "conditioning": (16, 16), "flagged": (16, 16),
+                     "obs_count": (16, 16)}.items():
+        assert art[k].shape == shape, k
+    ok = art["mask"] & ~art["flagged"] & np.all(art["observability"] >= 0.1, axis=0)
+    rel = np.abs(art["albedo"] - truth["albedo"]) / truth["albedo"]
+    assert rel[:, ok].max() < 0.01
+    assert art.params["solver"] == "fast" and art.params["exponents"] == [1.0, 8.0, 64.0]
+    assert art.meta["inputs"][0]["role"] == "observations"
+    assert art.meta["inputs"][0]["schema"] == "reflectmm.uv-observations/1"
+    ch, meta = read_exr(ws / "fit-reflectance" / "042.exr")
+    assert set(ch) == {"albedo.R", "albedo.G", "albedo.B", "weight.p1", "weight.p8", "weight.p64"}
+    np.testing.assert_allclose(ch["weight.p64"], art["weights"][2], rtol=1e-6)
+    assert meta["schema"] == "reflectmm.reflectance-maps/1"
+    # rerun: byte-identical artifact
+    before = npz.read_bytes()
+    r2 = cli("fit-reflectance", "--id", "042", "--workspace", ws, "--prior", "1e-6")
+    assert r2.exit_code == 0
+    assert npz.read_bytes() == before
+
+
+def test_cli_options_and_explicit_paths(cli, tmp_path):
+    ws = tmp_path / "ws"
+    _, _, src = _write_obs(ws, S=8)
+    out = tmp_path / "o" / "m.npz"
+    r = cli("fit-reflectance", "--input", src, "--output", out, "--exponents", "16", "--loss", "l2",
+            "--symmetry", "0.5", "--flash-intensity", "4225000", "--json")
+    assert r.exit_code == 0, r.output
+    art = read_artifact(out, "reflectance-maps")
+    assert art["weights"].shape == (1, 8, 8)
+    assert art.params["flash_intensity"] == [4225000.0] and art.params["symmetry"] == 0.5
+    ch, _ = read_exr(out.with_suffix(".exr"))
+    assert "weight.p16" in ch
+    r = cli("fit-reflectance", "--input", src, "--output", tmp_path / "a.npz", "--solver", "adam", "--steps", "20")
+    assert r.exit_code == 0, r.output
+    assert read_artifact(tmp_path / "a.npz").meta["stats"]["steps"] == 20
+
+
+def test_cli_errors(cli, tmp_path):
+    ws = tmp_path / "ws"
+    r = cli("fit-reflectance", "--id", "042", "--workspace", ws)
+    assert r.exit_code == 1 and "unwrap-uv/042.npz" in r.stderr and "not found" in r.stderr
+    obs, _, src = _write_obs(ws, S=6)
+    j, y, x = np.argwhere(obs["observed"])[0]
+    obs["radiance"][j, y, x, 0] = np.nan
+    bad = write_artifact(tmp_path / "bad.npz", "uv-observations", obs)
+    r = cli("fit-reflectance", "--input", bad, "--output", tmp_path / "x.npz")
+    assert r.exit_code == 1 and "bad.npz" in r.stderr and "NaN" in r.stderr
+    assert not (tmp_path / "x.npz").exists()
+    wrong = write_artifact(tmp_path / "wrong.npz", "geometry", {"a": np.zeros(2)})
+    r = cli("fit-reflectance", "--input", wrong, "--output", tmp_path / "y.npz")
+    assert r.exit_code == 1 and "uv-observations" in r.stderr
+    r = cli("fit-reflectance", "--input", src, "--exponents", "1,x", "--output", tmp_path / "z.npz")
+    assert r.exit_code == 1 and "--exponents" in r.stderr
+    r = cli("fit-reflectance", "--input", src, "--flash-intensity", "1,2", "--output", tmp_path / "z.npz")
+    assert r.exit_code == 1 and "flash_intensity" in r.stderr
