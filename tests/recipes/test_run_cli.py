@@ -88,3 +88,13 @@ def test_force_before_the_recipe_still_means_force_all(cli, ws):
     assert r.exit_code == 0 and [ln.split(None, 3)[3] for ln in r.stdout.splitlines()[2:]] == ["forced"] * 5
     r = cli("run", "-w", ws)
     assert r.exit_code == 2 and "Missing argument 'RECIPE'" in r.stderr
+
+
+def test_artifact_made_by_hand_is_recognised_by_the_recipe(cli, ws):
+    r = cli("checksum", ws / "data" / "002", "--id", "002", "-w", ws)
+    assert r.exit_code == 0
+    (ws / "hand.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.checksum]\nforeach = ["001", "002"]\n'
+                                  'inputs = { files = "data/{id}" }\n')
+    r = cli("run", ws / "hand.toml", "-w", ws, "-n")
+    rows = {ln.split(None, 3)[1]: ln.split(None, 3)[3] for ln in r.stdout.splitlines()[2:]}
+    assert rows == {"001": "no output", "002": "up to date"}
