@@ -60,6 +60,10 @@ class FitConfig:
     w_exp: float = 1.0              # weight of ½‖exp/σ‖²
     rig_sigma_mm: float = 10.0      # soft rig constraint: camera centres within ~σ of the rig moved rigidly
                                     # (0 disables; needs rig_centers in the ViewSet)
+    head_sigma_mm: float = 25.0     # prior on where the head sits in the rig frame: the rig's look-at point
+                                    # (its origin) within ~σ of the model origin.  Breaks the face-size /
+                                    # distance ambiguity of a rig whose cameras all look from one side
+                                    # (0 disables)
     fit_expression: bool = True
     photo_vertices: int = 4000      # at most this many skin vertices in the photometric term
     photo_min_cos: float = 0.5      # a vertex enters a view's photometric term only if n·v exceeds this
@@ -240,6 +244,9 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             Rh = axis_angle_to_matrix(dwh * r_unit) @ Rh0_t
             ch = rig_t @ Rh.T + th0_t + dth * t_unit
             p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
+            if cfg.head_sigma_mm > 0:
+                th = th0_t + dth * t_unit
+                p = p + 0.5 * (th * th).sum() / cfg.head_sigma_mm ** 2
         return p / wsum
 
     history: list[dict] = []

@@ -1,0 +1,132 @@
+"""fit-geometry end to end on a tiny synthetic identity (synth multipie → preprocess-multipie → fit-geometry)."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from reflectmm_cli.artifacts import read_artifact, write_artifact
+from reflectmm_cli.cli import main
+from reflectmm_cli.fitting.camera_math import project
+from reflectmm_cli.fitting.landmarks import write_pts
+from reflectmm_cli.fitting.report import truth_errors
+
+VIEWS = "13_0,14_0,05_1,05_0,04_1"
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    ws = tmp_path_factory.mktemp("fitgeo")
+    run = CliRunner()
+    for args in (["synth", "multipie", "--out", ws / "syn", "--cameras", VIEWS + ",19_1", "--flashes", "07,18",
+                  "--image-size", "240x180", "--face-vertices", "2000", "--landmark-noise", "0.5"],
+                 ["preprocess-multipie", "--root", ws / "syn", "--id", "001", "--views", VIEWS,
+                  "--flashes", "07,18"]):
+        r = run.invoke(main, ["-q", *map(str, args), "-w", str(ws)], catch_exceptions=False)
+        assert r.exit_code == 0, r.output
+    return ws
+
+
+def test_fit_recovers_geometry(world, cli):
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--iters", "200", "--photo-rounds", "1")
+    assert r.exit_code == 0, r.output
+    out = world / "fit-geometry" / "001.npz"
+    assert str(out) in r.stdout.splitlines()
+    assert len([ln for ln in r.stdout.splitlines() if ln.endswith(".png")]) == 5
+    g = read_artifact(out, "geometry")
+    for k in ("shape_coeffs", "exp_coeffs", "vertices", "view_names", "K", "R", "t", "image_size", "cam_centers",
+              "flash_ids", "flash_pos", "flash_intensity", "landmark_rmse_px", "photo_residual"):
+        assert k in g.arrays, k
+    assert list(g["view_names"]) == VIEWS.split(",")
+    assert np.allclose(g["cam_centers"], -np.einsum("vji,vj->vi", g["R"], g["t"]))
+    # R orthonormal with det +1
+    assert np.allclose(np.einsum("vij,vkj->vik", g["R"], g["R"]), np.eye(3), atol=1e-9)
+    assert np.allclose(np.linalg.det(g["R"]), 1.0)
+    truth = read_artifact(world / "syn" / "truth" / "001.npz", "synth-truth")
+    # errors measured on this data set (240x180, 5 views, 0.5 px landmark noise): landmarks 0.25 px, vertices
+    # 2.6 mm RMS (4.4 % IOD), camera centres ≈ 21 mm (mostly the face-size / distance ambiguity of a frontal arc)
+    assert np.median(g["err_landmark_px"]) < 0.5
+    assert float(g["err_vertex_rmse_iod"]) < 0.08
+    assert np.median(g["err_cam_center_mm"]) < 40.0
+    # the fit beats the mean face at the true cameras (an independent baseline) in the image
+    fm = read_artifact(world / "syn" / "face_model.npz", "face-model")
+    names = list(truth["camera_names"])
+    base = []
+    for v, n in enumerate(g["view_names"]):
+        i = names.index(n)
+        u0 = project(fm["mean_shape"][fm["landmarks"]], truth["K"][i], truth["R"][i], truth["t"][i])[0]
+        ut = project(truth["vertices"][fm["landmarks"]], truth["K"][i], truth["R"][i], truth["t"][i])[0]
+        base.append(np.sqrt(((u0 - ut) ** 2).sum(-1).mean()))
+    assert np.median(g["err_landmark_px"]) < 0.5 * np.median(base)
+    # landmark residual ≈ the 0.5 px noise (per coordinate → ≈ 0.7 px per point)
+    assert 0.3 < np.median(g["landmark_rmse_px"]) < 1.2
+    assert np.all(np.isfinite(g["photo_residual"])) and np.all(g["photo_residual"] < 0.05)
+    # flashes: 07 sits at the fitted 05_1 centre; 18 (raised 19_1, not a view) comes from the rig, aligned
+    fl = list(g["flash_ids"])
+    assert np.allclose(g["flash_pos"][fl.index("07")], g["cam_centers"][VIEWS.split(",").index("05_1")])
+    tf = list(truth["flash_ids"])
+    assert np.linalg.norm(g["flash_pos"][fl.index("18")] - truth["flash_pos"][tf.index("18")]) < 60.0
+    assert np.allclose(g["flash_intensity"], truth["flash_intensity"][[tf.index(f) for f in fl]])
+    assert g.meta["report"]["truth"]["err_vertex_rmse_mm"] == pytest.approx(float(g["err_vertex_rmse_mm"]), 1e-3)
+
+
+def test_from_truth_round_trip(world, cli):
+    out = world / "gt.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", world / "syn" / "truth" / "001.npz",
+            "-o", out)
+    assert r.exit_code == 0, r.output
+    g = read_artifact(out, "geometry")
+    truth = read_artifact(world / "syn" / "truth" / "001.npz", "synth-truth")
+    names = list(truth["camera_names"])
+    idx = [names.index(n) for n in g["view_names"]]
+    assert list(g["view_names"]) == VIEWS.split(",") and list(g["flash_ids"]) == ["07", "18"]
+    assert np.array_equal(g["vertices"], truth["vertices"])
+    assert np.allclose(g["R"], truth["R"][idx]) and np.allclose(g["t"], truth["t"][idx])
+    assert np.allclose(g["cam_centers"], truth["cam_centers"][idx])
+    fm = read_artifact(world / "syn" / "face_model.npz", "face-model")
+    errs = truth_errors(g["vertices"], g["K"], g["R"], g["t"], truth["vertices"], truth["K"][idx],
+                        truth["R"][idx], truth["t"][idx], fm["landmarks"])
+    assert float(errs["err_vertex_rmse_mm"]) == 0.0 and np.all(errs["err_cam_center_mm"] < 1e-9)
+    # the true geometry against the noisy (σ = 0.5 px) capture landmarks
+    assert 0.3 < np.median(g["landmark_rmse_px"]) < 1.2
+
+
+def _err(r):
+    assert r.exit_code == 1, r.output
+    return r.stderr
+
+
+def test_bad_landmark_file(world, cli, tmp_path):
+    write_pts(tmp_path / "05_1.pts", np.zeros((60, 2)))
+    msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--landmarks", tmp_path, "-o", tmp_path / "g.npz"))
+    assert "05_1.pts" in msg and "expected 68 landmarks, found 60" in msg
+
+
+def test_view_not_in_rig(world, cli, tmp_path):
+    text = (world / "syn" / "rig.toml").read_text()
+    blocks = text.split("[[camera]]")
+    kept = [b for b in blocks if 'name = "13_0"' not in b]
+    (tmp_path / "rig.toml").write_text("[[camera]]".join(kept).replace('camera = "13_0"', 'camera = "05_1"'))
+    msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--rig", tmp_path / "rig.toml",
+                   "-o", tmp_path / "g.npz"))
+    assert "13_0" in msg and "not cameras of the rig" in msg and "rig.toml" in msg
+
+
+def test_no_landmarks_for_a_view(world, cli, tmp_path):
+    cap = read_artifact(world / "preprocess-multipie" / "001.npz", "capture")
+    arrays = dict(cap.arrays)
+    lm = arrays["landmarks"].copy()
+    lm[1] = np.nan
+    arrays["landmarks"] = lm
+    bad = tmp_path / "capture.npz"
+    write_artifact(bad, "capture", arrays, params=cap.params, inputs=cap.meta["inputs"])
+    msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--capture", bad,
+                   "--face-model", world / "syn" / "face_model.npz", "-o", tmp_path / "g.npz"))
+    assert "no landmarks for view 14_0" in msg and "001_01_01_140_00_lm.pts" in msg
+
+
+def test_missing_face_model_and_capture(world, cli, tmp_path):
+    msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--face-model", tmp_path / "nope.npz",
+                   "-o", tmp_path / "g.npz"))
+    assert "nope.npz" in msg
+    msg = _err(cli("fit-geometry", "--id", "002", "-w", world))
+    assert "capture artifact not found" in msg and "002.npz" in msg
