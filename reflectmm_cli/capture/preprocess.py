@@ -47,7 +47,7 @@ class CaptureOptions:
     rotate: Mapping[str, int] = field(default_factory=dict)
     landmarks_dir: Path | None = None
     crop: str = "auto"
-    crop_margin: float = 0.3
+    crop_margin: float = 0.6
 
     def params(self) -> dict[str, Any]:
         """The options as artifact params (canonical values)."""

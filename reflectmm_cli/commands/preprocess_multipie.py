@@ -37,7 +37,7 @@ def options_from_ctx(ctx: StageContext) -> CaptureOptions:
                           transfer=str(ctx.param("transfer", "gamma1.2")),
                           rotate=parse_rotate(ctx.param("rotate") or {}),
                           landmarks_dir=Path(lm[0]) if lm else None,
-                          crop=str(ctx.param("crop", "auto")), crop_margin=float(ctx.param("crop_margin", 0.3)))
+                          crop=str(ctx.param("crop", "auto")), crop_margin=float(ctx.param("crop_margin", 0.6)))
 
 
 def _require_identity(ctx: StageContext) -> str:
@@ -110,7 +110,7 @@ def run_preprocess(ctx: StageContext) -> list[Path]:
               help="Folder with SSS_NN_RR_CCC_00_lm.{pts,txt,npy} files (default: beside the images).")
 @click.option("--crop", type=click.Choice(CROP_MODES), default="auto", show_default=True,
               help="Store a face window (landmarks / lit pixels) or full frames (none).")
-@click.option("--crop-margin", type=float, default=0.3, show_default=True,
+@click.option("--crop-margin", type=float, default=0.6, show_default=True,
               help="Margin around the landmark box, as a fraction of its larger side.")
 @workspace_option
 @output_option

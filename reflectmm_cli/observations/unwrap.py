@@ -271,7 +271,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
               "rays_view": int(rays_view), "rays_shadow": int(rays_flash), "rays_depth": int(rays_depth),
               "footprint_rejected": int(footprint_rejected),
               "skipped_backfacing_light": int(skipped_back), "skipped_unseen": int(skipped_unseen),
-              "texels_unseen": int((~seen).sum()), "texels_outside_images": int((~inside_any).sum()),
+              "texels_unseen": int((~seen).sum()), "texels_outside_images": int((seen & ~inside_any).sum()),
               "observed_pairs": int(observed.sum()), "saturated_pairs": int(saturated.sum()),
               "ray_engine": "embree"}
     if with_conditioning:
