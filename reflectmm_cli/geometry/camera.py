@@ -82,16 +82,22 @@ class Camera:
         return np.stack([u.ravel(), v.ravel()], axis=1)
 
     def rays(self, pixels=None) -> tuple[np.ndarray, np.ndarray]:
-        """Rays through pixel centres: (origins (M, 3), unit directions (M, 3)) in model space.
+        """Rays through pixel centres: (origins (M, 3), unit directions (M, 3)) in model space, float64.
 
-        ``pixels`` (M, 2) in pixel coordinates; default: every pixel in row-major order (M = H·W).
+        ``pixels`` (M, 2) in pixel coordinates; default: every pixel in row-major order (M = H·W).  The
+        origins are a read-only broadcast of the camera centre.
         """
-        px = self.pixel_grid() if pixels is None else np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-        h = np.concatenate([px, np.ones((px.shape[0], 1))], axis=1)
-        d_cam = np.linalg.solve(self.K, h.T).T
-        d = d_cam @ self.R  # R^T d_cam, row-wise
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        o = np.broadcast_to(self.center, d.shape).copy()
+        M = self.R.T @ np.linalg.inv(self.K)  # pixel (u, v, 1) → model-space direction
+        if pixels is None:
+            u = np.arange(self.width, dtype=np.float64)
+            v = np.arange(self.height, dtype=np.float64)
+            d = (v[:, None, None] * M[:, 1] + M[:, 2])[:, None, :] + (u[:, None] * M[:, 0])[None, :, :]
+            d = d.reshape(-1, 3)
+        else:
+            px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+            d = px[:, :1] * M[:, 0] + px[:, 1:2] * M[:, 1] + M[:, 2]
+        d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+        o = np.broadcast_to(self.center, d.shape)
         return o, d
 
     def with_size(self, width: int, height: int) -> "Camera":
