@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from reflectmm_cli import __version__
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages import StageContext
 
@@ -41,6 +42,8 @@ class TaskSpec:
     deps: list[str] = field(default_factory=list)
     key_doc: dict[str, Any] | None = None
     resources: dict[str, Any] = field(default_factory=dict)
+    #: the reflectmm version of the planning process; a worker running another version refuses the task
+    tool_version: str = __version__
 
 
 def _result(spec: TaskSpec, status: str, *, outputs: list[str] | None = None, cache_key: str | None = None,
@@ -80,6 +83,9 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
     doc = spec.key_doc
     key = None
     try:
+        if spec.tool_version != __version__:
+            raise ReflectmmError(f"worker runs reflectmm {__version__}, the run was planned with "
+                                 f"{spec.tool_version}; install the same version on every worker")
         stage = get_stage(spec.verb)
         if doc is None:
             doc = cache_key_doc(stage, spec.ctx)

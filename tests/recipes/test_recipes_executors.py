@@ -120,3 +120,17 @@ def test_pool_survives_a_killed_worker(tmp_path):
         again = ex.run([spec("after", ok_file)], lambda r: None)
         assert again["after"]["status"] == "ok"
     assert (tmp_path / "after" / "after.npz").exists()
+
+
+def test_worker_with_another_version_refuses_the_task(tmp_path):
+    from reflectmm_cli.recipes import TaskSpec, execute_task
+    from reflectmm_cli.stages import get_stage
+
+    f = tmp_path / "x.txt"
+    f.write_text("x")
+    ctx = get_stage("checksum").context(workspace=tmp_path, inputs={"files": [f]})
+    res = execute_task(TaskSpec("checksum", "checksum", ctx, tool_version="0.0.0-other"))
+    assert res["status"] == "failed" and "planned with 0.0.0-other" in res["error"]
+    assert not (tmp_path / "checksum").exists()
+    res = execute_task(TaskSpec("checksum", "checksum", ctx))
+    assert res["status"] == "ok" and res["outputs"] == [str(tmp_path / "checksum" / "checksum.npz")]
