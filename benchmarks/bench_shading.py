@@ -36,14 +36,22 @@ from reflectmm_cli.shading import (  # noqa: E402
 EXPONENTS = (1.0, 8.0, 64.0)
 
 
-def median_time(fn, repeat=5, warmup=1):
+CPU_TIMES = {}
+
+
+def median_time(fn, repeat=5, warmup=1, label=None):
+    """Median wall time; the median CPU time (all threads of this process) is kept in CPU_TIMES[label]."""
     for _ in range(warmup):
         fn()
-    ts = []
+    ts, cs = [], []
     for _ in range(repeat):
+        c = time.process_time()
         t = time.perf_counter()
         fn()
         ts.append(time.perf_counter() - t)
+        cs.append(time.process_time() - c)
+    if label is not None:
+        CPU_TIMES[label] = statistics.median(cs)
     return statistics.median(ts)
 
 
@@ -188,32 +196,40 @@ def throughput(quick):
     P = np.array(EXPONENTS, np.float32)
     rep = 3 if quick else 5
     res = {}
-    res["full"] = median_time(lambda: shade_env(c, w, P, n, v, K), rep)
+
+    def median_time_l(fn, rep_, key):
+        return median_time(fn, rep_, label=key)
+
+    res["full"] = median_time_l(lambda: shade_env(c, w, P, n, v, K), rep, "full")
+    res["full, 1 thread"] = median_time_l(lambda: shade_env(c, w, P, n, v, K, threads=1), rep, "full, 1 thread")
     for tol in (1e-3, 1e-2):
-        res[f"band_tol={tol:g}"] = median_time(lambda: shade_env(c, w, P, n, v, K, band_tol=tol), rep)
+        res[f"band_tol={tol:g}"] = median_time_l(lambda: shade_env(c, w, P, n, v, K, band_tol=tol), rep, f"band_tol={tol:g}")
     w0 = w.copy()
     w0[:, 0] = 0
-    res["one lobe all-zero"] = median_time(lambda: shade_env(c, w0, P, n, v, K), rep)
+    res["one lobe all-zero"] = median_time_l(lambda: shade_env(c, w0, P, n, v, K), rep, "one lobe all-zero")
     wz = np.zeros_like(w)
-    res["all lobes zero (diffuse only)"] = median_time(lambda: shade_env(c, wz, P, n, v, K), rep)
+    res["all lobes zero (diffuse only)"] = median_time_l(lambda: shade_env(c, wz, P, n, v, K), rep, "all lobes zero (diffuse only)")
     mask = np.random.default_rng(2).random(N) < 0.3
-    res["mask 30% of texels"] = median_time(lambda: shade_env(c, w, P, n, v, K, mask=mask), rep)
+    res["mask 30% of texels"] = median_time_l(lambda: shade_env(c, w, P, n, v, K, mask=mask), rep, "mask 30% of texels")
     nb = n.copy()
     nb[: N // 2, 2] *= -1
-    res["half the texels back-facing"] = median_time(lambda: shade_env(c, w, P, nb, v, K), rep)
-    res["float64"] = median_time(lambda: shade_env(*(a.astype(np.float64) for a in (c, w, P, n, v, K))), rep)
+    res["half the texels back-facing"] = median_time_l(lambda: shade_env(c, w, P, nb, v, K), rep, "half the texels back-facing")
+    res["view_correction=True"] = median_time_l(lambda: shade_env(c, w, P, n, v, K, view_correction=True), rep,
+                                                "view_correction=True")
+    c64, w64, P64, n64, v64, K64 = (a.astype(np.float64) for a in (c, w, P, n, v, K))
+    res["float64"] = median_time_l(lambda: shade_env(c64, w64, P64, n64, v64, K64), rep, "float64")
     import torch
 
     tt = [torch.from_numpy(a) for a in (c, w, P, n, v, K)]
     with torch.no_grad():
-        res["torch (no grad)"] = median_time(lambda: shade_env(*tt), rep)
+        res["torch (no grad)"] = median_time_l(lambda: shade_env(*tt), rep, "torch (no grad)")
     tg = [x.clone().requires_grad_(i in (0, 1, 5)) for i, x in enumerate(tt)]
 
     def fb():
         d, s = shade_env(*tg)
         (d.sum() + s.sum()).backward()
 
-    res["torch forward+backward"] = median_time(fb, max(1, rep - 2))
+    res["torch forward+backward"] = median_time_l(fb, max(1, rep - 2), "torch forward+backward")
     return N, order, res
 
 
@@ -236,10 +252,16 @@ def speed_report(quick):
            f"Roofline estimate per texel: {ew_ops} elementwise basis ops ({1e9 * t_ew:.0f} ns) + "
            f"{mm_flops} matmul flops ({1e9 * t_mm:.0f} ns) + {bytes_io} B of input/output ({1e9 * t_mem:.1f} ns) "
            f"→ **{roof / 1e6:.1f} M texels/s** upper bound for this algorithm on this machine.\n",
-           f"\n| case ({N} texels) | median time | texels/s | vs full |\n|---|---|---|---|"]
-    full = res["full"]
+           f"\nLoad average when measured: {os.getloadavg()[0]:.1f} (the machine is shared; wall times vary with "
+           f"it, CPU times much less). *texels per CPU-second* = N / CPU time of all threads; on 2 idle cores the "
+           f"wall throughput of the threaded path approaches twice that.\n",
+           f"\n| case ({N} texels) | median wall | texels/s (wall) | median CPU | texels per CPU-s | CPU vs full |"
+           f"\n|---|---|---|---|---|---|"]
+    cfull = CPU_TIMES["full"]
     for k, t in res.items():
-        out.append(f"| {k} | {1e3 * t:.0f} ms | {N / t / 1e6:.2f} M | {full / t:.2f}× |")
+        cpu = CPU_TIMES.get(k, float("nan"))
+        out.append(f"| {k} | {1e3 * t:.0f} ms | {N / t / 1e6:.2f} M | {1e3 * cpu:.0f} ms | {N / cpu / 1e6:.2f} M "
+                   f"| {cfull / cpu:.2f}× |")
     return "\n".join(out)
 
 

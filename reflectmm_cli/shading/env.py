@@ -269,6 +269,35 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
     return diffuse.reshape(lead + (3,)), specular.reshape(lead + (3,))
 
 
+class _CoeffMajor:
+    """A basis stored coefficient-major, (n, N), for texels of leading shape ``lead``."""
+
+    def __init__(self, Y, lead):
+        self.Y, self.lead = Y, lead
+
+    def __getitem__(self, key):  # only [..., :k] is used
+        return _CoeffMajor(self.Y[: key[1].stop], self.lead)
+
+    def apply(self, Kx):  # Kx (3, k) → (*lead, 3) via one contiguous (3, k) @ (k, N) matmul
+        return (Kx @ self.Y).T.reshape(*self.lead, Kx.shape[0])
+
+
+def _basis_numpy_to_torch(d, order):
+    """SH basis of a CPU tensor of unit vectors (no grad) via the blocked in-place numpy kernel."""
+    import torch
+
+    lead = tuple(d.shape[:-1])
+    a = d.detach().reshape(-1, 3).numpy()
+    N = a.shape[0]
+    n = (order + 1) ** 2
+    out = np.empty((n, N), a.dtype)  # coefficient-major; the transpose below is a free view
+    t = np.ascontiguousarray(a.T)
+    for s0 in range(0, N, DEFAULT_CHUNK):
+        s1 = min(N, s0 + DEFAULT_CHUNK)
+        sh_basis_into(t[0, s0:s1], t[1, s0:s1], t[2, s0:s1], order, out[:, s0:s1])
+    return _CoeffMajor(torch.from_numpy(out), lead)
+
+
 def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_exponents=None):
     """Broadcasting path: torch (differentiable) or per-texel lighting in numpy."""
     if tm:
@@ -297,11 +326,19 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
     nd = (Ld + 1) ** 2
     nn = norm(n)
     vv = norm(v)
-    Yn = sh_basis(nn, Ld, normalize=False)
+    # Geometry without gradients (finetuning uses fixed precomputed geometry): evaluate the basis with the
+    # blocked numpy kernel and keep only the cheap linear part in the autograd graph.
+    fixed_geom = tm and nn.device.type == "cpu" and not (nn.requires_grad or vv.requires_grad)
+    basis = _basis_numpy_to_torch if fixed_geom else (lambda d, L: sh_basis(d, L, normalize=False))
+    Yn = basis(nn, Ld)
     KA = K[..., :nd] * As[lvl[:nd]]
     glob = K.ndim == 2
 
     def apply(Kx, Y):  # Σ_n Kx[c, n] Y[..., n]
+        if isinstance(Y, _CoeffMajor):
+            if glob:
+                return Y.apply(Kx)
+            Y = Y.Y.T.reshape(*Y.lead, Y.Y.shape[0])
         return Y @ Kx.T if glob else einsum("...cn,...n->...c", Kx, Y)
 
     diffuse = c * apply(KA, Yn) * (1.0 / math.pi)
@@ -310,7 +347,7 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
     spec = None
     if active:
         Lsmax = max(Ls[i] for i in active)
-        Yr = sh_basis(r, Lsmax, normalize=False)
+        Yr = basis(r, Lsmax)
         for i in active:
             ni = (Ls[i] + 1) ** 2
             Si = apply(K[..., :ni] * Bs[i][lvl[:ni]], Yr[..., :ni]) * w[..., i:i + 1]
