@@ -216,7 +216,10 @@ def _run_locked(recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Pla
 
 
 def _deferred_reason(plan: Plan, stage: str) -> str:
-    ups = [u for u in plan.recipe.stages[stage].upstream()]
+    ups = plan.recipe.stages[stage].upstream()
+    waiting = [u for u in ups if u in plan.deferred]
+    if waiting:
+        return f"waits for {', '.join(waiting)} (identities not known yet)"
     return f"identities are found once {', '.join(ups) or 'upstream'} has run"
 
 
