@@ -227,8 +227,12 @@ def evaluate_representation_cmd(ids, inputs, exponents_sets, holdout, no_baselin
 
 
 def _report_outputs(ctx: StageContext) -> list[Path]:
-    out = ctx.output_path(suffix=".md") if ctx.output is None else Path(ctx.output)
-    return [out, out.with_suffix(".npz")]
+    """[evaluation artifact (primary, carries the cache key), markdown report]."""
+    if ctx.output is not None and Path(ctx.output).suffix.lower() != ".npz":
+        md = Path(ctx.output)
+        return [md.with_suffix(".npz"), md]
+    npz = ctx.output_path()
+    return [npz, npz.with_suffix(".md")]
 
 
 @register_stage("evaluate-report", version=1, per_identity=False, outputs=_report_outputs,
@@ -236,7 +240,7 @@ def _report_outputs(ctx: StageContext) -> list[Path]:
 def run_evaluate_report(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.report import build_report
 
-    out_md = _report_outputs(ctx)[0]
+    out_npz, out_md = _report_outputs(ctx)
     text, doc = build_report(ctx.workspace, out_md,
                              geometry=ctx.input_list("geometry", required=False),
                              maps=ctx.input_list("maps", required=False),
@@ -244,7 +248,6 @@ def run_evaluate_report(ctx: StageContext) -> list[Path]:
                              truth=ctx.input_list("truth", required=False),
                              representation=ctx.input_list("representation", required=False),
                              progress=lambda it, **k: progress(it, **k))
-    out_npz = out_md.with_suffix(".npz")
     flat = _flatten("", doc, {})
     names = sorted(flat)
     write_artifact(out_npz, EVAL_KIND, {"names": np.array(names, dtype=str),
