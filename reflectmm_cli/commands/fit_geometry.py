@@ -324,7 +324,6 @@ def _config_from_params(params: dict) -> Any:
 @register_stage(VERB, version=1, per_identity=True, outputs=_outputs,
                 help="capture + face model + rig -> fitted shape/expression and cameras (geometry)")
 def run_fit_geometry(ctx: StageContext) -> list[Path]:
-    from reflectmm_cli.fitting.model import vertex_normals
     from reflectmm_cli.fitting.report import overlay
 
     identity = ctx.identity
@@ -360,12 +359,11 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
     written = [out]
     if not ctx.param("no_overlay"):
         model = ex["model"]
-        nrm = vertex_normals(arrays["vertices"].astype(np.float64), model.triangles)
+        scale = max(1, int(np.ceil(360 / max(ex["room"].shape[1], 1))))
         for v, name in enumerate(arrays["view_names"]):
-            img = overlay(ex["room"][v], arrays["vertices"].astype(np.float64), model.triangles, nrm,
-                          arrays["K"][v], arrays["R"][v], arrays["t"][v], arrays["landmarks_given"][v],
-                          arrays["landmarks_fit"][v], origin=ex["origin"][v], max_edges=2500,
-                          scale=max(1, int(np.ceil(480 / max(ex["room"].shape[1], 1)))))
+            img = overlay(ex["room"][v], arrays["vertices"].astype(np.float64), model.triangles, arrays["K"][v],
+                          arrays["R"][v], arrays["t"][v], arrays["landmarks_given"][v], arrays["landmarks_fit"][v],
+                          origin=ex["origin"][v], scale=scale)
             written.append(write_png(ctx.output_path(f"{identity}_overlay_{name}", ".png"), img))
     msg = (f"fit-geometry {identity}: landmark RMS {np.median(arrays['landmark_rmse_px']):.2f} px (median of "
            f"{len(arrays['view_names'])} views), photometric RMS "

@@ -52,45 +52,56 @@ def display_image(linear: np.ndarray) -> np.ndarray:
     return (y * 255.0 + 0.5).astype(np.uint8)
 
 
-def overlay(image: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray, K: np.ndarray,
-            R: np.ndarray, t: np.ndarray, landmarks_given: np.ndarray, landmarks_fit: np.ndarray,
-            origin=(0.0, 0.0), max_edges: int = 6000, scale: int = 1) -> np.ndarray:
-    """RGB uint8 overlay: the camera-facing wireframe of the fitted mesh (thin, cyan) over the room-light image,
-    given landmarks (green dots), fitted landmark projections (red crosses) and their differences (yellow).
+def overlay(image: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, R: np.ndarray,
+            t: np.ndarray, landmarks_given: np.ndarray, landmarks_fit: np.ndarray, origin=(0.0, 0.0),
+            scale: int = 1, alpha: float = 0.45) -> np.ndarray:
+    """RGB uint8 overlay of a fitted mesh on one view.
 
-    ``K`` is full-frame; ``origin`` (x0, y0) is the full-frame pixel of the image's top-left pixel.
+    The mesh is ray traced (Embree) in the pixel frame of ``image`` and shown as a shaded surface (cool tint,
+    shading ``0.25 + 0.75 n·v``) blended with weight ``alpha``, plus its silhouette (white); given landmarks are
+    green dots, fitted landmark projections red crosses, joined by yellow lines.  ``K`` is full-frame;
+    ``origin`` (x0, y0) is the full-frame pixel of the image's top-left pixel; ``scale`` upsamples the result.
     """
     import cv2
+
+    from reflectmm_cli.geometry import Camera, RayScene, rasterize
 
     img = display_image(image) if image.dtype != np.uint8 else image.copy()
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, -1)
     H, W = img.shape[:2]
-    if scale != 1:
-        img = cv2.resize(img, (W * scale, H * scale), interpolation=cv2.INTER_NEAREST)
     off = np.asarray(origin, dtype=np.float64)
-    uv, z = project(vertices, K, R, t)
-    uv = (uv - off + 0.5) * scale - 0.5
-    c = camera_centers(R, t)
-    tri = np.asarray(triangles)
-    cen = np.asarray(vertices)[tri].mean(1)
-    fn = np.cross(vertices[tri[:, 1]] - vertices[tri[:, 0]], vertices[tri[:, 2]] - vertices[tri[:, 0]])
-    facing = ((c[None] - cen) * fn).sum(-1) > 0
-    tri = tri[facing & (z[tri] > 0).all(1)]
-    step = max(1, int(np.ceil(len(tri) / max(max_edges // 3, 1))))
-    tri = tri[::step]
-    canvas = img.copy()
-    pts = np.round(uv[tri] * 16).astype(np.int32)  # 4 bits of sub-pixel precision
-    cv2.polylines(canvas, list(pts), True, (0, 200, 255), 1, cv2.LINE_AA, shift=4)
-    img = cv2.addWeighted(canvas, 0.45, img, 0.55, 0.0)
-    lg = (np.asarray(landmarks_given, dtype=np.float64) - off + 0.5) * scale - 0.5
-    lf = (np.asarray(landmarks_fit, dtype=np.float64) - off + 0.5) * scale - 0.5
-    r = max(2, scale + 1)
+    S = int(scale)
+    # camera of the upsampled crop: pixel p_full -> (p_full - off + 0.5) * S - 0.5
+    Kc = np.asarray(K, dtype=np.float64).copy()
+    Kc[:2, :2] *= S
+    Kc[0, 2] = (Kc[0, 2] - off[0] + 0.5) * S - 0.5
+    Kc[1, 2] = (Kc[1, 2] - off[1] + 0.5) * S - 0.5
+    if S != 1:
+        img = cv2.resize(img, (W * S, H * S), interpolation=cv2.INTER_NEAREST)
+    ras = rasterize(RayScene(vertices, triangles), Camera(Kc, R, t, W * S, H * S, "overlay"))
+    m = ras.mask
+    if m.any():
+        c = camera_centers(R, t)
+        v = c[None] - ras.position[m].astype(np.float64)
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+        ndv = np.clip((ras.normal[m] * v).sum(-1), 0.0, 1.0)
+        shade = (0.25 + 0.75 * ndv)[:, None] * np.array([150.0, 200.0, 255.0])
+        out = img.astype(np.float32)
+        out[m] = (1 - alpha) * out[m] + alpha * shade
+        img = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+        edge = m ^ cv2.erode(m.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        img[edge] = (255, 255, 255)
+    lg = (np.asarray(landmarks_given, dtype=np.float64) - off + 0.5) * S - 0.5
+    lf = (np.asarray(landmarks_fit, dtype=np.float64) - off + 0.5) * S - 0.5
+    r = max(2, S + 1)
     for a, b in zip(lg, lf):
-        if np.all(np.isfinite(a)):
-            cv2.line(img, tuple(int(round(x)) for x in a), tuple(int(round(x)) for x in b), (255, 255, 0), 1,
-                     cv2.LINE_AA)
-            cv2.circle(img, tuple(int(round(x)) for x in a), r, (0, 255, 0), -1, cv2.LINE_AA)
+        if not np.all(np.isfinite(b)):
+            continue
         bb = tuple(int(round(x)) for x in b)
+        if np.all(np.isfinite(a)):
+            aa = tuple(int(round(x)) for x in a)
+            cv2.line(img, aa, bb, (255, 255, 0), 1, cv2.LINE_AA)
+            cv2.circle(img, aa, r, (0, 255, 0), -1, cv2.LINE_AA)
         cv2.drawMarker(img, bb, (255, 0, 0), cv2.MARKER_TILTED_CROSS, 2 * r + 1, 1, cv2.LINE_AA)
     return img
