@@ -230,10 +230,39 @@ def envmap_contact_sheet(images: list[np.ndarray], cols: int = 4, thumb_width: i
     return sheet
 
 
+def _write_rgb_exr(path: Path, img: np.ndarray, meta: dict) -> Path:
+    """Float32 R,G,B EXR (zip) with the meta JSON in ``reflectmm:meta``, atomically and byte-reproducibly.
+
+    Written with OpenImageIO directly rather than ``artifacts.write_exr`` because the OpenEXR writer stamps the
+    current time into the header (``capDate``) unless a ``DateTime`` is given; a fixed one keeps reruns
+    byte-identical.
+    """
+    import OpenImageIO as oiio
+
+    from reflectmm_cli.artifacts import EXR_META_ATTR, atomic_path, canonical_json
+
+    h, w = img.shape[:2]
+    spec = oiio.ImageSpec(w, h, 3, "float")
+    spec.channelnames = ("R", "G", "B")
+    spec.attribute("compression", "zip")
+    spec.attribute("DateTime", "1980:01:01 00:00:00")
+    spec.attribute(EXR_META_ATTR, canonical_json(meta))
+    with atomic_path(path, suffix=".exr") as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise ReflectmmError(f"cannot open EXR for writing: {oiio.geterror()}", path)
+        ok = out.write_image(np.ascontiguousarray(img, dtype=np.float32))
+        err = out.geterror()
+        out.close()
+        if not ok:
+            raise ReflectmmError(f"cannot write EXR: {err}", path)
+    return Path(path)
+
+
 def write_envmaps(out_dir: str | Path, count: int, seed: int = 0, width: int = 512, *, meta_base: dict | None = None,
                   contact_sheet: bool = True) -> list[Path]:
     """Write ``count`` maps ``env_NNNN_<kind>.exr`` (float32 R,G,B + meta) and ``contact_sheet.png``."""
-    from reflectmm_cli.artifacts import write_exr, write_png
+    from reflectmm_cli.artifacts import write_png
     from reflectmm_cli.progress import progress
 
     if count < 1:
@@ -248,7 +277,7 @@ def write_envmaps(out_dir: str | Path, count: int, seed: int = 0, width: int = 5
                           "convention": "equirect +y up, phi=0 at -z (reflectmm_cli.shading.envmap)",
                           "units": "linear radiance"}
         p = out / f"env_{i:04d}_{kind}.exr"
-        write_exr(p, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]}, meta=meta)
+        _write_rgb_exr(p, img, meta)
         paths.append(p)
         images.append(img)
     if contact_sheet:

@@ -3,7 +3,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import integrate
 
@@ -32,12 +32,13 @@ def test_ndf_projected_area_is_one(alpha):
     assert 2 * math.pi * val == pytest.approx(1.0, rel=1e-6)
 
 
+@settings(max_examples=12)
 @given(alphas, st.floats(0.05, 1.0))
 def test_smith_g1_weak_white_furnace(alpha, cos_v):
     # ∫ G1(v) max(v·h, 0) D(h) dω_h = n·v  (Heitz 2014, eq. 18) with G1 = 1/(1+Λ(v)); 2-D Gauss-Legendre.
     sin_v = math.sqrt(1 - cos_v * cos_v)
     v = np.array([sin_v, 0.0, cos_v])
-    xt, wt = np.polynomial.legendre.leggauss(400)
+    xt, wt = np.polynomial.legendre.leggauss(160)
     # θ_h on [0, π/2] split at a few α-scaled points for peaked D
     edges = np.unique(np.clip([0, 0.2 * alpha, alpha, 3 * alpha, math.pi / 2], 0, math.pi / 2))
     th, wth = [], []
@@ -45,12 +46,12 @@ def test_smith_g1_weak_white_furnace(alpha, cos_v):
         th.append(0.5 * (b - a) * xt + 0.5 * (a + b))
         wth.append(0.5 * (b - a) * wt)
     th, wth = np.concatenate(th), np.concatenate(wth)
-    ph = (np.arange(256) + 0.5) * 2 * math.pi / 256
+    ph = (np.arange(128) + 0.5) * 2 * math.pi / 128
     T, P = np.meshgrid(th, ph, indexing="ij")
     h = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1)
     vdh = np.maximum(h @ v, 0)
     integrand = vdh * ggx_ndf(np.cos(T), alpha) * np.sin(T)
-    total = (integrand * wth[:, None]).sum() * (2 * math.pi / 256)
+    total = (integrand * wth[:, None]).sum() * (2 * math.pi / 128)
     g1 = 1.0 / (1.0 + smith_lambda(cos_v, alpha))
     assert g1 * total == pytest.approx(cos_v, rel=2e-3)
 
