@@ -39,8 +39,9 @@ def _fit(m, K, Rn, tn, lm, **cfg):
 
 def test_exact_landmarks_recover_pose_and_shape():
     m, zs, ze, verts, K, R, t, Rn, tn, lm = _scene()
-    # exact data: priors off (they would bias the exact solution); the rig constraint is exact here
-    fit = _fit(m, K, Rn, tn, lm, w_shape=0.0, w_exp=0.0, landmark_iters=800)
+    # exact data: priors off (they would bias the exact solution; the head is 18 mm off the rig origin here);
+    # the rig constraint is exact
+    fit = _fit(m, K, Rn, tn, lm, w_shape=0.0, w_exp=0.0, head_sigma_mm=0.0, landmark_iters=800)
     assert fit.landmark_rmse_px.max() < 1e-3
     assert np.abs(fit.shape_coeffs / m.shape_sigma - zs).max() < 2e-3
     assert np.abs(fit.exp_coeffs / m.exp_sigma - ze).max() < 2e-3
@@ -65,7 +66,7 @@ def test_missing_landmarks_are_ignored_and_too_few_refused():
     m, zs, ze, verts, K, R, t, Rn, tn, lm = _scene()
     lm2 = lm.copy()
     lm2[0, :30] = np.nan  # a half-occluded side view
-    fit = _fit(m, K, Rn, tn, lm2, w_shape=0.0, w_exp=0.0, landmark_iters=800)
+    fit = _fit(m, K, Rn, tn, lm2, w_shape=0.0, w_exp=0.0, head_sigma_mm=0.0, landmark_iters=800)
     assert np.sqrt(((fit.vertices - verts) ** 2).sum(-1).mean()) < 0.05
     lm2[1, 3:] = np.nan
     with pytest.raises(ReflectmmError, match="only 3 valid landmarks"):
