@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.recipes import load_recipe, run_recipe
@@ -119,3 +121,39 @@ def test_bad_recipe_loses_nothing(ws):
     with pytest.raises(ReflectmmError):
         run_recipe(ws / "r.toml", ws)
     assert {p: p.read_bytes() for p in (ws / "manifest").iterdir()} == before
+
+
+@given(st.integers(2, 7).flatmap(lambda n: st.tuples(
+    st.just(n), st.sets(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=14))))
+def test_random_graphs_order_or_name_a_real_cycle(graph):
+    """Against an independent check: acyclic graphs get a topological order, cyclic ones a real cycle."""
+    from pathlib import Path
+
+    from reflectmm_cli.recipes import parse_recipe_text
+
+    n, edges = graph  # (a, b): stage s{b} reads s{a}
+    lines = [HEAD]
+    for b in range(n):
+        srcs = sorted({f"@s{a}.output" for a, bb in edges if bb == b})
+        lines.append(f"[stages.s{b}]\nverb = \"checksum\"\ninputs = {{ files = {srcs + ['data']!r} }}\n"
+                     .replace("'", '"'))
+    text = "\n".join(lines)
+    # independent acyclicity check: repeatedly strip nodes without incoming edges
+    remaining, es = set(range(n)), set(edges)
+    while True:
+        free = {v for v in remaining if not any(b == v and a in remaining for a, b in es)}
+        if not free:
+            break
+        remaining -= free
+    if not remaining:
+        order = parse_recipe_text(text, Path("g.toml")).order()
+        pos = {f"s{i}": k for k, i in enumerate(int(s[1:]) for s in order)}
+        assert sorted(pos) == sorted(f"s{i}" for i in range(n))
+        assert all(pos[f"s{a}"] < pos[f"s{b}"] for a, b in edges)
+    else:
+        with pytest.raises(ReflectmmError, match="cycle") as ei:
+            parse_recipe_text(text, Path("g.toml"))
+        nodes = str(ei.value).split("cycle: ", 1)[1].split(" -> ")
+        assert nodes[0] == nodes[-1]
+        hops = list(zip(nodes, nodes[1:]))
+        assert all((int(x[1:]), int(y[1:])) in edges for x, y in hops)  # every hop is a real edge
