@@ -174,16 +174,30 @@ def inspect_cmd(ctx, files, as_json):
         except ReflectmmError as exc:
             errors.append({"path": str(f), "error": str(exc)})
             click.echo(f"reflectmm: error: {exc}", err=True)
-    if as_json:
-        click.echo(json.dumps({"artifacts": docs, "errors": errors}, indent=2, sort_keys=True, default=str))
-    else:
-        for i, d in enumerate(docs):
-            if i:
-                click.echo("")
-            for line in format_inspection(d):
-                click.echo(line)
+    try:
+        if as_json:
+            click.echo(json.dumps({"artifacts": docs, "errors": errors}, indent=2, sort_keys=True, default=str))
+        else:
+            for i, d in enumerate(docs):
+                if i:
+                    click.echo("")
+                for line in format_inspection(d):
+                    click.echo(line)
+    except BrokenPipeError:  # `reflectmm inspect ... | head`: the reader has gone, that is not an error
+        _silence_stdout()
     if errors:
         ctx.exit(1)
+
+
+def _silence_stdout() -> None:
+    import os
+    import sys
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # not a real file (e.g. a test runner's buffer)
+        pass
 
 
 COMMANDS = [inspect_cmd]

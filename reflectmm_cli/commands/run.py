@@ -72,14 +72,19 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
         raise ReflectmmError("--ids: no identity given")
     report = run_recipe(recipe, ws, dry_run=dry_run, force=force, only=only, ids=id_list, executor=executor,
                         jobs=jobs, scheduler=scheduler)
-    if as_json:
-        click.echo(json.dumps(report.as_dict(), indent=2, sort_keys=True, default=str))
-    elif dry_run:
-        for line in format_plan(report):
-            click.echo(line)
-    else:
-        for p in report.outputs():
-            click.echo(p)
+    try:
+        if as_json:
+            click.echo(json.dumps(report.as_dict(), indent=2, sort_keys=True, default=str))
+        elif dry_run:
+            for line in format_plan(report):
+                click.echo(line)
+        else:
+            for p in report.outputs():
+                click.echo(p)
+    except BrokenPipeError:  # `reflectmm run ... | head`: the results are written, the reader has gone
+        from reflectmm_cli.commands.inspect import _silence_stdout
+
+        _silence_stdout()
     if dry_run:
         log.info("planned in %.3f s", report.plan_seconds)
         return
