@@ -269,3 +269,33 @@ def test_stage_outputs_are_what_the_run_writes(model_set):
     outs = st.expected_outputs(ctx)
     assert [p.name for p in outs] == ["041.npz", "042.npz", "rig.toml", "face_model.npz"]
     assert all(p.exists() for p in outs)
+
+
+def test_given_face_model_and_custom_rig_in_workspace(tmp_path):
+    from reflectmm_cli.geometry import procedural_face_model, save_face_model
+    from reflectmm_cli.rig import save_rig
+
+    fm = procedural_face_model(n_vertices=600, n_shape=5, n_exp=3, seed=9)
+    fm_path = save_face_model(fm, tmp_path / "my_model.npz")
+    rig = load_rig().select(cameras=["05_1", "04_1"], flashes=["07", "09", "16"])
+    rig_path = save_rig(rig, tmp_path / "my_rig.toml")
+    ws = tmp_path / "ws"
+    r = CliRunner().invoke(main, ["-q", "synth", "multipie", "-w", str(ws), "--face-model", str(fm_path), "--rig",
+                                  str(rig_path), "--image-size", "96x72", "--uv-size", "32"],
+                           catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    out = ws / "synth-multipie"
+    assert (out / "truth" / "001.npz").is_file()
+    back = load_face_model(out / "face_model.npz")
+    np.testing.assert_array_equal(back.mean_shape, fm.mean_shape)
+    np.testing.assert_array_equal(back.triangles, fm.triangles)
+    used = load_rig(out / "rig.toml")
+    assert used.camera_names == ["05_1", "04_1"] and used.flash_ids == ["07", "09", "16"]
+    assert used.camera("05_1").width == 96 and used.camera("05_1").focal_px == pytest.approx(1000 * 72 / 480)
+    shots = sorted(p.name for p in (out / "data/session01/multiview/001/01/04_1").iterdir())
+    assert shots == ["001_01_01_041_00.png", "001_01_01_041_00_lm.pts", "001_01_01_041_07.png",
+                     "001_01_01_041_09.png", "001_01_01_041_16.png"]
+    t = read_artifact(out / "truth" / "001.npz")
+    assert t["shape_coeffs"].shape == (5,) and t["vertices"].shape == (fm.n_vertices, 3)
+    roles = {i["role"] for i in t.meta["inputs"]}
+    assert roles == {"face_model", "rig"}
