@@ -56,13 +56,13 @@ DEFAULT_PARAMS: dict[str, float] = {
 
 #: Plausible 1σ perturbations of the anatomical parameters (mm or relative units).
 SHAPE_SIGMA: dict[str, float] = {
-    "half_width": 4.5, "depth": 4.0, "height_scale": 0.045, "jaw_narrow": 6.0, "forehead_recede": 0.0012,
+    "half_width": 4.5, "depth": 4.0, "height_scale": 0.04, "jaw_narrow": 6.0, "forehead_recede": 0.0012,
     "chin_recede": 0.001,
-    "nose_tip_y": 3.0, "nose_bridge_y": 2.5, "nose_height": 3.0, "bridge_height": 2.0, "nose_width": 1.3,
-    "alar_width": 1.8, "alar_height": 1.5, "eye_x": 1.8, "eye_y": 2.0, "socket_depth": 2.0,
-    "brow_y": 2.5, "brow_height": 1.8, "glabella": 1.0, "cheek_x": 3.0, "cheek_y": 4.0, "cheek_height": 2.5,
-    "cheekbone": 1.5, "maxilla": 2.0, "mouth_y": 3.0, "mouth_half_width": 2.5, "upper_lip": 1.2,
-    "lower_lip": 1.2, "chin_y": 4.0, "chin_height": 2.5, "sulcus": 1.0, "temple": 1.5,
+    "nose_tip_y": 1.5, "nose_bridge_y": 1.5, "nose_height": 2.2, "bridge_height": 1.5, "nose_width": 0.8,
+    "alar_width": 1.0, "alar_height": 1.0, "eye_x": 1.5, "eye_y": 1.2, "socket_depth": 1.5,
+    "brow_y": 1.5, "brow_height": 1.5, "glabella": 0.8, "cheek_x": 2.5, "cheek_y": 2.5, "cheek_height": 2.0,
+    "cheekbone": 1.2, "maxilla": 1.8, "mouth_y": 1.2, "mouth_half_width": 1.8, "upper_lip": 0.8,
+    "lower_lip": 0.8, "chin_y": 2.5, "chin_height": 2.0, "sulcus": 0.8, "temple": 1.2,
 }
 
 
@@ -211,11 +211,11 @@ def _expression_fields(pts: np.ndarray, X: np.ndarray, Y: np.ndarray, p: dict[st
     def vec(dx=zero, dy=zero, dz=zero):
         return np.stack([dx + zero, dy + zero, dz + zero], axis=1)
 
-    below_mouth = _smoothstep(my + 1.0, my - 4.0, Y)  # 1 below the mouth line
-    lower_face = below_mouth * _g(X, 45.0) * _smoothstep(-100.0, -80.0, Y)
+    below_mouth = _smoothstep(my + 2.0, my - 10.0, Y)  # 1 below the mouth line, smooth across the lips
+    lower_face = below_mouth * _g(X, 38.0)
     mouth_reg = _g(X, mw * 1.1) * _g(Y - my, 12.0)
     # jaw open: lower lip/chin down and slightly back, rotation about the jaw hinge
-    fields.append(vec(dy=-12.0 * lower_face, dz=-4.0 * lower_face))
+    fields.append(vec(dy=-7.0 * lower_face, dz=-2.5 * lower_face))
     # smile: mouth corners up/out/back, cheeks up
     for side in (None, -1.0, 1.0):
         w = np.ones_like(X) if side is None else _smoothstep(-8.0 * side, 8.0 * side, X) if side > 0 \
@@ -253,7 +253,7 @@ def _expression_fields(pts: np.ndarray, X: np.ndarray, Y: np.ndarray, p: dict[st
     chin = _g(X, 16.0) * _g(Y - (my - 18.0), 10.0)
     fields.append(vec(dy=3.0 * chin, dz=2.0 * chin))
     # jaw sideways
-    fields.append(vec(dx=5.0 * lower_face))
+    fields.append(vec(dx=3.0 * lower_face))
     # lower lip down / upper lip up (showing teeth)
     fields.append(vec(dy=-4.0 * _g(X, mw * 0.8) * _g(Y - (my - 7.0), 5.0)))
     fields.append(vec(dy=3.0 * _g(X, mw * 0.8) * _g(Y - (my + 6.0), 5.0)))
@@ -334,7 +334,7 @@ def procedural_face_model(n_vertices: int = 35000, n_shape: int = 40, n_exp: int
     fields.extend(_rbf_fields(X, Y, normal, rng, n_rand, amp=1.6, scale=28.0))
     shape_basis, shape_sigma = _orthonormal_basis(np.stack(fields), n_shape)
     # expression: named fields (each a 1σ displacement) plus a few random local ones around mouth/brows
-    efields = list(_expression_fields(mean, X, Y, p0))
+    efields = list(0.6 * _expression_fields(mean, X, Y, p0))  # 1σ = 60 % of the strong pose
     extra = max(0, n_exp - len(efields)) + 4
     efields.extend(_rbf_fields(X, Y, normal, rng, extra, amp=1.0, scale=12.0))
     exp_basis, exp_sigma = _orthonormal_basis(np.stack(efields), n_exp)

@@ -288,3 +288,31 @@ def test_uv_positions_and_maps(face):
     np.testing.assert_allclose(sample_uv_map(ref, q), q @ a[:, :2].T + a[:, 2], atol=1e-9)
     assert sample_uv_map(ref[0], q).shape == (200,)
     assert vertex_to_uv_map(vals[:, 0], ur).shape == (S, S)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 30.0])
+def test_landmark_projection_consistency(yaw):
+    """Projected landmark vertices land on the rendered face at the landmark's depth, in iBUG image order."""
+    m = procedural_face_model(n_vertices=12000, n_shape=4, n_exp=2)
+    scene = RayScene(m.mean_shape, m.triangles)
+    cam = orbit_camera(yaw, 0, 1000, focal_px=1500, width=640, height=480)
+    r = rasterize(scene, cam)
+    p = m.mean_shape[m.landmarks].astype(np.float64)
+    uv, z = cam.project(p)
+    n = vertex_normals(m.mean_shape, m.triangles)[m.landmarks]
+    vis = visibility(scene, p, n, cam.center)
+    if yaw == 0:
+        assert vis.all()  # every landmark is visible frontally
+        # image order: jaw runs left → right, right-eye landmarks left of the nose, left-eye ones right of it
+        assert np.all(np.diff(uv[:17, 0]) > 0)
+        assert uv[36:42, 0].max() < uv[30, 0] < uv[42:48, 0].min()
+        assert uv[19, 1] < uv[37, 1] < uv[30, 1] < uv[51, 1] < uv[57, 1] < uv[8, 1]  # rows grow downwards
+    else:
+        assert vis[30] and not vis[:3].all()  # turned towards +x: the subject's right jaw hides behind the face
+    inner = vis.copy()
+    inner[:17] = False  # jaw-line landmarks may sit on the silhouette
+    px = np.round(uv[inner]).astype(int)
+    assert np.all(r.mask[px[:, 1], px[:, 0]])
+    np.testing.assert_allclose(r.depth[px[:, 1], px[:, 0]], z[inner], atol=3.0)
+    for c, rr in np.round(uv[:17][vis[:17]]).astype(int):
+        assert r.mask[rr - 1:rr + 2, c - 1:c + 2].any()
