@@ -110,6 +110,11 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
         return _result(spec, FAILED, cache_key=key, duration=time.perf_counter() - t0, error=_error_message(exc))
 
 
+def refused_task(spec: TaskSpec, message: str) -> dict[str, Any]:
+    """The result of a task that cannot be scheduled (its dependents are then blocked)."""
+    return _result(spec, FAILED, error=message)
+
+
 OnResult = Callable[[dict[str, Any]], None]
 
 
@@ -261,14 +266,16 @@ class DaskExecutor(Executor):
             self._cluster.close()
             self._cluster = None
 
-    def _worker_resources(self, client) -> set[str]:
-        names: set[str] = set()
+    def _worker_resources(self, client) -> dict[str, float]:
+        """Resource name -> the largest amount one worker declares."""
+        most: dict[str, float] = {}
         try:
             for w in client.scheduler_info().get("workers", {}).values():
-                names.update((w.get("resources") or {}).keys())
+                for k, v in (w.get("resources") or {}).items():
+                    most[k] = max(most.get(k, 0.0), float(v))
         except Exception:  # noqa: BLE001 - informational only
             pass
-        return names
+        return most
 
     def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
         if not specs:
@@ -286,9 +293,15 @@ class DaskExecutor(Executor):
             for k, v in (spec.resources or {}).items():
                 if k in known:
                     res[k] = parse_bytes(v) if isinstance(v, str) else float(v)
-            fut = client.submit(execute_task, spec, *[futures[d] for d in spec.deps],
-                                key=f"reflectmm-{spec.tid.replace('/', '-')}-{token}", pure=False,
-                                resources=res or None, retries=0)
+            too_big = [k for k, v in res.items() if v > known[k]]
+            key = f"reflectmm-{spec.tid.replace('/', '-')}-{token}"
+            if too_big:  # no worker could ever take it: fail now instead of waiting forever
+                k = too_big[0]
+                fut = client.submit(refused_task, spec, f"needs resources {k}={res[k]:g} but the largest worker "
+                                    f"declares {k}={known[k]:g}", key=key, pure=False)
+            else:
+                fut = client.submit(execute_task, spec, *[futures[d] for d in spec.deps], key=key, pure=False,
+                                    resources=res or None, retries=0)
             futures[spec.tid] = fut
             by_key[fut.key] = spec
         results: dict[str, dict[str, Any]] = {}

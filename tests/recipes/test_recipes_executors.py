@@ -134,3 +134,21 @@ def test_worker_with_another_version_refuses_the_task(tmp_path):
     assert not (tmp_path / "checksum").exists()
     res = execute_task(TaskSpec("checksum", "checksum", ctx))
     assert res["status"] == "ok" and res["outputs"] == [str(tmp_path / "checksum" / "checksum.npz")]
+
+
+def test_dask_resources_are_honoured_or_refused(tmp_path):
+    from distributed import LocalCluster
+
+    ws = make_workspace(tmp_path / "res")
+    text = (ws / "recipe.toml").read_text()
+    text = text.replace('inputs = { files = "data/{id}" }',
+                        'inputs = { files = "data/{id}" }\nresources = { cpus = 1, memory = "1GB" }')
+    text += 'resources = { cpus = 3 }\n'  # the aggregate asks for more than any worker has
+    (ws / "recipe.toml").write_text(text)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None,
+                      resources={"cpus": 2}) as cluster:
+        rep = run_recipe(ws / "recipe.toml", ws, executor="dask", scheduler=cluster.scheduler_address)
+    st = {t.tid: t.status for t in rep.tasks}
+    assert all(st[f"manifest/{i}"] == "ok" for i in IDS)  # cpus=1 fits, undeclared memory is ignored
+    assert st["summary"] == "failed"
+    assert "needs resources cpus=3 but the largest worker declares cpus=2" in rep.tasks[-1].error
