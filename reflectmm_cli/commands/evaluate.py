@@ -116,7 +116,55 @@ def evaluate_truth_cmd(identity, maps, truth, geometry, workspace, output):
 # --------------------------------------------------------------------------- evaluate representation
 
 REP_DEFAULTS = {"exponents_sets": "8;16;32;64;1,8,64", "holdout": "05,09", "baselines": True, "solver": "fast",
-                "symmetry": 1.0, "loss": "l1", "prior": 1e-4, "lpips_net": "alex"}
+                "symmetry": 1.0, "loss": "l1", "prior": 1e-4, "lpips_net": "alex", "space": "auto"}
+
+
+def _by_identity(paths: list[Path], kind: str) -> dict[str, Path]:
+    from reflectmm_cli.artifacts import read_meta
+
+    out = {}
+    for p in paths:
+        meta = read_meta(p)
+        out[str(meta.get("identity") or Path(p).stem)] = Path(p)
+    return out
+
+
+def _image_space_renderers(ctx: StageContext, ids: list[str], space: str):
+    """Per identity an ImageSpaceRenderer when captures, geometries and a face model are given (space image/auto);
+    None for UV space."""
+    caps = ctx.input_list("capture", required=False)
+    geos = ctx.input_list("geometry", required=False)
+    fms = ctx.input_list("face_model", required=False)
+    if space == "uv":
+        return None
+    have = bool(caps and geos and fms)
+    if have:
+        cap_by, geo_by = _by_identity(caps, "capture"), _by_identity(geos, "geometry")
+        missing = [i for i in ids if i not in cap_by or i not in geo_by]
+        have = not missing
+    if not have:
+        if space == "image":
+            raise ReflectmmError("evaluate representation --space image needs a capture, a geometry and a face model "
+                                 "for every identity (inputs capture, geometry, face_model)"
+                                 + (f"; missing for {', '.join(missing)}" if caps and geos and fms else ""))
+        log.info("evaluate representation: no captures/geometry/face model for every identity: UV-space "
+                 "re-rendering")
+        return None
+    from reflectmm_cli.evaluation.image_space import ImageSpaceRenderer
+    from reflectmm_cli.geometry.face_model import load_face_model
+
+    try:
+        from reflectmm_cli.geometry import has_embree
+        if not has_embree():
+            raise ImportError
+    except ImportError:
+        if space == "image":
+            raise ReflectmmError("evaluate representation --space image needs Embree (embreex)") from None
+        log.warning("evaluate representation: Embree unavailable: UV-space re-rendering")
+        return None
+    fm = load_face_model(fms[0])
+    return [ImageSpaceRenderer(read_artifact(cap_by[i], "capture").arrays, read_artifact(geo_by[i], "geometry").arrays,
+                               fm.triangles, fm.uv, name=i) for i in ids]
 
 
 def _rep_outputs(ctx: StageContext) -> list[Path]:
@@ -144,8 +192,12 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
         obs.append(art.arrays)
         ids.append(str(art.meta.get("identity") or Path(f).stem))
     kw = {k: p[k] for k in ("solver", "symmetry", "loss", "prior")}
+    space = str(p["space"])
+    if space not in ("auto", "uv", "image"):
+        raise ReflectmmError(f"evaluate representation: space must be auto, uv or image, got {space!r}")
+    isr = _image_space_renderers(ctx, ids, space)
     res = compare_representations(obs, ids, reps, holdout, lp, fit_kwargs=kw,
-                                  progress=lambda it, **k: progress(it, unit="id", **k))
+                                  progress=lambda it, **k: progress(it, unit="id", **k), image_space=isr)
     out = ctx.output_path()
     table = markdown_table(res)
     margin = margin_of_multilobe(res)
@@ -159,6 +211,8 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
     write_artifact(out, EVAL_KIND, arrays, params={**{k: p[k] for k in REP_DEFAULTS}},
                    inputs=ctx.input_refs(out.parent), producer=ctx.producer(), cache_key=ctx.cache_key,
                    extra_meta={"evaluation": "representation", "space": res.space, "exponents": exps,
+                               "protocol": "held-out flashes (all views); same training pairs for every "
+                                           "representation; metrics on clip(x,0,1)^(1/1.2), peak 1",
                                "lpips": "on" if lp is not None else "off (no weights given)",
                                "figure": {"identity": res.figure.get("identity"), "view": res.figure.get("view"),
                                           "flash": res.figure.get("flash")},
@@ -194,11 +248,16 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
 @click.option("--lpips-weights", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A torch state dict of LPIPS (trunk + lin layers). Without it LPIPS is off.")
 @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default="alex", show_default=True)
+@click.option("--space", type=click.Choice(["auto", "image", "uv"]), default="auto", show_default=True,
+              help="Re-render in image space against the captured OLAT images (needs <ws>/preprocess-multipie/<id>.npz, "
+                   "<ws>/fit-geometry/<id>.npz and a face model) or in UV space; auto = image when available.")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Face model for image space (default: as build-pca).")
 @workspace_option
 @output_option
 @json_option
 def evaluate_representation_cmd(ids, inputs, exponents_sets, holdout, no_baselines, solver, symmetry, loss, prior,
-                                lpips_weights, lpips_net, workspace, output, as_json):
+                                lpips_weights, lpips_net, space, face_model, workspace, output, as_json):
     """Global exponents vs multi-lobe (the paper's Table 1) on held-out flash images; markdown table on stdout.
 
     Writes an `evaluation` artifact (<ws>/evaluate-representation/evaluate-representation.npz or --output), the
@@ -209,8 +268,17 @@ def evaluate_representation_cmd(ids, inputs, exponents_sets, holdout, no_baselin
     if not files:
         raise click.UsageError("give --ids or --input")
     params = {"exponents_sets": exponents_sets, "holdout": holdout, "baselines": not no_baselines,
-              "solver": solver, "symmetry": symmetry, "loss": loss, "prior": prior, "lpips_net": lpips_net}
+              "solver": solver, "symmetry": symmetry, "loss": loss, "prior": prior, "lpips_net": lpips_net,
+              "space": space}
     inp = {"observations": files}
+    if space != "uv" and ids:
+        from reflectmm_cli.commands.build_pca import find_face_model
+
+        caps = [ws / "preprocess-multipie" / f"{i}.npz" for i in parse_ids(ids)]
+        geos = [ws / "fit-geometry" / f"{i}.npz" for i in parse_ids(ids)]
+        fm = face_model or find_face_model(ws)
+        if fm is not None and all(c.is_file() for c in caps) and all(g.is_file() for g in geos):
+            inp.update(capture=caps, geometry=geos, face_model=[fm])
     if lpips_weights is not None:
         inp["lpips_weights"] = [lpips_weights]
     paths = run_stage_cli("evaluate-representation", workspace=workspace, params=params, inputs=inp,

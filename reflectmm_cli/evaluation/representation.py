@@ -230,7 +230,8 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
                             holdout: Sequence[str] = DEFAULT_HOLDOUT, lpips: LPIPS | None = None,
                             fit_kwargs: Mapping[str, Any] | None = None,
                             fit_fn: Callable | None = None, progress: Callable = lambda it, **k: it,
-                            figure_pair: tuple[str, str] | None = None) -> RepresentationResult:
+                            figure_pair: tuple[str, str] | None = None,
+                            image_space: Sequence[Any] | None = None) -> RepresentationResult:
     """Fit every representation on the training pairs of every identity and score the held-out pairs.
 
     Args:
@@ -244,6 +245,8 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
         fit_fn: ``fit_fn(obs, exponents, pair_mask, **fit_kwargs) -> (albedo, weights)`` (default: fit_maps).
         figure_pair: (view name, flash id) of the pair shown in the figure (default: the held-out pair of the
             most frontal view with the first held-out flash).
+        image_space: per identity an :class:`~reflectmm_cli.evaluation.image_space.ImageSpaceRenderer`; then
+            every pair is re-rendered in image space and compared with the captured OLAT image (else UV space).
     """
     reps = list(representations or default_representations())
     fit_fn = fit_fn or _default_fit
@@ -265,15 +268,35 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
         elif hp.size != H:
             raise ReflectmmError(f"evaluate representation: identity {ident} has {hp.size} held-out pairs, "
                                  f"the first had {H} (all identities must share the rig)")
-        truth = np.asarray(obs["radiance"], np.float64)
-        observed = np.asarray(obs["observed"], bool)
-        if not observed[hp].any():
+        isr = image_space[n] if image_space is not None else None
+        vnames = [str(x) for x in np.asarray(obs["view_names"])]
+        fnames = [str(x) for x in np.asarray(obs["flash_ids"])]
+        pair_name = lambda j: (vnames[int(obs["pair_view"][j])], fnames[int(obs["pair_flash"][j])])  # noqa: E731
+        if isr is None:
+            truth = np.asarray(obs["radiance"], np.float64)
+            observed = np.asarray(obs["observed"], bool)
+        else:
+            sub_t = tr[:: max(1, tr.size // 12)]
+            truth, observed = {}, {}
+            for j in np.concatenate([hp, sub_t]):
+                truth[j] = isr.target(*pair_name(j))
+                observed[j] = isr.region(*pair_name(j))
+
+        def render(alb, wts, exps, pairs, key):
+            if isr is None:
+                return render_pairs_uv(alb, wts, exps, obs, pairs)
+            return np.stack([isr.render(alb, wts, exps, *pair_name(j), key=key) for j in pairs])
+
+        def stack(d, pairs):
+            return d[pairs] if isr is None else np.stack([d[j] for j in pairs])
+
+        if not stack(observed, hp).any():
             raise ReflectmmError(f"evaluate representation: identity {ident}: no observed texel in the held-out "
                                  "pairs")
         pp, sp = np.full((R, H), np.nan), np.full((R, H), np.nan)
         if n == 0:
             fj = _figure_pair_index(obs, hp, figure_pair)
-            fig = {"identity": ident, "pair": int(fj), "truth": truth[fj], "mask": observed[fj],
+            fig = {"identity": ident, "pair": int(fj), "truth": stack(truth, [fj])[0], "mask": stack(observed, [fj])[0],
                    "view": str(np.asarray(obs["view_names"])[int(obs["pair_view"][fj])]),
                    "flash": str(np.asarray(obs["flash_ids"])[int(obs["pair_flash"][fj])]), "renders": []}
         for r, rep in enumerate(reps):
@@ -285,15 +308,15 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
                                        loss=str(kw.get("loss", "l1")))
                 wts = None
             secs[n, r] = time.perf_counter() - t0
-            pred = render_pairs_uv(alb, wts, rep.exponents, obs, hp)
-            m = _metrics(pred, truth[hp], observed[hp], lpips)
+            pred = render(alb, wts, rep.exponents, hp, r + 1000 * n)
+            m = _metrics(pred, stack(truth, hp), stack(observed, hp), lpips)
             pp[r], sp[r] = m[0], m[1]
             ps[n, r], ss[n, r] = np.nanmean(m[0]), np.nanmean(m[1])
             if lpips is not None:
                 lp[n, r] = np.nanmean(m[2])
             # fit quality on (a subsample of) the training pairs
             sub = tr[:: max(1, tr.size // 12)]
-            pr_t = render_pairs_uv(alb, wts, rep.exponents, obs, sub)
+            pr_t = render(alb, wts, rep.exponents, sub, r + 1000 * n)
             vals = [psnr(encode_display(pr_t[i]), encode_display(truth[j]), observed[j])
                     for i, j in enumerate(sub) if observed[j].any()]
             tp[n, r] = float(np.mean(vals)) if vals else np.nan
@@ -303,7 +326,8 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
         per_pair_p.append(pp)
         per_pair_s.append(sp)
     return RepresentationResult(reps, list(ids), list(holdout), ps, ss, lp if lpips is not None else None,
-                                np.stack(per_pair_p), np.stack(per_pair_s), tp, secs, int(H or 0), fig)
+                                np.stack(per_pair_p), np.stack(per_pair_s), tp, secs, int(H or 0), fig,
+                                space="uv" if image_space is None else "image")
 
 
 def _figure_pair_index(obs, hp, figure_pair):
@@ -339,9 +363,11 @@ def markdown_table(res: RepresentationResult) -> str:
         lp_s = b(f"{ml[r]:.4f}", r == bl) if has_lp else "off"
         lines.append(f"| {rep.name} | {b(f'{mp[r]:.2f}', r == bp)} | {b(f'{ms[r]:.4f}', r == bs)} | {lp_s} | "
                      f"{mt[r]:.2f} | {sec[r]:.2f} |")
+    where = ("re-rendered in UV space over the texels observed in each held-out pair" if res.space == "uv" else
+             "re-rendered in image space (fitted mesh ray cast into the capture windows) against the captured OLAT "
+             "images over face ∧ lit ∧ unsaturated pixels")
     foot = (f"\n{len(res.ids)} identities; held-out flashes {', '.join(res.holdout)} (all views, "
-            f"{res.n_holdout_pairs} pairs per identity); re-rendered in UV space over the texels observed in each "
-            f"held-out pair; metrics on clip(x,0,1)^(1/1.2), peak 1.")
+            f"{res.n_holdout_pairs} pairs per identity); {where}; metrics on clip(x,0,1)^(1/1.2), peak 1.")
     if not has_lp:
         foot += " LPIPS: off (no weights given)."
     return "\n".join(lines) + "\n" + foot + "\n"
