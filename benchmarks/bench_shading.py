@@ -141,6 +141,18 @@ def accuracy(quick):
            f"Error includes SH truncation of the lighting and the lobe-shape approximation. The last column is "
            f"order 8 with the opt-in `view_correction=True` (each lobe scaled by the true lobe's directional "
            f"albedo ρ_p(n·v)).\n"]
+    # run time per order: the other axis of the trade-off
+    c, w, nn, vv = texels(1 << 16)
+    Pf = np.array(EXPONENTS, np.float32)
+    cells = []
+    for L in orders:
+        KL = np.zeros((3, (L + 1) ** 2), np.float32)
+        KL[:, 0] = 1
+        median_time(lambda: shade_env(c, w, Pf, nn, vv, KL, threads=1), 5, label=f"order{L}")
+        cells.append(f"{1e3 * CPU_TIMES[f'order{L}'] * 16:.0f} ms")
+    out.append("Cost (median CPU time per 1 M texels, 3 lobes, float32, one thread):\n\n| | "
+               + " | ".join(f"L={L}" for L in orders) + " |\n|---|" + "---|" * len(orders)
+               + "\n| CPU time | " + " | ".join(cells) + " |\n")
     for p in EXPONENTS:
         out.append(f"\n**p = {p:g}**\n\n| view angle | " + " | ".join(f"L={L}" for L in orders)
                    + " | lobe-shape only (L=12 lighting) | L=8 + view correction |\n|---|"
