@@ -159,7 +159,7 @@ def _check_truth_size(truth: Artifact, image_size) -> None:
 
 def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, rig_path: Path | None = None,
                  landmarks_dir: Path | None = None, focal: float | None = None, config=None,
-                 truth_path: Path | None = None, device: str = "cpu") -> tuple[dict[str, np.ndarray], dict, Any]:
+                 truth_path: Path | None = None, device: str = "cpu", flash_intensity: float | None = None) -> tuple[dict[str, np.ndarray], dict, Any]:
     """Fit one identity. Returns (geometry arrays, report dict, extras for the overlays)."""
     from reflectmm_cli.fitting import FitConfig, ShapeModel, ViewSet, fit_geometry, flash_positions, initial_poses
     from reflectmm_cli.fitting.report import truth_errors
@@ -188,6 +188,8 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
                     rig_centers=rig_pos, image_origin=origin)
     fit = fit_geometry(model, views, cfg, device=device)
     fpos, fint, fsrc, rig_res = flash_positions(rig, flash_ids, view_names, fit.R, fit.t)
+    if flash_intensity is not None:
+        fint = np.full(len(flash_ids), float(flash_intensity))
     arrays: dict[str, np.ndarray] = {
         "shape_coeffs": fit.shape_coeffs, "exp_coeffs": fit.exp_coeffs,
         "vertices": fit.vertices.astype(np.float32), "view_names": np.array(view_names, dtype=str),
@@ -207,8 +209,10 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
         "photo_residual": [None if not np.isfinite(x) else round(float(x), 6) for x in fit.photo_residual],
         "landmark_sources": lm_src, "history": fit.history, "config": cfg.as_dict(),
         "rig_residual_mm": [round(float(x), 3) for x in rig_res],
-        "flash_intensity_note": "radiant intensity from the rig table (linear pixel units x mm^2); on real data "
-                                "one global scale ambiguity with the reflectance (docs/pipeline.md)",
+        "flash_intensity_note": ("radiant intensity " + ("set by --flash-intensity" if flash_intensity is not None
+                                                         else "from the rig table")
+                                 + " (linear pixel units x mm^2); on real data one global scale ambiguity with the "
+                                   "reflectance (docs/pipeline.md)"),
     }
     if truth_path is not None:
         truth = read_artifact(truth_path, "synth-truth")
@@ -225,8 +229,8 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
 
 
 def geometry_from_truth(truth_path: Path, *, view_names: list[str] | None = None, flash_ids: list[str] | None = None,
-                        image_size: tuple[int, int] | None = None, landmarks: np.ndarray | None = None
-                        ) -> tuple[dict[str, np.ndarray], dict]:
+                        image_size: tuple[int, int] | None = None, landmarks: np.ndarray | None = None,
+                        landmark_ids: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """The ground-truth geometry of a synthetic identity as ``geometry`` arrays (same keys as a fit).
 
     Views / flashes default to the ones rendered (truth meta); ``image_size`` (the capture frame) must equal the
@@ -251,8 +255,8 @@ def geometry_from_truth(truth_path: Path, *, view_names: list[str] | None = None
     lm_fit = np.full((V, 68, 2), np.nan)
     from reflectmm_cli.fitting.camera_math import camera_centers, project
 
-    lm_ids = None
-    if landmarks is not None:
+    lm_ids = None if landmark_ids is None else np.asarray(landmark_ids, dtype=np.int64)
+    if landmarks is not None and lm_ids is None:
         # the landmark vertex ids are not stored in the truth; recover them from the recorded 2-D landmarks
         lm_ids = _truth_landmark_ids(truth)
     if lm_ids is not None:
@@ -285,7 +289,7 @@ def _truth_landmark_ids(truth: Artifact) -> np.ndarray | None:
     lv = _str_list(truth["landmark_views"])
     verts = np.asarray(truth["vertices"], np.float64)
     score = np.zeros((68, len(verts)))
-    for k, name in enumerate(lv[:3]):
+    for k, name in enumerate(lv):
         i = names.index(name)
         uv, _ = project(verts, np.asarray(truth["K"])[i], np.asarray(truth["R"])[i], np.asarray(truth["t"])[i])
         lm = np.asarray(truth["landmarks_2d"], np.float64)[k]
@@ -342,6 +346,11 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
                   "image_size": tuple(int(x) for x in np.asarray(capture["image_size"]).reshape(-1)[:2]),
                   "landmarks": np.asarray(capture["landmarks"], np.float64) if "landmarks" in capture.arrays
                   else None}
+        fm_list = ctx.input_list("face_model", required=False)
+        if fm_list:
+            from reflectmm_cli.geometry import load_face_model
+
+            kw["landmark_ids"] = load_face_model(fm_list[0]).landmarks
         arrays, report = geometry_from_truth(truth_path, **kw)
         write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                        producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
@@ -353,7 +362,8 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
     cfg = _config_from_params(ctx.params)
     arrays, report, ex = fit_identity(capture_path, fm_path, identity, rig_path=rig_list[0] if rig_list else None,
                                       landmarks_dir=lm_list[0] if lm_list else None, focal=ctx.param("focal"),
-                                      config=cfg, truth_path=truth_path, device=ctx.device)
+                                      config=cfg, truth_path=truth_path, device=ctx.device,
+                                      flash_intensity=ctx.param("flash_intensity"))
     write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                    producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
     written = [out]
@@ -403,13 +413,17 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
               help="synth-truth artifact to report errors against (default: <dataset>/truth/<id>.npz if present).")
 @click.option("--from-truth", "from_truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="write the ground-truth geometry of this synth-truth artifact instead of fitting.")
+@click.option("--flash-intensity", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="radiant intensity of every flash (default: the rig table's values). On real data use 1: "
+                   "intensity and reflectance share one global scale.")
 @click.option("--no-overlay", is_flag=True, help="do not write the per-view overlay PNGs.")
 @device_option
 @workspace_option
 @output_option
 @json_option
 def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, focal, iters, photo_rounds, w_photo,
-                     rig_sigma, landmark_sigma, truth, from_truth, no_overlay, device, workspace, output, as_json):
+                     rig_sigma, landmark_sigma, truth, from_truth, flash_intensity, no_overlay, device, workspace,
+                     output, as_json):
     """Fit one identity's shape, expression and per-view cameras to its landmarks and room-light images.
 
     Writes the `geometry` artifact (<ws>/fit-geometry/<id>.npz) and one overlay PNG per view.
@@ -422,6 +436,9 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, focal, i
         inputs["truth"] = [from_truth]
         if Path(capture).exists():
             inputs["capture"] = [capture]
+            face_model = face_model or default_face_model_for(read_artifact(capture, "capture"), ws)
+        if face_model is not None:
+            inputs["face_model"] = [face_model]
         params["from_truth"] = True
         paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=params, inputs=inputs, output=output,
                               device=device)
@@ -445,7 +462,8 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, focal, i
     if landmarks_dir is not None:
         inputs["landmarks"] = [landmarks_dir]
     for key, val in (("focal", focal), ("photo_rounds", photo_rounds), ("w_photo", w_photo),
-                     ("rig_sigma_mm", rig_sigma), ("landmark_sigma_px", landmark_sigma)):
+                     ("rig_sigma_mm", rig_sigma), ("landmark_sigma_px", landmark_sigma),
+                     ("flash_intensity", flash_intensity)):
         if val is not None:
             params[key] = val
     if iters is not None:

@@ -130,3 +130,15 @@ def test_missing_face_model_and_capture(world, cli, tmp_path):
     assert "nope.npz" in msg
     msg = _err(cli("fit-geometry", "--id", "002", "-w", world))
     assert "capture artifact not found" in msg and "002.npz" in msg
+
+
+def test_flash_intensity_override_and_no_overlay(world, cli, tmp_path):
+    out = tmp_path / "g.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--iters", "30", "--photo-rounds", "0",
+            "--flash-intensity", "1", "--no-overlay", "-o", out)
+    assert r.exit_code == 0, r.output
+    assert r.stdout.split() == [str(out)]
+    g = read_artifact(out, "geometry")
+    assert np.array_equal(g["flash_intensity"], np.ones(2))
+    assert np.all(np.isnan(g["photo_residual"]))
+    assert g.params["flash_intensity"] == 1.0 and g.params["photo_rounds"] == 0
