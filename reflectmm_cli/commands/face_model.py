@@ -126,8 +126,25 @@ def create_model(out: Path, vertices: int = 35000, seed: int = 0, shape_componen
     return paths
 
 
+def read_landmark_indices(path: Path, base: int = 1) -> np.ndarray:
+    """68 vertex indices from a text/.npy/.anl file (whitespace or comma separated), ``base`` 0 or 1."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".npy":
+            idx = np.load(path, allow_pickle=False)
+        else:
+            idx = np.array(path.read_text().replace(",", " ").split(), dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise ReflectmmError(f"cannot read landmark indices ({exc})", path) from None
+    idx = np.asarray(idx).reshape(-1)
+    if idx.size != 68 or np.any(idx != np.round(idx)):
+        raise ReflectmmError(f"expected 68 integer vertex indices, got {idx.size} values", path)
+    return idx.astype(np.int64) - int(base)
+
+
 def import_model(src: Path, out: Path, *, exp_path=None, exp_std=None, exp_index=None, units="auto",
-                 preview: bool = True, meta: dict | None = None) -> tuple[list[Path], dict]:
+                 landmarks=None, landmarks_base: int = 1, preview: bool = True,
+                 meta: dict | None = None) -> tuple[list[Path], dict]:
     """Library entry: convert a BFM09 / Deep3DFaceRecon .mat (or a face-model artifact) to a face-model artifact."""
     from reflectmm_cli.artifacts import write_png
     from reflectmm_cli.geometry import load_bfm09, save_face_model
@@ -136,12 +153,22 @@ def import_model(src: Path, out: Path, *, exp_path=None, exp_std=None, exp_index
     src = Path(src)
     if not src.exists():
         raise ReflectmmError("file not found", src)
+    lm = None if landmarks is None else read_landmark_indices(landmarks, landmarks_base)
     if src.suffix.lower() == ".mat" and "shapeMU" in _mat_keys(src):
-        model = load_bfm09(src, exp_path, exp_std_path=exp_std, exp_index_path=exp_index, units=units)
+        model = load_bfm09(src, exp_path, exp_std_path=exp_std, exp_index_path=exp_index, units=units,
+                           landmarks=lm)
     else:
         if exp_path is not None:
             raise ReflectmmError("--exp applies to BFM09 01_MorphableModel.mat only", src)
         model = load_face_model(src, units=units) if src.suffix.lower() == ".mat" else load_face_model(src)
+        if lm is not None:
+            from reflectmm_cli.geometry import FaceModel
+
+            if lm.min() < 0 or lm.max() >= model.n_vertices:
+                raise ReflectmmError(f"landmark indices out of range [0, {model.n_vertices})", landmarks)
+            kw = {k: getattr(model, k) for k in model.__dataclass_fields__}
+            kw["landmarks"] = lm
+            model = FaceModel(**kw)
     log.info("%s", model.summary())
     if "uv_distortion" in model.info:
         d = model.info["uv_distortion"]
@@ -181,8 +208,10 @@ def run_face_model_import(ctx: StageContext) -> list[Path]:
     exp = ctx.inputs.get("exp") or [None]
     std = ctx.inputs.get("exp_std") or [None]
     idx = ctx.inputs.get("exp_index") or [None]
+    lmk = ctx.inputs.get("landmarks") or [None]
     paths, _ = import_model(ctx.input("model"), out, exp_path=exp[0], exp_std=std[0], exp_index=idx[0],
-                            units=ctx.param("units", "auto"), preview=not ctx.param("no_preview"),
+                            units=ctx.param("units", "auto"), landmarks=lmk[0],
+                            landmarks_base=int(ctx.param("landmarks_base", 1)), preview=not ctx.param("no_preview"),
                             meta={"params": ctx.resolved_params(), "inputs": ctx.input_refs(out.parent),
                                   "producer": ctx.producer(), "cache_key": ctx.cache_key})
     return paths
@@ -228,17 +257,22 @@ def create_cmd(out, vertices, seed, shape_components, exp_components, no_preview
               help="BFM_exp_idx.mat ('trimIndex'): BFM09 vertices of the Exp_Pca.bin basis, if it has fewer.")
 @click.option("--units", default="auto", show_default=True,
               help="Units of the file's coordinates: auto (from the extent), um, mm, dm or m.")
+@click.option("--landmarks", type=click.Path(path_type=Path), default=None,
+              help="68 landmark vertex indices (text/.anl/.npy), e.g. for BFM09 which has none.")
+@click.option("--landmarks-base", type=click.Choice(["0", "1"]), default="1", show_default=True,
+              help="Whether --landmarks indices are 0- or 1-based.")
 @click.option("--no-preview", is_flag=True)
 @workspace_option
 @json_option
-def import_cmd(source, out, exp, exp_std, exp_index, units, no_preview, workspace, as_json):
+def import_cmd(source, out, exp, exp_std, exp_index, units, landmarks, landmarks_base, no_preview, workspace,
+               as_json):
     """Convert a BFM09 01_MorphableModel.mat or Deep3DFaceRecon BFM_model_front.mat to a face-model artifact."""
     inputs = {"model": [source]}
-    for role, p in (("exp", exp), ("exp_std", exp_std), ("exp_index", exp_index)):
+    for role, p in (("exp", exp), ("exp_std", exp_std), ("exp_index", exp_index), ("landmarks", landmarks)):
         if p is not None:
             inputs[role] = [p]
     paths = run_stage_cli("face-model-import", workspace=workspace, output=out, inputs=inputs,
-                          params={"units": units, "no_preview": no_preview})
+                          params={"units": units, "no_preview": no_preview, "landmarks_base": int(landmarks_base)})
     emit(paths, as_json)
 
 

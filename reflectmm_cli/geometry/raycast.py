@@ -84,6 +84,13 @@ class RayScene:
         TriangleMesh(self._scene, v.astype(np.float32), t)
         self.stats = RayStats()
 
+    def __getstate__(self):
+        # the Embree scene is a C object: pickle the mesh and rebuild it (process pools, Dask workers)
+        return {"vertices": self.vertices, "triangles": self.triangles, "normals": self.normals}
+
+    def __setstate__(self, state):
+        self.__init__(state["vertices"], state["triangles"], state["normals"])
+
     @property
     def default_eps(self) -> float:
         return 1e-4 * self.diag

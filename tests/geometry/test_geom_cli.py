@@ -203,3 +203,41 @@ def test_render_reflectance_model_at_coeffs_equals_maps(cli, model_file, ws, tmp
         np.testing.assert_allclose(a[c], b[c], rtol=1e-5, atol=1e-7)
     r = cli("render", *common, "--model", tmp_path / "rm.npz", "--coeffs", "1,2,3,4,5", "-o", tmp_path / "c.exr")
     assert r.exit_code == 1 and "coefficients" in r.stderr
+
+
+def test_import_bfm09_with_expressions_and_landmarks(cli, tmp_path):
+    src = procedural_face_model(grid=(31, 25), n_shape=3, n_exp=2)
+    n = src.n_vertices
+    scipy.io.savemat(str(tmp_path / "01_MorphableModel.mat"), {
+        "shapeMU": (src.mean_shape.astype(np.float64) * 1000).reshape(-1, 1),
+        "shapePC": src.shape_basis.reshape(3, -1).T.astype(np.float64),
+        "shapeEV": (src.shape_sigma.astype(np.float64) * 1000)[:, None],
+        "tl": (src.triangles + 1).astype(np.float64)})
+    K = 2
+    basis = (src.exp_basis.reshape(K, -1) * 1000).astype("<f4")
+    with open(tmp_path / "Exp_Pca.bin", "wb") as f:
+        f.write(np.int32(K).tobytes() + np.zeros(3 * n, "<f4").tobytes() + basis.tobytes())
+    np.savetxt(tmp_path / "lm.anl", src.landmarks + 1, fmt="%d")
+    r = cli("face-model", "import", tmp_path / "01_MorphableModel.mat", "--out", tmp_path / "bfm.npz",
+            "--exp", tmp_path / "Exp_Pca.bin", "--landmarks", tmp_path / "lm.anl", "--no-preview")
+    assert r.exit_code == 0, r.stderr
+    m = load_face_model(tmp_path / "bfm.npz")
+    np.testing.assert_allclose(m.mean_shape, src.mean_shape, atol=1e-3)
+    np.testing.assert_allclose(m.exp_basis, src.exp_basis, atol=1e-5)
+    np.testing.assert_array_equal(m.landmarks, src.landmarks)
+    art = read_artifact(tmp_path / "bfm.npz")
+    assert {i["role"] for i in art.meta["inputs"]} == {"model", "exp", "landmarks"}
+    np.savetxt(tmp_path / "bad.anl", np.arange(10), fmt="%d")
+    r = cli("face-model", "import", tmp_path / "01_MorphableModel.mat", "--out", tmp_path / "x.npz",
+            "--landmarks", tmp_path / "bad.anl")
+    assert r.exit_code == 1 and "68" in r.stderr and "bad.anl" in r.stderr
+
+
+def test_ray_scene_pickles(tmp_path):
+    import pickle
+
+    m = procedural_face_model(grid=(31, 25), n_shape=1, n_exp=1)
+    s = RayScene(m.mean_shape, m.triangles)
+    s2 = pickle.loads(pickle.dumps(s))
+    cam = parse_camera_spec("size=64x48,focal=200")
+    np.testing.assert_array_equal(rasterize(s, cam).tri_id, rasterize(s2, cam).tri_id)
