@@ -36,7 +36,7 @@ def _input_files(ctx: StageContext) -> dict[str, list[Path]]:
 
 
 @register_stage("build-light-pca", version=1, per_identity=False, outputs=_outputs, input_files=_input_files,
-                help="PCA lighting model (SH of HDR environment maps)")
+                cache_params=tuple(DEFAULTS), help="PCA lighting model (SH of HDR environment maps)")
 def run_build_light_pca(ctx: StageContext) -> list[Path]:
     p = {**DEFAULTS, **{k: v for k, v in ctx.params.items() if v is not None}}
     files = find_envmaps(ctx.input_list("envmaps"))

@@ -276,3 +276,24 @@ def test_torch_fixed_geometry_paths_match_numpy():
         (d_t.sum() + s_t.sum()).backward()
         assert torch.isfinite(Kt.grad).all() and torch.isfinite(ct.grad).all()
         np.testing.assert_allclose(ct.grad.numpy(), d_ref / np.maximum(c, 1e-300), rtol=1e-8)
+
+
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_vec = st.tuples(*[st.floats(-1, 1, allow_nan=False)] * 3).filter(lambda a: sum(x * x for x in a) > 1e-4)
+
+
+@given(n=_vec, v=_vec, sn=st.floats(1e-3, 1e3), sv=st.floats(1e-3, 1e3), p=st.floats(0.5, 1000),
+       dtype=st.sampled_from([np.float16, np.float32, np.float64]))
+def test_property_env_scale_invariance_and_dtypes(n, v, sn, sv, p, dtype):
+    K = _lighting(0, 4)
+    args = [np.array([0.5, 0.4, 0.3]), np.array([1.0, 0.5]), np.array([p, 8.0])]
+    d0, s0 = shade_env(*args, np.array(n), np.array(v), K)
+    d1, s1 = shade_env(*(a.astype(dtype) for a in args), (np.array(n) * sn).astype(dtype),
+                       (np.array(v) * sv).astype(dtype), K.astype(dtype))
+    assert np.isfinite(d1).all() and np.isfinite(s1).all()
+    tol = {np.float16: 0.05, np.float32: 1e-4, np.float64: 1e-9}[dtype]
+    np.testing.assert_allclose(d1, d0, rtol=tol, atol=tol * (1 + np.abs(d0).max()))
+    if float(np.dot(n, v)) > 0.05:  # away from the n·v = 0 cut, where rounding may flip the side
+        np.testing.assert_allclose(s1, s0, rtol=tol, atol=tol * (1 + np.abs(s0).max()))

@@ -192,3 +192,23 @@ def test_registered_as_stage():
 
     st = get_stage("build-light-pca")
     assert st.verb == "build-light-pca" and not st.per_identity
+
+
+def test_stage_runs_from_a_recipe_context(tmp_path):
+    # the same stage a recipe runs: unrelated [defaults] params (device) neither break it nor enter its key
+    from reflectmm_cli.artifacts import read_artifact, write_exr
+    from reflectmm_cli.stages import compute_cache_key, get_stage
+
+    maps = tmp_path / "envmaps"
+    maps.mkdir()
+    for i, s in enumerate(([0, 1, 0], [1, 0.2, 0], [0, 0.3, -1])):
+        img = _sun_map(s, [1, 1, 1]).astype(np.float32)
+        write_exr(maps / f"m{i}.exr", {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]})
+    st = get_stage("build-light-pca")
+    base = dict(workspace=tmp_path / "ws", inputs={"envmaps": [maps]})
+    ctx = st.context(params={"order": 2, "rotations": 2, "components": 3, "device": "cpu"}, **base)
+    ctx2 = st.context(params={"order": 2, "rotations": 2, "components": 3}, **base)
+    assert compute_cache_key(st, ctx) == compute_cache_key(st, ctx2)
+    out = st.run(ctx.with_(cache_key=compute_cache_key(st, ctx)))
+    assert [p.name for p in out] == ["build-light-pca.npz", "build-light-pca.png"]
+    assert read_artifact(out[0], "light-model").arrays["bases"].shape == (3, 27)
