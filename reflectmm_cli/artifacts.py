@@ -52,6 +52,7 @@ SCHEMA_MAJOR: dict[str, int] = {
     "light-model": 1,
     "render": 1,
     "evaluation": 1,
+    "envmap": 1,
 }
 
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)

@@ -51,6 +51,16 @@ class _Group(click.Group):
             ctx.exit(1)
         except (click.exceptions.Exit, click.ClickException, click.Abort):
             raise
+        except BrokenPipeError:
+            # stdout closed early (`reflectmm ... | head`): not an error of ours; stop quietly
+            import os
+
+            try:
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, sys.stdout.fileno())
+            except (OSError, ValueError):
+                pass
+            ctx.exit(141)
         except KeyboardInterrupt:
             click.echo("reflectmm: interrupted", err=True)
             ctx.exit(130)

@@ -11,14 +11,30 @@ T = TypeVar("T")
 log = logging.getLogger("reflectmm")
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time of each message (test runners swap it)."""
+
+    _reflectmm = True
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property  # type: ignore[override]
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler.__init__ assigns it; the property ignores it
+        pass
+
+
 def configure_logging(verbosity: int) -> None:
     """verbosity: -1 quiet (errors only), 0 normal (info), >=1 debug."""
     level = logging.ERROR if verbosity < 0 else logging.INFO if verbosity == 0 else logging.DEBUG
     log.setLevel(level)
     if not any(getattr(h, "_reflectmm", False) for h in log.handlers):
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("%(message)s"))
-        handler._reflectmm = True  # type: ignore[attr-defined]
         log.addHandler(handler)
     log.propagate = False
 
