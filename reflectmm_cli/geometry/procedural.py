@@ -125,6 +125,17 @@ def face_surface(theta: np.ndarray, Y: np.ndarray, p: dict[str, float]):
         ex = X - sgn * p["eye_x"]
         d -= p["socket_depth"] * _g(ex, 15.0) * _g(Y - p["eye_y"], 10.0)
         d += p["eyeball"] * _g(ex, 9.0) * _g(Y - p["eye_y"], 5.5)
+        # eyelids: a rim around the eye opening (upper lid fuller), and the upper-lid crease above it
+        ey = Y - p["eye_y"]
+        rim = np.sqrt((ex / 12.0) ** 2 + (ey / 5.0) ** 2)
+        d += 1.6 * _g(rim - 1.0, 0.22) * (1.0 + 0.6 * (ey > 0))
+        d -= 1.0 * _g(ex, 10.0) * _g(ey - 7.5, 1.6)
+        # nasolabial fold: a shallow groove from the ala to beside the mouth corner
+        t = np.clip((p["nose_tip_y"] - 3.0 - Y) / 26.0, 0.0, 1.0)
+        fold_x = sgn * (17.0 + 10.0 * t)
+        d -= 1.4 * _g(X - fold_x, 2.5) * _g(Y - (p["nose_tip_y"] - 3.0 - 26.0 * t), 8.0) * (Y < p["nose_tip_y"] - 2)
+        # philtrum columns
+        d += 0.7 * _g(X - sgn * 4.5, 1.6) * _g(Y - (p["mouth_y"] + 13.0), 4.0)
         d += p["brow_height"] * _g(X - sgn * (p["eye_x"] - 2.0), 17.0) * _g(Y - p["brow_y"] + 0.004 * ex ** 2, 5.5)
         d -= p["temple"] * _g(X - sgn * 62.0, 9.0) * _g(Y - 38.0, 16.0)
         d += p["cheek_height"] * _g(X - sgn * p["cheek_x"], 17.0) * _g(Y - p["cheek_y"], 15.0)
