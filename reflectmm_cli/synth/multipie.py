@@ -210,6 +210,7 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
         t0 = time.perf_counter()
         ras = rasterize(scene, cam)
         st["primary_rays"] += cam.width * cam.height
+        st["embree_seconds"] = st.get("embree_seconds", 0.0) + scene.stats.seconds
         st["ray_seconds"] += time.perf_counter() - t0
         m = ras.mask.copy()
         tri = model.triangles[ras.tri_id[m]]
@@ -258,6 +259,7 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
             t0 = time.perf_counter()
             lit = shadow_mask(scene, p, n, fl.position)
             st["shadow_rays"] += scene.stats.cast
+            st["embree_seconds"] = st.get("embree_seconds", 0.0) + scene.stats.seconds
             st["ray_seconds"] += time.perf_counter() - t0
             s = np.zeros_like(room)
             if lit.any():
