@@ -17,12 +17,16 @@ ROTATIONS = (0, 90, 180, 270)
 
 @dataclass
 class Image:
-    """A decoded image: ``linear (H, W, 3)`` float32, ``saturated (H, W)`` bool (any channel at the code max)."""
+    """A decoded image: ``linear (h, w, 3)`` float32, ``saturated (h, w)`` bool (any channel at the code max).
+
+    ``size`` is the full frame ``(W, H)`` after rotation; ``linear``/``saturated`` cover the requested window.
+    """
 
     linear: np.ndarray
     saturated: np.ndarray
     bits: int
     path: Path
+    size: tuple[int, int] = (0, 0)
 
 
 def _rotate(a: np.ndarray, rotate: int) -> np.ndarray:
@@ -49,14 +53,14 @@ def read_codes(path: str | Path) -> tuple[np.ndarray, int]:
     else:
         raise ReflectmmError(f"unsupported image sample type {img.dtype} (expected 8- or 16-bit)", path)
     if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
     elif img.shape[2] == 4:
-        img = img[:, :, 2::-1]
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
     elif img.shape[2] == 3:
-        img = img[:, :, ::-1]
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     else:
         raise ReflectmmError(f"unsupported channel count {img.shape[2]}", path)
-    return np.ascontiguousarray(img), bits
+    return img, bits
 
 
 def read_raw(path: str | Path) -> tuple[np.ndarray, int]:
@@ -72,10 +76,14 @@ def read_raw(path: str | Path) -> tuple[np.ndarray, int]:
     return np.ascontiguousarray(rgb), 16
 
 
-def read_image(path: str | Path, transfer: Transfer, rotate: int = 0) -> Image:
+def read_image(path: str | Path, transfer: Transfer, rotate: int = 0,
+               window: tuple[int, int, int, int] | None = None,
+               expect_size: tuple[int, int] | None = None) -> Image:
     """Read one shot, mark saturated pixels and linearise it.
 
-    RAW files are linear by construction: ``transfer`` is ignored for them (documented).
+    ``window = (x0, y0, w, h)`` keeps only that part of the (rotated) frame; ``expect_size = (W, H)`` refuses a
+    frame of another size (error naming the file).  RAW files are linear by construction: ``transfer`` is ignored
+    for them (documented).
     """
     path = Path(path)
     if path.suffix.lower() in RAW_EXTS:
@@ -86,9 +94,15 @@ def read_image(path: str | Path, transfer: Transfer, rotate: int = 0) -> Image:
         lut = transfer.lut(bits)
     if rotate:
         codes = _rotate(codes, rotate)
+    H, W = codes.shape[:2]
+    if expect_size is not None and (W, H) != tuple(expect_size):
+        raise ReflectmmError(f"image is {W}x{H}, but the other views are {expect_size[0]}x{expect_size[1]}", path)
+    if window is not None:
+        x0, y0, w, h = window
+        codes = codes[y0:y0 + h, x0:x0 + w]
     top = (1 << bits) - 1
-    sat = (codes == top).any(axis=2)
-    return Image(lut[codes], sat, bits, path)
+    sat = np.maximum(np.maximum(codes[..., 0], codes[..., 1]), codes[..., 2]) == top
+    return Image(lut[codes], sat, bits, path, (W, H))
 
 
 def read_landmarks(path: str | Path, n: int = 68) -> np.ndarray:

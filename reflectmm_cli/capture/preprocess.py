@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -126,50 +127,25 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
         raise MissingShotsError(f"identity {plan.identity} (session {plan.session}, recording {plan.recording}): "
                                 f"{len(missing)} required shot(s) missing: {shown}")
     V, F = len(plan.views), len(plan.flashes)
-    size = None
-    ref_file = None
-    olat_full: list[np.ndarray] = []
-    sat_full: list[np.ndarray] = []
-    room_full: list[np.ndarray] = []
+    rots = [int(opts.rotate.get(view, 0)) for view in plan.views]
+    # pass 1: room shots (full frames) and landmarks fix the frame size and, with landmarks, the window
+    rooms = []
+    size: tuple[int, int] | None = None
     landmarks = np.full((V, N_LANDMARKS, 2), np.nan, dtype=np.float32)
     bits_seen: set[int] = set()
-
-    def check_size(img, path):
-        nonlocal size, ref_file
-        h, w = img.linear.shape[:2]
-        if size is None:
-            size, ref_file = (w, h), path
-        elif (w, h) != size:
-            raise ReflectmmError(f"image is {w}x{h}, but the other views are {size[0]}x{size[1]} "
-                                 f"(first read: {ref_file.name})", path)
-
-    for vi, view in enumerate(plan.views):
-        rot = int(opts.rotate.get(view, 0))
-        row = plan.images[vi]
-        room = read_image(row[0], transfer, rot)
-        check_size(room, row[0])
-        bits_seen.add(room.bits)
-        olat = np.empty((F,) + room.linear.shape, dtype=np.float16)
-        sat = np.empty((F,) + room.saturated.shape, dtype=bool)
-        for fi in range(F):
-            fl = read_image(row[1 + fi], transfer, rot)
-            check_size(fl, row[1 + fi])
-            bits_seen.add(fl.bits)
-            diff = fl.linear - room.linear
-            np.maximum(diff, 0.0, out=diff)
-            olat[fi] = diff
-            np.logical_or(fl.saturated, room.saturated, out=sat[fi])
-        olat_full.append(olat)
-        sat_full.append(sat)
-        room_full.append(room.linear.astype(np.float16))
+    for vi in range(V):
+        img = read_image(plan.images[vi][0], transfer, rots[vi], expect_size=size)
+        size = size or img.size
+        bits_seen.add(img.bits)
+        rooms.append(img)
         lp = plan.landmarks[vi]
         if lp is not None:
             pts = read_landmarks(lp, N_LANDMARKS)
-            if rot:
+            if rots[vi]:
                 # landmark files annotate the image as stored on disk: rotate them with the image
-                h, w = room.linear.shape[:2]
-                wo, ho = (h, w) if rot in (90, 270) else (w, h)
-                pts = rotate_points(pts, rot, wo, ho)
+                h, w = img.linear.shape[:2]
+                wo, ho = (h, w) if rots[vi] in (90, 270) else (w, h)
+                pts = rotate_points(pts, rots[vi], wo, ho)
             landmarks[vi] = pts
     W, H = size
     have_lm = np.isfinite(landmarks).all(axis=(1, 2))
@@ -180,27 +156,46 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
         raise ReflectmmError(f"identity {plan.identity}: --crop landmarks but no landmarks for view(s) "
                              f"{', '.join(v for v, h in zip(plan.views, have_lm) if not h)}")
     if mode == "none":
-        boxes = [(0, 0, W, H)] * V
+        origins, cw, ch = _common_windows([(0, 0, W, H)] * V, W, H)
     elif mode == "landmarks":
-        boxes = [_crop_box((lm[:, 0].min(), lm[:, 1].min(), lm[:, 0].max(), lm[:, 1].max()), W, H,
-                           opts.crop_margin) for lm in landmarks]
+        origins, cw, ch = _common_windows(
+            [_crop_box((lm[:, 0].min(), lm[:, 1].min(), lm[:, 0].max(), lm[:, 1].max()), W, H, opts.crop_margin)
+             for lm in landmarks], W, H)
     else:
-        boxes = []
-        for vi in range(V):
-            lit = (olat_full[vi].max(axis=(0, 3)) > SIGNAL_THRESHOLD)
-            ys, xs = np.nonzero(lit)
-            if ys.size == 0:
-                boxes.append((0, 0, W, H))
-            else:
-                boxes.append(_crop_box((xs.min(), ys.min(), xs.max(), ys.max()), W, H, 0.02))
-    origins, cw, ch = _common_windows(boxes, W, H)
+        origins, cw, ch = None, W, H  # decided after the flashes are read
+    # pass 2: flash shots (cropped right after decoding when the window is known)
     olat = np.empty((V, F, ch, cw, 3), dtype=np.float16)
     sat = np.empty((V, F, ch, cw), dtype=bool)
     room = np.empty((V, ch, cw, 3), dtype=np.float16)
-    for vi, (ox, oy) in enumerate(origins):
-        olat[vi] = olat_full[vi][:, oy:oy + ch, ox:ox + cw]
-        sat[vi] = sat_full[vi][:, oy:oy + ch, ox:ox + cw]
-        room[vi] = room_full[vi][oy:oy + ch, ox:ox + cw]
+    with ThreadPoolExecutor(max_workers=max(1, min(4, os.cpu_count() or 1))) as pool:  # PNG decoding releases the GIL
+        for vi in range(V):
+            win = None if origins is None else (int(origins[vi][0]), int(origins[vi][1]), cw, ch)
+            r = rooms[vi]
+            rlin = r.linear if win is None else r.linear[win[1]:win[1] + ch, win[0]:win[0] + cw]
+            rsat = r.saturated if win is None else r.saturated[win[1]:win[1] + ch, win[0]:win[0] + cw]
+            room[vi] = rlin
+            shots = pool.map(lambda path, rot=rots[vi], win=win: read_image(path, transfer, rot, window=win,
+                                                                               expect_size=size),
+                             plan.images[vi][1:])
+            for fi, fl in enumerate(shots):
+                bits_seen.add(fl.bits)
+                diff = fl.linear
+                np.subtract(diff, rlin, out=diff)
+                np.maximum(diff, 0.0, out=diff)
+                olat[vi, fi] = diff
+                np.logical_or(fl.saturated, rsat, out=sat[vi, fi])
+    rooms.clear()
+    if origins is None:  # signal crop: the box of pixels some flash lights, per view, then one common window
+        boxes = []
+        for vi in range(V):
+            ys, xs = np.nonzero(olat[vi].max(axis=(0, 3)) > SIGNAL_THRESHOLD)
+            boxes.append((0, 0, W, H) if ys.size == 0 else
+                         _crop_box((xs.min(), ys.min(), xs.max(), ys.max()), W, H, 0.02))
+        origins, cw, ch = _common_windows(boxes, W, H)
+        win = [(slice(oy, oy + ch), slice(ox, ox + cw)) for ox, oy in origins]
+        olat = np.stack([olat[v][:, ys, xs] for v, (ys, xs) in enumerate(win)])
+        sat = np.stack([sat[v][:, ys, xs] for v, (ys, xs) in enumerate(win)])
+        room = np.stack([room[v][ys, xs] for v, (ys, xs) in enumerate(win)])
     arrays = {
         "olat": olat, "room": room, "saturated": sat,
         "view_names": np.array(plan.views, dtype=str), "flash_ids": np.array(plan.flashes, dtype=str),

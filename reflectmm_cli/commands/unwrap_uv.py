@@ -102,10 +102,9 @@ def unwrap_uv_cmd(identity, uv_size, capture, geometry, face_model, grazing_deg,
     ws = (workspace or default_workspace()).resolve()
     capture = capture or ws / "preprocess-multipie" / f"{identity}.npz"
     geometry = geometry or ws / "fit-geometry" / f"{identity}.npz"
-    for role, p in (("capture", capture), ("geometry", geometry)):
+    for role, p, verb in (("capture", capture, "preprocess-multipie"), ("geometry", geometry, "fit-geometry")):
         if not Path(p).exists():
-            raise ReflectmmError(f"{role} artifact not found (run {'preprocess-multipie' if role == 'capture' else 'fit-geometry'} "
-                                 f"first or pass --{role})", p)
+            raise ReflectmmError(f"{role} artifact not found (run {verb} first or pass --{role})", p)
     if face_model is None:
         face_model = default_face_model(capture, geometry, ws)
         if face_model is None:

@@ -104,8 +104,8 @@ def bilinear(images: np.ndarray, uv: np.ndarray, saturated: np.ndarray | None = 
 
 def _footprint_on_surface(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, R, t, crop, H: int, W: int
                           ) -> tuple[np.ndarray, int]:
-    """(M,) bool: each of the four bilinear taps around ``pix`` (crop-window pixels) sees a surface point at the
-    texel's depth ``Z`` within ``tol = (Z/f)·(1 + 1.5·√2·tanθ)`` (θ = angle between normal and view).  Taps outside
+    """(M,) bool: each of the four bilinear taps around ``pix`` (crop-window pixels) sees the front of a triangle
+    at the texel's depth ``Z`` within ``tol = (Z/f)·(1 + 1.5·√2·tanθ)`` (θ = angle between normal and view). Taps outside
     the window count as failing here only if they miss the mesh.  Returns the mask and the number of rays cast."""
     M = pix.shape[0]
     if M == 0:
@@ -126,8 +126,13 @@ def _footprint_on_surface(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     c = -np.asarray(R, dtype=np.float64).T @ np.asarray(t, dtype=np.float64)
     hit = scene.intersect(np.broadcast_to(c, d.shape), d)
-    depth = np.where(hit["tri"] >= 0, hit["t"].astype(np.float64) * (d @ np.asarray(R, dtype=np.float64)[2]),
-                     np.inf)
+    tri = hit["tri"]
+    ok = tri >= 0
+    # a tap that sees the back of a triangle (through a hole of an open mesh: mouth, eyes) is not this surface
+    tv = scene.vertices[scene.triangles[np.where(ok, tri, 0)]]
+    gn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    ok &= np.einsum("ij,ij->i", gn, d) < 0
+    depth = np.where(ok, hit["t"].astype(np.float64) * (d @ np.asarray(R, dtype=np.float64)[2]), np.inf)
     tap_depth = np.full(key.shape, np.inf)
     tap_depth[inwin] = depth[inv]
     f = float(np.asarray(K)[1, 1])
