@@ -289,6 +289,12 @@ def _open_npz(path: Path):
         raise ArtifactError("file not found", path)
     if path.is_dir():
         raise ArtifactError("is a directory, expected an artifact file", path)
+    if not zipfile.is_zipfile(path):
+        with open(path, "rb") as f:
+            head = f.read(4)
+        if head.startswith(b"PK"):
+            raise ArtifactError("truncated or corrupt NPZ (zip directory missing)", path)
+        raise ArtifactError("not an NPZ artifact (not a zip archive)", path)
     try:
         return np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
