@@ -204,7 +204,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     if fit.sh is not None:
         arrays["sh_room"] = fit.sh
     report: dict[str, Any] = {
-        "identity": identity, "views": len(view_names), "seconds": round(fit.seconds, 3),
+        "identity": identity, "views": len(view_names),
         "landmark_rmse_px": [round(float(x), 4) for x in fit.landmark_rmse_px],
         "photo_residual": [None if not np.isfinite(x) else round(float(x), 6) for x in fit.photo_residual],
         "landmark_sources": lm_src, "history": fit.history, "config": cfg.as_dict(),
@@ -305,9 +305,10 @@ def _outputs(ctx: StageContext) -> list[Path]:
     caps = ctx.inputs.get("capture") or []
     if ctx.param("from_truth") or ctx.param("no_overlay") or len(caps) != 1 or not Path(caps[0]).is_file():
         return paths
-    try:
-        names = _str_list(read_artifact(caps[0], "capture")["view_names"])
-    except ReflectmmError:
+    try:  # read only the view names (the planner calls this; the OLAT stack can be large)
+        with np.load(caps[0], allow_pickle=False) as npz:
+            names = _str_list(npz["view_names"])
+    except (OSError, KeyError, ValueError):
         return paths
     return paths + [ctx.output_path(f"{ctx.identity}_overlay_{n}", ".png") for n in names]
 

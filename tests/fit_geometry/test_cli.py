@@ -142,3 +142,12 @@ def test_flash_intensity_override_and_no_overlay(world, cli, tmp_path):
     assert np.array_equal(g["flash_intensity"], np.ones(2))
     assert np.all(np.isnan(g["photo_residual"]))
     assert g.params["flash_intensity"] == 1.0 and g.params["photo_rounds"] == 0
+
+
+def test_rerun_is_byte_identical(world, cli, tmp_path):
+    outs = [tmp_path / "a" / "g.npz", tmp_path / "b" / "g.npz"]
+    for out in outs:
+        r = cli("fit-geometry", "--id", "001", "-w", world, "--iters", "30", "--photo-rounds", "1", "--no-overlay",
+                "--capture", world / "preprocess-multipie" / "001.npz", "-o", out)
+        assert r.exit_code == 0, r.output
+    assert outs[0].read_bytes() == outs[1].read_bytes()
