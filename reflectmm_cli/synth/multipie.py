@@ -167,7 +167,7 @@ def make_identity(model, cfg: SynthConfig, index: int) -> Identity:
     verts = model.vertices(shape, exp).astype(np.float64)
     normals = vertex_normals(verts, model.triangles).astype(np.float64)
     lm_uv = model.uv[model.landmarks].astype(np.float64)
-    maps = skin_maps(lm_uv, sample_skin_params(rng), cfg.uv_size, exponents=cfg.exponents)
+    maps = skin_maps(lm_uv, sample_skin_params(rng), cfg.uv_size, exponents=cfg.exponents, brdf=cfg.brdf)
     return Identity(identity_code(index), shape, exp, verts, normals, maps)
 
 

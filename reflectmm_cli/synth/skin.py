@@ -12,8 +12,9 @@ forehead; docs/pipeline.md):
 * ``spec_intensity (S, S)``: specular scale ρ — strong on the nose and forehead (oily T-zone), weak on cheeks;
 * ``spec_albedo (S, S)``: ρ × the GGX directional albedo at normal view (comparable to Σ w_i);
 * ``weights (3, S, S)``: 3-lobe weights for exponents (1, 8, 64) — the NNLS fit of the GGX lobe at normal view
-  (:func:`reflectmm_cli.synth.ggx.fit_lobes_to_ggx`).  In ``model`` mode these *are* the rendering BRDF
-  (exact), in ``ggx`` mode they are only the closest 3-lobe reference.
+  (:func:`reflectmm_cli.synth.ggx.fit_lobes_to_ggx`).  In ``model`` mode these (plus a broad p = 1 sheen) *are*
+  the rendering BRDF (exact) and ``spec_albedo = Σ w``; in ``ggx`` mode they are only the closest 3-lobe
+  reference.
 
 Regions are soft masks in UV space built from the landmarks' UV coordinates (polygons and thickened polylines,
 blurred), so any face model with UVs and iBUG landmarks works.
@@ -158,8 +159,15 @@ def _low_freq(rng: np.random.Generator, size: int, scale_px: float) -> np.ndarra
 
 
 def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f0: float = SKIN_F0,
-              exponents=LOBE_EXPONENTS) -> SkinMaps:
-    """The reflectance maps of one identity (see the module docstring); deterministic in (landmarks, params)."""
+              exponents=LOBE_EXPONENTS, brdf: str = "ggx") -> SkinMaps:
+    """The reflectance maps of one identity (see the module docstring); deterministic in (landmarks, params).
+
+    ``brdf="model"``: the weights are the rendering BRDF; on top of the GGX fit they get a broad-lobe "sheen"
+    ``w_1 = 0.01 · (1 + cheeks + ½ chin) · oiliness`` (the fit alone leaves the p = 1 lobe at 0 almost
+    everywhere, which would make an exact-recovery test of that lobe vacuous) and ``spec_albedo = Σ w``.
+    """
+    if brdf not in ("ggx", "model"):
+        raise ReflectmmError(f"brdf must be 'ggx' or 'model', got {brdf!r}")
     if size < 16:
         raise ReflectmmError(f"--uv-size must be ≥ 16, got {size}")
     R = region_masks(landmark_uv, size)
@@ -188,6 +196,10 @@ def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f
 
     spec_alb = ggx_specular_albedo(rough, rho, f0)
     w = np.moveaxis(fit_lobes_to_ggx(rough, rho, exponents, f0), -1, 0)
+    if brdf == "model":
+        broad = int(np.argmin(np.asarray(exponents, np.float64)))
+        w[broad] += 0.01 * (1 + R["cheeks"] + 0.5 * R["chin"]) * params.oiliness
+        spec_alb = w.sum(0)
     return SkinMaps(albedo=alb.astype(np.float32), roughness=rough.astype(np.float32),
                     spec_intensity=rho.astype(np.float32), spec_albedo=spec_alb.astype(np.float32),
                     weights=w.astype(np.float32), regions=R, params=params)

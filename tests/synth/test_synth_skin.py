@@ -86,3 +86,14 @@ def test_bad_landmarks_refused(landmark_uv):
         region_masks(landmark_uv[:60], S)
     with pytest.raises(ReflectmmError, match="degenerate"):
         region_masks(np.full((68, 2), 0.5), S)
+
+
+def test_model_mode_adds_a_broad_lobe_and_spec_albedo_is_the_weight_sum(landmark_uv):
+    g = skin_maps(landmark_uv, _params(), S)
+    m = skin_maps(landmark_uv, _params(), S, brdf="model")
+    np.testing.assert_array_equal(g.albedo, m.albedo)
+    np.testing.assert_array_equal(g.weights[1:], m.weights[1:])
+    assert np.all(m.weights[0] >= g.weights[0] + 0.005)
+    np.testing.assert_allclose(m.spec_albedo, m.weights.sum(0), rtol=1e-6)
+    with pytest.raises(ReflectmmError, match="brdf"):
+        skin_maps(landmark_uv, _params(), S, brdf="phong")
