@@ -213,6 +213,8 @@ def build_light_model(maps: Iterable[str | Path | np.ndarray], *, order: int = 8
                 raise ReflectmmError("a colour channel is entirely black")
         except ReflectmmError as e:
             msg = str(e)
+            if msg.startswith(name + ": "):  # the reader already names the file
+                msg = msg[len(name) + 2:]
             skipped.append((name, msg))
             log(f"build-light-pca: skipping {name}: {msg}")
             continue
