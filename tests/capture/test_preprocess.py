@@ -212,3 +212,20 @@ def test_usage_errors(tmp_path, cli):
     assert res.exit_code == 1 and "degrees must be" in res.stderr
     res = run(cli, tmp_path / "mp", tmp_path / "ws", "--id", "001", "--session", "03")
     assert res.exit_code == 1 and "not in session 03" in res.stderr
+
+
+def test_16bit_tree_and_corrupt_raw(tmp_path):
+    root = tmp_path / "mp"
+    truth = make_tree(root, ("001",), bits=16, views=("05_1",), flashes=("07",))["001"]
+    a, _, _ = preprocess_identity(root, "001", CaptureOptions(views=("05_1",), flashes=("07",), crop="none"))
+    assert int(a["bits"]) == 16
+    want = np.maximum(truth["flash"] - truth["room"][:, None], 0)
+    np.testing.assert_allclose(a["olat"].astype(np.float64), want, atol=2 * 1.2 * 0.5 / 65535 + 1e-3)
+    # a RAW file replaces the PNG: it is read through rawpy, and a corrupt one is an error naming it
+    png = shot_file(root, "001", "05_1", "07")
+    png.unlink()
+    raw = png.with_suffix(".dng")
+    raw.write_bytes(b"II*\x00not really a raw file")
+    with pytest.raises(ReflectmmError, match="not a readable RAW image") as exc:
+        preprocess_identity(root, "001", CaptureOptions(views=("05_1",), flashes=("07",), crop="none"))
+    assert str(raw) in str(exc.value)
