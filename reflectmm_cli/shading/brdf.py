@@ -89,10 +89,13 @@ def shade_directional(albedo, weights, exponents, normal, light_dir, view_dir, i
         diff_cos = torch.where(lit, ndl, torch.zeros_like(ndl))
     else:
         lit = (ndl > 0) & (ndv > 0)
-        base = np.where(lit, ndh, 1.0).astype(dt, copy=False)
-        np.maximum(base, 1e-30, out=base)
-        lobes = np.power(base[..., None], p) * (w * f.astype(dt))
-        spec = np.where(lit, lobes.sum(-1), 0.0).astype(dt, copy=False)
+        # lights behind the surface (and hidden texels) cost no power evaluation
+        shape = np.broadcast_shapes(ndh.shape + (p.shape[0],), w.shape)
+        litk = np.broadcast_to(lit[..., None], shape)
+        lobes = np.zeros(shape, dt)
+        np.power(np.broadcast_to(ndh[..., None], shape), p, out=lobes, where=litk)
+        lobes *= w * f.astype(dt)
+        spec = lobes.sum(-1)
         diff_cos = np.where(lit, ndl, 0.0).astype(dt, copy=False)
     diffuse = E * (c * (1.0 / np.pi)) * diff_cos[..., None]
     specular = E * spec[..., None]
