@@ -52,6 +52,7 @@ __all__ = [
     "conditioning",
     "conditioning_from_obs",
     "design_columns",
+    "design_rows",
     "iter_chunks",
     "mirror_index",
     "pair_irradiance",
@@ -146,13 +147,17 @@ def design_columns(position: np.ndarray, normal: np.ndarray, cam_centers: np.nda
     cpos = np.asarray(cam_centers, dtype=np.float64)[pv]
     I = np.asarray(flash_intensity, dtype=np.float64).reshape(-1)[pf]  # (P,)
     dl = fpos[None, :, :] - x[:, None, :]  # (N,P,3)
+    dv = cpos[None, :, :] - x[:, None, :]
     d2 = np.einsum("npk,npk->np", dl, dl)
-    l = dl / np.sqrt(np.where(d2 > 0, d2, 1.0))[..., None]
-    v = _normalize(cpos[None, :, :] - x[:, None, :])
-    h = _normalize(l + v)
-    ndl = np.einsum("nk,npk->np", n, l)
-    ndv = np.einsum("nk,npk->np", n, v)
-    ndh = np.einsum("nk,npk->np", n, h)
+    v2 = np.einsum("npk,npk->np", dv, dv)
+    il = 1.0 / np.sqrt(np.where(d2 > 0, d2, 1.0))
+    iv = 1.0 / np.sqrt(np.where(v2 > 0, v2, 1.0))
+    ndl = np.einsum("nk,npk->np", n, dl) * il
+    ndv = np.einsum("nk,npk->np", n, dv) * iv
+    ldv = np.einsum("npk,npk->np", dl, dv) * il * iv
+    # n·h with h = (l+v)/|l+v| and |l+v| = sqrt(2 + 2 l·v): no half vector is formed
+    hl2 = 2.0 + 2.0 * ldv
+    ndh = (ndl + ndv) / np.sqrt(np.where(hl2 > 0, hl2, 1.0))
     valid = (ndl > 0) & (ndv > 0) & (d2 > 0)
     if observed is not None:
         valid &= np.asarray(observed, dtype=bool)
@@ -168,6 +173,37 @@ def design_columns(position: np.ndarray, normal: np.ndarray, cam_centers: np.nda
     lobes = np.where((ndh > 0)[..., None], lobes, 0.0)
     return Design(diffuse.astype(dtype, copy=False), lobes.astype(dtype, copy=False),
                   cos_l.astype(dtype, copy=False), ndh.astype(dtype, copy=False), valid)
+
+
+def design_rows(x: np.ndarray, n: np.ndarray, flash: np.ndarray, cam: np.ndarray, intensity: np.ndarray,
+                exponents: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Design columns of R individual observations (the same formulas as :func:`design_columns`).
+
+    Args:
+        x, n: (R, 3) texel position and unit normal; flash, cam: (R, 3) flash and camera positions;
+        intensity: (R,) flash radiant intensity; exponents: (K,).
+    Returns:
+        (d (R,), s (R, K), cos_l (R,), ndh (R,)), all 0 where n·l ≤ 0 or n·v ≤ 0.
+    """
+    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
+    dl = flash - x
+    dv = cam - x
+    d2 = np.einsum("rk,rk->r", dl, dl)
+    il = 1.0 / np.sqrt(np.where(d2 > 0, d2, 1.0))
+    iv = 1.0 / np.sqrt(np.maximum(np.einsum("rk,rk->r", dv, dv), 1e-300))
+    ndl = np.einsum("rk,rk->r", n, dl) * il
+    ndv = np.einsum("rk,rk->r", n, dv) * iv
+    hl2 = 2.0 + 2.0 * np.einsum("rk,rk->r", dl, dv) * il * iv
+    ok = (ndl > 0) & (ndv > 0) & (d2 > 0)
+    ndh = np.where(ok, np.clip((ndl + ndv) / np.sqrt(np.where(hl2 > 0, hl2, 1.0)), 0.0, 1.0), 0.0)
+    E = np.where(ok, intensity / np.where(d2 > 0, d2, 1.0), 0.0)
+    cos_l = np.where(ok, ndl, 0.0)
+    d = E * cos_l / np.pi
+    with np.errstate(divide="ignore"):
+        logh = np.log(np.where(ndh > 0, ndh, 1.0))
+    s = np.exp(logh[:, None] * p) * (E[:, None] * blinn_phong_norm(p))
+    s = np.where((ndh > 0)[:, None], s, 0.0)
+    return d, s, cos_l, ndh
 
 
 def gram_conditioning(G: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-from .design import (DEFAULT_CHUNK, check_observations, design_columns, design_gram, gram_conditioning,
+from .design import (DEFAULT_CHUNK, check_observations, design_columns, design_rows, gram_conditioning,
                      iter_chunks, mirror_index, pair_irradiance)
 from .nnls import kkt_violation, nnls_batched
 
@@ -171,38 +171,58 @@ class _Problem:
         self.idx = np.flatnonzero(mask.reshape(-1))
         pos = np.asarray(obs["position"], np.float64).reshape(-1, 3)
         nrm = np.asarray(obs["normal"], np.float64).reshape(-1, 3)
-        rad = np.asarray(obs["radiance"]).reshape(used.shape[0], -1, 3)
-        usedf = used.reshape(used.shape[0], -1)
         n = self.idx.size
+        P = used.shape[0]
+        # texel-major copies (one pass each) so that the per-texel gathers below are local
+        rad = np.ascontiguousarray(np.moveaxis(np.asarray(obs["radiance"]).reshape(P, -1, 3), 0, 1)[self.idx])
+        usedT = np.ascontiguousarray(used.reshape(P, -1).T[self.idx])
+        pv = np.asarray(obs["pair_view"], np.int64)
+        pf = np.asarray(obs["pair_flash"], np.int64)
+        fpos = np.asarray(obs["flash_pos"], np.float64)[pf]  # (P,3)
+        cpos = np.asarray(obs["cam_centers"], np.float64)[pv]
+        Ip = np.asarray(I, np.float64)[pf]
+        xm, nm = pos[self.idx], nrm[self.idx]
+        nm = nm / np.where(np.linalg.norm(nm, axis=1, keepdims=True) > 0, np.linalg.norm(nm, axis=1,
+                                                                                          keepdims=True), 1.0)
+        # pass A: which (texel, pair) entries are valid (observed, n·l > 0, n·v > 0): sign tests by BLAS
+        valid_chunks = []
         self.count = np.zeros(n, np.int64)
-        tex, rows, hh, cc = [], [], [], []
         for sl in iter_chunks(n, chunk):
-            t = self.idx[sl]
-            des = design_columns(pos[t], nrm[t], obs["cam_centers"], obs["flash_pos"], I, obs["pair_view"],
-                                 obs["pair_flash"], p, usedf[:, t].T)
-            self.count[sl] = des.valid.sum(1)
-            ti, pj = np.nonzero(des.valid)
-            tex.append(ti + sl.start)
-            rows.append(np.concatenate([des.diffuse[ti, pj][:, None], des.lobes[ti, pj],
-                                        rad[pj, t[ti]].astype(np.float64)], axis=1))
-            hh.append(des.ndh[ti, pj])
-            cc.append(des.cos_l[ti, pj])
-        cat = (lambda a, shape: np.concatenate(a) if a else np.zeros(shape))
-        self.tex = cat(tex, (0,)).astype(np.int64)
-        #: (R, 1+K+3) rows [d, s_1..s_K, y_r, y_g, y_b]
-        self.A = np.ascontiguousarray(cat(rows, (0, 1 + K + 3)).reshape(-1, 1 + K + 3))
-        self.d = np.ascontiguousarray(self.A[:, 0])
-        self.s = np.ascontiguousarray(self.A[:, 1:1 + K])
-        self.y = np.ascontiguousarray(self.A[:, 1 + K:])
-        self.cos = cat(cc, (0,))
+            nx = np.einsum("nk,nk->n", nm[sl], xm[sl])[:, None]
+            v = usedT[sl].copy()
+            v &= (nm[sl] @ fpos.T - nx) > 0
+            v &= (nm[sl] @ cpos.T - nx) > 0
+            valid_chunks.append(v)
+            self.count[sl] = v.sum(1)
         self.start = np.concatenate([[0], np.cumsum(self.count)]).astype(np.int64)
+        R = int(self.start[-1])
+        # pass B: design rows of the valid entries, written in place (texel-sorted)
+        self.A = np.empty((R, 1 + K + 3))
+        self.cos = np.empty(R)
+        self.tex = np.empty(R, np.int64)
+        ndh = np.empty(R)
+        for sl, v in zip(iter_chunks(n, chunk), valid_chunks):
+            ti, pj = np.nonzero(v)
+            r0, r1 = self.start[sl.start], self.start[sl.stop]
+            t = ti + sl.start
+            cnt = self.count[sl]
+            d, s_, c_, h_ = design_rows(np.repeat(xm[sl], cnt, axis=0), np.repeat(nm[sl], cnt, axis=0), fpos[pj],
+                                        cpos[pj], Ip[pj], p)
+            self.A[r0:r1, 0] = d
+            self.A[r0:r1, 1:1 + K] = s_
+            self.A[r0:r1, 1 + K:] = rad[sl][v]  # boolean gather: same (texel, pair) order as np.nonzero
+            self.cos[r0:r1] = c_
+            self.tex[r0:r1] = t
+            ndh[r0:r1] = h_
+        self.d = self.A[:, 0]
+        self.s = np.ascontiguousarray(self.A[:, 1:1 + K])
+        self.y = self.A[:, 1 + K:]
         self.rms = np.sqrt(np.bincount(self.tex, weights=_rowsum(self.y * self.y), minlength=n)
                            / (3 * np.maximum(self.count, 1)))
         # Gram of the design columns and lobe observability, per texel
         B = np.ascontiguousarray(self.A[:, :1 + K])
         self.G = (np.stack([self._segsum(B[:, a], B) for a in range(1 + K)], axis=1) if n
                   else np.zeros((0, 1 + K, 1 + K)))
-        ndh = cat(hh, (0,))
         self.obsv = np.zeros((n, K))
         has = self.count > 0
         if ndh.size:
@@ -210,66 +230,100 @@ class _Problem:
                 self.obsv[has] = np.maximum.reduceat(ndh[:, None] ** p, self.start[:-1][has], axis=0)
         self._iu = np.triu_indices(K)
 
-    def _segsum(self, w: np.ndarray, X: np.ndarray) -> np.ndarray:
-        """(n, q) per-texel sums Σ_rows w_r · X_r (a CSR product; rows are sorted by texel)."""
+    def _segsum(self, w: np.ndarray, X: np.ndarray, a: int = 0, b: int | None = None) -> np.ndarray:
+        """(b−a, q) per-texel sums Σ_rows w_r · X_r over texels a..b−1 (a CSR product; rows sorted by texel)."""
         from scipy.sparse import csr_matrix
 
-        n = self.idx.size
-        R = self.tex.size
-        M = csr_matrix((w, np.arange(R, dtype=np.int64), self.start), shape=(n, R))
+        b = self.idx.size if b is None else b
+        r0 = self.start[a]
+        R = self.start[b] - r0
+        if getattr(self, "_cols", None) is None or self._cols.size < R:
+            self._cols = np.arange(self.tex.size, dtype=np.int64)
+        M = csr_matrix((w, self._cols[:R], self.start[a:b + 1] - r0), shape=(b - a, R))
         return np.asarray(M @ X)
 
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        """(R, 3) model minus observation for the per-texel solution x (n, 3+K)."""
-        C = np.repeat(x[:, :3], self.count, axis=0)
-        W = np.repeat(x[:, 3:], self.count, axis=0)
-        spec = np.einsum("rk,rk->r", self.s, W)
+    def residuals(self, x: np.ndarray, a: int = 0, b: int | None = None) -> np.ndarray:
+        """(R, 3) model minus observation over texels a..b−1 for their solution x (b−a, 3+K)."""
+        b = self.idx.size if b is None else b
+        r0, r1 = self.start[a], self.start[b]
+        cnt = self.count[a:b]
+        C = np.repeat(x[:, :3], cnt, axis=0)
+        W = np.repeat(x[:, 3:], cnt, axis=0)
+        spec = np.einsum("rk,rk->r", self.s[r0:r1], W)
         r = C
-        r *= self.d[:, None]
+        r *= self.d[r0:r1, None]
         r += spec[:, None]
-        r -= self.y
+        r -= self.y[r0:r1]
         return r
 
-    def normal_equations(self, x: np.ndarray | None, loss: str, delta: np.ndarray):
-        """(H (n,m,m), g (n,m), objective (n,), rss (n,)) for the current solution x (n,m).
+    def rss(self, x: np.ndarray) -> np.ndarray:
+        """(n,) sum of squared residuals over each texel's rows and channels."""
+        r = self.residuals(x)
+        return np.bincount(self.tex, weights=_rowsum(r * r), minlength=self.idx.size)
+
+    def normal_equations(self, x: np.ndarray | None, loss: str, delta: np.ndarray, a: int = 0,
+                         b: int | None = None):
+        """(H, g, objective, rss) of texels a..b−1 for their current solution x (b−a, m).
 
         x = None: weights ⟨l,n⟩ (the least-squares system).  Objective: Σ cos·|r| (l1) or Σ cos·r² (l2).
+        Shapes: H (b−a, m, m), g (b−a, m), objective and rss (b−a,).
         """
-        n, K = self.idx.size, self.K
+        K = self.K
+        b = self.idx.size if b is None else b
+        n = b - a
         m = 3 + K
-        iu0, iu1 = self._iu
+        r0, r1 = self.start[a], self.start[b]
         H = np.zeros((n, m, m))
         g = np.zeros((n, m))
         obj = np.zeros(n)
         rss = np.zeros(n)
-        cos = self.cos
+        cos = self.cos[r0:r1]
+        d, s, y = self.d[r0:r1], self.s[r0:r1], self.y[r0:r1]
+        cnt = self.count[a:b]
         if x is not None:
-            r = self.residuals(x)
-            a = np.abs(r)
+            tex = self.tex[r0:r1] - a
+            r = self.residuals(x, a, b)
+            aa = np.abs(r)
             r2 = _rowsum(r * r)
             if loss == "l1":
-                w = np.maximum(a, np.repeat(delta, self.count)[:, None])
+                w = np.maximum(aa, np.repeat(delta[a:b], cnt)[:, None])
                 np.divide(cos[:, None], w, out=w)
-                o = cos * _rowsum(a)
+                o = cos * _rowsum(aa)
             else:
                 w = np.repeat(cos[:, None], 3, axis=1)
                 o = cos * r2
-            obj = np.bincount(self.tex, weights=o, minlength=n)
-            rss = np.bincount(self.tex, weights=r2, minlength=n)
+            obj = np.bincount(tex, weights=o, minlength=n)
+            rss = np.bincount(tex, weights=r2, minlength=n)
         else:
             w = np.repeat(cos[:, None], 3, axis=1)
-        X = self.A  # [d, s, y]
+        X = self.A[r0:r1]  # [d, s, y]
         for c in range(3):
-            blk = self._segsum(w[:, c] * self.d, X)  # Σ w_c d · [d, s_1..s_K, y_0, y_1, y_2]
+            blk = self._segsum(w[:, c] * d, X, a, b)  # Σ w_c d · [d, s_1..s_K, y_0, y_1, y_2]
             H[:, c, c] = blk[:, 0]
             H[:, c, 3:] = blk[:, 1:1 + K]
             H[:, 3:, c] = blk[:, 1:1 + K]
             g[:, c] = blk[:, 1 + K + c]
         ws = _rowsum(w)
         for k in range(K):
-            H[:, 3 + k, 3:] = self._segsum(ws * self.s[:, k], self.s)
-        g[:, 3:] = self._segsum(_rowsum(w * self.y), self.s)
+            H[:, 3 + k, 3:] = self._segsum(ws * s[:, k], s, a, b)
+        g[:, 3:] = self._segsum(_rowsum(w * y), s, a, b)
         return H, g, obj, rss
+
+    def bands(self, S: int, target_rows: int = 1 << 17) -> list[tuple[int, int]]:
+        """Texel ranges made of whole UV rows (so closed under mirroring) with about ``target_rows`` observations."""
+        n = self.idx.size
+        if n == 0:
+            return []
+        row_start = np.searchsorted(self.idx, np.arange(S + 1) * S)  # first texel position of each UV row
+        out, a = [], 0
+        for r in range(1, S + 1):
+            b = row_start[r]
+            if b > a and (self.start[b] - self.start[a] >= target_rows or r == S):
+                out.append((int(a), int(b)))
+                a = b
+        if a < n:
+            out.append((int(a), n))
+        return out
 
 
 def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, symmetry: float,
@@ -371,6 +425,15 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         extra = np.where(has_m.reshape((-1,) + (1,) * (a.ndim - 1)), a[mp], 0)
         return a + sym * extra
 
+    def pool_band(a_: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        """pool() for the texels lo..hi−1 of a band closed under mirroring (a_ holds that band only)."""
+        if sym == 0:
+            return a_
+        hm = has_m[lo:hi]
+        loc = np.where(hm, mp[lo:hi] - lo, 0)
+        extra = np.where(hm.reshape((-1,) + (1,) * (a_.ndim - 1)), a_[loc], 0)
+        return a_ + sym * extra
+
     Gp = pool(prob.G)
     cnt_p = prob.count + (np.where(has_m, prob.count[mp], 0) if sym > 0 else 0)
     obsv_p = np.maximum(prob.obsv, np.where(has_m[:, None], prob.obsv[mp], 0.0)) if sym > 0 else prob.obsv
@@ -395,7 +458,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         prior_sigma = max(S / 16.0, 1.0)
 
     if solver == "fast":
-        x, prior_map, info = _fast(prob, pool, solve, n, m, loss, float(prior), delta, irls_iterations,
+        x, prior_map, info = _fast(prob, pool, pool_band, solve, n, m, loss, float(prior), delta, irls_iterations,
                                    obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol)
         stats.update(info)
     else:
@@ -414,7 +477,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
     xfill = np.where(mask[None], np.maximum(xfill, 0.0), 0.0)
     # residual over the texel's own fitted observations
     xf = np.moveaxis(xfill.reshape(m, -1), 0, 1)[idx]
-    _, _, obj, rss = prob.normal_equations(xf, "l2", delta)
+    rss = prob.rss(xf)
     resid = np.sqrt(rss / np.maximum(3 * prob.count, 1))
     stats["residual_rms_median"] = float(np.median(resid[prob.count > 0])) if np.any(prob.count > 0) else 0.0
     stats["time_s"] = time.perf_counter() - t0
@@ -435,8 +498,8 @@ def _solve_system(H, g, lam, x0):
     return x, info, Hr, gr
 
 
-def _fast(prob, pool, solve, n, m, loss, prior, delta, iters, obsv_p, observable_min, prior_sigma, to_map, idx, S,
-          progress, irls_tol):
+def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p, observable_min, prior_sigma, to_map,
+          idx, S, progress, irls_tol):
     info: dict[str, Any] = {}
     sel = np.flatnonzero(solve)
     x = np.zeros((n, m))
@@ -462,40 +525,44 @@ def _fast(prob, pool, solve, n, m, loss, prior, delta, iters, obsv_p, observable
     info["prior_global"] = glob.tolist()
     if prior == 0:
         x0 = np.zeros_like(x0)
-    # pass 2: the real objective, towards x0
+    # pass 2: the real objective, towards x0 — band by band (whole UV rows, closed under mirroring), so each
+    # band's IRLS runs on cache-sized data and converges on its own
     n_it = 1 if loss == "l2" else max(int(iters), 1)
-    xs = x[sel].copy() if loss == "l1" else None
-    it_range = range(n_it)
-    if progress is not None and n_it > 1:
-        it_range = progress(it_range, desc="IRLS", total=n_it)
-    last_obj = None
+    bands = prob.bands(S)
+    it_bands = progress(bands, desc="IRLS", total=len(bands)) if progress is not None and bands else bands
     nn_iters = 0
     unconv = 0
     kkt = 0.0
-    done_it = 0
-    for it in it_range:
-        done_it += 1
-        xcur = None
-        if loss == "l1" and it > 0:
-            xcur = x
-        H, g, obj, _ = prob.normal_equations(xcur, loss, delta)
-        Hp, gp = pool(H), pool(g)
-        lam = prior * np.einsum("nii->n", Hp)
-        if sel.size:
-            xs, nfo, Hr, gr = _solve_system(Hp[sel], gp[sel], lam[sel], x0[sel])
+    max_it = 0
+    for a, b in it_bands:
+        sl = slice(a, b)
+        loc = np.flatnonzero(solve[sl])
+        if loc.size == 0:
+            continue
+        Hb, gb = Hp[sl], gp[sl]
+        x0b = x0[sl]
+        xb = x[sl].copy()
+        last_obj = None
+        for it in range(n_it):
+            if it > 0:
+                H, g, obj, _ = prob.normal_equations(xb, loss, delta, a, b)
+                Hb, gb = pool_band(H, a, b), pool_band(g, a, b)
+            # (it = 0: the ⟨l,n⟩-weighted system of pass 1 is reused as is)
+            lam = prior * np.einsum("nii->n", Hb[loc])
+            xs, nfo, Hr, gr = _solve_system(Hb[loc], gb[loc], lam, x0b[loc])
             nn_iters = max(nn_iters, nfo["iterations"])
             unconv += nfo["unconverged"]
-            kkt = float(kkt_violation(Hr, gr, xs).max())
-            change = np.abs(xs - x[sel]).max() / max(np.abs(xs).max(), 1e-30)
-            x[sel] = xs
-        else:
-            change = 0.0
-        if xcur is not None:
-            tot = float(obj[sel].sum())
-            if change < irls_tol or (last_obj is not None and abs(last_obj - tot) <= 1e-9 * max(abs(tot), 1e-300)):
-                break
-            last_obj = tot
-    info.update({"irls_iterations": done_it if loss == "l1" else 0, "nnls_iterations_max": nn_iters,
+            kkt = max(kkt, float(kkt_violation(Hr, gr, xs).max()))
+            change = np.abs(xs - xb[loc]).max() / max(np.abs(xs).max(), 1e-30)
+            xb[loc] = xs
+            max_it = max(max_it, it + 1)
+            if it > 0:
+                tot = float(obj[loc].sum())
+                if change < irls_tol or (last_obj is not None and abs(last_obj - tot) <= 1e-9 * max(abs(tot), 1e-300)):
+                    break
+                last_obj = tot
+        x[sl] = xb
+    info.update({"irls_iterations": max_it if loss == "l1" else 0, "n_bands": len(bands), "nnls_iterations_max": nn_iters,
                  "nnls_unconverged": unconv, "kkt_violation_max": kkt})
     return x, x0m, info
 
