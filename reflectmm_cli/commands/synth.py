@@ -81,7 +81,7 @@ def envmaps_cmd(count, out, seed, width, workspace, as_json):
 
 MULTIPIE_DEFAULTS = {"identities": 1, "seed": 0, "brdf": "ggx", "image_size": "640x480", "uv_size": 256,
                      "cameras": None, "flashes": None, "noise": 0.0, "landmark_noise": 0.0, "expression": 0.0,
-                     "shape_scale": 1.0, "first_id": 1, "face_vertices": 35000}
+                     "shape_scale": 1.0, "first_id": 1, "face_vertices": 35000, "supersample": 1}
 
 
 def _parse_size(value) -> tuple[int, int]:
@@ -116,7 +116,8 @@ def multipie_config(params: dict):
                        cameras=_parse_list(p["cameras"]), flashes=_parse_list(p["flashes"]),
                        noise=float(p["noise"]), landmark_noise=float(p["landmark_noise"]),
                        expression=float(p["expression"]), shape_scale=float(p["shape_scale"]),
-                       first_id=int(p["first_id"]), face_vertices=int(p["face_vertices"]))
+                       first_id=int(p["first_id"]), face_vertices=int(p["face_vertices"]),
+                       supersample=int(p["supersample"]))
 
 
 def _multipie_outputs(ctx: StageContext) -> list[Path]:
@@ -175,10 +176,12 @@ def run_synth_multipie(ctx: StageContext) -> list[Path]:
 @click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Rig table (TOML; default: the packaged Multi-PIE-like rig).")
 @click.option("--first-id", type=click.IntRange(1, 999), default=1, show_default=True, help="Id of the first identity.")
+@click.option("--supersample", type=click.IntRange(1, 8), default=1, show_default=True,
+              help="k x k rays per pixel, box-filtered in linear space (anti-aliased silhouettes and shadow edges).")
 @workspace_option
 @json_option
 def multipie_cmd(identities, out, seed, brdf, image_size, uv_size, cameras, flashes, noise, landmark_noise,
-                 expression, shape_scale, face_model, face_vertices, rig, first_id, workspace, as_json):
+                 expression, shape_scale, face_model, face_vertices, rig, first_id, supersample, workspace, as_json):
     """Render synthetic identities on a Multi-PIE-like rig, in the exact Multi-PIE layout, with ground truth.
 
     Writes DIR/data/session01/multiview/SSS/01/CC_C/SSS_01_01_CCC_II.png (II = 00 room light, 01-18 flashes),
@@ -187,7 +190,8 @@ def multipie_cmd(identities, out, seed, brdf, image_size, uv_size, cameras, flas
     """
     params = {"identities": identities, "seed": seed, "brdf": brdf, "image_size": image_size, "uv_size": uv_size,
               "cameras": cameras, "flashes": flashes, "noise": noise, "landmark_noise": landmark_noise,
-              "expression": expression, "shape_scale": shape_scale, "first_id": first_id}
+              "expression": expression, "shape_scale": shape_scale, "first_id": first_id,
+              "supersample": supersample}
     if face_model is None:
         params["face_vertices"] = face_vertices
     multipie_config(params)  # validate before any work

@@ -56,6 +56,7 @@ class SynthConfig:
     room_light: float = 0.15                 # mean radiance of the room light
     background: float = 0.02                 # linear value of the backdrop
     face_vertices: int = 35000               # resolution of the procedural face model (if none is given)
+    supersample: int = 1                     # k×k rays per pixel, box-filtered in linear space
     exponents: tuple[float, ...] = field(default=LOBE_EXPONENTS)
 
     def __post_init__(self) -> None:
@@ -76,6 +77,8 @@ class SynthConfig:
                 raise ReflectmmError(f"--{name.replace('_', '-')} must be a finite number ≥ 0, got {v}")
         if self.uv_size < 16:
             raise ReflectmmError(f"--uv-size must be ≥ 16, got {self.uv_size}")
+        if not 1 <= int(self.supersample) <= 8:
+            raise ReflectmmError(f"--supersample must be 1..8, got {self.supersample}")
 
     def to_params(self) -> dict:
         d = asdict(self)
@@ -206,7 +209,9 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
     st.setdefault("shadow_rays", 0)
     st.setdefault("ray_seconds", 0.0)
     for ci, cname in enumerate(progress_fn(cam_list, desc=f"identity {ident.code}", unit="view")):
-        cam = _camera(rig.camera(cname))
+        cam0 = _camera(rig.camera(cname))
+        ss = int(cfg.supersample)
+        cam = cam0 if ss == 1 else cam0.with_size(cam0.width * ss, cam0.height * ss)
         t0 = time.perf_counter()
         ras = rasterize(scene, cam)
         st["primary_rays"] += cam.width * cam.height
@@ -234,12 +239,19 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
         rd, rs = shade_env(alb, w, exps, n, vdir, room_sh)
         room = rd + rs
         shots: dict[str, np.ndarray] = {}
-        H, W = cam.height, cam.width
+        H, W = cam0.height, cam0.width
         nrng = _identity_rng(cfg.seed, idx, 1000 + ci)
 
         backdrop = encode_png_values(np.full((1, 1, 3), cfg.background))[0, 0]
 
         def finish(face_linear: np.ndarray) -> np.ndarray:
+            if ss > 1:  # box filter of the k×k sub-pixel samples, in linear space
+                hi = np.full((H * ss, W * ss, 3), cfg.background, np.float64)
+                hi[m] = face_linear
+                img = hi.reshape(H, ss, W, ss, 3).mean(axis=(1, 3))
+                if cfg.noise > 0:
+                    img += nrng.normal(0.0, cfg.noise, img.shape)
+                return encode_png_values(img)
             if cfg.noise > 0:
                 img = np.full((H, W, 3), cfg.background, np.float64)
                 img[m] = face_linear
@@ -270,7 +282,7 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
                     s[lit] = ggx_directional(alb[lit], rho[lit], rough[lit], n[lit], ldir[lit], vdir[lit],
                                              E[lit])
             shots[fid] = finish(room + s)
-        lm2d, _ = cam.project(ident.vertices[model.landmarks])
+        lm2d, _ = cam0.project(ident.vertices[model.landmarks])
         if cfg.landmark_noise > 0:
             lm2d = lm2d + _identity_rng(cfg.seed, idx, 2000 + ci).normal(0.0, cfg.landmark_noise, lm2d.shape)
         on_camera(cname, shots, lm2d)

@@ -300,3 +300,23 @@ def test_given_face_model_and_custom_rig_in_workspace(tmp_path):
     assert t["shape_coeffs"].shape == (5,) and t["vertices"].shape == (fm.n_vertices, 3)
     roles = {i["role"] for i in t.meta["inputs"]}
     assert roles == {"face_model", "rig"}
+
+
+def test_supersampling_is_the_box_filter_of_a_finer_render(tmp_path):
+    base = ["--brdf", "model", "--seed", "2", "--cameras", "13_0", "--flashes", "04", "--face-vertices", "3000",
+            "--uv-size", "32"]
+    _run("--out", tmp_path / "fine", "--image-size", "160x120", *base)
+    _run("--out", tmp_path / "ss", "--image-size", "80x60", "--supersample", "2", *base)
+    d = "data/session01/multiview/001/01/13_0/001_01_01_130_"
+    for shot in ("00", "04"):
+        fine = cv2.imread(str(tmp_path / "fine" / (d + shot + ".png")))[..., ::-1]
+        ss = cv2.imread(str(tmp_path / "ss" / (d + shot + ".png")))[..., ::-1].astype(int)
+        lin = (fine / 255.0) ** 1.2
+        box = lin.reshape(60, 2, 80, 2, 3).mean(axis=(1, 3))
+        expect = np.floor(box ** (1 / 1.2) * 255 + 0.5)
+        assert np.abs(ss - expect).max() <= 2
+        edge = (expect != expect[0, 0]).any(-1) & ((fine.reshape(60, 2, 80, 2, 3).std(axis=(1, 3)) > 3).any(-1))
+        assert edge.sum() > 20  # silhouette pixels really are mixtures
+    lm_ss = _pts(tmp_path / "ss" / (d + "00_lm.pts"))
+    lm_fine = _pts(tmp_path / "fine" / (d + "00_lm.pts"))
+    np.testing.assert_allclose((lm_ss + 0.5) * 2, lm_fine + 0.5, atol=2e-3)
