@@ -402,7 +402,7 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
                    "(full-frame pixels; default: the landmarks stored in the capture).")
 @click.option("--focal", type=click.FloatRange(min=1e-3), default=None, help="focal length in px (default: rig).")
 @click.option("--iters", type=click.IntRange(0, None), default=None,
-              help="L-BFGS iterations of the landmark stage (default 500; the photometric rounds scale with it).")
+              help="L-BFGS iterations of the landmark stage (default 400; the photometric rounds scale with it).")
 @click.option("--photo-rounds", type=click.IntRange(0, 10), default=None,
               help="photometric rounds with refreshed visibility (default 2; 0 = landmarks only).")
 @click.option("--w-photo", type=click.FloatRange(min=0), default=None, help="weight of the photometric term.")

@@ -49,7 +49,7 @@ DEFAULT_SKIN = np.array([0.55, 0.38, 0.30])
 class FitConfig:
     """Weights and schedule of :func:`fit_geometry` (defaults measured on the synthetic Multi-PIE rig)."""
 
-    landmark_iters: int = 500       # L-BFGS iterations, landmarks + priors only
+    landmark_iters: int = 400       # L-BFGS iterations (at most), landmarks + priors only
     photo_rounds: int = 2           # visibility refreshes in the photometric stage (0 = landmarks only)
     photo_iters: int = 40           # L-BFGS iterations per round
     landmark_sigma_px: float = 1.0  # assumed landmark noise (px): scales the landmark term against the priors
@@ -204,6 +204,10 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
     depth = np.abs(views.t0[:, 2]).mean()
     f = float(views.K[:, 0, 0].mean())
     t_unit = 10.0 * depth / f
+    # depth moves the landmarks only through the scale of the face: ≈ f·r·Δz/Z² for a face of radius r
+    lm0 = model.mean[model.landmarks]
+    radius = float(np.sqrt(((lm0 - lm0.mean(0)) ** 2).sum(-1).mean()))
+    tv_unit = torch.tensor([t_unit, t_unit, t_unit * depth / max(radius, 1e-6)], dtype=dtype, device=device)
     r_unit = 0.1
 
     zs = torch.zeros(model.n_shape, dtype=dtype, device=device, requires_grad=True)
@@ -224,7 +228,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
 
     def poses():
         R = axis_angle_to_matrix(dw * r_unit) @ R0_t
-        return R, t0_t + dtr * t_unit
+        return R, t0_t + dtr * tv_unit
 
     def verts():
         return ts.vertices(zs, ze)
@@ -255,7 +259,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         if iters <= 0:
             return
         opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=30, tolerance_grad=1e-9,
-                                tolerance_change=1e-12, line_search_fn="strong_wolfe")
+                                tolerance_change=1e-10, line_search_fn="strong_wolfe")
 
         def closure():
             opt.zero_grad()
