@@ -213,7 +213,7 @@ def test_side_flash_casts_a_nose_shadow(model_set):
     # the shadow exists and is cast by the nose onto the subject's left side of it (+x), near nose height
     ys, xs = P[dark][:, 1], P[dark][:, 0]
     assert dark.sum() >= 5
-    assert np.median(xs) > 0 and np.all(xs < 45)
+    assert 0 < np.median(xs) < 40 and np.percentile(xs, 90) < 60  # beside the nose, not at the far cheek
     nose_tip = truth["vertices"][fm.landmarks[30]]
     assert abs(np.median(ys) - nose_tip[1]) < 35
     # elsewhere on the lit side the flash adds light
