@@ -86,8 +86,8 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
     resolved = {k: p[k] for k in sorted(DEFAULTS)}
     inputs = ctx.input_refs(out.parent, files={"observations": [src]})
     extra = {"stats": stats,
-             "scale": "radiance = C·E·cos/π + Σ W·E·f·cos_h^p with E = flash_intensity/d²; scaling flash_intensity "
-                      "by k scales C and W by 1/k (global scale ambiguity)",
+             "scale": "radiance = C·E·cos/π + Σ W·E·f·cos_h^p with E = flash_intensity/d²; scaling "
+                      "flash_intensity by k scales C and W by 1/k (global scale ambiguity)",
              "flash_intensity_used": (p["flash_intensity"] if p["flash_intensity"] is not None
                                       else [float(v) for v in obs["flash_intensity"]])}
     write_artifact(out, "reflectance-maps", maps.arrays(), params=resolved, inputs=inputs, producer=ctx.producer(),

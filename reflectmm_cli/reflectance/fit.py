@@ -354,7 +354,8 @@ def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, sym
 
 def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8.0, 64.0), solver: str = "fast",
              symmetry: float = 1.0, loss: str = "l1", prior: float = 1e-4, pair_mask=None, flash_intensity=None,
-             *, irls_iterations: int = 10, irls_delta: float = 1e-3, irls_tol: float = 1e-4, cond_min: float = 1e-4,
+             *, irls_iterations: int = 10, irls_delta: float = 1e-3, irls_tol: float = 1e-3,
+             irls_obj_tol: float = 1e-4, cond_min: float = 1e-4,
              min_obs: int | None = None, observable_min: float = 0.1, prior_sigma: float | None = None,
              steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
              device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK,
@@ -371,8 +372,9 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
         flash_intensity: scalar or (F,) radiant intensity replacing the artifact's (global scale ambiguity:
             multiplying it by k divides C and W by k).
-        irls_iterations, irls_delta, irls_tol: IRLS settings (l1): at most ``irls_iterations`` reweighted
-            solves, stopping when the largest change of any unknown is below ``irls_tol`` × max |x|.
+        irls_iterations, irls_delta, irls_tol, irls_obj_tol: IRLS settings (l1): at most ``irls_iterations``
+            reweighted solves per band of UV rows, stopping when the largest change of any unknown is below
+            ``irls_tol`` × max |x| or the band's L1 objective changes by less than ``irls_obj_tol`` (relative).
         cond_min, min_obs: flagging thresholds (default min_obs = 1 + K pooled observations).
         observable_min: lobe observability needed to count a texel as observable for a lobe.
         prior_sigma: σ (texels) of the neighbourhood prior (default S/16).
@@ -459,7 +461,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
 
     if solver == "fast":
         x, prior_map, info = _fast(prob, pool, pool_band, solve, n, m, loss, float(prior), delta, irls_iterations,
-                                   obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol)
+                                   obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol,
+                                   irls_obj_tol)
         stats.update(info)
     else:
         from .adam import fit_adam
@@ -499,7 +502,7 @@ def _solve_system(H, g, lam, x0):
 
 
 def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p, observable_min, prior_sigma, to_map,
-          idx, S, progress, irls_tol):
+          idx, S, progress, irls_tol, irls_obj_tol):
     info: dict[str, Any] = {}
     sel = np.flatnonzero(solve)
     x = np.zeros((n, m))
@@ -558,11 +561,13 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
             max_it = max(max_it, it + 1)
             if it > 0:
                 tot = float(obj[loc].sum())
-                if change < irls_tol or (last_obj is not None and abs(last_obj - tot) <= 1e-9 * max(abs(tot), 1e-300)):
+                small = last_obj is not None and abs(last_obj - tot) <= irls_obj_tol * max(abs(tot), 1e-300)
+                if change < irls_tol or small:
                     break
                 last_obj = tot
         x[sl] = xb
-    info.update({"irls_iterations": max_it if loss == "l1" else 0, "n_bands": len(bands), "nnls_iterations_max": nn_iters,
+    info.update({"irls_iterations": max_it if loss == "l1" else 0, "n_bands": len(bands),
+                 "nnls_iterations_max": nn_iters,
                  "nnls_unconverged": unconv, "kkt_violation_max": kkt})
     return x, x0m, info
 

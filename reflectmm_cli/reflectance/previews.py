@@ -22,7 +22,7 @@ def albedo_preview(albedo: np.ndarray, mask: np.ndarray | None = None) -> np.nda
 
 
 def weights_preview(weights: np.ndarray, mask: np.ndarray | None = None, gain: float = 3.0) -> np.ndarray:
-    """(S, K·S + 2(K−1), 3) grey panels of the lobe weights × ``gain`` (the paper's figures use ×3), side by side."""
+    """(S, K·S + 2(K−1), 3) grey panels of the lobe weights × ``gain`` (×3 as in the paper's figures)."""
     K, S, _ = weights.shape
     gap = np.ones((S, 2))
     panels = []

@@ -239,8 +239,8 @@ def test_adam_exact_recovery_tiny():
 def test_adam_random_flip_converges_to_mirror_pooling():
     # symmetric truth, independent noise on each side: pooling averages the two sides robustly
     obs, truth = simulate_observations(8, return_truth=True, noise=0.03, dtype=np.float32)
-    fast = fit_maps(obs, symmetry=1.0, prior=0.0, irls_iterations=50, irls_tol=1e-9)
-    nosym = fit_maps(obs, symmetry=0.0, prior=0.0, irls_iterations=50, irls_tol=1e-9)
+    fast = fit_maps(obs, symmetry=1.0, prior=0.0, irls_iterations=50, irls_tol=1e-9, irls_obj_tol=1e-12)
+    nosym = fit_maps(obs, symmetry=0.0, prior=0.0, irls_iterations=50, irls_tol=1e-9, irls_obj_tol=1e-12)
     adam = fit_maps(obs, solver="adam", symmetry=1.0, steps=2000)
     ok = fast.observable()
     jf, ja, j0 = _pooled_l1(fast, obs), _pooled_l1(adam, obs), _pooled_l1(nosym, obs)
