@@ -6,10 +6,12 @@ path as the shell, without the interpreter start-up).  Times are wall-clock and 
 machine may be shared; CPU seconds are the steadier number).  Error of the unwrapped radiance against the
 ground-truth shading evaluated exactly at each observed texel (albedo/weights of the truth UV maps at the texel
 centre), in linear units; ``QUANT = 2·1.2·0.5/255`` is the worst-case 8-bit quantisation of flash − room.
+With ``--fitted`` the first identity is also unwrapped with a real ``fit-geometry`` result; its error then
+includes the geometry misfit (texel positions/normals of the fitted mesh against truth maps).
 
 Usage::
 
-    python benchmarks/bench_capture.py [--identities 2] [--size 640x480] [--uv 256] [--workdir DIR]
+    python benchmarks/bench_capture.py [--identities 2] [--size 640x480] [--uv 256] [--fitted] [--workdir DIR]
 """
 
 from __future__ import annotations
@@ -65,6 +67,8 @@ def main(argv=None) -> None:
     ap.add_argument("--uv", type=int, default=256)
     ap.add_argument("--face-vertices", type=int, default=35000)
     ap.add_argument("--workdir", type=Path, default=None)
+    ap.add_argument("--fitted", action="store_true",
+                    help="also unwrap the first identity with geometry from a real fit-geometry run")
     a = ap.parse_args(argv)
     from reflectmm_cli.artifacts import read_artifact
 
@@ -75,28 +79,36 @@ def main(argv=None) -> None:
         _run("synth", "multipie", "-n", a.identities, "--brdf", "model", "--image-size", a.size, "--uv-size", a.uv,
              "--cameras", VIEWS, "--flashes", FLASHES, "--face-vertices", a.face_vertices, "--out", mp, "-w", ws)
     rows = []
-    for ident in ids:
-        pw, pc = _run("preprocess-multipie", "--root", mp, "--id", ident, "-w", ws)
-        _run("fit-geometry", "--id", ident, "--from-truth", mp / "truth" / f"{ident}.npz", "-w", ws)
-        uw, uc = _run("unwrap-uv", "--id", ident, "--uv-size", a.uv, "-w", ws)
-        obs = read_artifact(ws / "unwrap-uv" / f"{ident}.npz", "uv-observations")
+
+    def unwrap_row(ident, label, pw, pc, geometry, out):
+        uw, uc = _run("unwrap-uv", "--id", ident, "--uv-size", a.uv, "--geometry", geometry, "-o", out, "-w", ws)
+        obs = read_artifact(out, "uv-observations")
         e = texel_errors(obs, read_artifact(mp / "truth" / f"{ident}.npz", "synth-truth"))
         rep = obs.meta.get("report", {})
-        rows.append((ident, pw, pc, uw, uc, float(np.median(e)), float(np.percentile(e, 90)),
+        rows.append((ident, label, pw, pc, uw, uc, float(np.median(e)), float(np.percentile(e, 90)),
                      float(np.percentile(e, 99)), float(np.mean(e <= QUANT)), int(rep.get("observed_pairs", 0)),
                      int(obs["mask"].sum()), (ws / "preprocess-multipie" / f"{ident}.npz").stat().st_size / 1e6,
-                     (ws / "unwrap-uv" / f"{ident}.npz").stat().st_size / 1e6))
-    print(f"`python benchmarks/bench_capture.py --identities {a.identities} --size {a.size} --uv {a.uv}` "
-          f"(9 views × 11 flashes, synth --brdf model, geometry --from-truth)\n")
-    print("| identity | preprocess wall s | preprocess CPU s | unwrap wall s | unwrap CPU s | |err| median | p90 | "
-          "p99 | ≤ QUANT | observed texel-pairs | texels | capture MB | observations MB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+                     out.stat().st_size / 1e6))
+
+    for k, ident in enumerate(ids):
+        pw, pc = _run("preprocess-multipie", "--root", mp, "--id", ident, "-w", ws)
+        _run("fit-geometry", "--id", ident, "--from-truth", mp / "truth" / f"{ident}.npz", "-w", ws)
+        unwrap_row(ident, "truth", pw, pc, ws / "fit-geometry" / f"{ident}.npz", ws / "unwrap-uv" / f"{ident}.npz")
+        if a.fitted and k == 0:
+            fw, fc = _run("fit-geometry", "--id", ident, "-w", ws, "-o", ws / "fitted" / f"{ident}.npz")
+            print(f"fit-geometry {ident}: {fw:.1f} s wall, {fc:.1f} s CPU", file=sys.stderr)
+            unwrap_row(ident, "fitted", pw, pc, ws / "fitted" / f"{ident}.npz", ws / "fitted" / f"{ident}_obs.npz")
+    print(f"`python benchmarks/bench_capture.py --identities {a.identities} --size {a.size} --uv {a.uv}"
+          f"{' --fitted' if a.fitted else ''}` (9 views × 11 flashes, synth --brdf model)\n")
+    print("| identity | geometry | preprocess wall s | preprocess CPU s | unwrap wall s | unwrap CPU s | |err| median "
+          "| p90 | p99 | ≤ QUANT | observed texel-pairs | texels | capture MB | observations MB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r[0]} | {r[1]:.2f} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.2f} | {r[5]:.4f} | {r[6]:.4f} | {r[7]:.4f} "
-              f"| {100 * r[8]:.1f} % | {r[9]} | {r[10]} | {r[11]:.1f} | {r[12]:.1f} |")
-    med = np.median(np.array([r[1:5] for r in rows]), axis=0)
-    print(f"\nmedian per identity: preprocess {med[0]:.2f} s wall ({med[1]:.2f} s CPU), unwrap {med[2]:.2f} s wall "
-          f"({med[3]:.2f} s CPU); QUANT = {QUANT:.4f}")
+        print(f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.2f} | {r[5]:.2f} | {r[6]:.4f} | {r[7]:.4f} "
+              f"| {r[8]:.4f} | {100 * r[9]:.1f} % | {r[10]} | {r[11]} | {r[12]:.1f} | {r[13]:.1f} |")
+    med = np.median(np.array([r[2:6] for r in rows if r[1] == "truth"]), axis=0)
+    print(f"\nmedian per identity (truth geometry): preprocess {med[0]:.2f} s wall ({med[1]:.2f} s CPU), unwrap "
+          f"{med[2]:.2f} s wall ({med[3]:.2f} s CPU); QUANT = {QUANT:.4f}")
 
 
 if __name__ == "__main__":
