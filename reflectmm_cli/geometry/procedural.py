@@ -40,13 +40,14 @@ __all__ = ["procedural_face_model", "DEFAULT_PARAMS", "face_surface", "grid_shap
 THETA_MAX = math.radians(100.0)
 Y_TOP, Y_BOTTOM = 110.0, -90.0
 UV_MARGIN = 0.004
+FRONT_POWER = 0.7
 
 #: Parameters of the mean face (mm unless stated).
 DEFAULT_PARAMS: dict[str, float] = {
     "half_width": 74.0, "depth": 92.0, "height_scale": 1.0, "jaw_narrow": 36.0, "forehead_recede": 0.0045,
     "chin_recede": 0.004,
-    "nose_tip_y": 2.0, "nose_bridge_y": 38.0, "nose_height": 24.0, "bridge_height": 9.0, "nose_width": 8.0,
-    "alar_width": 15.0, "alar_height": 7.0, "nostril_depth": 5.0,
+    "nose_tip_y": 2.0, "nose_bridge_y": 38.0, "nose_height": 24.0, "bridge_height": 9.0, "nose_width": 7.0,
+    "alar_width": 13.5, "alar_height": 5.5, "nostril_depth": 5.0,
     "eye_x": 32.0, "eye_y": 33.0, "socket_depth": 11.0, "eyeball": 6.5,
     "brow_y": 49.0, "brow_height": 6.0, "glabella": 3.0,
     "cheek_x": 40.0, "cheek_y": 6.0, "cheek_height": 8.0, "cheekbone": 4.0,
@@ -89,6 +90,7 @@ def grid_shape(n_vertices: int) -> tuple[int, int]:
 
 def _grid(cols: int, rows: int):
     theta = np.linspace(-THETA_MAX, THETA_MAX, cols)
+    theta = 0.5 * (theta - theta[::-1])  # exactly antisymmetric, so the mirror map is exact
     Y = np.linspace(Y_TOP, Y_BOTTOM, rows)
     TH, YY = np.meshgrid(theta, Y)
     return TH.ravel(), YY.ravel()
@@ -152,10 +154,15 @@ def face_surface(theta: np.ndarray, Y: np.ndarray, p: dict[str, float]):
     d += p["chin_height"] * _g(X, 15.0) * _g(Y - p["chin_y"], 10.0)
     # features live on the front: taper towards the sides so the silhouette stays smooth
     d *= _smoothstep(math.radians(95), math.radians(60), np.abs(theta))
-    # assemble: base point + displacement along the base normal (b sinθ, 0, a cosθ)/|.|
+    # assemble: base point + displacement along the base normal.  The cross-section is flattened at the front
+    # (z = b·sgn(cos θ)|cos θ|^FRONT_POWER): faces are flatter across the eyes than an ellipse and turn more
+    # sharply at the cheekbones.
+    c = np.cos(theta)
+    cp = np.maximum(np.abs(c), 1e-6)
     x0 = a * np.sin(theta)
-    z0 = b * np.cos(theta)
-    nx, nz = b * np.sin(theta), a * np.cos(theta)
+    z0 = b * np.sign(c) * np.abs(c) ** FRONT_POWER
+    # normal ⟂ tangent (a cos θ, −b·P·|cos θ|^(P−1)·sin θ) in the xz-plane
+    nx, nz = b * FRONT_POWER * cp ** (FRONT_POWER - 1.0) * np.sin(theta), a * c
     nn = np.sqrt(nx ** 2 + nz ** 2)
     pts = np.stack([x0 + d * nx / nn, Y * p["height_scale"], z0 + d * nz / nn], axis=1)
     return pts, X

@@ -313,6 +313,9 @@ def test_landmark_projection_consistency(yaw):
     inner[:17] = False  # jaw-line landmarks may sit on the silhouette
     px = np.round(uv[inner]).astype(int)
     assert np.all(r.mask[px[:, 1], px[:, 0]])
-    np.testing.assert_allclose(r.depth[px[:, 1], px[:, 0]], z[inner], atol=3.0)
+    # at a depth edge (nose side, eye socket) the nearest pixel centre may see the other surface: use 3×3
+    for (c, rr), zk in zip(px, z[inner]):
+        win = r.depth[rr - 1:rr + 2, c - 1:c + 2][r.mask[rr - 1:rr + 2, c - 1:c + 2]]
+        assert np.abs(win - zk).min() < 1.5
     for c, rr in np.round(uv[:17][vis[:17]]).astype(int):
         assert r.mask[rr - 1:rr + 2, c - 1:c + 2].any()
