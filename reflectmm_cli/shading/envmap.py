@@ -183,5 +183,5 @@ def envmap_from_sh(coeffs, width: int, height: int) -> np.ndarray:
     for s in range(0, d.shape[0], _CHUNK):
         dd = d[s:s + _CHUNK]
         Y = sh_basis_into(dd[:, 0].copy(), dd[:, 1].copy(), dd[:, 2].copy(), order, buf[:, : dd.shape[0]])
-        out[s:s + dd.shape[0]] = (K @ Y).T
+        out[s:s + dd.shape[0]] = np.einsum("ck,km->mc", K, Y)  # skinny product: see env.py
     return out.reshape(height, width, K.shape[0])
