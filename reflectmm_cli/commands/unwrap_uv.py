@@ -48,7 +48,22 @@ def default_face_model(capture: Path, geometry: Path, workspace: Path) -> Path |
     return default_face_model_for(cap, workspace)
 
 
-@register_stage(VERB, version=1, per_identity=True, outputs=_outputs,
+def _resolved_inputs(ctx: StageContext) -> dict[str, list[Path]]:
+    """ctx.inputs plus the default face model when the recipe leaves it out (so it keys the cache too)."""
+    files = {k: [Path(p) for p in v] for k, v in ctx.inputs.items()}
+    if not files.get("face_model"):
+        cap, geo = files.get("capture") or [], files.get("geometry") or []
+        if len(cap) == 1 and len(geo) == 1 and cap[0].is_file() and geo[0].is_file():
+            try:
+                fm = default_face_model(cap[0], geo[0], ctx.workspace)
+            except ReflectmmError:
+                fm = None
+            if fm is not None:
+                files["face_model"] = [fm]
+    return files
+
+
+@register_stage(VERB, version=1, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
                 help="capture + geometry -> per-texel OLAT observations in UV space")
 def run_unwrap(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.geometry.face_model import load_face_model
@@ -58,7 +73,11 @@ def run_unwrap(ctx: StageContext) -> list[Path]:
     t0 = time.perf_counter()
     cap_path = ctx.input("capture")
     geo_path = ctx.input("geometry")
-    fm_path = ctx.input("face_model")
+    files = _resolved_inputs(ctx)  # recipes may leave face_model out: the same default as the command line
+    if not files.get("face_model"):
+        raise ReflectmmError(f"stage '{ctx.stage_name}': no face_model input, and neither the geometry nor "
+                             "the capture's dataset folder nor the workspace provides one", geo_path)
+    fm_path = files["face_model"][0]
     cap = read_artifact(cap_path, "capture")
     geo = read_artifact(geo_path, "geometry")
     model = load_face_model(fm_path)
@@ -68,7 +87,8 @@ def run_unwrap(ctx: StageContext) -> list[Path]:
                                          grazing_deg=float(ctx.param("grazing_deg", 80.0)), exponents=exps,
                                          geometry_path=geo_path)
     out, prev = _outputs(ctx)
-    write_artifact(out, "uv-observations", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
+    write_artifact(out, "uv-observations", arrays, params=ctx.resolved_params(),
+                   inputs=ctx.input_refs(out.parent, files),
                    producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
     atomic_write_bytes(prev, encode_png(previews(arrays)))
     log.info("unwrap-uv %s: %d texels, %d views x %d flashes, %d observed texel-pairs; rays: %d view, %d shadow "
