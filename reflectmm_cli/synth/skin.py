@@ -36,7 +36,7 @@ LOBE_EXPONENTS = (1.0, 8.0, 64.0)
 
 # absorption per unit pigment (R, G, B): melanin absorbs more towards blue, haemoglobin mostly green/blue
 _C0 = np.array([0.72, 0.60, 0.52])
-_K_MEL = np.array([1.6, 2.3, 3.0])
+_K_MEL = np.array([1.5, 2.0, 2.5])
 _K_HB = np.array([0.25, 2.0, 1.6])
 
 
@@ -192,7 +192,7 @@ def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f
     rough = np.clip(rough * params.roughness_scale * np.exp(0.05 * n2), 0.12, 0.8)
     rho = 1.0 - 0.4 * R["cheeks"] + 1.0 * R["nose_tip"] + 0.5 * R["nose"] + 0.6 * R["forehead"] \
         + 0.2 * R["lips"] - 0.6 * R["brows"] + 0.2 * R["chin"] + 0.8 * R["eyes"]
-    rho = np.clip(rho * params.oiliness * np.exp(0.1 * n1), 0.05, 4.0)
+    rho = np.clip(1.5 * rho * params.oiliness * np.exp(0.1 * n1), 0.05, 6.0)
 
     spec_alb = ggx_specular_albedo(rough, rho, f0)
     w = np.moveaxis(fit_lobes_to_ggx(rough, rho, exponents, f0), -1, 0)
