@@ -89,7 +89,14 @@ def grid_shape(n_vertices: int) -> tuple[int, int]:
 
 
 def _grid(cols: int, rows: int):
-    theta = np.linspace(-THETA_MAX, THETA_MAX, cols)
+    # columns equally spaced in arc length of the mean cross-section (uniform sampling, low UV distortion)
+    t = np.linspace(0.0, THETA_MAX, 20001)
+    a, b = DEFAULT_PARAMS["half_width"], DEFAULT_PARAMS["depth"]
+    c = np.cos(t)
+    xs, zs = a * np.sin(t), b * np.sign(c) * np.abs(c) ** FRONT_POWER
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(xs), np.diff(zs)))])
+    s = np.linspace(-arc[-1], arc[-1], cols)
+    theta = np.sign(s) * np.interp(np.abs(s), arc, t)
     theta = 0.5 * (theta - theta[::-1])  # exactly antisymmetric, so the mirror map is exact
     Y = np.linspace(Y_TOP, Y_BOTTOM, rows)
     TH, YY = np.meshgrid(theta, Y)
