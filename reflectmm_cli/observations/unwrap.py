@@ -284,7 +284,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
 
         cond = conditioning(arrays["position"], arrays["normal"], arrays["cam_centers"], arrays["flash_pos"],
                             arrays["flash_intensity"], pair_view, pair_flash, arrays["observed"], exponents,
-                            mask=g.mask)
+                            mask=g.mask & (obs_count > 0))  # texels without observations are 0 anyway
         arrays["conditioning"] = cond.conditioning.astype(np.float32)
         arrays["conditioning_exponents"] = np.asarray(cond.exponents, dtype=np.float32)
         arrays["observability"] = cond.observability.astype(np.float32)
