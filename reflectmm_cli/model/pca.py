@@ -197,10 +197,11 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
     B = Xc.T @ Acomb  # (Dx, m)
     C = B.T @ B
     ev, Q = np.linalg.eigh(C)
-    Acomb = Acomb @ (Q / np.sqrt(ev)) @ Q.T  # C^(-1/2): B ← B C^(-1/2) stays a combination of the samples
-    B = Xc.T @ Acomb
+    Rl = (Q / np.sqrt(ev)) @ Q.T  # C^(-1/2): B ← B C^(-1/2) stays a combination of the samples
+    Acomb = Acomb @ Rl
+    B = B @ Rl
     Sb = Yc.T @ Acomb  # (Dy, m)
-    proj = Xc @ B  # (N, m) training projections
+    proj = G @ Acomb  # (N, m) training projections X̃ B = X̃ X̃ᵀ A
     sigma = proj.std(0, ddof=1)
     total_var = float((Xc ** 2).sum() / (n - 1))
     beta = proj / sigma  # (N, m) training coefficients in units of σ
@@ -208,7 +209,7 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
     D = int(domain.sum())
 
     def unflat(vec, C):
-        out = np.zeros(vec.shape[:-1] + (C, S, S), np.float64)
+        out = np.zeros(vec.shape[:-1] + (C, S, S), np.float32)
         out[..., domain] = vec.reshape(vec.shape[:-1] + (C, D))
         return out
 
@@ -220,10 +221,10 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
              "flagged_texels_total": flagged_count, "total_variance": total_var,
              "rank": rank}
     return ReflectanceModel(
-        albedo_mean=unflat(mu_x, 3).astype(np.float32),
-        albedo_basis=unflat(B.T, 3).astype(np.float32),
-        weights_mean=unflat(mu_y, K).astype(np.float32),
-        weights_basis=unflat(Sb.T, K).astype(np.float32),
+        albedo_mean=unflat(mu_x, 3),
+        albedo_basis=unflat(B.T, 3),
+        weights_mean=unflat(mu_y, K),
+        weights_basis=unflat(Sb.T, K),
         sigma=sigma.astype(np.float32),
         explained_variance=(sigma ** 2).astype(np.float32),
         explained_variance_ratio=((sigma ** 2) / total_var if total_var > 0 else sigma * 0).astype(np.float32),
