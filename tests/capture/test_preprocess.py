@@ -229,3 +229,17 @@ def test_16bit_tree_and_corrupt_raw(tmp_path):
     with pytest.raises(ReflectmmError, match="not a readable RAW image") as exc:
         preprocess_identity(root, "001", CaptureOptions(views=("05_1",), flashes=("07",), crop="none"))
     assert str(raw) in str(exc.value)
+
+
+def test_id_file_json_and_all(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001", "003"))
+    (tmp_path / "ids.txt").write_text("# subjects\n001\n002  # not captured\n")
+    res = run(cli, root, tmp_path / "ws", "--id-file", tmp_path / "ids.txt", "--json")
+    assert res.exit_code == 1
+    doc = json.loads(res.stdout)
+    assert doc["outputs"][0].endswith("001.npz") and list(doc["failed"]) == ["002"]
+    assert "not found in any session" in doc["failed"]["002"]
+    res = run(cli, root, tmp_path / "ws2", "--all")
+    assert res.exit_code == 0, res.stderr
+    assert sorted(p.name for p in (tmp_path / "ws2" / "preprocess-multipie").glob("*.npz")) == ["001.npz", "003.npz"]
