@@ -38,6 +38,7 @@ from reflectmm_cli.fitting.photometric import (
     solve_lighting,
 )
 from reflectmm_cli.fitting.visibility import vertex_visibility
+from reflectmm_cli.progress import progress
 
 log = logging.getLogger("reflectmm")
 
@@ -254,6 +255,8 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         return p / wsum
 
     history: list[dict] = []
+    n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
+    bar = progress(range(1 + n_photo), desc="fit-geometry", unit="stage")
 
     def run_lbfgs(params, closure_loss, iters, stage):
         if iters <= 0:
@@ -271,6 +274,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         with torch.no_grad():
             final = float(closure_loss())
         history.append({"stage": stage, "loss": final, "evals": int(opt.state[opt._params[0]]["func_evals"])})
+        next(bar, None)
         log.debug("fit-geometry: %s loss %.6g after %d evaluations", stage, final, history[-1]["evals"])
 
     # ---- stage 1: landmarks + priors
@@ -356,6 +360,8 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             for v in range(V):
                 photo_res[v] = float(np.sqrt((r[v][vis[v]] ** 2).mean())) if vis[v].any() else np.nan
 
+    for _ in bar:  # close the progress bar
+        pass
     with torch.no_grad():
         X = verts()
         R, t = poses()
