@@ -3,7 +3,7 @@
 Loss per step (C (3,S,S), W (K,S,S) are the optimised maps; ``flip`` is a horizontal flip of both maps,
 applied with probability 1/2 each step when symmetry > 0):
 
-    L = (1/N) Σ_t Σ_j ⟨l_j, n⟩ · Σ_c |Î_tjc − I_tjc|  +  w_reg · (1/N) · (−Σ negative entries of C and W)
+    L = (1/N) Σ_t Σ_j ⟨l_j, n⟩ · Σ_c |Î_tjc − I_tjc| + w_reg · (1/N) · (−Σ negative entries of C and W)
 
 N = number of masked texels (both terms are per-texel means, so ``lr`` and ``w_reg`` do not depend on the
 UV size).  Initial value: constant C = 0.3, W = 0.1 (``init``); Adam, lr 5e-3, w_reg 100 as in the paper.

@@ -225,9 +225,9 @@ class _Problem:
                   else np.zeros((0, 1 + K, 1 + K)))
         self.obsv = np.zeros((n, K))
         has = self.count > 0
-        if ndh.size:
+        if ndh.size:  # max_j ndh_j^p = (max_j ndh_j)^p for p > 0
             with np.errstate(under="ignore"):
-                self.obsv[has] = np.maximum.reduceat(ndh[:, None] ** p, self.start[:-1][has], axis=0)
+                self.obsv[has] = np.maximum.reduceat(ndh, self.start[:-1][has])[:, None] ** p
         self._iu = np.triu_indices(K)
 
     def _segsum(self, w: np.ndarray, X: np.ndarray, a: int = 0, b: int | None = None) -> np.ndarray:
