@@ -5,6 +5,7 @@ numpy in → numpy out; any torch tensor in → torch out (differentiable).
 """
 from .brdf import DEFAULT_EXPONENTS, blinn_phong_norm, shade_directional
 from .env import band_limits, shade_env, specular_view_albedo
+from .light_model import LightModel, build_light_model, light_from_coeffs
 from .envmap import direction_to_equirect, envmap_from_sh, equirect_directions, equirect_weights, project_envmap
 from .sh import (
     blinn_phong_sh_coeffs,
@@ -13,11 +14,16 @@ from .sh import (
     sh_basis,
     sh_count,
     sh_index,
+    sh_from_deep3d,
     sh_rotation,
 )
 
 __all__ = [
     "DEFAULT_EXPONENTS",
+    "LightModel",
+    "build_light_model",
+    "light_from_coeffs",
+    "sh_from_deep3d",
     "band_limits",
     "blinn_phong_norm",
     "blinn_phong_sh_coeffs",

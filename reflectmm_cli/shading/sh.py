@@ -30,6 +30,7 @@ __all__ = [
     "blinn_phong_sh_coeffs",
     "blinn_phong_norm",
     "fibonacci_sphere",
+    "sh_from_deep3d",
 ]
 
 MAX_ORDER = 64
@@ -351,3 +352,32 @@ def blinn_phong_sh_coeffs(p, order: int) -> np.ndarray:
     if pa.ndim != 1:
         raise ReflectmmError(f"blinn_phong_sh_coeffs: p must be a scalar or 1-D, got shape {pa.shape}")
     return np.array([_bp_coeffs_cached(float(v), order) for v in pa]).reshape(len(pa), order + 1)
+
+
+# Deep3DFaceRecon multiplies its 27 lighting numbers by a_l (and a normalisation already folded into our Y_lm)
+_DEEP3D_A = (math.pi, 2.0 * math.pi / math.sqrt(3.0), 2.0 * math.pi / math.sqrt(8.0))
+
+
+def sh_from_deep3d(gamma, *, add_init: bool = True):
+    """Deep3DFaceRecon lighting (27 numbers, (..., 27) or (..., 3, 9)) → radiance SH coefficients (..., 3, 9).
+
+    Deep3DFaceRecon colours a vertex ``texture · Σ a_l γ_lm Y_lm(n)`` (same basis and signs as ours, see
+    :func:`sh_basis`) after adding 0.8 to γ_00 (``add_init``). Our diffuse shading is ``c/π Σ A_l K_lm Y_lm(n)``,
+    so ``K_lm = π a_l γ_lm / A_l`` with a_l = (π, 2π/√3, 2π/√8). numpy or torch.
+    """
+    g = gamma
+    if tuple(g.shape[-1:]) == (27,):
+        g = g.reshape(*g.shape[:-1], 3, 9)
+    if tuple(g.shape[-2:]) != (3, 9):
+        raise ReflectmmError(f"sh_from_deep3d: gamma must have shape (..., 27) or (..., 3, 9), got {tuple(g.shape)}")
+    A = lambert_sh_coeffs(2)
+    scale = np.array([math.pi * _DEEP3D_A[l] / A[l] for l in (0, 1, 1, 1, 2, 2, 2, 2, 2)])  # noqa: E741
+    init = np.zeros(9)
+    if add_init:
+        init[0] = 0.8
+    if any_torch(g):
+        import torch
+
+        return (g + torch.as_tensor(init, dtype=g.dtype, device=g.device)) * torch.as_tensor(
+            scale, dtype=g.dtype, device=g.device)
+    return (np.asarray(g, dtype=np.float64) + init) * scale

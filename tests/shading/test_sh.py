@@ -173,3 +173,25 @@ def test_rotation_about_z_closed_form_and_torch():
     Mt.sum().backward()
     with pytest.raises(ReflectmmError, match="rotation"):
         sh_rotation(np.diag([1.0, 1.0, -1.0]), 2)
+
+
+def test_deep3d_lighting_conversion():
+    # Deep3DFaceRecon's colour, written out from its source (models/bfm.py compute_color), equals our diffuse
+    from reflectmm_cli.shading import sh_from_deep3d, shade_env
+
+    rng = np.random.default_rng(0)
+    gamma = rng.normal(size=27) * 0.2
+    n = rng.normal(size=(50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    tex = rng.random((50, 3))
+    pi = math.pi
+    a = [pi, 2 * pi / math.sqrt(3.0), 2 * pi / math.sqrt(8.0)]
+    c = [1 / math.sqrt(4 * pi), math.sqrt(3.0) / math.sqrt(4 * pi), 3 * math.sqrt(5.0) / math.sqrt(12 * pi)]
+    x, y, z = n.T
+    Y = np.stack([a[0] * c[0] * np.ones_like(x), -a[1] * c[1] * y, a[1] * c[1] * z, -a[1] * c[1] * x,
+                  a[2] * c[2] * x * y, -a[2] * c[2] * y * z, 0.5 * a[2] * c[2] / math.sqrt(3.0) * (3 * z * z - 1),
+                  -a[2] * c[2] * x * z, 0.5 * a[2] * c[2] * (x * x - y * y)], -1)
+    g = gamma.reshape(3, 9) + np.array([0.8, 0, 0, 0, 0, 0, 0, 0, 0])
+    deep3d = (Y @ g.T) * tex
+    diffuse, _ = shade_env(tex, np.zeros(1), [8.0], n, n, sh_from_deep3d(gamma))
+    np.testing.assert_allclose(diffuse, deep3d, rtol=1e-12, atol=1e-14)
