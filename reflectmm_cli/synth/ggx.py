@@ -127,7 +127,7 @@ def ggx_directional(albedo, spec_intensity, roughness, normal, light_dir, view_d
         spec_intensity: (...) specular intensity ρ ≥ 0.
         roughness: (...) GGX width α > 0.
         normal, light_dir, view_dir: (..., 3), normalised internally; directions point away from the surface.
-        irradiance: scalar, (...) or (..., 3) irradiance E at normal incidence.
+        irradiance: scalar or (..., 3) RGB irradiance E at normal incidence.
         f0: Fresnel reflectance at normal incidence.
     Returns:
         (..., 3) float64 shading, or ``(total, diffuse, specular)`` with ``return_parts``.
@@ -140,8 +140,8 @@ def ggx_directional(albedo, spec_intensity, roughness, normal, light_dir, view_d
     ndl, ndv, ndh, vdh = (n * l).sum(-1), (n * v).sum(-1), (n * h).sum(-1), (v * h).sum(-1)
     ok = (ndl > 0) & (ndv > 0)
     E = np.asarray(irradiance, np.float64)
-    if E.ndim == 0 or E.shape[-1:] != (3,):
-        E = E[..., None]
+    if E.ndim > 0 and E.shape[-1] != 3:
+        raise ReflectmmError(f"ggx: argument 'irradiance' must be a scalar or (..., 3) RGB, got shape {E.shape}")
     diffuse = E * np.where(ok, ndl, 0.0)[..., None] * c / math.pi
     spec = np.asarray(spec_intensity, np.float64) * _spec_cos_weighted(ndl, ndv, ndh, vdh, roughness, f0)
     specular = E * spec[..., None]

@@ -280,7 +280,7 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
                                                E[lit, None] * np.ones(3))
                 else:
                     s[lit] = ggx_directional(alb[lit], rho[lit], rough[lit], n[lit], ldir[lit], vdir[lit],
-                                             E[lit])
+                                             E[lit, None] * np.ones(3))
             shots[fid] = finish(room + s)
         lm2d, _ = cam0.project(ident.vertices[model.landmarks])
         if cfg.landmark_noise > 0:

@@ -134,6 +134,9 @@ def test_lobe_fit_is_nonnegative_and_close_in_albedo():
     np.testing.assert_allclose(w.sum(-1), ggx_specular_albedo(a, 2.0), rtol=0.1)
 
 
-def test_bad_roughness_is_refused():
+def test_bad_roughness_and_irradiance_are_refused():
     with pytest.raises(ReflectmmError, match="alpha"):
         ggx_ndf(0.5, -0.1)
+    n = np.tile([0.0, 0.0, 1.0], (4, 1))
+    with pytest.raises(ReflectmmError, match="irradiance"):
+        ggx_directional(np.full((4, 3), 0.5), 1.0, 0.3, n, n, n, np.ones(4))
