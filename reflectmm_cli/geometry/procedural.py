@@ -314,9 +314,13 @@ def _rbf_fields(X, Y, normal, rng, count: int, amp: float, scale: float) -> np.n
 def _orthonormal_basis(fields: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """SVD of (F, N, 3) displacement fields → k orthonormal (N, 3) basis vectors and their σ (mm)."""
     F = fields.reshape(fields.shape[0], -1).astype(np.float64)
-    U, S, Vt = np.linalg.svd(F, full_matrices=False)
-    k = min(k, Vt.shape[0])
-    basis = Vt[:k]
+    # thin SVD through the small Gram matrix (F is a few dozen × 3N): F Fᵀ = U S² Uᵀ, Vᵀ = S⁻¹ Uᵀ F
+    w, U = np.linalg.eigh(F @ F.T)
+    order = np.argsort(w)[::-1]
+    w, U = np.clip(w[order], 0.0, None), U[:, order]
+    S = np.sqrt(w)
+    k = min(k, int(np.sum(S > 1e-9 * S[0])))
+    basis = (U[:, :k].T @ F) / S[:k, None]
     # deterministic sign: largest-magnitude entry positive
     sgn = np.sign(basis[np.arange(k), np.abs(basis).argmax(1)])
     basis = basis * sgn[:, None]
