@@ -184,3 +184,34 @@ def test_project_matches_closed_form():
     uv, Z = project(np.array([[10.0, -5.0, 0.0]]), K, R, t)
     np.testing.assert_allclose(uv[0], [500 * 0.1 + 10, 400 * -0.05 + 20])
     assert Z[0] == 100.0
+
+
+def test_project_matches_geometry_camera_random():
+    from scipy.spatial.transform import Rotation
+
+    from reflectmm_cli.geometry import Camera
+
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        R = Rotation.random(random_state=rng).as_matrix()
+        t = rng.normal(0, 50, 3)
+        K = np.array([[rng.uniform(300, 2000), rng.uniform(-2, 2), rng.uniform(100, 500)],
+                      [0, rng.uniform(300, 2000), rng.uniform(100, 400)], [0, 0, 1]])
+        cam = Camera(K, R, t, 640, 480)
+        x_cam = rng.normal(0, 80, (50, 3)) + np.array([0, 0, 800.0])  # in front of the camera
+        pts = (x_cam - t) @ R  # model space: Rᵀ (x_cam − t)
+        uv, Z = project(pts, K, R, t)
+        uv2, Z2 = cam.project(pts)
+        np.testing.assert_allclose(uv, uv2, rtol=1e-10, atol=1e-8)
+        np.testing.assert_allclose(Z, Z2, rtol=1e-12)
+
+
+def test_bilinear_saturation_any_of_four():
+    img = np.ones((1, 4, 4, 3), np.float32)
+    sat = np.zeros((1, 4, 4), bool)
+    sat[0, 2, 2] = True
+    uv = np.array([[1.5, 1.5], [2.0, 2.0], [0.5, 0.5], [2.9, 1.0]])
+    _, inside, s = bilinear(img, uv, sat)
+    assert inside.all()
+    # taps: (1..2,1..2) touches (2,2); (2..3,2..3) touches; (0..1,0..1) does not; (2..3, 1..2) touches (2,2)
+    assert s[0].tolist() == [True, True, False, True]
