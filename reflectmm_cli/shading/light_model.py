@@ -193,7 +193,11 @@ def build_light_model(maps: Iterable[str | Path | np.ndarray], *, order: int = 8
     for item in (progress(items) if progress else items):
         name = str(item) if not isinstance(item, np.ndarray) else f"<array {len(names) + len(skipped)}>"
         try:
-            img = np.asarray(item if isinstance(item, np.ndarray) else reader(Path(item)), dtype=np.float64)
+            img = np.asarray(item if isinstance(item, np.ndarray) else reader(Path(item)))
+            if img.dtype.kind not in "fiu":
+                raise ReflectmmError(f"pixels of dtype {img.dtype} are not numeric")
+            if img.dtype.kind != "f":  # (the projection accumulates in float64 block by block)
+                img = img.astype(np.float32)
             if img.ndim == 2:
                 img = img[..., None]
             if img.ndim != 3:
