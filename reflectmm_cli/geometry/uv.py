@@ -88,6 +88,8 @@ def rasterize_uv(model_uv, triangles, size: int) -> UVRaster:
     ids, keys = ids[order], keys[order]
     starts = np.r_[0, np.nonzero(np.diff(keys))[0] + 1, len(keys)]
     for a, b in zip(starts[:-1], starts[1:]):
+        if b <= a:
+            continue
         g = ids[a:b]
         gw, gh = int(w[g[0]]), int(h[g[0]])
         dc, dr = np.meshgrid(np.arange(gw), np.arange(gh))

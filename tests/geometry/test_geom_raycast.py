@@ -319,3 +319,24 @@ def test_landmark_projection_consistency(yaw):
         assert np.abs(win - zk).min() < 1.5
     for c, rr in np.round(uv[:17][vis[:17]]).astype(int):
         assert r.mask[rr - 1:rr + 2, c - 1:c + 2].any()
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=25)
+@given(st.lists(st.floats(0.0, 1.0), min_size=6, max_size=6), st.integers(4, 48))
+def test_rasterize_uv_random_triangle(coords, S):
+    """Every covered texel centre is inside the triangle (barycentrics ≥ 0 reproduce it); coverage ≈ area·S²."""
+    uv = np.array(coords).reshape(3, 2)
+    ur = rasterize_uv(uv, np.array([[0, 1, 2]]), S)
+    area = 0.5 * abs(np.linalg.det(np.stack([uv[1] - uv[0], uv[2] - uv[0]])))
+    c = (np.arange(S) + 0.5) / S
+    rr, cc = np.nonzero(ur.mask)
+    if rr.size:
+        rec = ur.bary[rr, cc] @ uv
+        np.testing.assert_allclose(rec[:, 0], c[cc], atol=1e-6)
+        np.testing.assert_allclose(rec[:, 1], c[rr], atol=1e-6)
+    perim = sum(np.linalg.norm(uv[k] - uv[(k + 1) % 3]) for k in range(3))
+    assert abs(ur.mask.sum() - area * S * S) <= perim * S + 2  # Pick's-theorem-like bound
