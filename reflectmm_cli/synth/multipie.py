@@ -334,6 +334,8 @@ def truth_arrays(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh: np
     if cfg.brdf == "ggx":
         arrays["roughness"] = mp.roughness
         arrays["spec_intensity"] = mp.spec_intensity
+        arrays["vertex_roughness"] = sample_uv_map(mp.roughness, uv).astype(np.float32)
+        arrays["vertex_spec_intensity"] = sample_uv_map(mp.spec_intensity, uv).astype(np.float32)
         arrays["f0"] = np.array(0.028)
     return arrays
 

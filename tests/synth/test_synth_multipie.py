@@ -131,6 +131,9 @@ def test_ggx_truth_is_consistent(ggx_set):
     assert str(t["brdf"]) == "ggx" and np.any(t["exp_coeffs"] != 0)
     np.testing.assert_allclose(t["spec_albedo"], ggx_specular_albedo(t["roughness"], t["spec_intensity"]),
                                rtol=1e-5)
+    fm = load_face_model(ggx_set / "face_model.npz")
+    assert t["vertex_roughness"].shape == (fm.n_vertices,)
+    np.testing.assert_allclose(t["vertex_spec_intensity"], sample_uv_map(t["spec_intensity"], fm.uv), rtol=1e-5)
     np.testing.assert_allclose(np.moveaxis(t["weights"], 0, -1),
                                fit_lobes_to_ggx(t["roughness"], t["spec_intensity"]), rtol=1e-4, atol=1e-7)
 
