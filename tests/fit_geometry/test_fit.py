@@ -157,3 +157,38 @@ def test_photometric_gradient_matches_finite_differences():
     fd = torch.stack(fd)
     assert torch.allclose(g, fd, rtol=1e-4, atol=1e-7), (g, fd)
     assert g.abs().max() > 1e-4  # the term does depend on the geometry
+
+
+def test_photometric_stage_improves_a_noisy_landmark_fit():
+    # textured toy face, 4 views rendered by the independent ray tracer, 2 px landmark noise: the photometric
+    # rounds (model texture as albedo) must pull the geometry towards the truth.  Measured: 2.27 mm vertex RMSE
+    # with landmarks only, 1.11 mm with the default photometric weight.
+    az = [-45, -15, 15, 45]
+    m = toy.toy_model(n_shape=6, n_exp=2, texture=True)
+    rng = np.random.default_rng(1)
+    zs = rng.normal(size=m.n_shape) * 0.8
+    ze = rng.normal(size=m.n_exp) * 0.5
+    verts = m.vertices(zs * m.shape_sigma, ze * m.exp_sigma)
+    W, H = 320, 240
+    K, R, t = toy.arc_cameras(az, focal=1000 * H / 480, width=W, height=H)
+    sh = np.zeros((9, 3))
+    sh[0] = [1.2, 1.1, 1.0]
+    sh[1] = [0.2, 0.2, 0.2]
+    sh[2] = [0.5, 0.5, 0.45]
+    sh[3] = [0.4, 0.3, 0.3]
+    imgs = np.stack([toy.render(verts, m.triangles, m.mean_tex, sh, K[v], R[v], t[v], W, H)
+                     for v in range(len(az))]).astype(np.float32)
+    lm = np.stack([project(verts[m.landmarks], K[v], R[v], t[v])[0] for v in range(len(az))])
+    lm = lm + rng.normal(size=lm.shape) * 2.0
+    R0, t0, _ = initial_poses(m.mean[m.landmarks], lm, K, R, t)
+    vs = ViewSet(names=[str(a) for a in az], K=K, R0=R0, t0=t0, landmarks=lm, image_size=(W, H), images=imgs,
+                 rig_centers=camera_centers(R, t))
+
+    def err(fit):
+        return np.sqrt(((fit.vertices - verts) ** 2).sum(-1).mean())
+
+    lm_only = fit_geometry(m, vs, FitConfig(landmark_sigma_px=2.0, photo_rounds=0))
+    photo = fit_geometry(m, vs, FitConfig(landmark_sigma_px=2.0))
+    assert np.all(np.isnan(lm_only.photo_residual))
+    assert np.all(photo.photo_residual < 0.01) and np.all(photo.visible_count > 100)
+    assert err(photo) < 0.7 * err(lm_only), (err(photo), err(lm_only))
