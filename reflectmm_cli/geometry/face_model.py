@@ -262,7 +262,7 @@ def vertex_normals(vertices, triangles):
     fn[~np.all(np.isfinite(fn), axis=1)] = 0.0
     out = np.zeros_like(v)
     for k in range(3):
-        np.add.at(out, t[:, k], fn) if len(t) < 64 else _accumulate(out, t[:, k], fn)
+        _accumulate(out, t[:, k], fn)
     ln = np.linalg.norm(out, axis=1, keepdims=True)
     out = np.divide(out, ln, out=np.zeros_like(out), where=ln > 1e-300)
     return out.astype(np.float32)

@@ -251,7 +251,11 @@ def _occlusion(scene: RayScene, p, n, tgt, eps, active):
 
 
 def visibility(scene: RayScene, points, normals, eye, *, eps: float | None = None) -> np.ndarray:
-    """(M,) bool: each point sees ``eye`` (3,) unoccluded and faces it (n·v > 0 when normals are given)."""
+    """(M,) bool: each point sees ``eye`` (3,) unoccluded and faces it (n·v > 0 when normals are given).
+
+    Without normals only occlusion by *other* surfaces is tested: a point on the far side of an open mesh
+    whose ray leaves through nothing counts as visible.  Counters in ``scene.stats``.
+    """
     t0 = time.perf_counter()
     p, n, tgt, eps = _segment_test(scene, points, normals, eye, eps, "visibility")
     active = np.ones(p.shape[0], dtype=bool)
@@ -266,6 +270,7 @@ def shadow_mask(scene: RayScene, points, normals, light_pos, *, eps: float | Non
     """(M,) bool ``lit``: n·l > 0 and no triangle between the point and the point light ``light_pos``.
 
     Points with n·l ≤ 0 are unlit without a ray; ``scene.stats.skipped`` counts them (logged at debug level).
+    Without normals every point casts a ray and only occlusion is tested (see :func:`visibility`).
     """
     t0 = time.perf_counter()
     p, n, tgt, eps = _segment_test(scene, points, normals, light_pos, eps, "shadow_mask")
