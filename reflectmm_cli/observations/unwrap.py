@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -282,12 +284,28 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     if with_conditioning:
         from reflectmm_cli.reflectance.design import conditioning
 
-        cond = conditioning(arrays["position"], arrays["normal"], arrays["cam_centers"], arrays["flash_pos"],
-                            arrays["flash_intensity"], pair_view, pair_flash, arrays["observed"], exponents,
-                            mask=g.mask & (obs_count > 0))  # texels without observations are 0 anyway
-        arrays["conditioning"] = cond.conditioning.astype(np.float32)
-        arrays["conditioning_exponents"] = np.asarray(cond.exponents, dtype=np.float32)
-        arrays["observability"] = cond.observability.astype(np.float32)
+        # texels without observations are 0 anyway; the texels are independent, so interleaved rows run in
+        # threads (numpy releases the GIL in the per-texel linear algebra)
+        need = g.mask & (obs_count > 0)
+        workers = max(1, min(2, os.cpu_count() or 1))
+        rows = np.arange(S)[:, None]
+        masks = [need & (rows % workers == k) for k in range(workers)]
+
+        def part(mk):
+            return conditioning(arrays["position"], arrays["normal"], arrays["cam_centers"], arrays["flash_pos"],
+                                arrays["flash_intensity"], pair_view, pair_flash, arrays["observed"], exponents,
+                                mask=mk)
+
+        with ThreadPoolExecutor(workers) as ex:
+            parts = list(ex.map(part, masks))
+        cond_map = np.zeros((S, S), np.float32)
+        obsv = np.zeros((len(exponents), S, S), np.float32)
+        for mk, c in zip(masks, parts):
+            cond_map[mk] = c.conditioning[mk]
+            obsv[:, mk] = c.observability[:, mk]
+        arrays["conditioning"] = cond_map
+        arrays["conditioning_exponents"] = np.asarray(parts[0].exponents, dtype=np.float32)
+        arrays["observability"] = obsv
     return arrays, report
 
 

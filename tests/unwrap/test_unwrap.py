@@ -49,6 +49,13 @@ def test_unwrapped_radiance_equals_shading(tmp_path, cli):
     assert obs["pair_view"].tolist() == [0, 0, 1, 1] and obs["pair_flash"].tolist() == [0, 1, 0, 1]
     assert obs["conditioning"].shape == (S, S) and obs["conditioning_exponents"].tolist() == [1, 8, 64]
     np.testing.assert_array_equal(obs["obs_count"], obs["observed"].sum(0))
+    from reflectmm_cli.reflectance.design import conditioning
+
+    ref = conditioning(obs["position"], obs["normal"], obs["cam_centers"], obs["flash_pos"], obs["flash_intensity"],
+                       obs["pair_view"], obs["pair_flash"], obs["observed"], (1, 8, 64), mask=obs["mask"])
+    np.testing.assert_allclose(obs["conditioning"], ref.conditioning, rtol=1e-6, atol=1e-12)  # threaded = serial
+    np.testing.assert_allclose(obs["observability"], ref.observability, rtol=1e-6, atol=1e-12)
+    assert (obs["conditioning"][obs["obs_count"] < 4] < 1e-6).all() and (obs["conditioning"] > 1e-3).any()
     np.testing.assert_allclose(np.linalg.norm(obs["normal"][obs["mask"]], axis=-1), 1, atol=1e-5)
     # positions lie on the cap (chords are at most the sag below the sphere)
     r = np.linalg.norm(obs["position"][obs["mask"]], axis=-1)
