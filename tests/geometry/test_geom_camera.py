@@ -88,3 +88,15 @@ def test_project_torch_matches_and_gradient():
 def test_bad_rotation_refused():
     with pytest.raises(ReflectmmError, match="rotation"):
         Camera(np.eye(3), np.diag([1.0, 1.0, -1.0]), np.zeros(3), 10, 10)
+
+
+def test_deep3d_camera_frames_the_procedural_face():
+    from reflectmm_cli.geometry import procedural_face_model
+
+    m = procedural_face_model(n_vertices=3000, n_shape=1, n_exp=1)
+    cam = deep3d_camera()
+    uv, z = cam.project(m.mean_shape[m.landmarks])
+    assert np.all((uv > 0) & (uv < 224)) and np.all(z > 800)
+    # the subject's right eye (iBUG 36-41) is on the image left, the forehead up (small rows)
+    assert uv[36:42, 0].mean() < 112 < uv[42:48, 0].mean()
+    assert uv[19, 1] < uv[8, 1]
