@@ -43,7 +43,7 @@ def simulate_ggx_observations(size: int = 64, seed: int = 0, alpha_range=(0.2, 0
         ld = obs["flash_pos"][f] - pos
         vd = obs["cam_centers"][vi] - pos
         E = float(obs["flash_intensity"][f]) / np.sum(ld * ld, -1)
-        s = ggx_directional(c_hw, rho, alpha, nrm, ld, vd, E)
+        s = ggx_directional(c_hw, rho, alpha, nrm, ld, vd, np.repeat(E[..., None], 3, -1))
         if noise:
             s = s * (1 + noise * noise_rng.standard_normal(s.shape))
         rad[j] = np.where(obs["observed"][j][..., None], s, 0.0)
