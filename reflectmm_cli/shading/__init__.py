@@ -4,7 +4,7 @@ light model (DESIGN.md §2). Conventions and formulas: docs/shading.md.
 numpy in → numpy out; any torch tensor in → torch out (differentiable).
 """
 from .brdf import DEFAULT_EXPONENTS, blinn_phong_norm, shade_directional
-from .env import band_limits, shade_env, specular_view_albedo
+from .env import EnvBasis, band_limits, shade_env, specular_view_albedo
 from .light_model import LightModel, build_light_model, light_from_coeffs
 from .envmap import direction_to_equirect, envmap_from_sh, equirect_directions, equirect_weights, project_envmap
 from .sh import (
@@ -20,6 +20,7 @@ from .sh import (
 
 __all__ = [
     "DEFAULT_EXPONENTS",
+    "EnvBasis",
     "LightModel",
     "build_light_model",
     "light_from_coeffs",

@@ -22,7 +22,7 @@ from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_d
 from .brdf import _check_exponents
 from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, sh_basis, sh_basis_into
 
-__all__ = ["shade_env", "band_limits", "specular_view_albedo"]
+__all__ = ["shade_env", "band_limits", "specular_view_albedo", "EnvBasis"]
 
 DEFAULT_CHUNK = 1 << 14
 
@@ -130,7 +130,8 @@ def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask):
 
 
 def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=None, band_tol: float = 0.0,
-              chunk: int = DEFAULT_CHUNK, threads: int | None = None, view_correction: bool = False):
+              chunk: int = DEFAULT_CHUNK, threads: int | None = None, view_correction: bool = False,
+              basis: EnvBasis | None = None):
     """Diffuse and specular shading of texels under SH environment lighting.
 
     Args:
@@ -143,6 +144,8 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
             shape (e.g. (B, 1, 3, n) for B images of N texels each). Radiance SH coefficients.
         mask: optional boolean (...) texel mask; texels outside it are 0 and cost nothing.
         band_tol: drop bands whose Funk–Hecke coefficient is ≤ band_tol (see :func:`band_limits`). 0 = exact.
+        basis: an :class:`EnvBasis` of fixed geometry precomputed for these texels (then ``normal`` and
+            ``view_dir`` may be None; the torch path is used). For repeated shading of the same texels.
         view_correction: multiply each lobe by the true lobe's directional albedo ρ_p(n·v)
             (:func:`specular_view_albedo`). Off by default (the paper's model); still exact at normal view.
         chunk: texels per block in the numpy fast path (cache blocking).
@@ -152,8 +155,16 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         ``(diffuse, specular)``, each (..., 3). The specular part is 0 where n·v ≤ 0. numpy in → numpy out,
         torch in → torch out (differentiable w.r.t. every input, including the SH coefficients).
     """
+    if basis is not None:
+        normal, view_dir = basis.normal, basis.view_dir
+        if not any_torch(sh_coeffs):
+            import torch
+
+            sh_coeffs = torch.as_tensor(np.asarray(sh_coeffs), dtype=basis.dtype, device=basis.normal.device)
     tm, dt, c, w, p, n, v, K, order, lead, mask = _validate(
         albedo, weights, exponents, normal, view_dir, sh_coeffs, mask)
+    if basis is not None and order > basis.order:
+        raise ReflectmmError(f"shading: lighting of order {order} but the EnvBasis was built for order {basis.order}")
     if band_tol < 0 or not math.isfinite(band_tol):
         raise ReflectmmError(f"shading: band_tol must be finite and ≥ 0, got {band_tol}")
     Ld, Ls = band_limits(p, order, band_tol)
@@ -162,6 +173,9 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
     if not tm and K.ndim == 2:
         return _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads,
                                 p if view_correction else None)
+    if basis is not None:
+        return _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt,
+                                  p if view_correction else None, pre=basis)
     if tm and mask is not None and K.ndim == 2:
         # gather the masked texels, shade only those, scatter back (differentiable)
         import torch
@@ -281,7 +295,8 @@ class _CoeffMajor:
         return _CoeffMajor(self.Y[: key[1].stop], self.lead)
 
     def apply(self, Kx):  # Kx (3, k) → (*lead, 3) via one contiguous (3, k) @ (k, N) matmul
-        return (Kx @ self.Y).T.reshape(*self.lead, Kx.shape[0])
+        Y = self.Y if self.Y.dtype == Kx.dtype else self.Y.to(Kx.dtype)
+        return (Kx @ Y).T.reshape(*self.lead, Kx.shape[0])
 
 
 def _basis_numpy_to_torch(d, order):
@@ -300,7 +315,58 @@ def _basis_numpy_to_torch(d, order):
     return _CoeffMajor(torch.from_numpy(out), lead)
 
 
-def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_exponents=None):
+class EnvBasis:
+    """SH bases of fixed geometry, precomputed once for many ``shade_env`` calls (torch).
+
+    Finetuning shades the same texels (fixed precomputed normals and views) under a new lighting, albedo and
+    weights every step; with ``shade_env(..., basis=EnvBasis(normal, view_dir, order))`` each step costs only
+    the lighting products and their gradients. Memory: 2·(L+1)² values per texel (648 B at order 8, float32).
+
+    Args:
+        normal, view_dir: (..., 3) numpy or torch (normalised here; no gradients flow to them).
+        order: highest SH order the lighting will have.
+        dtype, device: torch dtype/device of the stored bases (default float32, cpu / the input's device).
+    """
+
+    def __init__(self, normal, view_dir, order: int, *, dtype=None, device=None):
+        import torch
+
+        from .sh import _check_order
+
+        self.order = _check_order(order)
+        dev = device or device_of(normal, view_dir) or torch.device("cpu")
+        dt = dtype or torch.float32
+        n = as_array("normal", normal.detach() if any_torch(normal) else normal, torch_mode=True, dtype=dt,
+                     device=dev)
+        v = as_array("view_dir", view_dir.detach() if any_torch(view_dir) else view_dir, torch_mode=True,
+                     dtype=dt, device=dev)
+        check_last("normal", n, 3)
+        check_last("view_dir", v, 3)
+        self.lead = broadcast_shapes(n.shape[:-1], v.shape[:-1])
+        n = n.expand(self.lead + (3,))
+        v = v.expand(self.lead + (3,))
+        self.normal = n * torch.rsqrt((n * n).sum(-1, keepdim=True).clamp_min(1e-30))
+        self.view_dir = v * torch.rsqrt((v * v).sum(-1, keepdim=True).clamp_min(1e-30))
+        self.ndv = (self.normal * self.view_dir).sum(-1)
+        r = (2.0 * self.ndv)[..., None] * self.normal - self.view_dir
+        if dev.type == "cpu":
+            self.Yn = _basis_numpy_to_torch(self.normal, self.order)
+            self.Yr = _basis_numpy_to_torch(r, self.order)
+        else:
+            self.Yn = sh_basis(self.normal, self.order, normalize=False)
+            self.Yr = sh_basis(r, self.order, normalize=False)
+
+    @property
+    def dtype(self):
+        return self.normal.dtype
+
+    def basis_for(self, which: str, order: int):
+        Y = self.Yn if which == "n" else self.Yr
+        k = (order + 1) ** 2
+        return Y[..., :k] if not isinstance(Y, _CoeffMajor) else Y[..., :k]
+
+
+def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_exponents=None, pre=None):
     """Broadcasting path: torch (differentiable) or per-texel lighting in numpy."""
     if tm:
         import torch
@@ -326,13 +392,18 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
     order = len(A) - 1
     lvl = np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
     nd = (Ld + 1) ** 2
-    nn = norm(n)
-    vv = norm(v)
+    if pre is not None:
+        nn, vv = n, v  # already normalised by EnvBasis
+        basis = pre.basis_for
+    else:
+        nn = norm(n)
+        vv = norm(v)
     # Geometry without gradients (finetuning uses fixed precomputed geometry): evaluate the basis with the
     # blocked numpy kernel and keep only the cheap linear part in the autograd graph.
-    fixed_geom = tm and nn.device.type == "cpu" and not (nn.requires_grad or vv.requires_grad)
-    basis = _basis_numpy_to_torch if fixed_geom else (lambda d, L: sh_basis(d, L, normalize=False))
-    Yn = basis(nn, Ld)
+    if pre is None:
+        fixed_geom = tm and nn.device.type == "cpu" and not (nn.requires_grad or vv.requires_grad)
+        basis = _basis_numpy_to_torch if fixed_geom else (lambda d, L: sh_basis(d, L, normalize=False))
+    Yn = basis(nn, Ld) if pre is None else basis("n", Ld)
     KA = K[..., :nd] * As[lvl[:nd]]
     glob = K.ndim == 2
 
@@ -341,15 +412,17 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
             if glob:
                 return Y.apply(Kx)
             Y = Y.Y.T.reshape(*Y.lead, Y.Y.shape[0])
+        if tm and Y.dtype != Kx.dtype:
+            Y = Y.to(Kx.dtype)
         return Y @ Kx.T if glob else einsum("...cn,...n->...c", Kx, Y)
 
     diffuse = c * apply(KA, Yn) * (1.0 / math.pi)
-    ndv = (nn * vv).sum(-1)
-    r = (2.0 * ndv)[..., None] * nn - vv
+    ndv = (nn * vv).sum(-1) if pre is None else pre.ndv.to(dt)
+    r = (2.0 * ndv)[..., None] * nn - vv if pre is None else None
     spec = None
     if active:
         Lsmax = max(Ls[i] for i in active)
-        Yr = basis(r, Lsmax)
+        Yr = basis(r, Lsmax) if pre is None else basis("r", Lsmax)
         for i in active:
             ni = (Ls[i] + 1) ** 2
             Si = apply(K[..., :ni] * Bs[i][lvl[:ni]], Yr[..., :ni]) * w[..., i:i + 1]

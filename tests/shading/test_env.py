@@ -297,3 +297,29 @@ def test_property_env_scale_invariance_and_dtypes(n, v, sn, sv, p, dtype):
     np.testing.assert_allclose(d1, d0, rtol=tol, atol=tol * (1 + np.abs(d0).max()))
     if float(np.dot(n, v)) > 0.05:  # away from the n·v = 0 cut, where rounding may flip the side
         np.testing.assert_allclose(s1, s0, rtol=tol, atol=tol * (1 + np.abs(s0).max()))
+
+
+def test_precomputed_env_basis_matches_and_differentiates():
+    from reflectmm_cli.shading import EnvBasis
+
+    K = _lighting(21)
+    rng = np.random.default_rng(21)
+    N = 500
+    c, w, n, v = rng.random((N, 3)), rng.random((N, 3)), rng.normal(size=(N, 3)), rng.normal(size=(N, 3))
+    d_ref, s_ref = shade_env(c, w, P, n, v, K, view_correction=True)
+    eb = EnvBasis(n, v, ORDER, dtype=torch.float64)
+    Kt = torch.tensor(K, requires_grad=True)
+    d, s = shade_env(torch.tensor(c), torch.tensor(w), P, None, None, Kt, basis=eb, view_correction=True)
+    np.testing.assert_allclose(d.detach().numpy(), d_ref, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(s.detach().numpy(), s_ref, rtol=1e-10, atol=1e-12)
+    (d.sum() + s.sum()).backward()
+    g_basis = Kt.grad.clone()
+    Kt.grad = None
+    d2, s2 = shade_env(torch.tensor(c), torch.tensor(w), P, torch.tensor(n), torch.tensor(v), Kt, view_correction=True)
+    (d2.sum() + s2.sum()).backward()
+    np.testing.assert_allclose(g_basis.numpy(), Kt.grad.numpy(), rtol=1e-10)
+    # lower-order lighting reuses the leading bands; float32 basis with float64 lighting is promoted
+    d3, _ = shade_env(c, w, P, None, None, K[:, :16], basis=EnvBasis(n, v, ORDER))
+    np.testing.assert_allclose(d3.numpy(), shade_env(c, w, P, n, v, K[:, :16])[0], rtol=1e-5, atol=1e-6)
+    with pytest.raises(ReflectmmError, match="order"):
+        shade_env(c, w, P, None, None, _lighting(0, 8), basis=eb)
