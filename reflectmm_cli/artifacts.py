@@ -373,6 +373,8 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], meta: Mappin
     spec = oiio.ImageSpec(w, h, len(names), "half" if half else "float")
     spec.channelnames = tuple(names)
     spec.attribute("compression", "zip")
+    # OpenImageIO stamps the write time (capDate) unless a DateTime is given: fix it for byte-identical reruns
+    spec.attribute("DateTime", "1980:01:01 00:00:00")
     if meta is not None:
         spec.attribute(EXR_META_ATTR, canonical_json(meta))
     with atomic_path(path, suffix=".exr") as tmp:
