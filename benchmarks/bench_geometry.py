@@ -45,14 +45,16 @@ def main(argv=None) -> int:
     print(f"# reflectmm geometry benchmark — {platform.processor() or platform.machine()}, "
           f"python {sys.version.split()[0]}, OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}",
           file=sys.stderr)
+    # warm-up: first imports and the Embree device creation are not part of the timings
+    w = procedural_face_model(n_vertices=2000, n_shape=4, n_exp=2)
+    RayScene(w.mean_shape, w.triangles)
     for nv in [int(x) for x in args.sizes.split(",")]:
-        t0 = time.perf_counter()
+        t_build = _median_time(lambda: procedural_face_model(n_vertices=nv, n_shape=40, n_exp=20),
+                               max(1, args.repeat // 2))
         m = procedural_face_model(n_vertices=nv, n_shape=40, n_exp=20)
-        t_build = time.perf_counter() - t0
         v = m.mean_shape
-        t0 = time.perf_counter()
+        t_scene = _median_time(lambda: RayScene(v, m.triangles), args.repeat)
         scene = RayScene(v, m.triangles)
-        t_scene = time.perf_counter() - t0
         T = len(m.triangles)
         for yaw in (0, 45, 90):
             cam = orbit_camera(yaw, 0, 1000, focal_px=1500, width=640, height=480)

@@ -210,11 +210,16 @@ class FaceModel:
 
 # ---------------------------------------------------------------------------------------------- normals
 
+def _is_torch(x) -> bool:
+    """True for a torch tensor, without importing torch for numpy callers."""
+    return type(x).__module__.split(".")[0] == "torch"
+
+
 def face_normals(vertices, triangles, *, normalize: bool = True):
     """(T, 3) triangle normals ``(v1 − v0) × (v2 − v0)``; unit (0 for degenerate) or area-weighted (2·area)."""
-    import torch
+    if _is_torch(vertices):
+        import torch
 
-    if torch.is_tensor(vertices):
         tri = torch.as_tensor(np.asarray(triangles), dtype=torch.long, device=vertices.device) \
             if not torch.is_tensor(triangles) else triangles.long()
         v0, v1, v2 = vertices[..., tri[:, 0], :], vertices[..., tri[:, 1], :], vertices[..., tri[:, 2], :]
@@ -239,9 +244,9 @@ def vertex_normals(vertices, triangles):
     Degenerate (zero-area) triangles contribute nothing; a vertex with no non-degenerate triangle gets the zero
     vector — every output is finite.
     """
-    import torch
+    if _is_torch(vertices):
+        import torch
 
-    if torch.is_tensor(vertices):
         tri = torch.as_tensor(np.asarray(triangles), dtype=torch.long, device=vertices.device) \
             if not torch.is_tensor(triangles) else triangles.long().to(vertices.device)
         fn = face_normals(vertices, tri, normalize=False)
