@@ -98,9 +98,27 @@ def brute_force_specular(img, n, v, p):
     return out
 
 
-def accuracy(quick):
+def load_maps(paths, W, H):
+    """Real HDR maps (EXR/HDR), box-downsampled to W×H (the map must be an integer multiple of it or larger)."""
+    from reflectmm_cli.artifacts import read_image
+    from reflectmm_cli.shading.light_model import find_envmaps
+
+    out = []
+    for f in find_envmaps(paths):
+        img = read_image(f)[..., :3].astype(np.float64)
+        h, w = img.shape[:2]
+        fy, fx = max(1, h // H), max(1, w // W)
+        img = img[: fy * H, : fx * W].reshape(H, fy, W, fx, 3).mean((1, 3)) if h >= H and w >= W else img
+        if img.shape[:2] == (H, W) and np.isfinite(img).all():
+            out.append(img)
+    if not out:
+        raise SystemExit(f"no usable maps of at least {W}x{H} in {paths}")
+    return out
+
+
+def accuracy(quick, maps_from=None):
     W, H = (128, 64) if quick else (256, 128)
-    maps = procedural_envmaps(W, H, count=2 if quick else 3)
+    maps = load_maps(maps_from, W, H) if maps_from else procedural_envmaps(W, H, count=2 if quick else 3)
     orders = (2, 4, 6, 8, 12)
     angles = (0, 30, 60, 80) if quick else (0, 15, 30, 45, 60, 75, 85)
     nsamp = 12 if quick else 24
@@ -136,8 +154,10 @@ def accuracy(quick):
                     np.sqrt(((s - truth_bl) ** 2).mean()) / np.sqrt((truth_bl ** 2).mean()))
     out = [f"### 1. Specular accuracy vs the true half-vector lobe\n",
            f"Relative RMS error of `shade_env` specular (unit weight) against brute-force integration of the true "
-           f"lobe `f (n·h)^p [n·l>0]` over every pixel of {len(maps)} procedural HDR maps ({W}×{H}: sky, ground, "
-           f"1–3 suns of increasing sharpness), {nsamp} random normals per map and view angle; median over maps. "
+           f"lobe `f (n·h)^p [n·l>0]` over every pixel of {len(maps)} "
+           + (f"HDR maps from {maps_from} ({W}×{H})" if maps_from else
+              f"procedural HDR maps ({W}×{H}: sky, ground, 1–3 suns of increasing sharpness)")
+           + f", {nsamp} random normals per map and view angle; median over maps. "
            f"Error includes SH truncation of the lighting and the lobe-shape approximation. The last column is "
            f"order 8 with the opt-in `view_correction=True` (each lobe scaled by the true lobe's directional "
            f"albedo ρ_p(n·v)).\n"]
@@ -206,7 +226,7 @@ def throughput(quick):
     K[:, 0] = 3
     c, w, n, v = texels(N)
     P = np.array(EXPONENTS, np.float32)
-    rep = 3 if quick else 5
+    rep = 3
     res = {}
 
     def median_time_l(fn, rep_, key):
@@ -340,6 +360,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--only", choices=["accuracy", "speed", "projection"], default=None)
+    ap.add_argument("--maps", nargs="*", default=None,
+                    help="real equirectangular HDR maps (files or folders) for the accuracy section")
     args = ap.parse_args()
     parts = []
     if args.only in (None, "speed"):
@@ -347,7 +369,7 @@ def main():
     if args.only in (None, "projection"):
         parts.append(projection_report(args.quick))
     if args.only in (None, "accuracy"):
-        parts.append(accuracy(args.quick))
+        parts.append(accuracy(args.quick, args.maps))
     print("\n\n".join(parts))
 
 
