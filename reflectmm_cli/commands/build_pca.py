@@ -91,13 +91,13 @@ def run_build_pca(ctx: StageContext) -> list[Path]:
     resolved = {"components": int(p["components"])}
     extra = {"n_identities": len(maps), "n_components": model.n_components, "stats": model.stats,
              "ids": model.ids,
-             "method": "SVD of centred diffuse albedo; specular bases = same combination of training samples; "
-                       "beta in units of sigma (ddof=1)",
+             "method": "PCA of the centred diffuse albedo (N x N Gram eigendecomposition + one Lowdin "
+                       "re-orthonormalisation); specular bases = the same combination of training samples "
+                       "(AlbedoMM); beta in units of sigma (ddof=1)",
              "face_model": None if fm_path is None else {"path": Path(fm_path).name,
                                                          "n_vertices": int(fm.uv.shape[0])}}
-    write_artifact(out, MODEL_KIND, model_arrays(model), params=resolved, inputs=ctx.input_refs(out.parent),
-                   producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta=extra)
     written = [out]
+    renderer = None
     if p["preview"]:
         from reflectmm_cli.model.preview import component_grid, render_samples
 
@@ -111,6 +111,10 @@ def run_build_pca(ctx: StageContext) -> list[Path]:
         else:
             log.warning("build-pca: no face model given: no per-vertex model and no rendered samples "
                         "(give --face-model)")
+    extra["preview_renderer"] = renderer
+    # the artifact last: it is the primary output whose cache key says the whole set is up to date
+    write_artifact(out, MODEL_KIND, model_arrays(model), params=resolved, inputs=ctx.input_refs(out.parent),
+                   producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta=extra)
     ev = model.explained_variance_ratio
     log.info(f"build-pca: {len(maps)} identities -> {model.n_components} components; first 3 explain "
              f"{100 * float(ev[:3].sum()):.1f}% of the diffuse variance")

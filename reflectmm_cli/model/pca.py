@@ -38,6 +38,7 @@ __all__ = [
     "model_from_arrays",
     "sample_model",
     "project_maps",
+    "model_to_torch",
     "sample_uv_bilinear",
     "add_vertex_model",
 ]
@@ -284,7 +285,11 @@ def sample_model(model, beta, space: str = "uv"):
         import torch
 
         dev, dt = beta.device, beta.dtype if beta.is_floating_point() else torch.float32
-        t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
+
+        def t(a):  # model tensors (e.g. trainable, from model_to_torch) are used as they are: gradients flow
+            if isinstance(a, torch.Tensor):
+                return a if (a.device == dev and a.dtype == dt) else a.to(dev, dt)
+            return torch.as_tensor(np.asarray(a), device=dev, dtype=dt)
         coef = beta.to(dt) * t(sigma)[:m]
         alb = t(am) + torch.tensordot(coef, t(ab)[:m], dims=([-1], [0]))
         wts = t(wm) + torch.tensordot(coef, t(wb)[:m], dims=([-1], [0]))
@@ -294,6 +299,28 @@ def sample_model(model, beta, space: str = "uv"):
     alb = np.asarray(am, np.float64) + np.tensordot(coef, np.asarray(ab, np.float64)[:m], axes=([-1], [0]))
     wts = np.asarray(wm, np.float64) + np.tensordot(coef, np.asarray(wb, np.float64)[:m], axes=([-1], [0]))
     return alb, wts
+
+
+def model_to_torch(model, device="cpu", dtype=None, requires_grad: bool = False) -> dict:
+    """The model's arrays as torch tensors (a dict usable by :func:`sample_model`), converted once.
+
+    ``requires_grad=True`` makes the means and bases trainable leaves (finetuning updates the model jointly with
+    the encoder, DESIGN.md §1 step 7); ``sigma`` and ``exponents`` stay constants.
+    """
+    import torch
+
+    dtype = dtype or torch.float32
+    out = {}
+    for k, v in model_arrays(model).items() if isinstance(model, ReflectanceModel) else dict(model).items():
+        a = np.asarray(v)
+        if a.dtype.kind in "fiu":  # numbers → tensors; mask (bool) and ids (str) stay numpy
+            t = torch.as_tensor(a, dtype=dtype, device=device).clone()
+            if requires_grad and ("_mean" in k or "_basis" in k):
+                t.requires_grad_(True)
+            out[k] = t
+        else:
+            out[k] = a
+    return out
 
 
 def project_maps(model: ReflectanceModel, albedo: np.ndarray, n_components: int | None = None) -> np.ndarray:

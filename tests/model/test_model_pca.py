@@ -232,3 +232,25 @@ def test_splat_renderer_covers_and_interpolates():
     expect = (cols + 0.5 - c) * 500 / f  # x on the plane seen by pixel centre (col + 0.5)
     got = img[W // 2, inner]
     assert np.max(np.abs(got - expect)) <= 500 / f * 0.75  # within the splat's pixel snapping
+
+
+def test_trainable_torch_model_gets_gradients():
+    import torch
+
+    from reflectmm_cli.model import model_to_torch
+
+    A, W = _data(n=5)
+    m = fit_reflectance_pca(A, W, (1, 8, 64))
+    tm = model_to_torch(m, requires_grad=True)
+    beta = torch.tensor([0.5, -1.0], requires_grad=True)
+    alb, wts = sample_model(tm, beta)
+    np.testing.assert_allclose(alb.detach().numpy(), sample_model(m, np.array([0.5, -1.0]))[0], atol=1e-5)
+    (alb.sum() + 2 * wts.sum()).backward()
+    # d/d mean = 1 per element; d/d basis_k = β_k σ_k per element (closed form); basis 2, 3 unused → 0
+    assert torch.allclose(tm["albedo_mean"].grad, torch.ones_like(tm["albedo_mean"]))
+    assert torch.allclose(tm["weights_mean"].grad, 2 * torch.ones_like(tm["weights_mean"]))
+    g = tm["albedo_basis"].grad
+    assert torch.allclose(g[0], torch.full_like(g[0], 0.5 * float(m.sigma[0])), rtol=1e-5)
+    assert torch.allclose(g[1], torch.full_like(g[1], -1.0 * float(m.sigma[1])), rtol=1e-5)
+    assert float(g[2:].abs().max()) == 0.0
+    assert not tm["sigma"].requires_grad
