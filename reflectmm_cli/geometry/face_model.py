@@ -377,8 +377,8 @@ def _as_points(a: np.ndarray, key: str, path: Path, n: int | None = None) -> np.
 
 
 def _as_basis(a: np.ndarray, key: str, path: Path, n: int) -> np.ndarray:
-    """(3N, K) → (K, N, 3)."""
-    a = np.asarray(a, dtype=np.float64)
+    """(3N, K) → (K, N, 3) float32 (the published BFM09 bases are ~128 MB each in float32)."""
+    a = np.asarray(a, dtype=np.float32)
     if a.ndim != 2 or a.shape[0] != 3 * n:
         raise ReflectmmError(f"'{key}' has shape {a.shape}, expected (3·{n} = {3 * n}, K)", path)
     return np.ascontiguousarray(a.T.reshape(a.shape[1], n, 3))
