@@ -355,7 +355,7 @@ def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, sym
 def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8.0, 64.0), solver: str = "fast",
              symmetry: float = 1.0, loss: str = "l1", prior: float = 1e-4, pair_mask=None, flash_intensity=None,
              *, irls_iterations: int = 10, irls_delta: float = 1e-3, irls_tol: float = 1e-3,
-             irls_obj_tol: float = 1e-4, cond_min: float = 1e-4,
+             irls_obj_tol: float = 1e-3, cond_min: float = 1e-4,
              min_obs: int | None = None, observable_min: float = 0.1, prior_sigma: float | None = None,
              steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
              device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK,
