@@ -85,7 +85,7 @@ def run_unwrap(ctx: StageContext) -> list[Path]:
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
                                          uv_size=int(ctx.param("uv_size", 256)),
                                          grazing_deg=float(ctx.param("grazing_deg", 80.0)), exponents=exps,
-                                         geometry_path=geo_path)
+                                         geometry_path=geo_path, capture_path=cap_path)
     out, prev = _outputs(ctx)
     write_artifact(out, "uv-observations", arrays, params=ctx.resolved_params(),
                    inputs=ctx.input_refs(out.parent, files),

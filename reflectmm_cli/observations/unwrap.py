@@ -157,7 +157,7 @@ def _index_of(names: Sequence[str], wanted: Sequence[str], what: str, where) -> 
 
 def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
                         triangles: np.ndarray, uv: np.ndarray, *, uv_size: int = 256, grazing_deg: float = 80.0,
-                        exponents: Sequence[float] = DEFAULT_EXPONENTS, geometry_path=None,
+                        exponents: Sequence[float] = DEFAULT_EXPONENTS, geometry_path=None, capture_path=None,
                         with_conditioning: bool = True) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Build the ``uv-observations`` arrays of docs/pipeline.md.
 
@@ -198,6 +198,12 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     satur = capture["saturated"]
     crop = np.asarray(capture.get("crop_origin", np.zeros((len(views), 2))), dtype=np.float64)
     V, F = len(views), len(flashes)
+    if olat.ndim != 5 or olat.shape[:2] != (V, F) or olat.shape[4] != 3:
+        raise ReflectmmError(f"capture 'olat' has shape {olat.shape}, expected ({V}, {F}, h, w, 3)", capture_path)
+    if satur.shape != olat.shape[:4]:
+        raise ReflectmmError(f"capture 'saturated' has shape {satur.shape}, expected {olat.shape[:4]}", capture_path)
+    if crop.shape != (V, 2):
+        raise ReflectmmError(f"capture 'crop_origin' has shape {crop.shape}, expected ({V}, 2)", capture_path)
     S = int(uv_size)
 
     from reflectmm_cli.geometry import RayScene, shadow_mask, vertex_normals, visibility
