@@ -164,15 +164,16 @@ def vertex_to_uv_map(values, uv_raster: UVRaster) -> np.ndarray:
 def cylindrical_uv(vertices, margin: float = 0.02) -> np.ndarray:
     """A left-right symmetric UV layout for a face mesh without one.
 
-    ``u`` is linear in the azimuth ``atan2(x, z − z_c)`` about a vertical axis behind the face (z_c = the
-    mesh's minimum z minus 10 % of its depth, so the front maps monotonically) and symmetric about x = 0
-    (u ↔ 1 − u); ``v`` is linear in height, v = 0 at the top.  Both are scaled to [margin, 1 − margin] with the
+    ``u`` is linear in the azimuth ``atan2(x − x_c, z − z_c)`` about a vertical axis behind the face (x_c = the
+    middle of the x range, z_c = the mesh's minimum z minus 10 % of its depth, so the front maps monotonically)
+    and symmetric about x = x_c (u ↔ 1 − u); ``v`` is linear in height, v = 0 at the top.  Both are scaled to [margin, 1 − margin] with the
     same scale on both axes (arc length vs height), so texels are roughly square on the cylinder.
     """
     v = np.asarray(vertices, dtype=np.float64)
+    xc = 0.5 * (v[:, 0].max() + v[:, 0].min())  # symmetry plane (x = 0 for a centred model)
     zc = v[:, 2].min() - 0.1 * np.ptp(v[:, 2])
-    radius = np.median(np.hypot(v[:, 0], v[:, 2] - zc))
-    az = np.arctan2(v[:, 0], v[:, 2] - zc) * radius  # arc length, mm
+    radius = np.median(np.hypot(v[:, 0] - xc, v[:, 2] - zc))
+    az = np.arctan2(v[:, 0] - xc, v[:, 2] - zc) * radius  # arc length, mm
     ext_u = 2 * np.abs(az).max()
     ymax, ymin = v[:, 1].max(), v[:, 1].min()
     ext = max(ext_u, ymax - ymin, 1e-9)

@@ -340,3 +340,17 @@ def test_rasterize_uv_random_triangle(coords, S):
         np.testing.assert_allclose(rec[:, 1], c[rr], atol=1e-6)
     perim = sum(np.linalg.norm(uv[k] - uv[(k + 1) % 3]) for k in range(3))
     assert abs(ur.mask.sum() - area * S * S) <= perim * S + 2  # Pick's-theorem-like bound
+
+
+def test_cylindrical_uv_symmetric_and_offset_invariant(face):
+    from reflectmm_cli.geometry import cylindrical_uv, uv_distortion
+
+    m, _ = face
+    uv = cylindrical_uv(m.mean_shape)
+    mi = m.mirror_index()
+    np.testing.assert_allclose(uv[mi, 0], 1 - uv[:, 0], atol=1e-5)
+    np.testing.assert_allclose(uv[mi, 1], uv[:, 1], atol=1e-6)
+    shifted = cylindrical_uv(m.mean_shape + np.array([12.0, -30.0, 5.0]))  # a model not centred on x = 0
+    np.testing.assert_allclose(shifted, uv, atol=1e-5)
+    d = uv_distortion(m.mean_shape, m.triangles, uv)
+    assert d["flipped_fraction"] == 0 and 0.5 < d["area_ratio_p5"] and d["area_ratio_p95"] < 2.0
