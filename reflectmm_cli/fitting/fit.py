@@ -66,7 +66,7 @@ class FitConfig:
                                     # distance ambiguity of a rig whose cameras all look from one side
                                     # (0 disables)
     fit_expression: bool = True
-    photo_vertices: int = 4000      # at most this many skin vertices in the photometric term
+    photo_vertices: int = 2000      # at most this many skin vertices in the photometric term
     photo_min_cos: float = 0.5      # a vertex enters a view's photometric term only if n·v exceeds this
                                     # (grazing vertices sample the silhouette, where the background bleeds in)
     photo_blur_px: tuple[float, ...] = (1.5, 0.0)  # Gaussian blur of the images per photometric round
@@ -298,7 +298,15 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         sample = np.nonzero(skin)[0]
         if len(sample) > cfg.photo_vertices:
             sample = sample[np.linspace(0, len(sample) - 1, cfg.photo_vertices).round().astype(np.int64)]
-        sample_t = torch.as_tensor(sample, dtype=torch.long, device=device)
+        # the photometric closure only needs the sampled vertices and the triangles around them (their normals
+        # are then exactly the full mesh's): evaluate that sub-mesh only
+        touch = np.isin(model.triangles, sample).any(1)
+        sub_ids = np.unique(model.triangles[touch])
+        sub_ids = np.union1d(sub_ids, sample)
+        sub_tri_t = torch.as_tensor(np.searchsorted(sub_ids, model.triangles[touch]), dtype=torch.long,
+                                    device=device)
+        sub = ts.subset(sub_ids)
+        sample_t = torch.as_tensor(np.searchsorted(sub_ids, sample), dtype=torch.long, device=device)
         mode = cfg.albedo
         if mode == "auto":
             mode = "texture" if model.mean_tex is not None else "per-vertex"
@@ -338,11 +346,12 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             alb_t = tt(alb).requires_grad_(mode == "per-vertex")
 
             def stage2():
-                X = verts()
+                Xs = sub.vertices(zs, ze)
                 R, t = poses()
-                nv = vertex_normals_torch(X, ts.triangles)
-                lp, _ = photometric_loss(X, nv, sample_t, vis_t, Kimg_t, R, t, images_t, alb_t, sh_t, kernel, scale)
-                return cfg.w_landmark * lm_loss(X, R, t)[0] + cfg.w_photo * lp + prior(R, t)
+                nv = vertex_normals_torch(Xs, sub_tri_t)
+                lp, _ = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, images_t, alb_t, sh_t, kernel, scale)
+                lml = lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0]
+                return cfg.w_landmark * lml + cfg.w_photo * lp + prior(R, t)
 
             params = [zs, ze] + pose_params + [sh_t] + ([alb_t] if mode == "per-vertex" else [])
             run_lbfgs(params, stage2, cfg.photo_iters, f"photometric round {rnd + 1}")
@@ -350,11 +359,11 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             albedo = alb_t.detach().cpu().numpy()
             # residuals on the unblurred images at the final estimate of this round
             with torch.no_grad():
-                X = verts()
+                Xs = sub.vertices(zs, ze)
                 R, t = poses()
-                nv = vertex_normals_torch(X, ts.triangles)
+                nv = vertex_normals_torch(Xs, sub_tri_t)
                 raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
-                _, r = photometric_loss(X, nv, sample_t, vis_t, Kimg_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
+                _, r = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
                 r = r.cpu().numpy()
             vis_count = vis.sum(1)
             for v in range(V):
