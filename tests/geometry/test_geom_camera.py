@@ -100,3 +100,13 @@ def test_deep3d_camera_frames_the_procedural_face():
     # the subject's right eye (iBUG 36-41) is on the image left, the forehead up (small rows)
     assert uv[36:42, 0].mean() < 112 < uv[42:48, 0].mean()
     assert uv[19, 1] < uv[8, 1]
+
+
+def test_with_size_keeps_the_pixel_centre_convention():
+    cam = orbit_camera(20, 5, 900, focal_px=1000, width=320, height=240)
+    big = cam.with_size(640, 480)
+    p = np.random.default_rng(0).uniform(-50, 50, (10, 3))
+    uv, _ = cam.project(p)
+    uv2, _ = big.project(p)
+    np.testing.assert_allclose(uv2, (uv + 0.5) * 2 - 0.5, atol=1e-9)
+    np.testing.assert_allclose(big.center, cam.center)
