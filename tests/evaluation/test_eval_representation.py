@@ -136,3 +136,11 @@ def test_geometry_errors_rigid_alignment():
     assert e["vertex_aligned_mean_mm"] < 1e-9 < e["vertex_mean_mm"]
     assert e["camera_mean_mm"] == pytest.approx(3.5)
     assert e["landmark_rmse_px"] == pytest.approx(np.sqrt(2.5))
+
+
+def test_geometry_errors_fall_back_to_stored_errors():
+    geo = {"err_vertex_rmse_mm": np.array(1.5), "err_cam_center_mm": np.array([2.0, 4.0]),
+           "landmark_rmse_px": np.array([0.5, 0.5])}
+    e = geometry_errors(geo, {})
+    assert e["vertex_rms_mm"] == 1.5 and e["camera_mean_mm"] == 3.0 and e["landmark_rmse_px"] == 0.5
+    assert "err_" in e["source"]
