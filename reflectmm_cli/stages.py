@@ -263,6 +263,8 @@ def compute_cache_key(stage: Stage, ctx: StageContext, hash_cache: dict[str, Any
 
 def resolve_device(device: str) -> str:
     """``auto`` -> ``cuda`` if available else ``cpu``; anything else is checked and returned."""
+    if device == "cpu":  # the common case: no need to import torch just to say so
+        return device
     import torch
 
     if device == "auto":
