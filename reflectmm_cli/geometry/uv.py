@@ -166,8 +166,9 @@ def cylindrical_uv(vertices, margin: float = 0.02) -> np.ndarray:
 
     ``u`` is linear in the azimuth ``atan2(x − x_c, z − z_c)`` about a vertical axis behind the face (x_c = the
     middle of the x range, z_c = the mesh's minimum z minus 10 % of its depth, so the front maps monotonically)
-    and symmetric about x = x_c (u ↔ 1 − u); ``v`` is linear in height, v = 0 at the top.  Both are scaled to [margin, 1 − margin] with the
-    same scale on both axes (arc length vs height), so texels are roughly square on the cylinder.
+    and symmetric about x = x_c (u ↔ 1 − u); ``v`` is linear in height, v = 0 at the top.  Both are scaled to
+    [margin, 1 − margin] with the same scale on both axes (arc length vs height), so texels are roughly square on
+    the cylinder.
     """
     v = np.asarray(vertices, dtype=np.float64)
     xc = 0.5 * (v[:, 0].max() + v[:, 0].min())  # symmetry plane (x = 0 for a centred model)
