@@ -354,3 +354,25 @@ def test_cylindrical_uv_symmetric_and_offset_invariant(face):
     np.testing.assert_allclose(shifted, uv, atol=1e-5)
     d = uv_distortion(m.mean_shape, m.triangles, uv)
     assert d["flipped_fraction"] == 0 and 0.5 < d["area_ratio_p5"] and d["area_ratio_p95"] < 2.0
+
+
+def test_visibility_agrees_with_zbuffer(face):
+    """Vertex visibility by shadow-ray-style segments agrees with a depth test against the rasterised depth."""
+    m, scene = face
+    cam = orbit_camera(55, 10, 700, focal_px=1400, width=400, height=400)
+    r = rasterize(scene, cam)
+    n = vertex_normals(m.mean_shape, m.triangles)
+    vis = visibility(scene, m.mean_shape, n, cam.center)
+    uv, z = cam.project(m.mean_shape)
+    px = np.round(uv).astype(int)
+    inside = (px[:, 0] >= 1) & (px[:, 0] < 399) & (px[:, 1] >= 1) & (px[:, 1] < 399)
+    idx = np.nonzero(inside)[0]
+    # farthest hit in the 3×3 window (all nine pixels must hit): hidden if even that is nearer than the vertex
+    zbuf = np.array([r.depth[y - 1:y + 2, x - 1:x + 2].max() if r.mask[y - 1:y + 2, x - 1:x + 2].all() else 0.0
+                     for x, y in px[idx]])
+    facing = ((cam.center - m.mean_shape[idx]) * n[idx]).sum(1) > 0
+    hidden = facing & (zbuf > 0) & (zbuf < z[idx] - 3.0)
+    clear = facing & (np.abs(np.array([r.depth[y, x] for x, y in px[idx]]) - z[idx]) < 0.3)
+    assert hidden.sum() > 50 and clear.sum() > 500
+    assert not vis[idx[hidden]].any()
+    assert vis[idx[clear]].mean() > 0.99
