@@ -252,3 +252,24 @@ def test_adam_random_flip_converges_to_mirror_pooling():
         d_fa = np.abs(getattr(adam, name) - getattr(fast, name))[:, ok].mean()
         d_f0 = np.abs(getattr(nosym, name) - getattr(fast, name))[:, ok].mean()
         assert d_fa < 0.5 * d_f0, name
+
+
+_OBS6 = simulate_observations(6)
+
+
+@settings(max_examples=20, deadline=None)
+@given(value=st.sampled_from([np.nan, np.inf, -np.inf]), k=st.integers(0, 10 ** 6), ch=st.integers(0, 2),
+       observed=st.booleans())
+def test_non_finite_radiance_rejected_only_where_observed(value, k, ch, observed):
+    obs = dict(_OBS6)
+    sel = np.argwhere(obs["observed"] if observed else ~obs["observed"])
+    j, r, c = sel[k % len(sel)]
+    rad = obs["radiance"].copy()
+    rad[j, r, c, ch] = value
+    obs["radiance"] = rad
+    if observed:
+        with pytest.raises(ReflectmmError, match="radiance.*NaN/inf"):
+            fit_maps(obs)
+    else:  # unobserved entries are never read
+        m = fit_maps(obs)
+        assert np.all(np.isfinite(m.albedo)) and np.all(np.isfinite(m.weights))
