@@ -49,11 +49,12 @@ def test_evaluate_representation_cli(ggx_ws, cli, tmp_path):
     i3 = names.index("3-lobe (1,8,64)")
     assert mp[i3] > mp[names.index("global p=8")] and mp[i3] > mp[names.index("global p=64")]
     # without weights: no LPIPS array and a clear statement
-    r = cli("-q", "evaluate", "representation", "--ids", "000", "--workspace", ggx_ws, "--exponents-sets", "16",
-            "--no-baselines", "-o", tmp_path / "rep.npz")
+    r = cli("-q", "evaluate", "representation", "--ids", "000,001", "--max-identities", "1", "--workspace", ggx_ws,
+            "--exponents-sets", "16", "--no-baselines", "-o", tmp_path / "rep.npz")
     assert r.exit_code == 0, r.stderr
     assert "LPIPS: off (no weights given)" in r.stdout
-    assert "lpips" not in read_artifact(tmp_path / "rep.npz").arrays
+    art = read_artifact(tmp_path / "rep.npz")
+    assert "lpips" not in art.arrays and art["psnr"].shape == (1, 1) and list(art["ids"]) == ["000"]
     # bad holdout names the flash ids
     r = cli("evaluate", "representation", "--ids", "000", "--workspace", ggx_ws, "--holdout", "02",
             "-o", tmp_path / "x.npz")
