@@ -98,10 +98,6 @@ def sqrt(x, torch_mode):
     return _torch().sqrt(x) if torch_mode else np.sqrt(x)
 
 
-def where(c, a, b, torch_mode):
-    return _torch().where(c, a, b) if torch_mode else np.where(c, a, b)
-
-
 def clamp_min(x, v, torch_mode):
     return x.clamp_min(v) if torch_mode else np.maximum(x, v)
 
@@ -111,10 +107,6 @@ def safe_normalize(v, torch_mode, eps2=1e-30):
     n2 = (v * v).sum(-1, keepdims=True) if not torch_mode else (v * v).sum(-1, keepdim=True)
     inv = 1.0 / sqrt(clamp_min(n2, eps2, torch_mode), torch_mode)
     return v * inv
-
-
-def dot(a, b, torch_mode):
-    return (a * b).sum(-1)
 
 
 def broadcast_shapes(*shapes):

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from _shading_ref import bp_norm_ref, bp_sh_ref, hemisphere_quadrature, real_sh_matrix_ref, real_sh_ref
+from _shading_ref import bp_sh_ref, hemisphere_quadrature, real_sh_matrix_ref
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading import (
     band_limits,

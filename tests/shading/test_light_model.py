@@ -1,5 +1,4 @@
 """Light model (build-light-pca): rotation augmentation, normalisation, PCA, inverse, CLI end to end."""
-import math
 
 import numpy as np
 import pytest
