@@ -283,7 +283,8 @@ def speed_report(quick):
            f"memory copy {gbs:.1f} GB/s, L2-resident float32 elementwise multiply {ew:.2f} G elem/s.\n",
            f"Roofline estimate per texel: {ew_ops} elementwise basis ops ({1e9 * t_ew:.0f} ns) + "
            f"{mm_flops} matmul flops ({1e9 * t_mm:.0f} ns) + {bytes_io} B of input/output ({1e9 * t_mem:.1f} ns) "
-           f"→ **{roof / 1e6:.1f} M texels/s** upper bound for this algorithm on this machine.\n",
+           f"→ **{roof / 1e6:.1f} M texels per core-second** (the elementwise rate is one core's; "
+           f"≈ {2 * roof / 1e6:.0f} M texels/s on 2 idle cores) upper bound for this algorithm.\n",
            f"\nLoad average when measured: {os.getloadavg()[0]:.1f} (the machine is shared; wall times vary with "
            f"it, CPU times much less). *texels per CPU-second* = N / CPU time of all threads; on 2 idle cores the "
            f"wall throughput of the threaded path approaches twice that.\n",
