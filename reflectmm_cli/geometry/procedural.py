@@ -56,14 +56,21 @@ DEFAULT_PARAMS: dict[str, float] = {
 }
 
 #: Plausible 1σ perturbations of the anatomical parameters (mm or relative units).
+#: Plausible 1σ changes of the *in-place* anatomical parameters (amplitudes and overall proportions): their
+#: finite differences change the surface height without sliding features across the vertex grid.
 SHAPE_SIGMA: dict[str, float] = {
     "half_width": 4.5, "depth": 4.0, "height_scale": 0.04, "jaw_narrow": 6.0, "forehead_recede": 0.0012,
     "chin_recede": 0.001,
-    "nose_tip_y": 1.5, "nose_bridge_y": 1.5, "nose_height": 2.2, "bridge_height": 1.5, "nose_width": 0.8,
-    "alar_width": 1.0, "alar_height": 1.0, "eye_x": 1.5, "eye_y": 1.2, "socket_depth": 1.5,
-    "brow_y": 1.5, "brow_height": 1.5, "glabella": 0.8, "cheek_x": 2.5, "cheek_y": 2.5, "cheek_height": 2.0,
-    "cheekbone": 1.2, "maxilla": 1.8, "mouth_y": 1.2, "mouth_half_width": 1.8, "upper_lip": 0.8,
-    "lower_lip": 0.8, "chin_y": 2.5, "chin_height": 2.0, "sulcus": 0.8, "temple": 1.2,
+    "nose_height": 2.2, "bridge_height": 1.5, "nose_width": 0.8, "alar_height": 1.0, "socket_depth": 1.5,
+    "brow_height": 1.5, "glabella": 0.8, "cheek_height": 2.0, "cheekbone": 1.2, "maxilla": 1.8,
+    "upper_lip": 0.8, "lower_lip": 0.8, "chin_height": 2.0, "sulcus": 0.8, "temple": 1.2,
+}
+
+#: Feature *positions* vary by moving the vertices themselves (in-plane warps), so a vertex keeps its anatomical
+#: meaning across identities (landmarks stay on their features, UV maps stay registered): name → 1σ in mm.
+WARP_SIGMA: dict[str, float] = {
+    "eye_spacing": 1.5, "eye_height": 1.2, "brow_height": 1.5, "nose_length": 1.5, "alar_width": 1.0,
+    "mouth_height": 1.2, "mouth_width": 1.8, "chin_height": 2.5, "cheek_height": 2.0,
 }
 
 
@@ -285,6 +292,28 @@ def _expression_fields(pts: np.ndarray, X: np.ndarray, Y: np.ndarray, p: dict[st
     return np.stack(fields)
 
 
+def _warp_fields(X: np.ndarray, Y: np.ndarray, p: dict[str, float]) -> np.ndarray:
+    """(W, N, 3) in-plane displacement fields moving feature regions with their vertices, at 1σ (WARP_SIGMA)."""
+    sx = np.sign(X)
+    eye = sum(_g(X - s * p["eye_x"], 14.0) * _g(Y - p["eye_y"], 10.0) for s in (-1.0, 1.0))
+    brow = _g(np.abs(X) - p["eye_x"], 18.0) * _g(Y - p["brow_y"], 7.0)
+    tip = _g(X, 16.0) * _g(Y - p["nose_tip_y"], 9.0)
+    ala = sum(_g(X - s * 0.72 * p["alar_width"], 6.0) * _g(Y - (p["nose_tip_y"] - 3.0), 7.0) for s in (-1.0, 1.0))
+    mouth = _g(X, p["mouth_half_width"] * 1.3) * _g(Y - p["mouth_y"], 11.0)
+    chin = _g(X, 22.0) * _smoothstep(p["mouth_y"] - 8.0, p["mouth_y"] - 25.0, Y)
+    cheek = sum(_g(X - s * p["cheek_x"], 16.0) * _g(Y - p["cheek_y"], 14.0) for s in (-1.0, 1.0))
+    z = np.zeros_like(X)
+    W = WARP_SIGMA
+    fields = {
+        "eye_spacing": (W["eye_spacing"] * sx * eye, z), "eye_height": (z, W["eye_height"] * eye),
+        "brow_height": (z, W["brow_height"] * brow), "nose_length": (z, -W["nose_length"] * tip),
+        "alar_width": (W["alar_width"] * sx * ala, z), "mouth_height": (z, W["mouth_height"] * mouth),
+        "mouth_width": (W["mouth_width"] * (X / p["mouth_half_width"]) * mouth, z),
+        "chin_height": (z, -W["chin_height"] * chin), "cheek_height": (z, W["cheek_height"] * cheek),
+    }
+    return np.stack([np.stack([dx, dy, z], axis=1) for dx, dy in (fields[k] for k in W)])
+
+
 def _rbf_fields(X, Y, normal, rng, count: int, amp: float, scale: float) -> np.ndarray:
     """Random smooth radial-basis deformations: each the sum of three broad Gaussian bumps moving the
     surface along its normal and in-plane.  70 % of the bumps are mirror-symmetric (x-motion antisymmetric),
@@ -358,9 +387,10 @@ def procedural_face_model(n_vertices: int = 35000, n_shape: int = 40, n_exp: int
         q = dict(p0)
         q[name] = p0[name] + sig
         fields.append(face_surface(theta, Y, q)[0] - mean)
+    fields.extend(_warp_fields(X, Y, p0))
     n_named = len(fields)
     n_rand = max(0, n_shape - n_named) + 8
-    fields.extend(_rbf_fields(X, Y, normal, rng, n_rand, amp=1.6, scale=28.0))
+    fields.extend(_rbf_fields(X, Y, normal, rng, n_rand, amp=1.2, scale=32.0))
     shape_basis, shape_sigma = _orthonormal_basis(np.stack(fields), n_shape)
     # expression: named fields (each a 1σ displacement) plus a few random local ones around mouth/brows
     efields = list(0.6 * _expression_fields(mean, X, Y, p0))  # 1σ = 60 % of the strong pose

@@ -278,3 +278,19 @@ def test_load_bfm_front(small, tmp_path):
     scipy.io.savemat(str(tmp_path / "nokp.mat"), d)
     with pytest.raises(ReflectmmError, match="missing key 'keypoints'"):
         load_bfm_front(tmp_path / "nokp.mat")
+
+
+def test_shape_variation_keeps_landmarks_on_their_features():
+    """Identity components move vertices with the features (in-place heights + in-plane warps), so the landmark
+    vertices of a random identity stay at the anatomical extremes they mark."""
+    m = procedural_face_model(n_vertices=12000, n_shape=40, n_exp=4, seed=1)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        v = m.vertices(rng.normal(size=m.n_shape) * m.shape_sigma)
+        p = v[m.landmarks]
+        front = np.abs(v[:, 0]) < 8
+        near_mid = front & (np.abs(v[:, 1] - p[30, 1]) < 25)
+        # the nose-tip landmark stays within 2 mm of the most protruding mid-face point
+        assert v[near_mid, 2].max() - p[30, 2] < 2.0
+        assert p[36, 0] < p[39, 0] < p[30, 0] < p[42, 0] < p[45, 0]
+        assert p[19, 1] > p[37, 1] > p[30, 1] > p[51, 1] > p[57, 1] > p[8, 1]
