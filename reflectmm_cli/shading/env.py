@@ -198,6 +198,24 @@ def _flat(a, lead, k):
     return np.broadcast_to(a, lead + (k,)).reshape(-1, k)
 
 
+def _single_threaded_blas(enable: bool):
+    """BLAS limited to one thread while the blocks run (they are already parallel).
+
+    The lighting products are skinny ((3…9) × 81 @ 81 × 16384): single-threaded BLAS does them at ~30 GFLOP/s,
+    its threaded path spin-waits for the other block threads and was 10–50× slower on a busy machine
+    (measured). The limit is process-wide for the duration of the call (threadpoolctl restores it).
+    """
+    import contextlib
+
+    if not enable:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def _default_threads() -> int:
     try:
         return max(1, min(len(os.sched_getaffinity(0)), 8))
@@ -241,7 +259,7 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
         Yn = sh_basis_into(nT[0], nT[1], nT[2], Ld, buf_d)
         # Skinny (3…9 × n) @ (n × m) products: einsum's C loop; OpenBLAS's threaded path for this shape
         # spin-waits and is 10–50× slower on a busy machine (measured), and the blocks are already parallel.
-        D = np.einsum("ck,km->cm", KA, Yn)  # (3, m)
+        D = KA @ Yn  # (3, m)
         D *= c2[rows].T
         diffuse[rows] = D.T
         if not active:
@@ -265,7 +283,7 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
         wT = np.ascontiguousarray(w2[rows_s].T)  # (K, ms)
         acc = np.zeros((3, ms), dt)
         for lobes, ng, KB in KBg:
-            S = np.einsum("ck,km->cm", KB, Yr[:ng])  # (3·len(lobes), ms)
+            S = KB @ Yr[:ng]  # (3·len(lobes), ms)
             for j, i in enumerate(lobes):
                 Sj = S[3 * j:3 * j + 3]
                 Sj *= wT[i] if vc_exponents is None else wT[i] * specular_view_albedo(vc_exponents[i], ndv)
@@ -274,14 +292,15 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
 
     starts = list(range(0, Ntex, chunk))
     nthreads = min(threads if threads else _default_threads(), len(starts))
-    if nthreads > 1:
-        from concurrent.futures import ThreadPoolExecutor
+    with _single_threaded_blas(Ntex >= 2048):
+        if nthreads > 1:
+            from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(nthreads) as ex:
-            list(ex.map(lambda s0: block(s0, min(Ntex, s0 + chunk)), starts))
-    else:
-        for s0 in starts:
-            block(s0, min(Ntex, s0 + chunk))
+            with ThreadPoolExecutor(nthreads) as ex:
+                list(ex.map(lambda s0: block(s0, min(Ntex, s0 + chunk)), starts))
+        else:
+            for s0 in starts:
+                block(s0, min(Ntex, s0 + chunk))
     return diffuse.reshape(lead + (3,)), specular.reshape(lead + (3,))
 
 

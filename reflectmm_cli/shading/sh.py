@@ -160,6 +160,8 @@ def sh_basis_into(x, y, z, order: int, out: np.ndarray) -> np.ndarray:
     qa = np.empty(N, dt)
     qb = np.empty(N, dt)
     qc = np.empty(N, dt)
+    cm2 = np.empty(N, dt)  # √2 · cos-part, √2 · sin-part: the √2 of m > 0 applied once per m, not per row
+    sm2 = np.empty(N, dt)
     for m in range(order + 1):
         if m == 1:
             cm[:] = x
@@ -172,6 +174,9 @@ def sh_basis_into(x, y, z, order: int, out: np.ndarray) -> np.ndarray:
             np.multiply(y, cm, out=tmp)
             sm += tmp
             cm, cm_new = cm_new, cm
+        if m > 0:
+            np.multiply(cm, sqrt2, out=cm2)
+            np.multiply(sm, sqrt2, out=sm2)
         # q1 = Q_{l-1}, q2 = Q_{l-2}; rotate three buffers.
         q2, q1, q = qa, qb, qc
         for l in range(m, order + 1):  # noqa: E741
@@ -192,12 +197,8 @@ def sh_basis_into(x, y, z, order: int, out: np.ndarray) -> np.ndarray:
             if m == 0:
                 out[l * l + l] = cur
             else:
-                row_c = out[l * l + l + m]
-                row_s = out[l * l + l - m]
-                np.multiply(cur, cm, out=row_c)
-                row_c *= sqrt2
-                np.multiply(cur, sm, out=row_s)
-                row_s *= sqrt2
+                np.multiply(cur, cm2, out=out[l * l + l + m])
+                np.multiply(cur, sm2, out=out[l * l + l - m])
     return out
 
 
