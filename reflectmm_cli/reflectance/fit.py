@@ -25,7 +25,9 @@ Fast solver (``solver="fast"``), per texel, exact and batched over texels:
 from __future__ import annotations
 
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
@@ -162,7 +164,7 @@ class _Problem:
     ``start (n+1,)`` row offsets.  Normal equations are segment sums over each texel's rows.
     """
 
-    def __init__(self, obs, p, used, I, chunk):
+    def __init__(self, obs, p, used, I, chunk, threads=1):
         S = np.asarray(obs["position"]).shape[0]
         self.S = S
         self.K = K = p.size
@@ -201,10 +203,10 @@ class _Problem:
         self.cos = np.empty(R)
         self.tex = np.empty(R, np.int64)
         ndh = np.empty(R)
-        for sl, v in zip(iter_chunks(n, chunk), valid_chunks):
+        def fill(item):
+            sl, v = item
             ti, pj = np.nonzero(v)
             r0, r1 = self.start[sl.start], self.start[sl.stop]
-            t = ti + sl.start
             cnt = self.count[sl]
             d, s_, c_, h_ = design_rows(np.repeat(xm[sl], cnt, axis=0), np.repeat(nm[sl], cnt, axis=0), fpos[pj],
                                         cpos[pj], Ip[pj], p)
@@ -212,8 +214,11 @@ class _Problem:
             self.A[r0:r1, 1:1 + K] = s_
             self.A[r0:r1, 1 + K:] = rad[sl][v]  # boolean gather: same (texel, pair) order as np.nonzero
             self.cos[r0:r1] = c_
-            self.tex[r0:r1] = t
+            self.tex[r0:r1] = ti + sl.start
             ndh[r0:r1] = h_
+
+        with ThreadPoolExecutor(max_workers=max(1, int(threads))) as ex:  # disjoint slices per chunk
+            list(ex.map(fill, zip(iter_chunks(n, chunk), valid_chunks)))
         self.d = self.A[:, 0]
         self.s = np.ascontiguousarray(self.A[:, 1:1 + K])
         self.y = self.A[:, 1 + K:]
@@ -229,6 +234,7 @@ class _Problem:
             with np.errstate(under="ignore"):
                 self.obsv[has] = np.maximum.reduceat(ndh, self.start[:-1][has])[:, None] ** p
         self._iu = np.triu_indices(K)
+        self._cols = np.arange(self.tex.size, dtype=np.int64)
 
     def _segsum(self, w: np.ndarray, X: np.ndarray, a: int = 0, b: int | None = None) -> np.ndarray:
         """(b−a, q) per-texel sums Σ_rows w_r · X_r over texels a..b−1 (a CSR product; rows sorted by texel)."""
@@ -358,7 +364,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
              irls_obj_tol: float = 1e-3, cond_min: float = 1e-4,
              min_obs: int | None = None, observable_min: float = 0.1, prior_sigma: float | None = None,
              steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
-             device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK,
+             device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK, threads: int | None = None,
              progress: Callable | None = None, path=None) -> ReflectanceMaps:
     """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
 
@@ -380,6 +386,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         prior_sigma: σ (texels) of the neighbourhood prior (default S/16).
         steps, lr, w_reg, init, device, seed: Adam settings (init = (C, W) constant start, default 0.3, 0.1).
         chunk: texels per design block (memory).
+        threads: worker threads of the fast solver (default min(cpu count, 4)); results do not depend on it.
         progress: optional wrapper ``progress(iterable, desc=..., total=...)`` for progress bars.
         path: file name used in error messages.
     Returns:
@@ -388,6 +395,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         ReflectmmError on malformed observations (shapes, NaN/inf radiance in observed texels), bad options.
     """
     t0 = time.perf_counter()
+    if threads is None:
+        threads = min(os.cpu_count() or 1, 4)
     obs = _as_arrays(obs)
     S = check_observations(obs, path)
     p = _check_exponents(exponents)
@@ -410,7 +419,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
     sym = float(symmetry)
     m = 3 + K
 
-    prob = _Problem(obs, p, used, I, chunk)
+    prob = _Problem(obs, p, used, I, chunk, threads)
     idx = prob.idx
     n = idx.size
     # full-size per-texel quantities and mirror pooling
@@ -462,7 +471,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
     if solver == "fast":
         x, prior_map, info = _fast(prob, pool, pool_band, solve, n, m, loss, float(prior), delta, irls_iterations,
                                    obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol,
-                                   irls_obj_tol)
+                                   irls_obj_tol, threads)
         stats.update(info)
     else:
         from .adam import fit_adam
@@ -502,7 +511,7 @@ def _solve_system(H, g, lam, x0):
 
 
 def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p, observable_min, prior_sigma, to_map,
-          idx, S, progress, irls_tol, irls_obj_tol):
+          idx, S, progress, irls_tol, irls_obj_tol, threads):
     info: dict[str, Any] = {}
     sel = np.flatnonzero(solve)
     x = np.zeros((n, m))
@@ -532,19 +541,17 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
     # band's IRLS runs on cache-sized data and converges on its own
     n_it = 1 if loss == "l2" else max(int(iters), 1)
     bands = prob.bands(S)
-    it_bands = progress(bands, desc="IRLS", total=len(bands)) if progress is not None and bands else bands
-    nn_iters = 0
-    unconv = 0
-    kkt = 0.0
-    max_it = 0
-    for a, b in it_bands:
+
+    def band(ab):
+        a, b = ab
         sl = slice(a, b)
         loc = np.flatnonzero(solve[sl])
+        stat = [0, 0, 0.0, 0]  # NNLS iterations, unconverged, KKT violation, IRLS iterations
+        xb = x[sl].copy()
         if loc.size == 0:
-            continue
+            return a, b, xb, stat
         Hb, gb = Hp[sl], gp[sl]
         x0b = x0[sl]
-        xb = x[sl].copy()
         last_obj = None
         for it in range(n_it):
             if it > 0:
@@ -553,19 +560,31 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
             # (it = 0: the ⟨l,n⟩-weighted system of pass 1 is reused as is)
             lam = prior * np.einsum("nii->n", Hb[loc])
             xs, nfo, Hr, gr = _solve_system(Hb[loc], gb[loc], lam, x0b[loc])
-            nn_iters = max(nn_iters, nfo["iterations"])
-            unconv += nfo["unconverged"]
-            kkt = max(kkt, float(kkt_violation(Hr, gr, xs).max()))
+            stat[0] = max(stat[0], nfo["iterations"])
+            stat[1] += nfo["unconverged"]
+            stat[2] = max(stat[2], float(kkt_violation(Hr, gr, xs).max()))
             change = np.abs(xs - xb[loc]).max() / max(np.abs(xs).max(), 1e-30)
             xb[loc] = xs
-            max_it = max(max_it, it + 1)
+            stat[3] = it + 1
             if it > 0:
                 tot = float(obj[loc].sum())
                 small = last_obj is not None and abs(last_obj - tot) <= irls_obj_tol * max(abs(tot), 1e-300)
                 if change < irls_tol or small:
                     break
                 last_obj = tot
-        x[sl] = xb
+        return a, b, xb, stat
+
+    nn_iters = unconv = max_it = 0
+    kkt = 0.0
+    # bands are independent: numpy releases the GIL in the heavy loops, so threads use the cores
+    with ThreadPoolExecutor(max_workers=max(1, int(threads))) as ex:
+        results = ex.map(band, bands)
+        if progress is not None and bands:
+            results = progress(results, desc="IRLS", total=len(bands), unit="band")
+        for a, b, xb, st in results:
+            x[a:b] = xb
+            nn_iters, unconv = max(nn_iters, st[0]), unconv + st[1]
+            kkt, max_it = max(kkt, st[2]), max(max_it, st[3])
     info.update({"irls_iterations": max_it if loss == "l1" else 0, "n_bands": len(bands),
                  "nnls_iterations_max": nn_iters,
                  "nnls_unconverged": unconv, "kkt_violation_max": kkt})
