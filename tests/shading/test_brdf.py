@@ -159,3 +159,18 @@ def test_gradcheck_float64():
     args = [torch.tensor(a, dtype=torch.float64, requires_grad=True)
             for a in (rng.random((N, 3)), rng.random((N, 3)), [0.7, 8.0, 64.0], n, l, v, rng.random((N, 3)) + 0.5)]
     assert torch.autograd.gradcheck(lambda *a: shade_directional(*a), args, eps=1e-6, atol=1e-5)
+
+
+@given(name=st.sampled_from(["albedo", "weights", "exponents", "normal", "light_dir", "view_dir", "irradiance"]),
+       bad=st.sampled_from([np.nan, np.inf, -np.inf]), pos=st.integers(0, 11), use_torch=st.booleans())
+def test_property_nonfinite_rejected_naming_the_argument(name, bad, pos, use_torch):
+    rng = np.random.default_rng(pos)
+    args = {"albedo": rng.random((4, 3)), "weights": rng.random((4, 3)), "exponents": np.array([1.0, 8.0, 64.0]),
+            "normal": rng.normal(size=(4, 3)), "light_dir": rng.normal(size=(4, 3)),
+            "view_dir": rng.normal(size=(4, 3)), "irradiance": rng.random((4, 3))}
+    a = args[name]
+    a.reshape(-1)[pos % a.size] = bad
+    if use_torch:
+        args = {k: torch.tensor(v) for k, v in args.items()}
+    with pytest.raises(ReflectmmError, match=f"'{name}'.*NaN or inf"):
+        shade_directional(**args)
