@@ -6,6 +6,7 @@ Thin layer over :func:`reflectmm_cli.shading.build_light_model`: parse options â
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
@@ -49,6 +50,9 @@ def run_build_light_pca(ctx: StageContext) -> list[Path]:
         progress=lambda it: progress(it, desc="env maps", unit="map"))
     out = ctx.output_path()
     used = [Path(n) for n in model.map_names]
+    # names relative to the artifact (like its input records), so a moved workspace gives the same bytes
+    model.map_names = [os.path.relpath(n, out.parent) for n in model.map_names]
+    skipped = [(os.path.relpath(n, out.parent), r) for n, r in skipped]
     resolved = {k: p[k] for k in ("order", "rotations", "tilt", "components", "quadrature")}
     write_artifact(out, LIGHT_MODEL_KIND, light_model_arrays(model), params=resolved,
                    inputs=ctx.input_refs(out.parent, files={"envmaps": used}), producer=ctx.producer(),
