@@ -77,13 +77,15 @@ def main(argv=None) -> int:
                         np.median(a["err_cam_center_mm"]), np.median(a["landmark_rmse_px"])])
             print(f"{name} {ident}: " + " ".join(f"{x:.3f}" for x in res[-1]), file=sys.stderr)
         rows.append((name, np.median(np.array(res), axis=0), float(np.min(np.array(res)[:, 0]))))
-    print(f"\n{args.identities} synthetic identities, 9 views 640x480, landmark noise 1 px, {args.face_vertices}-vertex "
-          "procedural face model; medians over identities (per-view errors: median over views)\n")
+    print(f"\n{args.identities} synthetic identities, 9 views 640x480, landmark noise 1 px, "
+          f"{args.face_vertices}-vertex procedural face model; medians over identities "
+          "(per-view errors: median over views)\n")
     print("| configuration | s / identity (median, min) | landmark err (px) | vertex reproj. (px) | vertex RMSE (mm) "
           "| vertex RMSE (% IOD) | camera centre (mm) | landmark residual (px) |")
     print("|---|---|---|---|---|---|---|---|")
     for name, m, tmin in rows:
-        print(f"| {name} | {m[0]:.1f}, {tmin:.1f} | {m[1]:.2f} | {m[2]:.2f} | {m[3]:.2f} | {m[4]:.1f} | {m[5]:.1f} | {m[6]:.2f} |")
+        print(f"| {name} | {m[0]:.1f}, {tmin:.1f} | {m[1]:.2f} | {m[2]:.2f} | {m[3]:.2f} | {m[4]:.1f} | {m[5]:.1f} "
+              f"| {m[6]:.2f} |")
     print(f"\ncommand: python benchmarks/bench_fit_geometry.py --identities {args.identities} "
           f"--face-vertices {args.face_vertices}")
     return 0

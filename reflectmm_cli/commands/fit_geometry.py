@@ -159,7 +159,8 @@ def _check_truth_size(truth: Artifact, image_size) -> None:
 
 def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, rig_path: Path | None = None,
                  landmarks_dir: Path | None = None, focal: float | None = None, config=None,
-                 truth_path: Path | None = None, device: str = "cpu", flash_intensity: float | None = None) -> tuple[dict[str, np.ndarray], dict, Any]:
+                 truth_path: Path | None = None, device: str = "cpu", flash_intensity: float | None = None
+                 ) -> tuple[dict[str, np.ndarray], dict, Any]:
     """Fit one identity. Returns (geometry arrays, report dict, extras for the overlays)."""
     from reflectmm_cli.fitting import FitConfig, ShapeModel, ViewSet, fit_geometry, flash_positions, initial_poses
     from reflectmm_cli.fitting.report import truth_errors
@@ -376,9 +377,10 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
                           arrays["R"][v], arrays["t"][v], arrays["landmarks_given"][v], arrays["landmarks_fit"][v],
                           origin=ex["origin"][v], scale=scale)
             written.append(write_png(ctx.output_path(f"{identity}_overlay_{name}", ".png"), img))
+    pr = arrays["photo_residual"]
+    photo = float(np.nanmedian(pr)) if np.isfinite(pr).any() else float("nan")
     msg = (f"fit-geometry {identity}: landmark RMS {np.median(arrays['landmark_rmse_px']):.2f} px (median of "
-           f"{len(arrays['view_names'])} views), photometric RMS "
-           f"{np.nanmedian(arrays['photo_residual']) if np.isfinite(arrays['photo_residual']).any() else float('nan'):.4f}")
+           f"{len(arrays['view_names'])} views), photometric RMS {photo:.4f}")
     if "err_vertex_rmse_mm" in arrays:
         msg += (f"; vs truth: landmarks {np.median(arrays['err_landmark_px']):.2f} px, vertices "
                 f"{float(arrays['err_vertex_rmse_mm']):.2f} mm RMS ({100 * float(arrays['err_vertex_rmse_iod']):.1f}% "

@@ -59,7 +59,9 @@ def camera_centers(R, t):
 
 
 def project(points, K, R, t):
-    """Project (..., N, 3) model-space points with (..., 3, 3) K, R and (..., 3) t → ((..., N, 2) pixels, (..., N) depth).
+    """Project (..., N, 3) model-space points with (..., 3, 3) K, R and (..., 3) t.
+
+    Returns ((..., N, 2) pixels, (..., N) depth).
 
     Works on numpy arrays or torch tensors (differentiable).  Depth is the camera-frame Z (> 0 in front).
     """

@@ -29,16 +29,17 @@ from reflectmm_cli.fitting.init import rigid_align
 from reflectmm_cli.fitting.landmarks import landmark_weights
 from reflectmm_cli.fitting.model import ShapeModel, vertex_normals, vertex_normals_torch
 from reflectmm_cli.fitting.photometric import (
-    N_SH,
     SH_ORDER,
     inside_image,
     photometric_loss,
+    sample_images,
     sh_kernel,
     solve_albedo,
     solve_lighting,
 )
 from reflectmm_cli.fitting.visibility import vertex_visibility
 from reflectmm_cli.progress import progress
+from reflectmm_cli.shading import sh_basis
 
 log = logging.getLogger("reflectmm")
 
@@ -113,7 +114,7 @@ class ViewSet:
         self.t0 = np.asarray(self.t0, dtype=np.float64).reshape(V, 3)
         self.landmarks = np.asarray(self.landmarks, dtype=np.float64)
         if self.landmarks.shape != (V, 68, 2):
-            raise ReflectmmError(f"landmarks must be (V=68 per view) (V, 68, 2), got {self.landmarks.shape}")
+            raise ReflectmmError(f"landmarks must be (V, 68, 2) with V = {V} views, got {self.landmarks.shape}")
         if self.images is not None and self.images.shape[0] != V:
             raise ReflectmmError(f"{self.images.shape[0]} images for {V} views")
         self.image_origin = (np.zeros((V, 2)) if self.image_origin is None
@@ -329,9 +330,6 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             vis &= inside_image(uv, Wc, Hc)
             vis_t = tt(vis.astype(np.float64))
             # closed-form lighting/albedo at the current geometry
-            from reflectmm_cli.fitting.photometric import sample_images
-            from reflectmm_cli.shading import sh_basis
-
             obs = sample_images(images_t, tt(uv)).cpu().numpy().astype(np.float64)
             Y = sh_basis(nrm[sample], SH_ORDER)
             alb = base_albedo.copy() if albedo is None else albedo

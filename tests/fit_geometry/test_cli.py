@@ -175,8 +175,8 @@ def test_landmarks_dir_overrides_capture(world, cli, tmp_path):
     assert src[v].endswith("05_1.pts") and src[0] == "capture"
     # a view-wide shift of 3 px is absorbed by that view's own pose (its camera slides sideways, ≈ 10 mm here)
     assert g["landmark_rmse_px"][v] < 1.2
-    ref = read_artifact(world / "fit-geometry" / "001.npz", "geometry") if (world / "fit-geometry" / "001.npz").exists() \
-        else None
+    ref_path = world / "fit-geometry" / "001.npz"
+    ref = read_artifact(ref_path, "geometry") if ref_path.exists() else None
     tc = truth["cam_centers"][list(truth["camera_names"]).index("05_1")]
     assert np.linalg.norm(g["cam_centers"][v] - tc) > 5.0
     if ref is not None:

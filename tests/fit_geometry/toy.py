@@ -83,8 +83,8 @@ def toy_model(n_lon: int = 41, n_lat: int = 41, n_shape: int = 8, n_exp: int = 4
     exp_sigma = 4.0 * 0.8 ** np.arange(n_exp)
     tex = None
     if texture:
-        tex = np.clip(np.array([0.6, 0.42, 0.33]) * (1 + 0.15 * np.sin(mean[:, :1] / 9.0) * np.cos(mean[:, 1:2] / 13.0)),
-                      0, 1)
+        pattern = 1 + 0.15 * np.sin(mean[:, :1] / 9.0) * np.cos(mean[:, 1:2] / 13.0)
+        tex = np.clip(np.array([0.6, 0.42, 0.33]) * pattern, 0, 1)
     return ShapeModel(mean=mean, shape_basis=shape_basis, shape_sigma=shape_sigma, exp_basis=exp_basis,
                       exp_sigma=exp_sigma, triangles=tri, landmarks=lm, skin_mask=mean[:, 2] > -30, mean_tex=tex)
 
