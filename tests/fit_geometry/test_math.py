@@ -113,3 +113,23 @@ def test_pnp_refines_a_perturbed_pose():
     R0 = Rotation.from_rotvec([0.25, 2.8, 0.05]).as_matrix()
     Rf, tf, rms = pnp_pose(obj, img, K, R0, t + np.array([20.0, 10.0, 50.0]))
     assert rms < 1e-6 and np.allclose(Rf, R, atol=1e-7) and np.allclose(tf, t, atol=1e-4)
+
+
+def test_flash_positions_follow_the_rig_transform():
+    from reflectmm_cli.fitting.init import flash_positions
+    from reflectmm_cli.rig import ALL_FLASHES, DEFAULT_VIEWS, load_rig
+
+    rig = load_rig()
+    views = list(DEFAULT_VIEWS)
+    Ra = Rotation.from_rotvec([0.05, -0.2, 0.03]).as_matrix()
+    ta = np.array([12.0, -30.0, 25.0])
+    # cameras of a head that sits at x_model = Ra x_rig + ta: R' = R Raᵀ, t' = t − R' ta
+    R = np.array([rig.camera(v).R @ Ra.T for v in views])
+    t = np.array([rig.camera(v).t - R[i] @ ta for i, v in enumerate(views)])
+    pos, inten, src, res = flash_positions(rig, list(ALL_FLASHES), views, R, t)
+    expect = np.array([Ra @ rig.flash(f).position + ta for f in ALL_FLASHES])
+    assert np.allclose(pos, expect, atol=1e-8) and res.max() < 1e-8
+    assert np.allclose(inten, [rig.flash(f).intensity for f in ALL_FLASHES])
+    on_views = {f for f in ALL_FLASHES if rig.flash(f).camera in views}
+    assert {f for f, s in zip(ALL_FLASHES, src) if s == "view"} == on_views
+    assert src[list(ALL_FLASHES).index("16")] == "rig" and src[list(ALL_FLASHES).index("14")] == "rig"
