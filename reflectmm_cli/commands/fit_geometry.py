@@ -419,6 +419,9 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
 @click.option("--flash-intensity", type=click.FloatRange(min=0, min_open=True), default=None,
               help="radiant intensity of every flash (default: the rig table's values). On real data use 1: "
                    "intensity and reflectance share one global scale.")
+@click.option("--albedo", type=click.Choice(["auto", "texture", "per-vertex", "constant"]), default=None,
+              help="albedo of the photometric term (default auto: the model's mean texture if it has one, else a "
+                   "per-vertex estimate; constant = one skin colour).")
 @click.option("--dtype", type=click.Choice(["float64", "float32"]), default=None,
               help="precision of the optimisation (default float64; float32 for GPUs).")
 @click.option("--no-overlay", is_flag=True, help="do not write the per-view overlay PNGs.")
@@ -427,8 +430,8 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
 @output_option
 @json_option
 def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, focal, iters, photo_rounds, w_photo,
-                     rig_sigma, landmark_sigma, truth, from_truth, flash_intensity, dtype, no_overlay, device,
-                     workspace, output, as_json):
+                     rig_sigma, landmark_sigma, truth, from_truth, flash_intensity, albedo, dtype, no_overlay,
+                     device, workspace, output, as_json):
     """Fit one identity's shape, expression and per-view cameras to its landmarks and room-light images.
 
     Writes the `geometry` artifact (<ws>/fit-geometry/<id>.npz) and one overlay PNG per view.
@@ -468,7 +471,7 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, focal, i
         inputs["landmarks"] = [landmarks_dir]
     for key, val in (("focal", focal), ("photo_rounds", photo_rounds), ("w_photo", w_photo),
                      ("rig_sigma_mm", rig_sigma), ("landmark_sigma_px", landmark_sigma),
-                     ("flash_intensity", flash_intensity), ("dtype", dtype)):
+                     ("flash_intensity", flash_intensity), ("albedo", albedo), ("dtype", dtype)):
         if val is not None:
             params[key] = val
     if iters is not None:

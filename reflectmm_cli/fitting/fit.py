@@ -172,6 +172,8 @@ def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = N
         A :class:`GeometryFit` (coefficients, vertices, per-view R, t, residuals).
     """
     cfg = config or FitConfig()
+    if cfg.albedo not in ("auto", "texture", "per-vertex", "constant"):
+        raise ReflectmmError(f"albedo must be auto, texture, per-vertex or constant, got {cfg.albedo!r}")
     prev_threads = torch.get_num_threads()
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)

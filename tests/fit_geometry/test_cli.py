@@ -138,13 +138,14 @@ def test_missing_face_model_and_capture(world, cli, tmp_path):
 def test_flash_intensity_override_and_no_overlay(world, cli, tmp_path):
     out = tmp_path / "g.npz"
     r = cli("fit-geometry", "--id", "001", "-w", world, "--iters", "30", "--photo-rounds", "0",
-            "--flash-intensity", "1", "--dtype", "float32", "--no-overlay", "-o", out)
+            "--flash-intensity", "1", "--dtype", "float32", "--albedo", "constant", "--no-overlay", "-o", out)
     assert r.exit_code == 0, r.output
     assert r.stdout.split() == [str(out)]
     g = read_artifact(out, "geometry")
     assert np.array_equal(g["flash_intensity"], np.ones(2))
     assert np.all(np.isnan(g["photo_residual"]))
     assert g.params["flash_intensity"] == 1.0 and g.params["photo_rounds"] == 0 and g.params["dtype"] == "float32"
+    assert g.params["albedo"] == "constant"
     assert np.median(g["landmark_rmse_px"]) < 1.5
 
 
