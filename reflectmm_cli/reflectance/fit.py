@@ -480,7 +480,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
                            device=device, seed=seed, progress=progress)
         prior_map = None
         stats.update(info)
-        # Adam's own objective decides flagged texels too: report, and fill them like the fast solver
+        # flagged texels (a property of the data, not of the solver) are filled as for the fast solver
     xmap = to_map(x)  # (m,S,S)
     fallback = prior_map if prior_map is not None else np.broadcast_to(
         np.median(x[solve], axis=0)[:, None, None] if solve.any() else np.zeros((m, 1, 1)), xmap.shape)
