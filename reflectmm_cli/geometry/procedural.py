@@ -78,6 +78,12 @@ def _g(x, s):
     return np.exp(-0.5 * (x / s) ** 2)
 
 
+def _odd(X):
+    """A smooth sign(X) (tanh over ±4 mm): left/right-moving fields stay continuous across the midline, so the
+    columns next to the nose ridge never cross."""
+    return np.tanh(X / 4.0)
+
+
 def _smoothstep(e0, e1, x):
     t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
     return t * t * (3 - 2 * t)
@@ -110,7 +116,7 @@ def _grid(cols: int, rows: int):
     return TH.ravel(), YY.ravel()
 
 
-def face_surface(theta: np.ndarray, Y: np.ndarray, p: dict[str, float]):
+def face_surface(theta: np.ndarray, Y: np.ndarray, p: dict[str, float], *, return_base_normal: bool = False):
     """Vertex positions (N, 3) of the parametric face at grid coordinates (θ, Y) for parameters ``p``.
 
     Also returns the frontal feature coordinates (X, Y) used to place features and landmarks.
@@ -144,8 +150,8 @@ def face_surface(theta: np.ndarray, Y: np.ndarray, p: dict[str, float]):
         # eyelids: a rim around the eye opening (upper lid fuller), and the upper-lid crease above it
         ey = Y - p["eye_y"]
         rim = np.sqrt((ex / 12.0) ** 2 + (ey / 5.0) ** 2)
-        d += 1.6 * _g(rim - 1.0, 0.22) * (1.0 + 0.6 * (ey > 0))
-        d -= 1.0 * _g(ex, 10.0) * _g(ey - 7.5, 1.6)
+        d += 1.3 * _g(rim - 1.0, 0.35) * (1.0 + 0.5 * _smoothstep(-1.0, 1.0, ey))
+        d -= 0.9 * _g(ex, 10.0) * _g(ey - 8.0, 2.5)
         # nasolabial fold: a shallow groove from the ala to beside the mouth corner
         t = np.clip((p["nose_tip_y"] - 3.0 - Y) / 26.0, 0.0, 1.0)
         fold_x = sgn * (17.0 + 10.0 * t)
@@ -179,6 +185,8 @@ def face_surface(theta: np.ndarray, Y: np.ndarray, p: dict[str, float]):
     nx, nz = b * FRONT_POWER * cp ** (FRONT_POWER - 1.0) * np.sin(theta), a * c
     nn = np.sqrt(nx ** 2 + nz ** 2)
     pts = np.stack([x0 + d * nx / nn, Y * p["height_scale"], z0 + d * nz / nn], axis=1)
+    if return_base_normal:  # the smooth normal of the feature-less base surface
+        return pts, X, np.stack([nx / nn, np.zeros_like(nx), nz / nn], axis=1)
     return pts, X
 
 
@@ -254,7 +262,7 @@ def _expression_fields(pts: np.ndarray, X: np.ndarray, Y: np.ndarray, p: dict[st
             else _smoothstep(8.0, -8.0, X)
         corner = sum(_g(X - s * mw, 10.0) * _g(Y - my, 9.0) for s in (-1.0, 1.0))
         cheek = sum(_g(X - s * 38.0, 14.0) * _g(Y - 5.0, 12.0) for s in (-1.0, 1.0))
-        fields.append(vec(dx=3.5 * np.sign(X) * corner * w, dy=(5.0 * corner + 2.5 * cheek) * w,
+        fields.append(vec(dx=3.5 * _odd(X) * corner * w, dy=(5.0 * corner + 2.5 * cheek) * w,
                           dz=(-2.0 * corner + 2.0 * cheek) * w))
     # pucker: lips forward, mouth narrower
     fields.append(vec(dx=-0.25 * X * mouth_reg, dz=7.0 * mouth_reg))
@@ -267,13 +275,13 @@ def _expression_fields(pts: np.ndarray, X: np.ndarray, Y: np.ndarray, p: dict[st
         fields.append(vec(dy=6.0 * brow * _g(X, 45.0) * w, dz=0.8 * brow * w))
     # frown: inner brows down and together
     inner = _g(np.abs(X) - 14.0, 9.0) * _g(Y - p["brow_y"], 7.0)
-    fields.append(vec(dx=-2.5 * np.sign(X) * inner, dy=-4.0 * inner, dz=1.0 * inner))
+    fields.append(vec(dx=-2.5 * _odd(X) * inner, dy=-4.0 * inner, dz=1.0 * inner))
     # eye close: upper lid region down over the eyeball
     lid = sum(_g(X - s * p["eye_x"], 9.0) * _g(Y - (p["eye_y"] + 4.0), 3.5) for s in (-1.0, 1.0))
     fields.append(vec(dy=-4.5 * lid, dz=1.0 * lid))
     # cheek puff
     puff = sum(_g(X - s * 40.0, 14.0) * _g(Y - (my + 8.0), 14.0) for s in (-1.0, 1.0))
-    fields.append(vec(dx=2.5 * np.sign(X) * puff, dz=5.0 * puff))
+    fields.append(vec(dx=2.5 * _odd(X) * puff, dz=5.0 * puff))
     # nose wrinkle / sneer: alae and upper lip up
     sneer = _g(X, 16.0) * _g(Y - (p["nose_tip_y"] - 6.0), 9.0)
     fields.append(vec(dy=3.0 * sneer, dz=1.0 * sneer))
@@ -294,7 +302,7 @@ def _expression_fields(pts: np.ndarray, X: np.ndarray, Y: np.ndarray, p: dict[st
 
 def _warp_fields(X: np.ndarray, Y: np.ndarray, p: dict[str, float]) -> np.ndarray:
     """(W, N, 3) in-plane displacement fields moving feature regions with their vertices, at 1σ (WARP_SIGMA)."""
-    sx = np.sign(X)
+    sx = _odd(X)
     eye = sum(_g(X - s * p["eye_x"], 14.0) * _g(Y - p["eye_y"], 10.0) for s in (-1.0, 1.0))
     brow = _g(np.abs(X) - p["eye_x"], 18.0) * _g(Y - p["brow_y"], 7.0)
     tip = _g(X, 16.0) * _g(Y - p["nose_tip_y"], 9.0)
@@ -374,13 +382,13 @@ def procedural_face_model(n_vertices: int = 35000, n_shape: int = 40, n_exp: int
         raise ReflectmmError(f"procedural face model: grid {cols}x{rows} is too coarse (need ≥ 11×11)")
     theta, Y = _grid(cols, rows)
     p0 = dict(DEFAULT_PARAMS)
-    mean, X = face_surface(theta, Y, p0)
+    mean, X, base_normal = face_surface(theta, Y, p0, return_base_normal=True)
     tri = _triangles(cols, rows)
     rng = np.random.default_rng(seed)
 
-    from .face_model import vertex_normals
-
-    normal = vertex_normals(mean, tri).astype(np.float64)
+    # random deformations move along the smooth base normal: offsetting along the feature-rich vertex normal
+    # folds the surface wherever the offset exceeds the local radius of curvature (nose ridge, lips)
+    normal = base_normal
     # identity: finite differences of the anatomical parameters at 1σ, plus random smooth fields
     fields = []
     for name, sig in SHAPE_SIGMA.items():

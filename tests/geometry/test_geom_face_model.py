@@ -294,3 +294,23 @@ def test_shape_variation_keeps_landmarks_on_their_features():
         assert v[near_mid, 2].max() - p[30, 2] < 2.0
         assert p[36, 0] < p[39, 0] < p[30, 0] < p[42, 0] < p[45, 0]
         assert p[19, 1] > p[37, 1] > p[30, 1] > p[51, 1] > p[57, 1] > p[8, 1]
+
+
+def test_samples_do_not_fold():
+    """Random identities and expressions at 1σ stay a proper surface: no ray from outside hits a triangle from
+    behind (a fold/self-intersection would show up as back-facing first hits)."""
+    from reflectmm_cli.geometry import RayScene, orbit_camera, rasterize
+
+    m = procedural_face_model(n_vertices=8000)
+    cams = [orbit_camera(y, p, 1200, focal_px=1500, width=120, height=90) for y in (-60, 0, 60) for p in (-15, 15)]
+    rng = np.random.default_rng(7)
+    for _ in range(4):
+        v = m.vertices(rng.normal(size=m.n_shape) * m.shape_sigma, rng.normal(size=m.n_exp) * m.exp_sigma)
+        scene = RayScene(v, m.triangles)
+        fn = face_normals(v, m.triangles)
+        for cam in cams:
+            r = rasterize(scene, cam)
+            pos = r.position[r.mask]
+            inner = (pos[:, 1] < 95) & (pos[:, 1] > -80) & (np.abs(pos[:, 0]) < 65)  # not over the shell's rim
+            back = ((cam.center - pos) * fn[r.tri_id[r.mask]]).sum(1) < 0
+            assert not np.any(back & inner), cam.name
