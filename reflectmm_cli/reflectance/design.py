@@ -53,6 +53,7 @@ __all__ = [
     "conditioning_from_obs",
     "design_columns",
     "design_rows",
+    "columns_from_scalars",
     "iter_chunks",
     "mirror_index",
     "pair_irradiance",
@@ -185,18 +186,31 @@ def design_rows(x: np.ndarray, n: np.ndarray, flash: np.ndarray, cam: np.ndarray
     Returns:
         (d (R,), s (R, K), cos_l (R,), ndh (R,)), all 0 where n·l ≤ 0 or n·v ≤ 0.
     """
-    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
     dl = flash - x
     dv = cam - x
     d2 = np.einsum("rk,rk->r", dl, dl)
+    v2 = np.einsum("rk,rk->r", dv, dv)
+    return columns_from_scalars(np.einsum("rk,rk->r", n, dl), np.einsum("rk,rk->r", n, dv),
+                                np.einsum("rk,rk->r", dl, dv), d2, v2, intensity, exponents)
+
+
+def columns_from_scalars(nl: np.ndarray, nv: np.ndarray, lv: np.ndarray, d2: np.ndarray, v2: np.ndarray,
+                         intensity: np.ndarray, exponents: Sequence[float]
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Design columns from the unnormalised scalars of R observations (unit normal n, unnormalised
+    ``L = flash − x``, ``V = cam − x``): ``nl = n·L``, ``nv = n·V``, ``lv = L·V``, ``d2 = |L|²``, ``v2 = |V|²``.
+
+    Returns (d, s (R,K), cos_l, ndh) as :func:`design_rows`.
+    """
+    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
     il = 1.0 / np.sqrt(np.where(d2 > 0, d2, 1.0))
-    iv = 1.0 / np.sqrt(np.maximum(np.einsum("rk,rk->r", dv, dv), 1e-300))
-    ndl = np.einsum("rk,rk->r", n, dl) * il
-    ndv = np.einsum("rk,rk->r", n, dv) * iv
-    hl2 = 2.0 + 2.0 * np.einsum("rk,rk->r", dl, dv) * il * iv
-    ok = (ndl > 0) & (ndv > 0) & (d2 > 0)
+    iv = 1.0 / np.sqrt(np.where(v2 > 0, v2, 1.0))
+    ndl = nl * il
+    ndv = nv * iv
+    hl2 = 2.0 + 2.0 * lv * il * iv
+    ok = (ndl > 0) & (ndv > 0) & (d2 > 0) & (v2 > 0)
     ndh = np.where(ok, np.clip((ndl + ndv) / np.sqrt(np.where(hl2 > 0, hl2, 1.0)), 0.0, 1.0), 0.0)
-    E = np.where(ok, intensity / np.where(d2 > 0, d2, 1.0), 0.0)
+    E = np.where(ok, intensity * (il * il), 0.0)
     cos_l = np.where(ok, ndl, 0.0)
     d = E * cos_l / np.pi
     with np.errstate(divide="ignore"):

@@ -152,6 +152,17 @@ def _check_exponents(exponents) -> np.ndarray:
     return p
 
 
+def _parallel_map(fn, items, threads: int, lazy: bool = False):
+    """``map(fn, items)`` on a thread pool of ``threads`` workers (in order); plain map for one thread."""
+    items = list(items)
+    if int(threads) <= 1 or len(items) <= 1:
+        out = map(fn, items)
+        return out if lazy else list(out)
+    with ThreadPoolExecutor(max_workers=int(threads)) as ex:
+        futures = [ex.submit(fn, it) for it in items]
+        return [f.result() for f in futures]
+
+
 def _rowsum(a: np.ndarray) -> np.ndarray:
     """Sum of the 3 columns of an (R, 3) array (faster than .sum(1) for 3 columns)."""
     return a[:, 0] + a[:, 1] + a[:, 2]
@@ -217,8 +228,7 @@ class _Problem:
             self.tex[r0:r1] = ti + sl.start
             ndh[r0:r1] = h_
 
-        with ThreadPoolExecutor(max_workers=max(1, int(threads))) as ex:  # disjoint slices per chunk
-            list(ex.map(fill, zip(iter_chunks(n, chunk), valid_chunks)))
+        _parallel_map(fill, list(zip(iter_chunks(n, chunk), valid_chunks)), threads)  # disjoint slices
         self.d = self.A[:, 0]
         self.s = np.ascontiguousarray(self.A[:, 1:1 + K])
         self.y = self.A[:, 1 + K:]
@@ -577,14 +587,13 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
     nn_iters = unconv = max_it = 0
     kkt = 0.0
     # bands are independent: numpy releases the GIL in the heavy loops, so threads use the cores
-    with ThreadPoolExecutor(max_workers=max(1, int(threads))) as ex:
-        results = ex.map(band, bands)
-        if progress is not None and bands:
-            results = progress(results, desc="IRLS", total=len(bands), unit="band")
-        for a, b, xb, st in results:
-            x[a:b] = xb
-            nn_iters, unconv = max(nn_iters, st[0]), unconv + st[1]
-            kkt, max_it = max(kkt, st[2]), max(max_it, st[3])
+    results = _parallel_map(band, bands, threads, lazy=True)
+    if progress is not None and bands:
+        results = progress(results, desc="IRLS", total=len(bands), unit="band")
+    for a, b, xb, st in results:
+        x[a:b] = xb
+        nn_iters, unconv = max(nn_iters, st[0]), unconv + st[1]
+        kkt, max_it = max(kkt, st[2]), max(max_it, st[3])
     info.update({"irls_iterations": max_it if loss == "l1" else 0, "n_bands": len(bands),
                  "nnls_iterations_max": nn_iters,
                  "nnls_unconverged": unconv, "kkt_violation_max": kkt})

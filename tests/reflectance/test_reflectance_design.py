@@ -158,3 +158,25 @@ def test_simulated_geometry_is_mirror_symmetric_and_rig_is_multipie_like():
     az = np.degrees(np.arctan2(obs["cam_centers"][:, 0], obs["cam_centers"][:, 2]))
     np.testing.assert_allclose(np.diff(az), 15.0)
     assert np.all(obs["flash_pos"][-2:, 1] > 100)  # the two raised flashes
+
+
+def test_design_rows_equal_design_columns():
+    from reflectmm_cli.reflectance.design import design_rows
+
+    rng = np.random.default_rng(11)
+    N, V, F = 9, 3, 4
+    x = rng.normal(size=(N, 3)) * 60
+    n = rng.normal(size=(N, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    cams = rng.normal(size=(V, 3)) * 900
+    fl = rng.normal(size=(F, 3)) * 900
+    I = rng.uniform(1e5, 3e6, size=F)
+    pv, pf = np.repeat(np.arange(V), F), np.tile(np.arange(F), V)
+    des = design_columns(x, n, cams, fl, I, pv, pf, [1, 8, 64])
+    t, j = np.meshgrid(np.arange(N), np.arange(V * F), indexing="ij")
+    t, j = t.ravel(), j.ravel()
+    d, s, c, h = design_rows(x[t], n[t], fl[pf[j]], cams[pv[j]], I[pf[j]], [1, 8, 64])
+    np.testing.assert_allclose(d, des.diffuse.ravel(), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(s, des.lobes.reshape(-1, 3), rtol=1e-11, atol=1e-300)
+    np.testing.assert_allclose(c, des.cos_l.ravel(), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(h, des.ndh.ravel(), rtol=1e-12, atol=1e-300)
