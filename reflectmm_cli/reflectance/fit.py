@@ -527,7 +527,14 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
     x = np.zeros((n, m))
     # pass 1: weighted least squares with a negligible ridge (only to build the neighbourhood prior from
     # the observable unknowns; unobservable ones never enter it)
-    H, g, _, _ = prob.normal_equations(None, loss, delta)
+    bands = prob.bands(S)
+    H = np.zeros((n, m, m))
+    g = np.zeros((n, m))
+
+    def ls_band(ab):
+        H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, loss, delta, ab[0], ab[1])[:2]
+
+    _parallel_map(ls_band, bands, threads)
     Hp, gp = pool(H), pool(g)
     tr = np.einsum("nii->n", Hp)
     lam = PASS1_RIDGE * tr
@@ -550,7 +557,6 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
     # pass 2: the real objective, towards x0 — band by band (whole UV rows, closed under mirroring), so each
     # band's IRLS runs on cache-sized data and converges on its own
     n_it = 1 if loss == "l2" else max(int(iters), 1)
-    bands = prob.bands(S)
 
     def band(ab):
         a, b = ab
