@@ -26,7 +26,7 @@ class ImageSpaceRenderer:
     """Renders maps into one identity's capture windows. ``capture``/``geometry``: artifact arrays."""
 
     def __init__(self, capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray], triangles: np.ndarray,
-                 uv: np.ndarray, name: str = ""):
+                 uv: np.ndarray, name: str = "", domain: np.ndarray | None = None):
         from reflectmm_cli.geometry import RayScene, has_embree
 
         if not has_embree():
@@ -48,6 +48,32 @@ class ImageSpaceRenderer:
         self._rasters: dict[str, object] = {}
         self._lit: dict[tuple[str, str], np.ndarray] = {}
         self._refl: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
+        self.domain: np.ndarray | None = None
+        self._inside: dict[str, np.ndarray] = {}
+        if domain is not None:
+            self.set_domain(domain)
+
+    def set_domain(self, domain: np.ndarray | None) -> None:
+        """Restrict every region to pixels whose bilinear UV footprint lies in the (S,S) bool ``domain``."""
+        self.domain = None if domain is None else np.asarray(domain, bool)
+        self._inside.clear()
+        self._lit.clear()
+
+    def inside(self, view: str) -> np.ndarray:
+        """(h,w) bool: face pixels of ``view`` whose bilinear UV lookup uses only texels of the domain."""
+        from reflectmm_cli.geometry import surface_reflectance
+
+        cam, r = self.raster(view)
+        if self.domain is None:
+            return r.mask
+        if view not in self._inside:
+            d = self.domain.astype(np.float32)
+            cov, _ = surface_reflectance(r, self.triangles, np.repeat(d[None], 3, 0), np.zeros((1,) + d.shape),
+                                         self.uv)
+            full = np.zeros(r.mask.shape, bool)
+            full[r.mask] = cov[:, 0] >= 1.0 - 1e-5
+            self._inside[view] = full
+        return self._inside[view]
 
     def _index(self, names, name, what):
         try:
@@ -86,6 +112,7 @@ class ImageSpaceRenderer:
             lit = shadow_mask(self.scene, x, n, L) & (((cam.center - x) * n).sum(1) > 0)
             full = np.zeros(m.shape, bool)
             full[m] = lit
+            full &= self.inside(view)
             c = self._index(self.cap_views, view, "capture view")
             cf = self._index(self.cap_flashes, flash, "capture flash")
             if "saturated" in self.capture:

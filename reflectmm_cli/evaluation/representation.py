@@ -269,6 +269,8 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
             raise ReflectmmError(f"evaluate representation: identity {ident} has {hp.size} held-out pairs, "
                                  f"the first had {H} (all identities must share the rig)")
         isr = image_space[n] if image_space is not None else None
+        if isr is not None and hasattr(isr, "set_domain"):
+            isr.set_domain(np.asarray(obs["mask"], bool))  # the maps of every representation are defined there
         vnames = [str(x) for x in np.asarray(obs["view_names"])]
         fnames = [str(x) for x in np.asarray(obs["flash_ids"])]
         pair_name = lambda j: (vnames[int(obs["pair_view"][j])], fnames[int(obs["pair_flash"][j])])  # noqa: E731

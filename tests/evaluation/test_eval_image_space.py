@@ -65,3 +65,56 @@ def test_image_space_matches_geometry_renderer():
     # the shadow of the nose is excluded: some face pixels are not in the region for the side flash
     _, r = isr.raster("c0")
     assert (r.mask & ~isr.region("c0", "01")).sum() > 0
+
+
+def test_region_restricted_to_the_maps_domain():
+    """With a domain (the uv-observations mask), a pixel is in the region iff its whole bilinear footprint lies in
+    the domain (checked against an independent per-pixel texel lookup), so maps that are 0 outside their mask are
+    never compared against the capture there."""
+    from reflectmm_cli.evaluation.image_space import ImageSpaceRenderer
+    from reflectmm_cli.geometry import RayScene, look_at, render_point_light
+
+    V, T, uv = _mesh()
+    S = 32
+    rng = np.random.default_rng(1)
+    alb = rng.uniform(0.2, 0.7, (3, S, S))
+    wts = rng.uniform(0.0, 0.2, (3, S, S))
+    exps = np.array([1.0, 8.0, 64.0])
+    W, H = 96, 80
+    cam = look_at(np.array([0.0, 0.0, 900.0]), (0, 0, 40), focal_px=300, width=W, height=H, name="c0")
+    L = np.array([-200.0, 50.0, 900.0])
+    res = render_point_light(RayScene(V, T), cam, alb, wts, exps, L, 2e6, uv=uv, shadows=True)
+    capture = {"view_names": np.array(["c0"]), "flash_ids": np.array(["01"]), "crop_origin": np.array([[0, 0]]),
+               "olat": res.image[None, None].astype(np.float32), "saturated": np.zeros((1, 1, H, W), bool)}
+    geometry = {"vertices": V, "view_names": np.array(["c0"]), "flash_ids": np.array(["01"]), "K": cam.K[None],
+                "R": cam.R[None], "t": cam.t[None], "flash_pos": L[None], "flash_intensity": np.array([2e6])}
+    domain = np.ones((S, S), bool)
+    domain[:, :9] = False  # a missing band on one side and a hole in the middle
+    domain[14:17, 15:19] = False
+    isr = ImageSpaceRenderer(capture, geometry, T, uv, name="x")
+    full = isr.region("c0", "01").copy()
+    isr.set_domain(domain)
+    reg = isr.region("c0", "01")
+    # independent footprint test: the (up to) 4 texels with non-zero bilinear weight
+    _, r = isr.raster("c0")
+    tri = T[r.tri_id[r.mask]]
+    puv = np.einsum("mk,mkc->mc", r.bary[r.mask].astype(np.float64), uv[tri])
+    x = np.clip(puv[:, 0] * S - 0.5, 0, S - 1)
+    y = np.clip(puv[:, 1] * S - 0.5, 0, S - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    ok = np.ones(x.size, bool)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            wgt = (x - x0 if dx else 1 - (x - x0)) * (y - y0 if dy else 1 - (y - y0))
+            yy, xx = np.minimum(y0 + dy, S - 1), np.minimum(x0 + dx, S - 1)
+            ok &= (wgt < 1e-6) | domain[yy, xx]
+    expect = np.zeros_like(full)
+    expect[r.mask] = ok
+    expect &= full
+    assert full.sum() > 500 and (full & ~expect).sum() > 100  # the domain removes a real part of the face
+    assert np.array_equal(reg, expect)
+    # maps zeroed outside the domain still reproduce the capture exactly on the restricted region
+    pred = isr.render(np.where(domain, alb, 0.0), np.where(domain, wts, 0.0), exps, "c0", "01")
+    np.testing.assert_allclose(pred[reg], isr.target("c0", "01")[reg], rtol=1e-4, atol=1e-5)
+    bad = full & ~reg
+    assert np.abs(pred[bad] - isr.target("c0", "01")[bad]).max() > 1e-2  # and would not have outside it
