@@ -107,33 +107,9 @@ def read_image(path: str | Path, transfer: Transfer, rotate: int = 0,
 
 def read_landmarks(path: str | Path, n: int = 68) -> np.ndarray:
     """``(n, 2)`` float32 landmarks (x, y pixels) from an iBUG ``.pts``, a text (n×2 numbers) or ``.npy`` file."""
-    path = Path(path)
-    try:
-        if path.suffix.lower() == ".npy":
-            pts = np.load(path, allow_pickle=False)
-        else:
-            text = path.read_text()
-            if path.suffix.lower() == ".pts" or "{" in text:
-                if "{" not in text or "}" not in text:
-                    raise ReflectmmError("malformed .pts file (no { ... } block)", path)
-                body = text[text.index("{") + 1:text.rindex("}")]
-            else:
-                body = text
-            rows = [ln.replace(",", " ").split() for ln in body.splitlines()]
-            rows = [r for r in rows if r and not r[0].startswith("#")]
-            pts = np.array([[float(x) for x in r] for r in rows], dtype=np.float64)
-    except ReflectmmError:
-        raise
-    except (ValueError, OSError) as exc:
-        raise ReflectmmError(f"cannot parse landmarks ({exc})", path) from None
-    pts = np.asarray(pts, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ReflectmmError(f"landmarks must be {n} rows of x y, got shape {pts.shape}", path)
-    if pts.shape[0] != n:
-        raise ReflectmmError(f"expected {n} landmarks, found {pts.shape[0]}", path)
-    if not np.isfinite(pts).all():
-        raise ReflectmmError("landmarks contain NaN or inf", path)
-    return pts.astype(np.float32)
+    from reflectmm_cli.landmarks import read_landmarks as _read
+
+    return _read(path, n).astype(np.float32)
 
 
 def rotate_points(pts: np.ndarray, rotate: int, width: int, height: int) -> np.ndarray:

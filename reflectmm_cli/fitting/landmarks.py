@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.landmarks import N_LANDMARKS, write_pts  # noqa: F401  (re-exported)
+from reflectmm_cli.landmarks import read_landmarks as _read_landmarks
 
-N_LANDMARKS = 68
 
 #: iBUG-68 groups (0-based, half-open ranges).
 GROUPS: dict[str, tuple[int, int]] = {
@@ -57,63 +58,7 @@ def landmark_weights(group_weights: dict[str, float] | None = None) -> np.ndarra
 
 def read_landmarks(path: str | Path) -> np.ndarray:
     """Read one landmark file (.pts, .txt, .npy) → (68, 2) float64; a clear error for a wrong count."""
-    path = Path(path)
-    if not path.is_file():
-        raise ReflectmmError("landmark file not found", path)
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".npy":
-            arr = np.load(path, allow_pickle=False)
-        elif suffix == ".pts":
-            arr = _read_pts(path)
-        else:
-            text = path.read_text().replace(",", " ")
-            rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-            arr = np.array([[float(v) for v in r] for r in rows], dtype=np.float64) if rows else np.zeros((0, 2))
-    except (ValueError, OSError) as exc:
-        raise ReflectmmError(f"cannot parse landmark file ({exc})", path) from None
-    arr = np.asarray(arr, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ReflectmmError(f"landmarks must be {N_LANDMARKS}×2, got shape {arr.shape}", path)
-    if arr.shape[0] != N_LANDMARKS:
-        raise ReflectmmError(f"expected {N_LANDMARKS} landmarks, found {arr.shape[0]}", path)
-    return arr
-
-
-def _read_pts(path: Path) -> np.ndarray:
-    lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
-    pts: list[list[float]] = []
-    declared = None
-    inside = not any(ln.startswith("{") for ln in lines)
-    for ln in lines:
-        low = ln.lower()
-        if low.startswith("version"):
-            continue
-        if low.startswith("n_points"):
-            declared = int(ln.split(":", 1)[1])
-            continue
-        if ln.startswith("{"):
-            inside = True
-            continue
-        if ln.startswith("}"):
-            inside = False
-            continue
-        if inside:
-            vals = ln.replace(",", " ").split()
-            if len(vals) != 2:
-                raise ValueError(f"line {ln!r} does not hold two numbers")
-            pts.append([float(vals[0]), float(vals[1])])
-    if declared is not None and declared != len(pts):
-        raise ValueError(f"header says n_points: {declared} but {len(pts)} points follow")
-    return np.array(pts, dtype=np.float64).reshape(-1, 2)
-
-
-def write_pts(path: str | Path, landmarks: np.ndarray) -> Path:
-    """Write (68, 2) landmarks as an iBUG .pts file (used by tests and the synthetic world)."""
-    lm = np.asarray(landmarks, dtype=np.float64)
-    body = "\n".join(f"{x:.4f} {y:.4f}" for x, y in lm)
-    Path(path).write_text(f"version: 1\nn_points: {len(lm)}\n{{\n{body}\n}}\n")
-    return Path(path)
+    return _read_landmarks(path, N_LANDMARKS)
 
 
 def camera_code(view_name: str) -> str:

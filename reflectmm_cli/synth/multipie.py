@@ -25,6 +25,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.landmarks import format_pts as _format_pts
 from reflectmm_cli.rig import ALL_FLASHES, Rig, camera_code, load_rig, rig_to_toml
 from reflectmm_cli.synth.skin import LOBE_EXPONENTS, SkinMaps, sample_skin_params, skin_maps
 
@@ -138,9 +139,7 @@ def landmark_path(root: Path, identity: str, camera: str, session: str = SESSION
 
 def format_pts(points: np.ndarray) -> str:
     """iBUG .pts text (``version: 1``, ``n_points: 68``, ``{ x y ... }``), 3 decimals."""
-    pts = np.asarray(points, np.float64)
-    body = "\n".join(f"{x:.3f} {y:.3f}" for x, y in pts)
-    return f"version: 1\nn_points:  {len(pts)}\n{{\n{body}\n}}\n"
+    return _format_pts(points, decimals=3)
 
 
 # --------------------------------------------------------------------------- identities

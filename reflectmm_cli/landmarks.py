@@ -1,0 +1,92 @@
+"""68-point landmark files: the one reader and writer every stage uses.
+
+Formats: iBUG ``.pts`` (``version: 1``, ``n_points: 68``, ``{ x y ... }``; the declared count is checked),
+plain text (68 rows of ``x y``, commas allowed, ``#`` comments) and ``.npy`` (68×2).  Coordinates are
+pixels with the centre of the top-left pixel at (0, 0) (docs/pipeline.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+N_LANDMARKS = 68
+
+
+def _parse_pts(text: str) -> np.ndarray:
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    if not any(ln.startswith("{") for ln in lines) or not any(ln.startswith("}") for ln in lines):
+        raise ValueError("malformed .pts file (no { ... } block)")
+    pts: list[list[float]] = []
+    declared = None
+    inside = False
+    for ln in lines:
+        low = ln.lower()
+        if not inside and low.startswith("version"):
+            continue
+        if not inside and low.startswith("n_points"):
+            declared = int(ln.split(":", 1)[1])
+            continue
+        if ln.startswith("{"):
+            inside = True
+            continue
+        if ln.startswith("}"):
+            inside = False
+            continue
+        if inside:
+            vals = ln.replace(",", " ").split()
+            if len(vals) != 2:
+                raise ValueError(f"line {ln!r} does not hold two numbers")
+            pts.append([float(vals[0]), float(vals[1])])
+    if declared is not None and declared != len(pts):
+        raise ValueError(f"header says n_points: {declared} but {len(pts)} points follow")
+    return np.array(pts, dtype=np.float64).reshape(-1, 2)
+
+
+def read_landmarks(path: str | Path, n: int = N_LANDMARKS) -> np.ndarray:
+    """``(n, 2)`` float64 landmarks (x, y pixels) from a ``.pts``, text or ``.npy`` file.
+
+    Raises ReflectmmError naming the file when it is missing, unparsable, has the wrong shape or count,
+    or holds NaN/inf.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ReflectmmError("landmark file not found", path)
+    try:
+        if path.suffix.lower() == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        else:
+            text = path.read_text()
+            if path.suffix.lower() == ".pts" or "{" in text:
+                arr = _parse_pts(text)
+            else:
+                rows = [ln.replace(",", " ").split() for ln in text.splitlines()]
+                rows = [r for r in rows if r and not r[0].startswith("#")]
+                arr = np.array([[float(v) for v in r] for r in rows], dtype=np.float64) if rows else np.zeros((0, 2))
+    except (ValueError, OSError, UnicodeDecodeError) as exc:
+        raise ReflectmmError(f"cannot parse landmark file ({exc})", path) from None
+    arr = np.asarray(arr, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ReflectmmError(f"landmarks must be {n}×2, got shape {arr.shape}", path)
+    if arr.shape[0] != n:
+        raise ReflectmmError(f"expected {n} landmarks, found {arr.shape[0]}", path)
+    if not np.isfinite(arr).all():
+        raise ReflectmmError("landmarks contain NaN or inf", path)
+    return arr
+
+
+def format_pts(points: np.ndarray, decimals: int = 3) -> str:
+    """iBUG ``.pts`` text for ``(n, 2)`` points."""
+    pts = np.asarray(points, np.float64)
+    body = "\n".join(f"{x:.{decimals}f} {y:.{decimals}f}" for x, y in pts)
+    return f"version: 1\nn_points:  {len(pts)}\n{{\n{body}\n}}\n"
+
+
+def write_pts(path: str | Path, points: np.ndarray, decimals: int = 4) -> Path:
+    """Write ``(n, 2)`` points as an iBUG ``.pts`` file (atomically)."""
+    from reflectmm_cli.artifacts import atomic_write_text
+
+    return atomic_write_text(path, format_pts(points, decimals))
