@@ -17,7 +17,8 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.stages import StageContext, register_stage
 
-DEFAULTS = {"solver": "fast", "exponents": [1.0, 8.0, 64.0], "symmetry": 1.0, "loss": "l1", "prior": 1e-4,
+DEFAULTS = {"solver": "fast", "exponents": [1.0, 8.0, 64.0], "symmetry": 1.0, "symmetry_mode": "ill-posed",
+            "loss": "l1", "prior": 1e-4,
             "steps": 1000, "flash_intensity": None, "seed": 0, "cond_min": 1e-4}
 PREVIEWS = ("albedo", "weights", "residual", "flagged")
 
@@ -65,7 +66,8 @@ def _channel_name(p: float) -> str:
     return f"weight.p{p:g}".replace(".", "_").replace("weight_p", "weight.p")
 
 
-@register_stage("fit-reflectance", version=1, per_identity=True, outputs=_outputs, input_files=_input_files,
+# version 2: mirror pooling only where a texel's own data are ill-posed by default (symmetry_mode)
+@register_stage("fit-reflectance", version=2, per_identity=True, outputs=_outputs, input_files=_input_files,
                 help="fit diffuse albedo and lobe-weight maps to one identity's UV observations")
 def run_fit_reflectance(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.reflectance import fit_maps
@@ -78,7 +80,7 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
         raise ReflectmmError("uv-observations input not found (run unwrap-uv first or give --input)", src)
     obs = read_artifact(src, "uv-observations")
     maps = fit_maps(obs.arrays, exponents=p["exponents"], solver=p["solver"], symmetry=float(p["symmetry"]),
-                    loss=p["loss"], prior=float(p["prior"]), flash_intensity=p["flash_intensity"],
+                    symmetry_mode=str(p["symmetry_mode"]), loss=p["loss"], prior=float(p["prior"]), flash_intensity=p["flash_intensity"],
                     steps=int(p["steps"]), device=ctx.device, seed=int(p["seed"]), cond_min=float(p["cond_min"]),
                     progress=progress, path=src)
     stats = {k: v for k, v in maps.stats.items() if k != "time_s"}  # no timings in artifacts (byte-identical reruns)
@@ -121,6 +123,9 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
 @click.option("--exponents", default="1,8,64", show_default=True, help="Lobe exponents, comma separated.")
 @click.option("--symmetry", type=click.FloatRange(0.0, 1.0), default=1.0, show_default=True,
               help="Mirror pooling weight (fast) / random flips on (adam, when > 0).")
+@click.option("--symmetry-mode", type=click.Choice(["ill-posed", "all"]), default="ill-posed", show_default=True,
+              help="Fast solver: pool a texel with its mirror only where its own data are ill-posed (few "
+                   "observations or conditioning < --cond-min), or every texel (all: the paper's random flip).")
 @click.option("--loss", type=click.Choice(["l1", "l2"]), default="l1", show_default=True,
               help="cos-weighted L1 (the paper's, IRLS) or cos-weighted least squares (fast solver).")
 @click.option("--prior", type=click.FloatRange(0.0, None), default=1e-4, show_default=True,
@@ -136,7 +141,7 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
 @workspace_option
 @output_option
 @json_option
-def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, loss, prior, steps, flash_intensity,
+def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, symmetry_mode, loss, prior, steps, flash_intensity,
                         cond_min, seed, device, workspace, output, as_json):
     """Fit diffuse albedo C and lobe weights W for one identity.
 
@@ -145,8 +150,8 @@ def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, loss,
     """
     if identity is None and input_path is None:
         raise click.UsageError("give --id or --input")
-    params = resolve_params({"solver": solver, "exponents": exponents, "symmetry": symmetry, "loss": loss,
-                             "prior": prior, "steps": steps, "flash_intensity": flash_intensity, "seed": seed,
+    params = resolve_params({"solver": solver, "exponents": exponents, "symmetry": symmetry,
+                             "symmetry_mode": symmetry_mode, "loss": loss, "prior": prior, "steps": steps, "flash_intensity": flash_intensity, "seed": seed,
                              "cond_min": cond_min})
     inputs = {"observations": [input_path]} if input_path is not None else None
     if inputs is None and identity is not None:

@@ -6,15 +6,16 @@ Protocol (documented in docs/model.md):
 * Held-out set: every (view, flash) pair whose flash id is in ``holdout`` (default flashes ``05`` and ``09``:
   the flashes on cameras 13_0 and 04_1, ±30° from frontal), all views. Everything else is training data.
 * Every representation is fitted on the *same* training pairs with ``reflectance.fit_maps(..., pair_mask=...)``
-  (same solver, symmetry, loss and prior): K = 1 with a global exponent p ∈ {8, 16, 32, 64}, the 3-lobe default
+  (same solver, symmetry, symmetry mode, loss and prior): K = 1 with a global exponent p ∈ {8, 16, 32, 64}, the 3-lobe default
   (1, 8, 64), and the paper's baselines "diffuse only" (C alone, the same loss, solved here per texel) and
   "spec albedo + global shininess 20" (K = 1, p = 20 — a white specular albedo with one global exponent, which
   is exactly our K = 1 representation with p = 20).
-* Re-rendering is in **UV space**: for each held-out pair the fitted maps are shaded with
+* Re-rendering in **UV space** (no ``image_space``): for each held-out pair the fitted maps are shaded with
   :func:`reflectmm_cli.shading.shade_directional` at the texel positions/normals of the observations (point
-  flash, ``E = I/d²``) and compared with the observed radiance over the texels observed in that pair. Image-space
-  re-rendering (rasterising the fitted mesh into the captured OLAT images) is not done here: on the synthetic
-  data the UV observations are resampled from those images, so the two differ only by the resampling.
+  flash, ``E = I/d²``) and compared with the observed radiance over the texels observed in that pair. In
+  **image space** (``image_space`` renderers, :mod:`.image_space`): the fitted mesh is ray cast into the capture
+  windows and compared with the captured OLAT images over face ∧ inside the maps' domain (the observations'
+  mask, the same for every representation) ∧ lit ∧ n·v > 0 ∧ unsaturated pixels.
 * Metrics per held-out pair on the display encoding ``clip(x,0,1)^(1/1.2)`` (peak 1): PSNR, SSIM (and LPIPS if
   weights are given), region = texels observed in that pair; reported as the mean over held-out pairs, then the
   mean over identities.
@@ -139,11 +140,13 @@ def _weighted_median(vals: np.ndarray, wts: np.ndarray) -> np.ndarray:
 
 
 def fit_diffuse_only(obs: Mapping[str, np.ndarray], pair_mask: np.ndarray | None = None, symmetry: float = 1.0,
-                     loss: str = "l1") -> np.ndarray:
+                     loss: str = "l1", symmetry_mode: str = "ill-posed") -> np.ndarray:
     """Diffuse-only baseline: per texel and channel the C ≥ 0 minimising the cos-weighted L1 misfit
     ``Σ_j ⟨l_j,n⟩ |d_j C − I_j|`` (weighted median of I/d with weights ⟨l,n⟩·d; ``loss="l2"``: the weighted
     least-squares ``Σ ⟨l,n⟩ d I / Σ ⟨l,n⟩ d²``) over the training pairs, the mirror texel's
-    observations pooled with weight ``symmetry`` (as fit-reflectance's mirror pooling). Returns (3,S,S)."""
+    observations pooled with weight ``symmetry`` (as fit-reflectance's mirror pooling: in ``symmetry_mode``
+    ``ill-posed`` only for texels without an observation of their own — C alone needs one —, ``all``: every
+    texel). Returns (3,S,S)."""
     from reflectmm_cli.reflectance.design import design_columns, mirror_index
 
     S = np.asarray(obs["position"]).shape[0]
@@ -159,10 +162,15 @@ def fit_diffuse_only(obs: Mapping[str, np.ndarray], pair_mask: np.ndarray | None
     cw = des.cos_l  # the paper's per-observation weight ⟨l, n⟩ (as fit_maps)
     rad = np.asarray(obs["radiance"], np.float64).reshape(P, S * S, 3)[sel].transpose(1, 0, 2)  # (S², P', 3)
     mir = mirror_index(S)
+    if symmetry_mode not in ("ill-posed", "all"):
+        raise ReflectmmError(f"symmetry_mode must be 'ill-posed' or 'all', got {symmetry_mode!r}")
     if symmetry:
         d2 = np.concatenate([d, d[mir]], 1)
         r2 = np.concatenate([rad, rad[mir]], 1)
-        wt = np.concatenate([cw, float(symmetry) * cw[mir]], 1)
+        sv = np.full((S * S, 1), float(symmetry))
+        if symmetry_mode == "ill-posed":
+            sv[(d > 0).sum(1) > 0] = 0.0
+        wt = np.concatenate([cw, sv * cw[mir]], 1)
     else:
         d2, r2, wt = d, rad, cw
     out = np.zeros((S * S, 3))
@@ -307,7 +315,8 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
                 alb, wts = fit_fn(obs, rep.exponents, train, **kw)
             else:
                 alb = fit_diffuse_only(obs, train, symmetry=float(kw.get("symmetry", 1.0)),
-                                       loss=str(kw.get("loss", "l1")))
+                                       loss=str(kw.get("loss", "l1")),
+                                       symmetry_mode=str(kw.get("symmetry_mode", "ill-posed")))
                 wts = None
             secs[n, r] = time.perf_counter() - t0
             pred = render(alb, wts, rep.exponents, hp, r + 1000 * n)

@@ -41,6 +41,9 @@ from .nnls import kkt_violation, nnls_batched
 
 log = logging.getLogger("reflectmm")
 
+#: Where mirror pooling applies: every texel (the paper's random flip) or only texels whose own data are ill-posed.
+SYMMETRY_MODES = ("ill-posed", "all")
+
 #: Ridge of the first pass relative to the trace of each texel's data term (numerical safety only).
 PASS1_RIDGE = 1e-9
 
@@ -375,7 +378,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
              min_obs: int | None = None, observable_min: float = 0.1, prior_sigma: float | None = None,
              steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
              device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK, threads: int | None = None,
-             progress: Callable | None = None, path=None) -> ReflectanceMaps:
+             progress: Callable | None = None, path=None,
+             symmetry_mode: str = "ill-posed") -> ReflectanceMaps:
     """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
 
     Args:
@@ -383,6 +387,10 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
         solver: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
         symmetry: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
+        symmetry_mode: ``ill-posed`` (default): pool a texel with its mirror (weight s) only when its own data
+            cannot determine its unknowns (fewer than ``min_obs`` observations or conditioning < ``cond_min``);
+            ``all``: pool every texel (the minimiser of the paper's random-flip objective). Fast solver only;
+            the Adam solver always flips whole maps (the paper).
         loss: ``l1`` (cos-weighted L1, IRLS) or ``l2`` (cos-weighted least squares); Adam always uses L1.
         prior: Tikhonov strength relative to the trace of each texel's data term (fast solver; 0 = off).
         pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
@@ -440,11 +448,21 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
     has_m = mpos >= 0
     mp = np.where(has_m, mpos, 0)
 
+    if symmetry_mode not in SYMMETRY_MODES:
+        raise ReflectmmError(f"symmetry_mode must be one of {', '.join(SYMMETRY_MODES)}, got {symmetry_mode!r}")
+    # per-texel mirror weight: s everywhere ("all", the paper's flip), or s only where the texel's own data
+    # cannot determine its unknowns ("ill-posed": fewer than min_obs observations or conditioning < cond_min)
+    symv = np.full(n, sym)
+    if sym > 0 and symmetry_mode == "ill-posed" and solver == "fast":
+        own_cond = gram_conditioning(prob.G) if n else np.zeros(0)
+        symv = np.where((prob.count < min_obs) | (own_cond < cond_min), sym, 0.0)
+    symv = np.where(has_m, symv, 0.0)
+
     def pool(a: np.ndarray) -> np.ndarray:
         if sym == 0:
             return a
-        extra = np.where(has_m.reshape((-1,) + (1,) * (a.ndim - 1)), a[mp], 0)
-        return a + sym * extra
+        sh = (-1,) + (1,) * (a.ndim - 1)
+        return a + symv.reshape(sh) * a[mp]
 
     def pool_band(a_: np.ndarray, lo: int, hi: int) -> np.ndarray:
         """pool() for the texels lo..hi−1 of a band closed under mirroring (a_ holds that band only)."""
@@ -452,16 +470,18 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
             return a_
         hm = has_m[lo:hi]
         loc = np.where(hm, mp[lo:hi] - lo, 0)
-        extra = np.where(hm.reshape((-1,) + (1,) * (a_.ndim - 1)), a_[loc], 0)
-        return a_ + sym * extra
+        return a_ + symv[lo:hi].reshape((-1,) + (1,) * (a_.ndim - 1)) * a_[loc]
 
     Gp = pool(prob.G)
-    cnt_p = prob.count + (np.where(has_m, prob.count[mp], 0) if sym > 0 else 0)
-    obsv_p = np.maximum(prob.obsv, np.where(has_m[:, None], prob.obsv[mp], 0.0)) if sym > 0 else prob.obsv
+    pooled = symv > 0
+    cnt_p = prob.count + np.where(pooled, prob.count[mp], 0)
+    obsv_p = np.where(pooled[:, None], np.maximum(prob.obsv, prob.obsv[mp]), prob.obsv)
     cond = gram_conditioning(Gp) if n else np.zeros(0)
     flag = (cnt_p < min_obs) | (cond < cond_min)
     solve = ~flag
     stats: dict[str, Any] = {"solver": solver, "loss": loss if solver == "fast" else "l1", "symmetry": sym,
+                             "symmetry_mode": symmetry_mode if solver == "fast" else "all",
+                             "n_pooled": int((symv > 0).sum()),
                              "prior": float(prior), "n_texels": int(n), "n_pairs_used": int(pm.sum()),
                              "n_flagged": int(flag.sum()), "cond_min": cond_min, "min_obs": min_obs}
 

@@ -65,6 +65,28 @@ def test_diffuse_only_fit_recovers_lambertian_truth():
     assert e1 < 1e-3 < e2
 
 
+def test_diffuse_only_symmetry_modes():
+    """ill-posed (default): own data where the texel has any, the mirror's only where it has none; all: pooled."""
+    S = 16
+    obs, truth = simulate_observations(size=S, seed=3, weights=np.zeros((3, S, S)), dtype=np.float32,
+                                       asymmetric=True, return_truth=True)
+    hole = np.zeros((S, S), bool)
+    hole[6:9, 2:5] = True
+    obs = dict(obs)
+    obs["observed"] = obs["observed"] & ~hole[None]
+    seen = obs["observed"].any(0)
+    lone = hole & obs["mask"] & seen[:, ::-1]
+    assert lone.sum() == 9
+    a = fit_diffuse_only(obs, symmetry=1.0, loss="l2")
+    np.testing.assert_allclose(a[:, seen], truth["albedo"][:, seen], rtol=1e-4)  # asymmetry kept
+    np.testing.assert_allclose(a[:, lone], truth["albedo"][:, :, ::-1][:, lone], rtol=1e-4)  # from the mirror
+    b = fit_diffuse_only(obs, symmetry=1.0, loss="l2", symmetry_mode="all")
+    both = seen & seen[:, ::-1]
+    assert np.median(np.abs(b[:, both] / truth["albedo"][:, both] - 1)) > 0.02  # both sides averaged
+    with pytest.raises(ReflectmmError, match="symmetry_mode"):
+        fit_diffuse_only(obs, symmetry_mode="x")
+
+
 def test_three_lobe_beats_global_exponents_on_three_lobe_truth(exact_obs):
     res = compare_representations([o for o, _ in exact_obs], ["000", "001"],
                                   default_representations("8;32;64;1,8,64"))

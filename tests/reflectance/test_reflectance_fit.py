@@ -203,7 +203,7 @@ def test_flash_intensity_sets_the_global_scale(sim20):
 
 def test_symmetry_one_gives_mirror_symmetric_maps():
     obs, truth = simulate_observations(16, return_truth=True, asymmetric=True)
-    m = fit_maps(obs, symmetry=1.0)
+    m = fit_maps(obs, symmetry=1.0, symmetry_mode="all")
     np.testing.assert_allclose(m.albedo, m.albedo[:, :, ::-1], rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(m.weights, m.weights[:, :, ::-1], rtol=1e-6, atol=1e-9)
     m0 = fit_maps(obs, symmetry=0.0, prior=1e-6)
@@ -239,7 +239,8 @@ def test_adam_exact_recovery_tiny():
 def test_adam_random_flip_converges_to_mirror_pooling():
     # symmetric truth, independent noise on each side: pooling averages the two sides robustly
     obs, truth = simulate_observations(8, return_truth=True, noise=0.03, dtype=np.float32)
-    fast = fit_maps(obs, symmetry=1.0, prior=0.0, irls_iterations=50, irls_tol=1e-9, irls_obj_tol=1e-12)
+    fast = fit_maps(obs, symmetry=1.0, symmetry_mode="all", prior=0.0, irls_iterations=50, irls_tol=1e-9,
+                    irls_obj_tol=1e-12)
     nosym = fit_maps(obs, symmetry=0.0, prior=0.0, irls_iterations=50, irls_tol=1e-9, irls_obj_tol=1e-12)
     adam = fit_maps(obs, solver="adam", symmetry=1.0, steps=2000)
     ok = fast.observable()
@@ -273,3 +274,39 @@ def test_non_finite_radiance_rejected_only_where_observed(value, k, ch, observed
     else:  # unobserved entries are never read
         m = fit_maps(obs)
         assert np.all(np.isfinite(m.albedo)) and np.all(np.isfinite(m.weights))
+
+
+def test_symmetry_ill_posed_pools_only_texels_without_own_solution():
+    """Default ``symmetry_mode="ill-posed"``: an asymmetric face keeps its asymmetry wherever a texel's own data
+    determine it (no bias towards the mirror), while texels with no usable data of their own are solved from their
+    mirror's observations (not flagged, not filled with noise). ``all`` (the paper's flip) averages the two sides."""
+    S = 16
+    obs, truth = simulate_observations(S, return_truth=True, asymmetric=True)
+    hole = np.zeros((S, S), bool)
+    hole[5:9, 2:5] = True  # no observation at all on one side
+    obs["observed"] = obs["observed"] & ~hole[None]
+    m = fit_maps(obs, prior=1e-6)
+    a = fit_maps(obs, prior=1e-6, symmetry_mode="all")
+    z = fit_maps(obs, prior=1e-6, symmetry=0.0)
+    lone = hole & obs["mask"]
+    assert lone.sum() == 12 and obs["mask"][:, ::-1][lone].all()
+    assert m.stats["symmetry_mode"] == "ill-posed" and m.stats["n_pooled"] == lone.sum()
+    assert not m.flagged[lone].any() and z.flagged[lone].all()
+    ok = z.observable() & ~lone & ~lone[:, ::-1]
+    assert ok.sum() > 50
+    # well-posed texels: the truth's asymmetry is recovered exactly (as without pooling)...
+    assert _rel(m.albedo, truth["albedo"])[:, ok].max() < 0.01
+    assert _rel(m.weights, truth["weights"])[:, ok].max() < 0.01
+    # ... whereas pooling every texel biases them towards the mirror (the truth differs by ~10 % between sides)
+    assert np.median(_rel(a.albedo, truth["albedo"])[:, ok]) > 0.02
+    # the hole is solved from the mirror's data alone: the mirror texel's truth (the best it can do) and, up to
+    # the tiny prior and IRLS tolerance, the mirror texel's own solution
+    mir = lambda x: x[:, :, ::-1][:, lone]  # noqa: E731
+    assert _rel(m.albedo[:, lone], mir(truth["albedo"])).max() < 0.01
+    assert _rel(m.weights[:, lone], mir(truth["weights"])).max() < 0.01
+    np.testing.assert_allclose(m.albedo[:, lone], mir(z.albedo), rtol=1e-3)
+
+
+def test_symmetry_mode_rejected():
+    with pytest.raises(ReflectmmError, match="symmetry_mode"):
+        fit_maps(simulate_observations(6), symmetry_mode="some")
