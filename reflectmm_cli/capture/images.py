@@ -131,7 +131,9 @@ def encode_linear(linear: np.ndarray, transfer: Transfer, bits: int = 8) -> np.n
     """Inverse of decoding: linear RGB → integer codes (clipped to [0, 1], rounded to nearest)."""
     x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
     if transfer.gamma is None:
-        import colour
+        from reflectmm_cli.capture.transfer import import_colour
+
+        colour = import_colour()
 
         enc = np.asarray(colour.cctf_encoding(x, function="sRGB"), dtype=np.float64)
     else:

@@ -52,9 +52,19 @@ def _lut(name: str, gamma: float | None, bits: int) -> np.ndarray:
     return table
 
 
+def import_colour():
+    """colour-science, imported without its warning that matplotlib (plotting only) is absent."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message='"Matplotlib" related API features are not available')
+        import colour
+    return colour
+
+
 def srgb_decode(x: np.ndarray) -> np.ndarray:
     """sRGB EOTF through colour-science (encoded [0, 1] → linear [0, 1])."""
-    import colour
+    colour = import_colour()
 
     return np.asarray(colour.cctf_decoding(np.asarray(x, dtype=np.float64), function="sRGB"), dtype=np.float64)
 
