@@ -376,7 +376,7 @@ def markdown_table(res: RepresentationResult) -> str:
                      f"{mt[r]:.2f} | {sec[r]:.2f} |")
     where = ("re-rendered in UV space over the texels observed in each held-out pair" if res.space == "uv" else
              "re-rendered in image space (fitted mesh ray cast into the capture windows) against the captured OLAT "
-             "images over face ∧ lit ∧ unsaturated pixels")
+             "images over face ∧ inside the maps' UV domain ∧ lit ∧ unsaturated pixels")
     foot = (f"\n{len(res.ids)} identities; held-out flashes {', '.join(res.holdout)} (all views, "
             f"{res.n_holdout_pairs} pairs per identity); {where}; metrics on clip(x,0,1)^(1/1.2), peak 1.")
     if not has_lp:
