@@ -211,6 +211,7 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
     arrays = {"representations": np.array([r.name for r in reps], dtype=str), "ids": np.array(ids, dtype=str),
               "psnr": res.psnr, "ssim": res.ssim, "psnr_pairs": res.psnr_pairs, "ssim_pairs": res.ssim_pairs,
               "train_psnr": res.train_psnr, "fit_seconds": res.fit_seconds,
+              "outside_domain": np.asarray(res.outside_domain, np.float64),
               "holdout_flashes": np.array(holdout, dtype=str)}
     if res.lpips is not None:
         arrays["lpips"] = res.lpips

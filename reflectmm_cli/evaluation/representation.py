@@ -205,6 +205,9 @@ class RepresentationResult:
     n_holdout_pairs: int
     figure: dict[str, Any] = field(default_factory=dict)  # renders of the first identity for the figure
     space: str = "uv"
+    #: (N,) image space: fraction of lit face pixels of the held-out pairs left out because their UV footprint
+    #: leaves the maps' domain (NaN in UV space)
+    outside_domain: np.ndarray | None = None
 
     def mean(self, what: str = "psnr") -> np.ndarray:
         arr = getattr(self, what)
@@ -264,6 +267,7 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
         raise ReflectmmError("evaluate representation: no identities")
     ps, ss, lp, tp, secs = (np.full((N, R), np.nan) for _ in range(5))
     per_pair_p, per_pair_s = [], []
+    outside = np.full(N, np.nan)
     fig: dict[str, Any] = {}
     H = None
     for n, (obs, ident) in enumerate(progress(list(zip(observations, ids)), desc="identities")):
@@ -300,6 +304,12 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
         def stack(d, pairs):
             return d[pairs] if isr is None else np.stack([d[j] for j in pairs])
 
+        if isr is not None and hasattr(isr, "set_domain"):
+            kept = sum(int(observed[j].sum()) for j in hp)
+            isr.set_domain(None)
+            lit_all = sum(int(isr.region(*pair_name(j)).sum()) for j in hp)
+            isr.set_domain(np.asarray(obs["mask"], bool))
+            outside[n] = 1.0 - kept / lit_all if lit_all else np.nan
         if not stack(observed, hp).any():
             raise ReflectmmError(f"evaluate representation: identity {ident}: no observed texel in the held-out "
                                  "pairs")
@@ -338,7 +348,7 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
         per_pair_s.append(sp)
     return RepresentationResult(reps, list(ids), list(holdout), ps, ss, lp if lpips is not None else None,
                                 np.stack(per_pair_p), np.stack(per_pair_s), tp, secs, int(H or 0), fig,
-                                space="uv" if image_space is None else "image")
+                                space="uv" if image_space is None else "image", outside_domain=outside)
 
 
 def _figure_pair_index(obs, hp, figure_pair):
@@ -379,6 +389,9 @@ def markdown_table(res: RepresentationResult) -> str:
              "images over face ∧ inside the maps' UV domain ∧ lit ∧ unsaturated pixels")
     foot = (f"\n{len(res.ids)} identities; held-out flashes {', '.join(res.holdout)} (all views, "
             f"{res.n_holdout_pairs} pairs per identity); {where}; metrics on clip(x,0,1)^(1/1.2), peak 1.")
+    if res.space == "image" and res.outside_domain is not None and np.isfinite(res.outside_domain).any():
+        foot += (f" Lit face pixels left out because their UV lookup leaves the maps' domain: "
+                 f"{100 * np.nanmean(res.outside_domain):.2f} % (mean over identities).")
     if not has_lp:
         foot += " LPIPS: off (no weights given)."
     return "\n".join(lines) + "\n" + foot + "\n"

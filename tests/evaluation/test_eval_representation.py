@@ -104,6 +104,59 @@ def test_three_lobe_beats_global_exponents_on_three_lobe_truth(exact_obs):
     assert res.psnr_pairs.shape == (2, len(names), 18)
 
 
+class _UVAsImage:
+    """A stand-in image-space renderer whose 'image' is the UV grid: the face region of a pair is its observed
+    texels plus every texel *outside* the observations' mask (where every fitted map is 0)."""
+
+    def __init__(self, obs):
+        self.obs = obs
+        self.domain = None
+        self.domains_set = []
+        self.extra = ~np.asarray(obs["mask"], bool)
+        assert self.extra.sum() > 50
+
+    def set_domain(self, d):
+        self.domain = None if d is None else np.asarray(d, bool)
+        self.domains_set.append(self.domain)
+
+    def _j(self, view, flash):
+        v = list(np.asarray(self.obs["view_names"])).index(view)
+        f = list(np.asarray(self.obs["flash_ids"])).index(flash)
+        return int(np.flatnonzero((self.obs["pair_view"] == v) & (self.obs["pair_flash"] == f))[0])
+
+    def region(self, view, flash):
+        r = self.obs["observed"][self._j(view, flash)] | self.extra
+        return r if self.domain is None else r & self.domain
+
+    def target(self, view, flash):
+        t = np.asarray(self.obs["radiance"][self._j(view, flash)], np.float64).copy()
+        t[self.extra] = 0.3  # the capture has skin there
+        return t
+
+    def render(self, albedo, weights, exponents, view, flash, key=None):
+        return render_pairs_uv(albedo, weights, exponents, self.obs, [self._j(view, flash)])[0]
+
+
+def test_image_space_region_is_the_maps_domain(exact_obs):
+    """compare_representations restricts the image-space region to the observations' mask for every
+    representation, reports the excluded fraction, and then agrees with UV space on the same pixels."""
+    obs = [o for o, _ in exact_obs]
+    reps = default_representations("16;1,8,64", baselines=False)
+    fakes = [_UVAsImage(o) for o in obs]
+    img = compare_representations(obs, ["000", "001"], reps, image_space=fakes)
+    uv = compare_representations(obs, ["000", "001"], reps)
+    for f, o in zip(fakes, obs):
+        assert f.domain is not None and np.array_equal(f.domain, o["mask"])
+    np.testing.assert_allclose(img.psnr, uv.psnr, rtol=1e-12)
+    np.testing.assert_allclose(img.ssim, uv.ssim, rtol=1e-12)
+    held = [np.flatnonzero(holdout_pairs(o)) for o in obs]
+    expect = [f.extra.sum() * h.size / (o["observed"][h].sum() + f.extra.sum() * h.size)
+              for f, o, h in zip(fakes, obs, held)]
+    np.testing.assert_allclose(img.outside_domain, expect, rtol=1e-12)
+    assert np.isnan(uv.outside_domain).all()
+    assert "leaves the maps' domain" in markdown_table(img)
+
+
 def test_reflectance_errors_known_truth_and_scale():
     rng = np.random.default_rng(0)
     S = 8
