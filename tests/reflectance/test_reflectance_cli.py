@@ -60,6 +60,24 @@ def test_cli_options_and_explicit_paths(cli, tmp_path):
     assert read_artifact(tmp_path / "a.npz").meta["stats"]["steps"] == 20
 
 
+def test_cli_symmetry_mode(cli, tmp_path):
+    """--symmetry-mode lands in params and stats; 'all' gives mirror-symmetric maps, the default does not have to."""
+    ws = tmp_path / "ws"
+    _, _, src = _write_obs(ws, S=8)
+    r = cli("fit-reflectance", "--input", src, "--output", tmp_path / "d.npz")
+    assert r.exit_code == 0, r.output
+    d = read_artifact(tmp_path / "d.npz", "reflectance-maps")
+    assert d.params["symmetry_mode"] == "ill-posed" and d.meta["stats"]["symmetry_mode"] == "ill-posed"
+    assert d.meta["producer"]["stage_version"] == 2
+    r = cli("fit-reflectance", "--input", src, "--output", tmp_path / "a.npz", "--symmetry-mode", "all")
+    assert r.exit_code == 0, r.output
+    a = read_artifact(tmp_path / "a.npz", "reflectance-maps")
+    assert a.params["symmetry_mode"] == "all" and a.meta["stats"]["n_pooled"] == int(a["mask"].sum())
+    np.testing.assert_allclose(a["albedo"], a["albedo"][:, :, ::-1], rtol=1e-5, atol=1e-7)
+    r = cli("fit-reflectance", "--input", src, "--output", tmp_path / "x.npz", "--symmetry-mode", "some")
+    assert r.exit_code != 0
+
+
 def test_cli_errors(cli, tmp_path):
     ws = tmp_path / "ws"
     r = cli("fit-reflectance", "--id", "042", "--workspace", ws)
