@@ -53,7 +53,8 @@ def _truth_outputs(ctx: StageContext) -> list[Path]:
     return [ctx.output_path()]
 
 
-@register_stage("evaluate-truth", version=1, per_identity=True, outputs=_truth_outputs,
+# version 2: spec_ratio_median
+@register_stage("evaluate-truth", version=2, per_identity=True, outputs=_truth_outputs,
                 help="errors of fitted maps / geometry against ground truth")
 def run_evaluate_truth(ctx: StageContext) -> list[Path]:
     maps = ctx.input_list("maps", required=False)

@@ -5,7 +5,8 @@ Reflectance (UV space, texels of the fitted map's mask):
 * regions: ``observable`` = mask ∧ ¬flagged, ``flagged`` = mask ∧ flagged (filled from mirror/neighbours), ``all``;
 * diffuse albedo: RMSE over texels and the 3 linear RGB channels, and the relative error RMSE / RMS(truth);
 * specular albedo: Σ_i w_i against the truth's ``spec_albedo`` (the GGX directional albedo at normal view, the
-  same quantity: the shading under uniform unit radiance seen head-on), RMSE and relative error;
+  same quantity: the shading under uniform unit radiance seen head-on), RMSE, relative error (RMSE / RMS of the
+  truth) and the median of the per-texel ratio Σw / spec_albedo (robust to the few texels with least data);
 * lobe weights against the truth's 3-lobe reference ``weights`` when the exponents agree (exact in ``model``
   mode, only the closest 3-lobe fit in ``ggx`` mode);
 * scale ambiguity: the flash intensity and the reflectance share one global scale (docs/pipeline.md). Every
@@ -74,6 +75,10 @@ def reflectance_errors(maps: Mapping[str, np.ndarray], truth: Mapping[str, np.nd
             e["albedo_rmse"], e["albedo_rel"] = _err(s * C[:, reg], Ct[:, reg])
             if st is not None:
                 e["spec_rmse"], e["spec_rel"] = _err(s * W.sum(0)[reg], st[reg])
+                # robust companion of spec_rel (an RMS, dominated by the few texels with least data)
+                pos = reg & (st > 0)
+                e["spec_ratio_median"] = (float(np.median(s * W.sum(0)[pos] / st[pos])) if pos.any()
+                                          else float("nan"))
             if same_lobes:
                 e["weights_rmse"], e["weights_rel"] = _err(s * W[:, reg], Wt[:, reg])
             out[mode][name] = e

@@ -174,6 +174,8 @@ def test_reflectance_errors_known_truth_and_scale():
     np.testing.assert_allclose(e["raw"]["observable"]["albedo_rmse"], np.sqrt(np.mean((0.5 * Ct[:, obs]) ** 2)))
     assert e["scaled"]["observable"]["albedo_rmse"] == pytest.approx(0.0, abs=1e-12)
     assert e["scaled"]["observable"]["spec_rmse"] == pytest.approx(0.0, abs=1e-12)
+    assert e["raw"]["observable"]["spec_ratio_median"] == pytest.approx(0.5)
+    assert e["scaled"]["all"]["spec_ratio_median"] == pytest.approx(1.0)
     assert e["scaled"]["observable"]["weights_rmse"] == pytest.approx(0.0, abs=1e-12)
     assert e["scaled"]["flagged"]["albedo_rmse"] == pytest.approx(0.2)
     assert e["texels"] == {"observable": 48, "flagged": 16, "all": 64}
