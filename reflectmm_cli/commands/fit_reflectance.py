@@ -80,7 +80,8 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
         raise ReflectmmError("uv-observations input not found (run unwrap-uv first or give --input)", src)
     obs = read_artifact(src, "uv-observations")
     maps = fit_maps(obs.arrays, exponents=p["exponents"], solver=p["solver"], symmetry=float(p["symmetry"]),
-                    symmetry_mode=str(p["symmetry_mode"]), loss=p["loss"], prior=float(p["prior"]), flash_intensity=p["flash_intensity"],
+                    symmetry_mode=str(p["symmetry_mode"]), loss=p["loss"], prior=float(p["prior"]),
+                    flash_intensity=p["flash_intensity"],
                     steps=int(p["steps"]), device=ctx.device, seed=int(p["seed"]), cond_min=float(p["cond_min"]),
                     progress=progress, path=src)
     stats = {k: v for k, v in maps.stats.items() if k != "time_s"}  # no timings in artifacts (byte-identical reruns)
@@ -141,8 +142,8 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
 @workspace_option
 @output_option
 @json_option
-def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, symmetry_mode, loss, prior, steps, flash_intensity,
-                        cond_min, seed, device, workspace, output, as_json):
+def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, symmetry_mode, loss, prior, steps,
+                        flash_intensity, cond_min, seed, device, workspace, output, as_json):
     """Fit diffuse albedo C and lobe weights W for one identity.
 
     Writes <workspace>/fit-reflectance/<id>.npz (reflectance-maps), <id>.exr (channels albedo.R/G/B,
@@ -151,8 +152,8 @@ def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, symme
     if identity is None and input_path is None:
         raise click.UsageError("give --id or --input")
     params = resolve_params({"solver": solver, "exponents": exponents, "symmetry": symmetry,
-                             "symmetry_mode": symmetry_mode, "loss": loss, "prior": prior, "steps": steps, "flash_intensity": flash_intensity, "seed": seed,
-                             "cond_min": cond_min})
+                             "symmetry_mode": symmetry_mode, "loss": loss, "prior": prior, "steps": steps,
+                             "flash_intensity": flash_intensity, "seed": seed, "cond_min": cond_min})
     inputs = {"observations": [input_path]} if input_path is not None else None
     if inputs is None and identity is not None:
         from reflectmm_cli.stages import default_workspace

@@ -6,8 +6,8 @@ Protocol (documented in docs/model.md):
 * Held-out set: every (view, flash) pair whose flash id is in ``holdout`` (default flashes ``05`` and ``09``:
   the flashes on cameras 13_0 and 04_1, ±30° from frontal), all views. Everything else is training data.
 * Every representation is fitted on the *same* training pairs with ``reflectance.fit_maps(..., pair_mask=...)``
-  (same solver, symmetry, symmetry mode, loss and prior): K = 1 with a global exponent p ∈ {8, 16, 32, 64}, the 3-lobe default
-  (1, 8, 64), and the paper's baselines "diffuse only" (C alone, the same loss, solved here per texel) and
+  (same solver, symmetry, symmetry mode, loss and prior): K = 1 with a global exponent p ∈ {8, 16, 32, 64}, the
+  3-lobe default (1, 8, 64), and the paper's baselines "diffuse only" (C alone, the same loss, solved here per texel) and
   "spec albedo + global shininess 20" (K = 1, p = 20 — a white specular albedo with one global exponent, which
   is exactly our K = 1 representation with p = 20).
 * Re-rendering in **UV space** (no ``image_space``): for each held-out pair the fitted maps are shaded with
