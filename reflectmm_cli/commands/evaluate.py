@@ -117,7 +117,8 @@ def evaluate_truth_cmd(identity, maps, truth, geometry, workspace, output):
 # --------------------------------------------------------------------------- evaluate representation
 
 REP_DEFAULTS = {"exponents_sets": "8;16;32;64;1,8,64", "holdout": "05,09", "baselines": True, "solver": "fast",
-                "symmetry": 1.0, "symmetry_mode": "ill-posed", "loss": "l1", "prior": 1e-4, "lpips_net": "alex",
+                "symmetry": 1.0, "symmetry_mode": "ill-posed", "loss": "l1", "prior": 1e-4, "prior_tail": 100.0,
+                "lpips_net": "alex",
                 "space": "auto",
                 "max_identities": 0}
 
@@ -175,8 +176,8 @@ def _rep_outputs(ctx: StageContext) -> list[Path]:
     return [out, out.with_suffix(".md"), out.with_suffix(".png")]
 
 
-# version 2: image-space region inside the maps' domain; symmetry_mode
-@register_stage("evaluate-representation", version=2, per_identity=False, outputs=_rep_outputs,
+# version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail
+@register_stage("evaluate-representation", version=3, per_identity=False, outputs=_rep_outputs,
                 help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes")
 def run_evaluate_representation(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.metrics import load_lpips
@@ -199,7 +200,7 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
         art = read_artifact(f, "uv-observations")
         obs.append(art.arrays)
         ids.append(str(art.meta.get("identity") or Path(f).stem))
-    kw = {k: p[k] for k in ("solver", "symmetry", "symmetry_mode", "loss", "prior")}
+    kw = {k: p[k] for k in ("solver", "symmetry", "symmetry_mode", "loss", "prior", "prior_tail")}
     space = str(p["space"])
     if space not in ("auto", "uv", "image"):
         raise ReflectmmError(f"evaluate representation: space must be auto, uv or image, got {space!r}")
@@ -256,6 +257,8 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
               help="Mirror pooling only where a texel's own data are ill-posed, or everywhere (the paper's flip).")
 @click.option("--loss", type=click.Choice(["l1", "l2"]), default="l1", show_default=True)
 @click.option("--prior", type=click.FloatRange(0, None), default=1e-4, show_default=True)
+@click.option("--prior-tail", type=click.FloatRange(0, None), default=100.0, show_default=True,
+              help="Tail prior of fit-reflectance (× prior, for lobes seen only in their tail).")
 @click.option("--lpips-weights", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A torch state dict of LPIPS (trunk + lin layers). Without it LPIPS is off.")
 @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default="alex", show_default=True)
@@ -270,7 +273,7 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
 @output_option
 @json_option
 def evaluate_representation_cmd(ids, inputs, exponents_sets, holdout, no_baselines, solver, symmetry, symmetry_mode,
-                                loss, prior,
+                                loss, prior, prior_tail,
                                 lpips_weights, lpips_net, space, face_model, max_identities, workspace, output,
                                 as_json):
     """Global exponents vs multi-lobe (the paper's Table 1) on held-out flash images; markdown table on stdout.
@@ -284,7 +287,7 @@ def evaluate_representation_cmd(ids, inputs, exponents_sets, holdout, no_baselin
         raise click.UsageError("give --ids or --input")
     params = {"exponents_sets": exponents_sets, "holdout": holdout, "baselines": not no_baselines,
               "solver": solver, "symmetry": symmetry, "symmetry_mode": symmetry_mode, "loss": loss, "prior": prior,
-              "lpips_net": lpips_net,
+              "prior_tail": prior_tail, "lpips_net": lpips_net,
               "space": space, "max_identities": max_identities}
     inp = {"observations": files}
     if space != "uv" and ids:

@@ -18,7 +18,7 @@ from reflectmm_cli.progress import log, progress
 from reflectmm_cli.stages import StageContext, register_stage
 
 DEFAULTS = {"solver": "fast", "exponents": [1.0, 8.0, 64.0], "symmetry": 1.0, "symmetry_mode": "ill-posed",
-            "loss": "l1", "prior": 1e-4,
+            "loss": "l1", "prior": 1e-4, "prior_tail": 100.0,
             "steps": 1000, "flash_intensity": None, "seed": 0, "cond_min": 1e-4}
 PREVIEWS = ("albedo", "weights", "residual", "flagged")
 
@@ -67,7 +67,8 @@ def _channel_name(p: float) -> str:
 
 
 # version 2: mirror pooling only where a texel's own data are ill-posed by default (symmetry_mode)
-@register_stage("fit-reflectance", version=2, per_identity=True, outputs=_outputs, input_files=_input_files,
+# version 3: tail prior on lobe weights seen only in their lobe's tail (prior_tail)
+@register_stage("fit-reflectance", version=3, per_identity=True, outputs=_outputs, input_files=_input_files,
                 help="fit diffuse albedo and lobe-weight maps to one identity's UV observations")
 def run_fit_reflectance(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.reflectance import fit_maps
@@ -81,6 +82,7 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
     obs = read_artifact(src, "uv-observations")
     maps = fit_maps(obs.arrays, exponents=p["exponents"], solver=p["solver"], symmetry=float(p["symmetry"]),
                     symmetry_mode=str(p["symmetry_mode"]), loss=p["loss"], prior=float(p["prior"]),
+                    prior_tail=float(p["prior_tail"]),
                     flash_intensity=p["flash_intensity"],
                     steps=int(p["steps"]), device=ctx.device, seed=int(p["seed"]), cond_min=float(p["cond_min"]),
                     progress=progress, path=src)
@@ -131,6 +133,9 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
               help="cos-weighted L1 (the paper's, IRLS) or cos-weighted least squares (fast solver).")
 @click.option("--prior", type=click.FloatRange(0.0, None), default=1e-4, show_default=True,
               help="Tikhonov strength towards the neighbourhood prior, × trace of each texel's data term.")
+@click.option("--prior-tail", type=click.FloatRange(0.0, None), default=100.0, show_default=True,
+              help="Extra prior on a lobe weight whose lobe is seen only in its tail: × prior × "
+                   "(1 − observability/0.5)² (0 = off).")
 @click.option("--steps", type=click.IntRange(1, None), default=1000, show_default=True, help="Adam steps.")
 @click.option("--flash-intensity", default=None,
               help="Flash radiant intensity (one value or one per flash, comma separated); default: the "
@@ -142,8 +147,8 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
 @workspace_option
 @output_option
 @json_option
-def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, symmetry_mode, loss, prior, steps,
-                        flash_intensity, cond_min, seed, device, workspace, output, as_json):
+def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, symmetry_mode, loss, prior, prior_tail,
+                        steps, flash_intensity, cond_min, seed, device, workspace, output, as_json):
     """Fit diffuse albedo C and lobe weights W for one identity.
 
     Writes <workspace>/fit-reflectance/<id>.npz (reflectance-maps), <id>.exr (channels albedo.R/G/B,
@@ -152,7 +157,8 @@ def fit_reflectance_cmd(identity, input_path, solver, exponents, symmetry, symme
     if identity is None and input_path is None:
         raise click.UsageError("give --id or --input")
     params = resolve_params({"solver": solver, "exponents": exponents, "symmetry": symmetry,
-                             "symmetry_mode": symmetry_mode, "loss": loss, "prior": prior, "steps": steps,
+                             "symmetry_mode": symmetry_mode, "loss": loss, "prior": prior,
+                             "prior_tail": prior_tail, "steps": steps,
                              "flash_intensity": flash_intensity, "seed": seed, "cond_min": cond_min})
     inputs = {"observations": [input_path]} if input_path is not None else None
     if inputs is None and identity is not None:

@@ -9,6 +9,8 @@ Fast solver (``solver="fast"``), per texel, exact and batched over texels:
   ``⟨l_j,n⟩ / max(|r_jc|, δ)``, δ = ``irls_delta`` × RMS of the texel's observed radiance.
 * symmetry: the normal equations of texel t are pooled with its mirror's,
   ``H_t + s · H_mirror(t)`` (s = ``symmetry``); s = 1 gives mirror texels one shared solution.
+* tail prior: lobe weight W_i additionally gets ``λ_t · prior_tail · (1 − o_i/prior_tail_obs)₊²`` where
+  its lobe's observability o_i is low (seen only in its tail).
 * prior (Tikhonov): ``+ λ_t ‖x − x0_t‖²`` with ``λ_t = prior · trace(H_t)`` (the pooled data term), so
   its relative strength is the same in every texel and every IRLS iteration.  ``x0`` is a neighbourhood
   value: a first pass (one weighted least-squares solve with the prior towards 0) is smoothed by normalised
@@ -379,7 +381,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
              steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
              device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK, threads: int | None = None,
              progress: Callable | None = None, path=None,
-             symmetry_mode: str = "ill-posed") -> ReflectanceMaps:
+             symmetry_mode: str = "ill-posed", prior_tail: float = 100.0,
+             prior_tail_obs: float = 0.5) -> ReflectanceMaps:
     """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
 
     Args:
@@ -393,6 +396,12 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
             the Adam solver always flips whole maps (the paper).
         loss: ``l1`` (cos-weighted L1, IRLS) or ``l2`` (cos-weighted least squares); Adam always uses L1.
         prior: Tikhonov strength relative to the trace of each texel's data term (fast solver; 0 = off).
+        prior_tail, prior_tail_obs: extra prior on lobe weight W_i where the lobe is seen only in its tail:
+            ``+ λ_t · prior_tail · (1 − o_i / prior_tail_obs)₊² · (W_i − x0_i)²`` (λ_t = prior · trace(H_t), so
+            it scales with ``prior``; default 100 × 1e-4 = 1e-2 × trace at o_i = 0) with o_i the lobe's pooled
+            observability (the largest fraction of its peak any fitted observation reaches). A weight fitted
+            from the tail of its lobe extrapolates badly to views that see the peak, and the tail is where a
+            Blinn-Phong lobe matches a real (GGX) lobe least. 0 = off; off also when ``prior`` is 0.
         pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
         flash_intensity: scalar or (F,) radiant intensity replacing the artifact's (global scale ambiguity:
             multiplying it by k divides C and W by k).
@@ -427,6 +436,10 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         raise ReflectmmError(f"symmetry must be in [0, 1], got {symmetry}")
     if not (np.isfinite(prior) and prior >= 0):
         raise ReflectmmError(f"prior must be finite and >= 0, got {prior}")
+    if not (np.isfinite(prior_tail) and prior_tail >= 0):
+        raise ReflectmmError(f"prior_tail must be finite and >= 0, got {prior_tail}")
+    if not (np.isfinite(prior_tail_obs) and 0 < prior_tail_obs <= 1):
+        raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {prior_tail_obs}")
     P = np.asarray(obs["pair_view"]).shape[0]
     pm = _parse_pair_mask(pair_mask, P)
     used = np.asarray(obs["observed"], bool) & pm[:, None, None]
@@ -482,7 +495,9 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
     stats: dict[str, Any] = {"solver": solver, "loss": loss if solver == "fast" else "l1", "symmetry": sym,
                              "symmetry_mode": symmetry_mode if solver == "fast" else "all",
                              "n_pooled": int((symv > 0).sum()),
-                             "prior": float(prior), "n_texels": int(n), "n_pairs_used": int(pm.sum()),
+                             "prior": float(prior), "prior_tail": float(prior_tail),
+                             "prior_tail_obs": float(prior_tail_obs), "n_texels": int(n),
+                             "n_pairs_used": int(pm.sum()),
                              "n_flagged": int(flag.sum()), "cond_min": cond_min, "min_obs": min_obs}
 
     def to_map(v: np.ndarray, fill=0.0) -> np.ndarray:
@@ -501,7 +516,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
     if solver == "fast":
         x, prior_map, info = _fast(prob, pool, pool_band, solve, n, m, loss, float(prior), delta, irls_iterations,
                                    obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol,
-                                   irls_obj_tol, threads)
+                                   irls_obj_tol, threads, float(prior_tail), float(prior_tail_obs))
         stats.update(info)
     else:
         from .adam import fit_adam
@@ -533,15 +548,18 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
 
 
 def _solve_system(H, g, lam, x0):
+    """NNLS of (H + Λ) x = g + Λ x0 with Λ = diag(lam): lam (n,) isotropic or (n, m) per unknown."""
     m = H.shape[-1]
-    Hr = H + lam[:, None, None] * np.eye(m)
-    gr = g + lam[:, None] * x0
+    lv = lam[:, None] * np.ones(m) if lam.ndim == 1 else lam
+    Hr = H.copy()
+    Hr[:, np.arange(m), np.arange(m)] += lv
+    gr = g + lv * x0
     x, info = nnls_batched(Hr, gr)
     return x, info, Hr, gr
 
 
 def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p, observable_min, prior_sigma, to_map,
-          idx, S, progress, irls_tol, irls_obj_tol, threads):
+          idx, S, progress, irls_tol, irls_obj_tol, threads, prior_tail=0.0, prior_tail_obs=0.5):
     info: dict[str, Any] = {}
     sel = np.flatnonzero(solve)
     x = np.zeros((n, m))
@@ -594,7 +612,12 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
                 H, g, obj, _ = prob.normal_equations(xb, loss, delta, a, b)
                 Hb, gb = pool_band(H, a, b), pool_band(g, a, b)
             # (it = 0: the ⟨l,n⟩-weighted system of pass 1 is reused as is)
-            lam = prior * np.einsum("nii->n", Hb[loc])
+            tr = np.einsum("nii->n", Hb[loc])
+            lam = prior * tr
+            if prior > 0 and prior_tail > 0:  # per unknown: lobes seen only in their tail lean on the prior
+                short = np.clip(1.0 - obsv_p[a:b][loc] / prior_tail_obs, 0.0, 1.0) ** 2
+                lam = np.concatenate([np.repeat(lam[:, None], 3, axis=1),
+                                      lam[:, None] * (1.0 + prior_tail * short)], axis=1)
             xs, nfo, Hr, gr = _solve_system(Hb[loc], gb[loc], lam, x0b[loc])
             stat[0] = max(stat[0], nfo["iterations"])
             stat[1] += nfo["unconverged"]
