@@ -54,7 +54,7 @@ def _truth_outputs(ctx: StageContext) -> list[Path]:
 
 
 # version 2: spec_ratio_median
-@register_stage("evaluate-truth", version=2, per_identity=True, outputs=_truth_outputs,
+@register_stage("evaluate-truth", version=3, per_identity=True, outputs=_truth_outputs,
                 help="errors of fitted maps / geometry against ground truth")
 def run_evaluate_truth(ctx: StageContext) -> list[Path]:
     maps = ctx.input_list("maps", required=False)
@@ -322,7 +322,7 @@ def _report_outputs(ctx: StageContext) -> list[Path]:
     return [npz, npz.with_suffix(".md")]
 
 
-@register_stage("evaluate-report", version=1, per_identity=False, outputs=_report_outputs,
+@register_stage("evaluate-report", version=2, per_identity=False, outputs=_report_outputs,
                 help="closing report of a run: errors of every stage against ground truth")
 def run_evaluate_report(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.report import build_report

@@ -73,6 +73,14 @@ def reflectance_errors(maps: Mapping[str, np.ndarray], truth: Mapping[str, np.nd
         for name, reg in regions.items():
             e: dict[str, float] = {}
             e["albedo_rmse"], e["albedo_rel"] = _err(s * C[:, reg], Ct[:, reg])
+            # robust companion: the typical texel's relative colour error (RMS over channels, per texel)
+            if reg.any():
+                d = np.sqrt(np.mean((s * C[:, reg] - Ct[:, reg]) ** 2, axis=0))
+                r = np.sqrt(np.mean(Ct[:, reg] ** 2, axis=0))
+                ok = r > 0
+                e["albedo_rel_median"] = float(np.median(d[ok] / r[ok])) if ok.any() else float("nan")
+            else:
+                e["albedo_rel_median"] = float("nan")
             if st is not None:
                 e["spec_rmse"], e["spec_rel"] = _err(s * W.sum(0)[reg], st[reg])
                 # robust companion of spec_rel (an RMS, dominated by the few texels with least data)

@@ -221,3 +221,19 @@ def test_geometry_errors_fall_back_to_stored_errors():
     e = geometry_errors(geo, {})
     assert e["vertex_rms_mm"] == 1.5 and e["camera_mean_mm"] == 3.0 and e["landmark_rmse_px"] == 0.5
     assert "err_" in e["source"]
+
+
+def test_albedo_rel_median_is_the_typical_texel_not_the_rms():
+    """One wildly wrong texel dominates the RMS but not the median per-texel relative error."""
+    from reflectmm_cli.evaluation.truth import reflectance_errors
+
+    S = 8
+    Ct = np.full((3, S, S), 0.4)
+    C = Ct * 1.02                        # every texel 2 % off ...
+    C[:, 0, 0] = 4.0                     # ... and one texel 10x off
+    maps = {"albedo": C, "weights": np.zeros((1, S, S)), "exponents": np.array([8.0]),
+            "mask": np.ones((S, S), bool), "flagged": np.zeros((S, S), bool)}
+    e = reflectance_errors(maps, {"albedo": Ct})["raw"]["observable"]
+    assert e["albedo_rel_median"] == pytest.approx(0.02)
+    rms = np.sqrt(((C - Ct) ** 2).mean()) / np.sqrt((Ct ** 2).mean())
+    assert e["albedo_rel"] == pytest.approx(rms) and e["albedo_rel"] > 1.0
