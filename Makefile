@@ -4,6 +4,7 @@
 PYTHON ?= python3
 PIP ?= $(PYTHON) -m pip
 WORKSPACE ?= work
+JOBS ?= 2
 
 .PHONY: install demo test bench clean
 
@@ -13,7 +14,7 @@ install:
 	$(PIP) install -q -e '.[test]'
 
 demo: install
-	reflectmm run recipes/synthetic.toml --workspace $(WORKSPACE)
+	reflectmm run recipes/synthetic.toml --workspace $(WORKSPACE) --jobs $(JOBS)
 
 test: install
 	$(PYTHON) -m pytest -q -p no:cacheprovider tests
