@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.threads import torch_threads
 
 __all__ = ["encode_display", "psnr", "ssim", "LPIPS", "load_lpips", "lpips_distance", "DISPLAY_GAMMA"]
 
@@ -291,16 +292,9 @@ class LPIPS:
         t = lambda z: torch.as_tensor(np.where(m[..., None], z, 0.0) * 2 - 1,  # noqa: E731
                                       dtype=torch.float32).permute(2, 0, 1)[None]
         # small images: one thread is much faster than several contending ones (measured 70× on 2 busy cores)
-        threads = torch.get_num_threads()
         small = a.shape[0] * a.shape[1] <= 256 * 256
-        try:
-            if small:
-                torch.set_num_threads(1)
-            with torch.no_grad():
-                dmap = self.distance_map(t(a), t(b))[0, 0].numpy()
-        finally:
-            if small:
-                torch.set_num_threads(threads)
+        with torch_threads(1 if small else None), torch.no_grad():
+            dmap = self.distance_map(t(a), t(b))[0, 0].numpy()
         return float(dmap[m].mean())
 
 

@@ -39,6 +39,7 @@ from reflectmm_cli.fitting.photometric import (
 )
 from reflectmm_cli.fitting.visibility import vertex_visibility
 from reflectmm_cli.progress import progress
+from reflectmm_cli.threads import torch_threads
 from reflectmm_cli.shading import sh_basis
 
 log = logging.getLogger("reflectmm")
@@ -174,13 +175,8 @@ def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = N
     cfg = config or FitConfig()
     if cfg.albedo not in ("auto", "texture", "per-vertex", "constant"):
         raise ReflectmmError(f"albedo must be auto, texture, per-vertex or constant, got {cfg.albedo!r}")
-    prev_threads = torch.get_num_threads()
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-    try:
+    with torch_threads(cfg.threads):
         return _fit(model, views, cfg, device)
-    finally:
-        torch.set_num_threads(prev_threads)
 
 
 def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> GeometryFit:

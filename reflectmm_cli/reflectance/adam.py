@@ -16,6 +16,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from reflectmm_cli.threads import torch_threads
+
 from .design import mirror_index
 
 __all__ = ["fit_adam"]
@@ -31,13 +33,8 @@ def fit_adam(prob, idx: np.ndarray, S: int, K: int, *, steps: int = 1000, lr: fl
     import torch
 
     # small problems lose more to thread start-up than they gain (and the CPU is usually shared)
-    threads = torch.get_num_threads()
-    if prob.tex.size < SMALL_PROBLEM_ROWS and threads > 1:
-        torch.set_num_threads(1)
-    try:
+    with torch_threads(1 if prob.tex.size < SMALL_PROBLEM_ROWS else None):
         return _run(torch, prob, idx, S, K, steps, lr, w_reg, symmetry, init, device, seed, progress)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _run(torch, prob, idx, S, K, steps, lr, w_reg, symmetry, init, device, seed, progress):
