@@ -153,13 +153,3 @@ def write_png(path: str | Path, codes: np.ndarray) -> Path:
         raise ReflectmmError("cannot encode PNG", path)
     path.write_bytes(buf.tobytes())
     return path
-
-
-def write_landmarks_pts(path: str | Path, pts: np.ndarray) -> Path:
-    """Write an iBUG ``.pts`` file (``version: 1``, ``n_points``, ``{ x y … }``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pts = np.asarray(pts, dtype=np.float64)
-    body = "\n".join(f"{x:.3f} {y:.3f}" for x, y in pts)
-    path.write_text(f"version: 1\nn_points:  {len(pts)}\n{{\n{body}\n}}\n")
-    return path

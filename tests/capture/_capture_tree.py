@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from reflectmm_cli.capture.images import encode_linear, write_landmarks_pts, write_png
+from reflectmm_cli.capture.images import encode_linear, write_png
+from reflectmm_cli.landmarks import write_pts
 from reflectmm_cli.capture.layout import camera_code
 from reflectmm_cli.capture.transfer import parse_transfer
 
@@ -42,7 +43,7 @@ def make_tree(root, idents=("001",), *, views=VIEWS, flashes=FLASHES, size=(48, 
                 fl.append(img)
             if landmarks:
                 pts = np.stack([np.linspace(0.3 * W, 0.7 * W, 68), np.linspace(0.25 * H, 0.75 * H, 68)], 1)
-                write_landmarks_pts(shot_file(root, ident, cam, "00", session, rec, ext="_lm.pts"), pts)
+                write_pts(shot_file(root, ident, cam, "00", session, rec, ext="_lm.pts"), pts, decimals=3)
             rooms.append(room)
             flashes_lin.append(fl)
         truth[ident] = {"room": np.array(rooms), "flash": np.array(flashes_lin)}
