@@ -1,0 +1,105 @@
+"""Table 2 pure functions: encodings, seen vertices, per-image scale, reflectance errors, rows, figures."""
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.evaluation.face_metrics import PSNR_CAP
+from reflectmm_cli.evaluation.figures import PANELS, error_colormap, grid, method_panels, write_figure
+from reflectmm_cli.evaluation.reconstruction_eval import (decode_image, encode_like, image_metrics_table,
+                                                          markdown_table, per_image_scale, seen_vertices,
+                                                          spec_albedo_of, table_row, vertex_reflectance_errors)
+
+
+@pytest.mark.parametrize("enc", ["gamma1.2", "srgb", "linear"])
+def test_encode_inverts_decode(enc):
+    codes = np.arange(256, dtype=np.uint8)
+    assert np.allclose(encode_like(decode_image(codes, enc), enc), codes / 255.0, atol=1e-9)
+    with pytest.raises(ReflectmmError, match="unknown image encoding"):
+        encode_like(codes, "gamma2.2")
+
+
+def test_seen_vertices_from_a_packed_gbuffer():
+    off = np.array([0, 2, 3])
+    vid = np.array([[0, 1, 2], [2, 3, 4], [5, 6, 0]], np.int32)
+    s = seen_vertices(off, vid, 8)
+    assert s.tolist() == [[1, 1, 1, 1, 1, 0, 0, 0], [1, 0, 0, 0, 0, 1, 1, 0]]
+    s2 = seen_vertices(off, vid, 8, rows=np.array([False, True, True]))
+    assert s2[0].tolist() == [0, 0, 1, 1, 1, 0, 0, 0]
+
+
+@given(st.integers(0, 1000))
+def test_per_image_scale_is_the_least_squares_scale(seed):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(0.1, 1, (3, 20, 3))
+    t = p * rng.uniform(0.5, 2, (3, 1, 1)) + rng.normal(0, 0.05, p.shape)
+    r = rng.uniform(size=(3, 20)) < 0.7
+    r[:, 0] = True
+    s = per_image_scale(p, t, r)
+    for i in range(3):
+        a, b = p[i][r[i]].reshape(-1, 1), t[i][r[i]].reshape(-1)
+        assert s[i] == pytest.approx(np.linalg.lstsq(a, b, rcond=None)[0][0], rel=1e-10)
+
+
+def test_reflectance_errors_raw_and_scaled():
+    """The albedo/lighting ambiguity: a prediction 1.3× too bright everywhere has zero scaled error."""
+    rng = np.random.default_rng(0)
+    ta = rng.uniform(0.2, 0.7, (4, 50, 3))
+    ts = rng.uniform(0.02, 0.08, (4, 50))
+    reg = rng.uniform(size=(4, 50)) < 0.8
+    res = vertex_reflectance_errors(1.3 * ta, 1.3 * ts, ta, spec_albedo_of(ts[..., None]), reg)
+    assert np.allclose(res["scale"], 1 / 1.3)
+    assert np.allclose(res["per_image"]["raw"]["albedo_rel"], 0.3)
+    assert np.allclose(res["per_image"]["raw"]["spec_rel"], 0.3)
+    assert np.allclose(res["per_image"]["scaled"]["albedo_rel"], 0, atol=1e-12)
+    i = 2
+    d = (1.3 * ta[i] - ta[i])[reg[i]]
+    assert res["per_image"]["raw"]["albedo_psnr"][i] == pytest.approx(10 * np.log10(1 / np.mean(d ** 2)))
+    assert res["summary"]["raw"]["albedo_rel"]["mean"] == pytest.approx(0.3)
+    # a pattern error survives the scale
+    bad = ta.copy()
+    bad[:, :25] *= 0.5
+    res2 = vertex_reflectance_errors(bad, None, ta, None, reg)
+    assert np.all(res2["per_image"]["scaled"]["albedo_rel"] > 0.05) and "spec_rel" not in res2["per_image"]["raw"]
+    reg[1] = False
+    with pytest.raises(ReflectmmError, match="#1 has no evaluated vertex"):
+        vertex_reflectance_errors(ta, None, ta, None, reg)
+
+
+def test_image_metrics_table_on_shard_like_arrays():
+    rng = np.random.default_rng(1)
+    imgs = rng.integers(0, 256, (3, 32, 32, 3), dtype=np.uint8)
+    masks = np.zeros((3, 32, 32), bool)
+    masks[:, 6:26, 8:24] = True
+    exact = decode_image(imgs, "gamma1.2")
+    t = image_metrics_table(exact, imgs, masks, "gamma1.2")
+    assert np.all(t["per_image"].per_image["psnr"] == PSNR_CAP)
+    # a wrong light intensity (the user's lighting estimate is off by 20 %) lowers every image's PSNR
+    t2 = image_metrics_table(exact * 1.2, imgs, masks, "gamma1.2")
+    assert np.all(t2["per_image"].per_image["psnr"] < 40)
+    assert t2["released"]["psnr"] > t2["per_image"].summary["psnr"]["mean"]  # zero background inflates it
+    row = table_row("ours", t2, vertex_reflectance_errors(np.ones((3, 5, 3)), np.ones((3, 5)), np.ones((3, 5, 3)),
+                                                           np.ones((3, 5)), np.ones((3, 5), bool)))
+    assert row["LPIPS"] == "off" and "albedo rel (scaled)" in row and "±" in row["PSNR"]
+    md = markdown_table([row, {"method": "w/o finetune"}])
+    assert md.count("\n") == 3 and md.startswith("| method |")
+
+
+def test_figure_panels_and_error_ramp(tmp_path):
+    assert np.allclose(error_colormap(np.array([0.0, 0.2, 1.0]), 0.2), [[0, 0, 0], [1, 1, 1], [1, 1, 1]])
+    assert np.allclose(error_colormap(np.array([0.2 / 3]), 0.2), [[1, 0, 0]])
+    rng = np.random.default_rng(2)
+    inp = rng.uniform(size=(16, 20, 3))
+    m = np.zeros((16, 20), bool)
+    m[4:12, 5:15] = True
+    panels = method_panels(inp, inp, inp * 0.8, None, m)
+    assert len(panels) == len(PANELS)
+    assert np.all(panels[4] == 0)  # perfect reconstruction → black error map
+    assert np.all(panels[3][m] == 0)  # absent specular layer
+    g = grid([panels, panels[:2]])
+    assert g.shape == (2 * 18 + 2, 5 * 22 + 2, 3)
+    p = write_figure(tmp_path / "fig.png", [panels])
+    assert p.stat().st_size > 100
+    with pytest.raises(ReflectmmError, match="panel"):
+        method_panels(inp, inp[:8], None, None, m)
