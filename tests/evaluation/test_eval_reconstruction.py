@@ -103,3 +103,16 @@ def test_figure_panels_and_error_ramp(tmp_path):
     assert p.stat().st_size > 100
     with pytest.raises(ReflectmmError, match="panel"):
         method_panels(inp, inp[:8], None, None, m)
+
+
+def test_paper_vs_ours_rows():
+    from reflectmm_cli.evaluation.paper_numbers import PAPER_NUMBERS, paper_vs_ours_rows
+
+    rows = paper_vs_ours_rows({"table3.diffuse_psnr": 24.5, "table2.psnr_gain_finetune": 0.4},
+                              {"table3.diffuse_psnr": "reflectmm evaluate albedo"})
+    assert len(rows) == len(PAPER_NUMBERS)
+    byq = {r["quantity"]: r for r in rows}
+    assert byq["diffuse albedo PSNR (ours)"]["paper"] == "20.13 dB"
+    assert byq["diffuse albedo PSNR (ours)"]["reflectmm"] == "24.50 dB"
+    assert byq["PSNR gain of ours over ours w/o finetuning"]["reflectmm"] == "+0.40 dB"
+    assert byq["specular albedo PSNR (ours; Σw as specular albedo)"]["reflectmm"] == "not run"
