@@ -28,7 +28,8 @@ from reflectmm_cli.errors import ReflectmmError
 from .figures import method_panels
 from .metrics import encode_display, psnr, ssim
 
-__all__ = ["RelightScene", "relight", "relighting_metrics", "relighting_rows"]
+__all__ = ["RelightScene", "scene_from_artifacts", "capture_targets", "relight", "relighting_metrics",
+           "relighting_rows"]
 
 
 @dataclass
@@ -191,3 +192,52 @@ def relighting_rows(scene: RelightScene, input_display: np.ndarray, methods: Map
         rows.append(method_panels(tgt, encode_display(s * r["full"], gamma), encode_display(s * r["diffuse"], gamma),
                                   encode_display(s * r["specular"], gamma), reg, err_max=err_max))
     return rows
+
+
+def _names(arr) -> list[str]:
+    return [str(x) for x in np.asarray(arr).reshape(-1)]
+
+
+def scene_from_artifacts(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
+                         triangles: np.ndarray, view: str, *, uv: np.ndarray | None = None) -> RelightScene:
+    """A :class:`RelightScene` for ``view`` of one identity from its ``capture`` artifact arrays (``view_names``,
+    ``flash_ids``, ``crop_origin`` (V,2), ``olat`` (V,F,h,w,3), optional ``saturated`` (V,F,h,w)) and its
+    ``geometry`` artifact arrays (fit-geometry or the synthetic truth: ``vertices``, per-view ``K``/``R``/``t``
+    with ``view_names`` (or ``camera_names``), ``flash_ids``, ``flash_pos``, ``flash_intensity``). The camera
+    is the view's camera restricted to the stored capture window (principal point minus the crop origin), the
+    flashes those the geometry knows."""
+    from reflectmm_cli.geometry import Camera
+
+    gv = _names(geometry["view_names"] if "view_names" in geometry else geometry["camera_names"])
+    cv = _names(capture["view_names"])
+    if view not in gv or view not in cv:
+        raise ReflectmmError(f"relighting: view '{view}' not in the geometry ({', '.join(gv)}) and the capture "
+                             f"({', '.join(cv)})")
+    g, c = gv.index(view), cv.index(view)
+    x0, y0 = (int(v) for v in np.asarray(capture["crop_origin"])[c])
+    h, w = np.asarray(capture["olat"]).shape[2:4]
+    K = np.array(geometry["K"][g], np.float64)
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    cam = Camera(K, np.asarray(geometry["R"][g], np.float64), np.asarray(geometry["t"][g], np.float64), w, h, view)
+    fids = _names(geometry["flash_ids"])
+    sat = None
+    if "saturated" in capture:
+        cf = _names(capture["flash_ids"])
+        sat = {f: np.asarray(capture["saturated"][c, cf.index(f)], bool) for f in fids if f in cf}
+    return RelightScene(np.asarray(geometry["vertices"], np.float64), np.asarray(triangles), cam,
+                        np.asarray(geometry["flash_pos"], np.float64),
+                        np.asarray(geometry["flash_intensity"], np.float64).reshape(-1), fids, uv=uv, saturated=sat)
+
+
+def capture_targets(capture: Mapping[str, np.ndarray], view: str, flashes: Sequence[str]) -> dict[str, np.ndarray]:
+    """flash id → (h,w,3) linear OLAT image of ``view`` from a capture artifact's arrays."""
+    cv, cf = _names(capture["view_names"]), _names(capture["flash_ids"])
+    if view not in cv:
+        raise ReflectmmError(f"relighting: view '{view}' not in the capture ({', '.join(cv)})")
+    out = {}
+    for f in flashes:
+        if str(f) not in cf:
+            raise ReflectmmError(f"relighting: flash '{f}' not in the capture ({', '.join(cf)})")
+        out[str(f)] = np.asarray(capture["olat"][cv.index(view), cf.index(str(f))], np.float64)
+    return out

@@ -73,3 +73,24 @@ def test_errors_and_figure(identity):
     rows = relighting_rows(rs, np.full((64, 64, 3), 0.3), {"truth": out}, targets, "07")
     assert len(rows) == 2 and len(rows[1]) == 5
     assert grid(rows).shape == (2 * 66 + 2, 5 * 66 + 2, 3)
+
+
+def test_scene_from_capture_and_geometry_artifacts_crops_the_window(identity):
+    from reflectmm_cli.evaluation.relighting import capture_targets, scene_from_artifacts
+
+    rs, albedo, weights, targets, fm, cam = identity
+    x0, y0, w, h = 10, 6, 40, 50
+    olat = np.stack([targets[f][y0:y0 + h, x0:x0 + w] for f in FLASHES])[None]
+    capture = {"view_names": np.array(["05_1"]), "flash_ids": np.array(FLASHES), "crop_origin": np.array([[x0, y0]]),
+               "olat": olat, "saturated": np.zeros(olat.shape[:4], bool)}
+    geometry = {"vertices": fm.mean_shape, "view_names": np.array(["05_1"]), "K": cam.K[None], "R": cam.R[None],
+                "t": cam.t[None], "flash_ids": np.array(FLASHES), "flash_pos": POS, "flash_intensity": INTENSITY}
+    sc = scene_from_artifacts(capture, geometry, fm.triangles, "05_1")
+    tg = capture_targets(capture, "05_1", ["05", "11"])
+    assert np.array_equal(sc.region("05"), rs.region("05")[y0:y0 + h, x0:x0 + w])
+    m = relighting_metrics(sc, relight(sc, albedo, weights, [1.0, 8.0, 64.0], ["05", "11"]), tg, scale="none")
+    assert m["psnr"] == 100.0
+    with pytest.raises(ReflectmmError, match="view '04_1'"):
+        scene_from_artifacts(capture, geometry, fm.triangles, "04_1")
+    with pytest.raises(ReflectmmError, match="flash '03'"):
+        capture_targets(capture, "05_1", ["03"])
