@@ -36,11 +36,36 @@ from reflectmm_cli.errors import ReflectmmError
 
 from .truth import global_scale
 
-__all__ = ["NormalEquations", "observation_normal_equations", "fit_coefficients", "oracle_coefficients",
+__all__ = ["resample_truth", "NormalEquations", "observation_normal_equations", "fit_coefficients", "oracle_coefficients",
            "albedo_errors", "evaluate_albedo", "albedo_table_rows", "DEFAULT_PRIOR"]
 
 #: default λ of the coefficient prior (relative to the mean squared radiance).
 DEFAULT_PRIOR = 1e-4
+
+
+def resample_truth(truth: Mapping[str, np.ndarray], size: int) -> dict[str, np.ndarray]:
+    """The truth's ``albedo`` (3,S,S), ``spec_albedo`` (S,S) and ``uv_mask`` at UV size ``size``: box average of
+    f×f texel blocks when S = f·size (a texel's mask = all of its block), else bilinear at the new texel centres
+    (docs/pipeline.md texel convention; mask = nearest). Same size: returned as is."""
+    from reflectmm_cli.model.pca import sample_uv_bilinear
+
+    a = np.asarray(truth["albedo"], np.float64)
+    S = a.shape[-1]
+    sp = np.asarray(truth["spec_albedo"], np.float64)
+    m = np.asarray(truth.get("uv_mask", np.ones((S, S), bool)), bool)
+    if S == size:
+        return {"albedo": a, "spec_albedo": sp, "uv_mask": m}
+    if S % size == 0:
+        f = S // size
+        box = lambda x: x.reshape(x.shape[:-2] + (size, f, size, f)).mean((-3, -1))  # noqa: E731
+        return {"albedo": box(a), "spec_albedo": box(sp), "uv_mask": box(m.astype(np.float64)) == 1.0}
+    c = (np.arange(size) + 0.5) / size
+    u, v = np.meshgrid(c, c)
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    stack = np.concatenate([a, sp[None], m[None].astype(np.float64)])
+    r = sample_uv_bilinear(stack, uv).T.reshape(5, size, size)
+    iy = np.minimum((c * S).astype(int), S - 1)
+    return {"albedo": r[:3], "spec_albedo": r[3], "uv_mask": m[np.ix_(iy, iy)]}
 
 
 def _get(model, k):
@@ -199,7 +224,7 @@ def evaluate_albedo(models: Mapping[str, Any], identities: Mapping[str, tuple[Ma
     Args:
         models: name → reflectance model (object or artifact arrays), all of the observations' UV size.
         identities: id → (uv-observations arrays, truth arrays with ``albedo`` (3,S,S), ``spec_albedo`` (S,S) and
-            optionally ``uv_mask``).
+            optionally ``uv_mask``; a truth of another UV size is resampled with :func:`resample_truth`).
         prior: λ of :func:`fit_coefficients`; pairs: pair indices used for the fit (default all).
         oracle: also evaluate the projection of the true diffuse albedo (model name suffixed " (oracle)").
     """
@@ -211,6 +236,7 @@ def evaluate_albedo(models: Mapping[str, Any], identities: Mapping[str, tuple[Ma
     for mname, iid in it:
         model = models[mname]
         obs, truth = identities[iid]
+        truth = resample_truth(truth, int(np.asarray(obs["mask"]).shape[-1]))
         ne = observation_normal_equations(model, obs, pairs)
         beta, stats = fit_coefficients(model, obs, prior=prior, equations=ne)
         tmask = np.asarray(truth.get("uv_mask", np.ones(ne.observed.shape, bool)), bool)

@@ -36,7 +36,8 @@ from .face_metrics import FaceMetrics, face_region_metrics, format_ci, mean_ci, 
 from .metrics import LPIPS
 
 __all__ = ["decode_image", "encode_like", "spec_albedo_of", "seen_vertices", "per_image_scale",
-           "image_metrics_table", "vertex_reflectance_errors", "table_row", "markdown_table"]
+           "image_metrics_table", "vertex_reflectance_errors", "evaluate_reconstruction", "table_row",
+           "markdown_table"]
 
 ENCODINGS = ("gamma1.2", "srgb", "linear")
 
@@ -183,6 +184,51 @@ def vertex_reflectance_errors(pred_albedo: np.ndarray, pred_spec: np.ndarray | N
     summary = {mode: {k: mean_ci(v[np.isfinite(v)], level=level, method=method) for k, v in e.items()
                       if np.isfinite(v).any()} for mode, e in per.items()}
     return {"scale": scale, "per_image": per, "summary": summary}
+
+
+def evaluate_reconstruction(pred: Mapping[str, np.ndarray], shard: Mapping[str, np.ndarray], *, encoding: str,
+                            select: np.ndarray | None = None, region: str = "face", lpips: LPIPS | None = None,
+                            level: float = 0.95, method: str = "t", batch_size: int = 32) -> dict[str, Any]:
+    """Table 2 numbers of one method on (a subset of) one shard.
+
+    Args:
+        pred: ``render`` (N,S,S,3) linear; optional ``vertex_albedo`` (N,V,3) and ``vertex_spec`` (N,V) (or
+            ``vertex_weights`` (N,V,K), summed) — per image, in the order of ``select``.
+        shard: wild-shard arrays (``image``, ``face_mask``, ``skin_mask``, ``pix_offset``, ``vert_ids``, ``names``
+            and, for reflectance errors, ``truth_vertex_albedo`` and ``truth_vertex_weights`` (N,V,K) / (N,V)).
+        encoding: the shard's ``encoding`` meta; select: (n,) indices of the evaluated images (default all),
+        region: ``"face"`` (face_mask, the paper's face region) or ``"skin"`` (skin_mask).
+    Returns:
+        ``{"image": image_metrics_table(...), "reflectance": vertex_reflectance_errors(...) | None,
+        "n_images", "region"}``.
+    """
+    if region not in ("face", "skin"):
+        raise ReflectmmError(f"reconstruction eval: region must be 'face' or 'skin', got {region!r}")
+    n_all = int(np.asarray(shard["pix_offset"]).shape[0] - 1)
+    idx = np.arange(n_all) if select is None else np.asarray(select, np.int64)
+    render = np.asarray(pred["render"])
+    if render.shape[0] != idx.shape[0]:
+        raise ReflectmmError(f"reconstruction eval: {render.shape[0]} predicted renders for {idx.shape[0]} images")
+    masks = np.asarray(shard[f"{region}_mask"])[idx]
+    names = [str(x) for x in np.asarray(shard["names"])[idx]] if "names" in shard else None
+    img = image_metrics_table(render, np.asarray(shard["image"])[idx], masks, encoding, lpips=lpips, level=level,
+                              method=method, batch_size=batch_size, names=names)
+    refl = None
+    if "vertex_albedo" in pred and "truth_vertex_albedo" in shard:
+        ta = np.asarray(shard["truth_vertex_albedo"])[idx]
+        off = np.asarray(shard["pix_offset"], np.int64)
+        vid = np.asarray(shard["vert_ids"])
+        # the seen vertices of the selected images (G-buffer rows of each image, re-packed)
+        rows = [np.arange(off[i], off[i + 1]) for i in idx]
+        sub_off = np.concatenate([[0], np.cumsum([len(r) for r in rows])])
+        sub_vid = vid[np.concatenate(rows)] if rows else vid[:0]
+        seen = seen_vertices(sub_off, sub_vid, ta.shape[1])
+        ps = ts = None
+        if "truth_vertex_weights" in shard and ("vertex_spec" in pred or "vertex_weights" in pred):
+            ts = spec_albedo_of(np.asarray(shard["truth_vertex_weights"])[idx])
+            ps = spec_albedo_of(pred["vertex_spec"] if "vertex_spec" in pred else pred["vertex_weights"])
+        refl = vertex_reflectance_errors(pred["vertex_albedo"], ps, ta, ts, seen, level=level, method=method)
+    return {"image": img, "reflectance": refl, "n_images": int(idx.shape[0]), "region": region}
 
 
 def table_row(name: str, image: Mapping[str, Any] | None = None,

@@ -141,3 +141,23 @@ def test_albedo_errors_closed_form():
     assert e["scaled"]["diffuse_rel"] == pytest.approx(0, abs=1e-12)
     with pytest.raises(ReflectmmError, match="empty"):
         albedo_errors(t, ts, t, ts, np.zeros((8, 8), bool))
+
+
+def test_resample_truth_box_and_bilinear():
+    from reflectmm_cli.evaluation.albedo_eval import resample_truth
+
+    rng = np.random.default_rng(5)
+    a = rng.uniform(size=(3, 8, 8))
+    s = rng.uniform(size=(8, 8))
+    m = np.ones((8, 8), bool)
+    m[0, 0] = False
+    r = resample_truth({"albedo": a, "spec_albedo": s, "uv_mask": m}, 4)
+    assert r["albedo"][1, 2, 3] == pytest.approx(a[1, 4:6, 6:8].mean())
+    assert not r["uv_mask"][0, 0] and r["uv_mask"][0, 1]
+    # a linear ramp is reproduced exactly by bilinear resampling at texel centres (inside the border)
+    c = (np.arange(8) + 0.5) / 8
+    ramp = np.broadcast_to(c[None, :], (8, 8))
+    r2 = resample_truth({"albedo": np.stack([ramp] * 3), "spec_albedo": ramp}, 6)
+    c6 = (np.arange(6) + 0.5) / 6
+    inner = (c6 > 1 / 16) & (c6 < 15 / 16)
+    assert np.allclose(r2["spec_albedo"][:, inner], np.broadcast_to(c6[None, inner], (6, inner.sum())))

@@ -116,3 +116,32 @@ def test_paper_vs_ours_rows():
     assert byq["diffuse albedo PSNR (ours)"]["reflectmm"] == "24.50 dB"
     assert byq["PSNR gain of ours over ours w/o finetuning"]["reflectmm"] == "+0.40 dB"
     assert byq["specular albedo PSNR (ours; Σw as specular albedo)"]["reflectmm"] == "not run"
+
+
+def test_evaluate_reconstruction_on_a_tiny_shard():
+    from reflectmm_cli.evaluation.reconstruction_eval import evaluate_reconstruction
+
+    rng = np.random.default_rng(4)
+    N, Sz, V = 3, 24, 10
+    img = rng.integers(0, 256, (N, Sz, Sz, 3), dtype=np.uint8)
+    face = np.zeros((N, Sz, Sz), bool)
+    face[:, 4:20, 5:19] = True
+    off = np.array([0, 2, 4, 5])
+    vid = np.array([[0, 1, 2], [2, 3, 4], [5, 6, 7], [7, 8, 9], [0, 9, 5]])
+    ta = rng.uniform(0.2, 0.6, (N, V, 3)).astype(np.float16)
+    tw = rng.uniform(0.0, 0.03, (N, V, 3)).astype(np.float16)
+    shard = {"image": img, "face_mask": face, "skin_mask": face, "pix_offset": off, "vert_ids": vid,
+             "names": np.array(["a", "b", "c"]), "truth_vertex_albedo": ta, "truth_vertex_weights": tw}
+    sel = np.array([2, 0])
+    pred = {"render": decode_image(img[sel], "srgb"), "vertex_albedo": 2.0 * ta[sel].astype(np.float64),
+            "vertex_weights": 2.0 * tw[sel].astype(np.float64)}
+    out = evaluate_reconstruction(pred, shard, encoding="srgb", select=sel)
+    assert out["n_images"] == 2
+    assert np.all(out["image"]["per_image"].per_image["psnr"] == PSNR_CAP)
+    r = out["reflectance"]
+    assert np.allclose(r["scale"], 0.5) and np.allclose(r["per_image"]["scaled"]["spec_rel"], 0, atol=1e-12)
+    # image 2 sees only vertices {0, 5, 9}: its raw error is computed there only
+    d = (2.0 * ta[2] - ta[2]).astype(np.float64)[[0, 5, 9]]
+    assert r["per_image"]["raw"]["albedo_rmse"][0] == pytest.approx(np.sqrt(np.mean(d ** 2)))
+    with pytest.raises(ReflectmmError, match="2 predicted renders for 3 images"):
+        evaluate_reconstruction(pred, shard, encoding="srgb")
