@@ -161,3 +161,21 @@ def test_resample_truth_box_and_bilinear():
     c6 = (np.arange(6) + 0.5) / 6
     inner = (c6 > 1 / 16) & (c6 < 15 / 16)
     assert np.allclose(r2["spec_albedo"][:, inner], np.broadcast_to(c6[None, inner], (6, inner.sum())))
+
+
+def test_load_truths_from_synth_truth_artifacts(world, tmp_path):
+    from reflectmm_cli.artifacts import write_artifact
+    from reflectmm_cli.evaluation.baselines import load_truths
+
+    paths = []
+    for i, (_, t) in enumerate(world[:3]):
+        paths.append(write_artifact(tmp_path / f"{i + 1:03d}.npz", "synth-truth",
+                                    {"albedo": t["albedo"], "spec_albedo": t["spec_albedo"], "uv_mask": t["uv_mask"],
+                                     "weights": t["weights"]}, extra_meta={"identity": f"{i + 1:03d}"}))
+    truths, ids = load_truths(paths)
+    assert ids == ["001", "002", "003"] and set(truths[0]) == {"albedo", "spec_albedo", "uv_mask"}
+    m = global_exponent_model(truths, components=2, ids=ids)
+    assert m.ids == ids and m.n_components == 2
+    bad = write_artifact(tmp_path / "bad.npz", "synth-truth", {"albedo": world[0][1]["albedo"]})
+    with pytest.raises(ReflectmmError, match="bad.npz: truth has no 'spec_albedo'"):
+        load_truths([bad])
