@@ -145,3 +145,25 @@ def test_evaluate_reconstruction_on_a_tiny_shard():
     assert r["per_image"]["raw"]["albedo_rmse"][0] == pytest.approx(np.sqrt(np.mean(d ** 2)))
     with pytest.raises(ReflectmmError, match="2 predicted renders for 3 images"):
         evaluate_reconstruction(pred, shard, encoding="srgb")
+
+
+def test_results_document_and_flat_arrays():
+    import json
+
+    from reflectmm_cli.evaluation.face_metrics import face_region_metrics
+    from reflectmm_cli.evaluation.results import evaluation_arrays, flatten_numbers, to_document
+
+    rng = np.random.default_rng(7)
+    t = rng.uniform(0.2, 0.8, (2, 16, 16, 3))
+    p = np.clip(t + 0.05, 0, 1)
+    m = np.ones((2, 16, 16), bool)
+    fm = face_region_metrics(p, t, m)
+    doc = {"ours": {"image": fm, "scale": np.array([1.0, 2.0]), "ok": True, "bad": float("nan")}}
+    js = json.loads(json.dumps(to_document(doc)))
+    assert js["ours"]["image"]["lpips"].startswith("off") and js["ours"]["bad"] is None
+    assert js["ours"]["image"]["per_image"]["psnr"] == pytest.approx(list(fm.per_image["psnr"]))
+    flat = flatten_numbers(doc)
+    assert flat["ours.scale[1]"] == 2.0 and "ours.ok" not in flat
+    assert flat["ours.image.summary.psnr.mean"] == pytest.approx(fm.summary["psnr"]["mean"])
+    arr = evaluation_arrays(doc)
+    assert list(arr["names"]) == sorted(arr["names"]) and arr["values"].dtype == np.float64
