@@ -156,3 +156,22 @@ def test_released_protocol_depends_on_background_area_unlike_per_image():
     a = face_region_metrics(p, t, m).summary["psnr"]["mean"]
     b = face_region_metrics(big ** (1 / 1.2), big_t, big_m).summary["psnr"]["mean"]
     assert a == pytest.approx(b, rel=1e-9)
+
+
+@given(st.lists(st.floats(-1e3, 1e3), min_size=2, max_size=40), st.floats(1e-3, 1e3), st.floats(-1e3, 1e3))
+def test_ci_is_affine_equivariant_and_finite(xs, a, b):
+    x = np.array(xs)
+    c0, c1 = mean_ci(x), mean_ci(a * x + b)
+    tol = 1e-6 * (1 + a * np.abs(x).max() + abs(b))
+    assert np.isfinite(c1["lo"]) and c1["lo"] <= c1["mean"] <= c1["hi"]
+    assert c1["mean"] == pytest.approx(a * c0["mean"] + b, abs=tol)
+    assert c1["half_width"] == pytest.approx(a * c0["half_width"], abs=tol)
+    bs = mean_ci(x, method="bootstrap", n_boot=200)
+    assert bs["lo"] <= bs["hi"] and x.min() - 1e-9 <= bs["lo"] and bs["hi"] <= x.max() + 1e-9
+
+
+def test_constant_values_and_images():
+    c = mean_ci([2.5] * 6)
+    assert c["lo"] == c["hi"] == 2.5
+    a = np.full((9, 9, 3), 0.4)
+    assert np.allclose(ssim_window_map(a, a), 1.0)

@@ -94,3 +94,14 @@ def test_scene_from_capture_and_geometry_artifacts_crops_the_window(identity):
         scene_from_artifacts(capture, geometry, fm.triangles, "04_1")
     with pytest.raises(ReflectmmError, match="flash '03'"):
         capture_targets(capture, "05_1", ["03"])
+
+
+def test_uv_maps_render_like_per_vertex_values(identity):
+    """Constant UV maps and the same constants per vertex give the same relit images."""
+    rs, albedo, weights, targets, fm, cam = identity
+    rs_uv = RelightScene(fm.mean_shape, fm.triangles, cam, POS, INTENSITY, FLASHES, uv=fm.uv)
+    c, w = np.array([0.5, 0.4, 0.3]), np.array([0.02, 0.03, 0.01])
+    maps = relight(rs_uv, np.ones((3, 16, 16)) * c[:, None, None], np.ones((3, 16, 16)) * w[:, None, None],
+                   [1.0, 8.0, 64.0], ["07"])
+    vert = relight(rs, np.tile(c, (len(albedo), 1)), np.tile(w, (len(albedo), 1)), [1.0, 8.0, 64.0], ["07"])
+    assert np.allclose(maps["07"]["full"], vert["07"]["full"], rtol=1e-5, atol=1e-7)
