@@ -37,7 +37,8 @@ from reflectmm_cli.errors import ReflectmmError
 from .truth import global_scale
 
 __all__ = ["resample_truth", "NormalEquations", "observation_normal_equations", "fit_coefficients",
-           "oracle_coefficients", "albedo_errors", "AlbedoResult", "evaluate_albedo", "albedo_table_rows", "DEFAULT_PRIOR"]
+           "oracle_coefficients", "albedo_errors", "AlbedoResult", "evaluate_albedo", "albedo_table_rows",
+           "DEFAULT_PRIOR"]
 
 #: default λ of the coefficient prior (relative to the mean squared radiance).
 DEFAULT_PRIOR = 1e-4
