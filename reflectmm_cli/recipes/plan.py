@@ -34,6 +34,7 @@ RUNLOG_FILE = "runlog.jsonl"
 
 # task actions
 RUN, SKIP, BLOCKED, ERROR, DEFERRED, FAILED = "run", "skip", "blocked", "error", "deferred", "failed"
+DONE = "ok"  # a prior status (make_plan's ``prior``): the task ran successfully earlier in this run
 
 
 def state_dir(workspace: Path) -> Path:
@@ -197,6 +198,11 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
             if t.tid in prior and prior[t.tid] in (FAILED, BLOCKED):
                 t.action = FAILED if prior[t.tid] == FAILED else BLOCKED
                 t.reason = f"{'failed' if t.action == FAILED else 'blocked'} earlier in this run"
+                continue
+            if prior.get(t.tid) == DONE:
+                # ran earlier in this run: its outputs are fresh, so it neither runs again (even when
+                # forced) nor keeps a deferred "all found" stage waiting
+                t.action, t.reason = SKIP, "ran earlier in this run"
                 continue
             _decide(t, stage, tasks, workspace, hash_memo, forced=(force == "*" or force == name))
     if ids is not None and not deferred:
