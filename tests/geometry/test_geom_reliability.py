@@ -51,3 +51,40 @@ def test_render_envmap_huge_exponent_is_cheap(cli, model_file, ws, monkeypatch):
             "--camera", "size=80x60,focal=200", "-o", out)
     assert r.exit_code == 0, r.stderr
     assert np.isfinite(read_exr(out)[0]["R"]).all()
+
+
+def _nan_model(model_file, dst, field, index):
+    from reflectmm_cli.artifacts import read_artifact
+
+    art = read_artifact(model_file, "face-model")
+    arrays = dict(art.arrays)
+    a = np.array(arrays[field], dtype=np.float32)
+    a[index] = np.nan
+    arrays[field] = a
+    write_artifact(dst, "face-model", arrays, extra_meta={k: v for k, v in art.meta.items()
+                                                         if k in ("name", "info")})
+    return dst
+
+
+@pytest.mark.parametrize("field,index,word", [("mean_shape", (7, 1), "vertex 7"), ("uv", (3, 0), "vertex 3")])
+def test_face_model_with_nan_is_refused_naming_the_file(cli, model_file, ws, field, index, word):
+    import warnings
+
+    bad = _nan_model(model_file, ws / f"nan_{field}.npz", field, index)
+    maps = _maps(ws / "m.npz", [1.0, 8.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no raw numpy warning on the way
+        for args in (["face-model", "info", bad],
+                     ["render", "--face-model", bad, "--maps", maps, "--point-light", "0,0,900",
+                      "--camera", "size=40x30,focal=100", "-o", ws / "x.exr"]):
+            r = cli(*args)
+            assert r.exit_code == 1, r.stderr
+            line = r.stderr.strip()
+            assert line.startswith(f"reflectmm: error: {bad}:") and field in line and word in line, line
+            assert len(line.splitlines()) == 1
+    # the same through a recipe stage
+    (ws / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.render]\n'
+                               f'inputs = {{ face_model = "{bad.name}", maps = "m.npz" }}\n'
+                               'params = { point_light = "0,0,900", camera = "size=40x30,focal=100" }\n')
+    r = cli("run", ws / "r.toml", "-w", ws)
+    assert r.exit_code == 1 and str(bad) in r.stderr and "NaN" in r.stderr
