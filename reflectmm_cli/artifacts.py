@@ -124,6 +124,12 @@ def schema_of(path: str | Path) -> str | None:
         return None
 
 
+def path_for_meta(path: str | Path, artifact: str | Path) -> str:
+    """``path`` as stored in the meta of the artifact at ``artifact``: relative to the artifact's folder, with
+    forward slashes, so the same workspace in two places gives the same bytes (see :func:`input_ref`)."""
+    return Path(os.path.relpath(Path(path).absolute(), Path(artifact).absolute().parent)).as_posix()
+
+
 def input_ref(role: str, path: str | Path, relative_to: str | Path | None = None) -> dict[str, Any]:
     """Provenance record of one input file: role, path, sha256 and schema (if an artifact).
 

@@ -16,7 +16,7 @@ from typing import Any
 import click
 import numpy as np
 
-from reflectmm_cli.artifacts import Artifact, read_artifact, write_artifact, write_png
+from reflectmm_cli.artifacts import Artifact, path_for_meta, read_artifact, write_artifact, write_png
 from reflectmm_cli.commands._common import (
     device_option,
     emit,
@@ -354,6 +354,7 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
 
             kw["landmark_ids"] = load_face_model(fm_list[0]).landmarks
         arrays, report = geometry_from_truth(truth_path, **kw)
+        report["truth_file"] = path_for_meta(truth_path, out)
         write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                        producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
         log.info("fit-geometry %s: ground-truth geometry from %s (%d views)", identity, truth_path, report["views"])
@@ -366,6 +367,8 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
                                       landmarks_dir=lm_list[0] if lm_list else None, focal=ctx.param("focal"),
                                       config=cfg, truth_path=truth_path, device=ctx.device,
                                       flash_intensity=ctx.param("flash_intensity"))
+    if "truth_file" in report:
+        report["truth_file"] = path_for_meta(truth_path, out)
     write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                    producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
     written = [out]

@@ -182,3 +182,28 @@ def test_landmarks_dir_overrides_capture(world, cli, tmp_path):
     assert np.linalg.norm(g["cam_centers"][v] - tc) > 5.0
     if ref is not None:
         assert np.linalg.norm(g["cam_centers"][v] - tc) > np.linalg.norm(ref["cam_centers"][v] - tc)
+
+
+@pytest.mark.parametrize("from_truth", [False, True])
+def test_recipe_at_two_paths_gives_identical_bytes(world, cli, tmp_path, from_truth):
+    # the report's truth_file is stored relative to the artifact, like its inputs
+    import shutil
+
+    params = '{ from_truth = true }' if from_truth else \
+        '{ landmark_iters = 30, photo_rounds = 1, photo_iters = 5, no_overlay = true }'
+    recipe = ('schema = "reflectmm.recipe/1"\n[stages.fit-geometry]\nforeach = ["001"]\n'
+              'inputs = { capture = "preprocess-multipie/{id}.npz", face_model = "syn/face_model.npz", '
+              'rig = "syn/rig.toml", truth = "syn/truth/{id}.npz" }\n'
+              f'params = {params}\n')
+    outs = []
+    for where in ("one", "two/deeper"):
+        w = tmp_path / where
+        for sub in ("syn", "preprocess-multipie"):
+            shutil.copytree(world / sub, w / sub)
+        (w / "r.toml").write_text(recipe)
+        r = cli("-q", "run", w / "r.toml", "-w", w)
+        assert r.exit_code == 0, r.stderr
+        outs.append(w / "fit-geometry" / "001.npz")
+    g = read_artifact(outs[0], "geometry")
+    assert g.meta["report"]["truth_file"] == "../syn/truth/001.npz"
+    assert outs[0].read_bytes() == outs[1].read_bytes()
