@@ -88,3 +88,18 @@ def test_face_model_with_nan_is_refused_naming_the_file(cli, model_file, ws, fie
                                'params = { point_light = "0,0,900", camera = "size=40x30,focal=100" }\n')
     r = cli("run", ws / "r.toml", "-w", ws)
     assert r.exit_code == 1 and str(bad) in r.stderr and "NaN" in r.stderr
+
+
+@pytest.mark.parametrize("kind", ["nan", "two-channel"])
+def test_render_refuses_bad_envmap_naming_it(cli, model_file, ws, kind):
+    env = _env(ws / f"env_{kind}.exr", channels=2 if kind == "two-channel" else 3, nan=kind == "nan")
+    maps = _maps(ws / "m3.npz", [1.0, 8.0])
+    r = cli("render", "--face-model", model_file, "--maps", maps, "--envmap", env, "--camera",
+            "size=40x30,focal=100", "-o", ws / "y.exr")
+    assert r.exit_code == 1
+    line = r.stderr.strip()
+    want = "NaN or infinite pixel(s) (first at row 3, column 4)" if kind == "nan" else "has 2 channels"
+    assert line.startswith(f"reflectmm: error: {env}: environment map: ") and want in line, line
+    # build-light-pca refuses the same file for the same reason (alone: nothing usable → error)
+    r = cli("build-light-pca", env, "-o", ws / "lm.npz")
+    assert r.exit_code == 1 and want in r.stderr and env.name in r.stderr
