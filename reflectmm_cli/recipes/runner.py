@@ -62,6 +62,16 @@ class RunReport:
     tasks: list[TaskOutcome]
     plan_seconds: float = 0.0
     run_seconds: float = 0.0
+    empty: list[str] = field(default_factory=list)  # per-identity stages whose foreach matched nothing
+
+    def empty_error(self) -> str | None:
+        """The one-line refusal of a run in which a stage's foreach matched no identity (None if none did);
+        ``reflectmm run`` fails with it unless ``--allow-empty``."""
+        if not self.empty:
+            return None
+        return (f"{self.recipe}: stage{'s' if len(self.empty) > 1 else ''} {', '.join(self.empty)}: foreach "
+                f"matched no identity, so nothing ran for {'them' if len(self.empty) > 1 else 'it'} — check the "
+                f"inputs it searches, or pass --allow-empty if an empty run is expected")
 
     def by_status(self, status: str) -> list[TaskOutcome]:
         return [t for t in self.tasks if t.status == status]
@@ -83,7 +93,7 @@ class RunReport:
         return {"recipe": self.recipe, "workspace": str(self.workspace), "dry_run": self.dry_run,
                 "counts": self.counts(), "plan_seconds": round(self.plan_seconds, 4),
                 "run_seconds": round(self.run_seconds, 4), "tasks": [t.as_dict() for t in self.tasks],
-                "outputs": self.outputs()}
+                "outputs": self.outputs(), "empty": list(self.empty)}
 
 
 class RunLog:
@@ -147,7 +157,7 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
         rows = [TaskOutcome(t.stage_name, t.identity, t.action, t.reason, t.cache_key,
                             outputs=[str(p) for p in t.outputs]) for t in plan.selected()]
         rows += [TaskOutcome(s, None, DEFERRED, _deferred_reason(plan, s)) for s in plan.deferred]
-        return RunReport(recipe.name, workspace, True, rows, plan_seconds)
+        return _warn_empty(RunReport(recipe.name, workspace, True, rows, plan_seconds, empty=list(plan.empty)))
 
     with workspace_lock(workspace) as locked:
         memo = load_hash_memo(workspace)
@@ -160,8 +170,14 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
                 raise ReflectmmError(f"cannot write to the workspace ({locked}); {len(todo)} task(s) need to run "
                                      f"({todo[0]}{' ...' if len(todo) > 1 else ''}) — make it writable or use "
                                      f"another --workspace", workspace)
-        return _run_locked(recipe, workspace, memo, plan, plan_seconds, force=force, only=only, ids=ids,
-                           executor=executor, jobs=jobs, scheduler=scheduler)
+        return _warn_empty(_run_locked(recipe, workspace, memo, plan, plan_seconds, force=force, only=only,
+                                       ids=ids, executor=executor, jobs=jobs, scheduler=scheduler))
+
+
+def _warn_empty(report: RunReport) -> RunReport:
+    for s in report.empty:
+        log.warning("stage %s: foreach matched no identity; nothing to do for it", s)
+    return report
 
 
 @contextmanager
@@ -236,7 +252,8 @@ def _run_locked(recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Pla
             ex.close()
     order = {tid: i for i, tid in enumerate(plan.tasks)}
     ordered = sorted(outcomes.values(), key=lambda o: order.get(o.tid, len(order)))
-    return RunReport(recipe.name, workspace, False, ordered, plan_seconds, time.perf_counter() - t1)
+    return RunReport(recipe.name, workspace, False, ordered, plan_seconds, time.perf_counter() - t1,
+                     empty=list(plan.empty))
 
 
 def _deferred_reason(plan: Plan, stage: str) -> str:

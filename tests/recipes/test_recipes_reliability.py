@@ -50,3 +50,28 @@ def test_force_through_cli_exits_zero(cli, ws):
     r = cli("run", ws / "recipe.toml", "-w", ws, "--force")
     assert r.exit_code == 0, r.stderr
     assert len(r.stdout.splitlines()) == 5
+
+
+EMPTY = """
+schema = "reflectmm.recipe/1"
+[stages.found]
+verb = "checksum"
+foreach = "all found"
+params = { discover = "nothing-here/*" }
+inputs = { files = "data/{id}" }
+"""
+
+
+def test_foreach_matching_nothing_fails_unless_allowed(cli, ws):
+    (ws / "recipe.toml").write_text(EMPTY)
+    r = cli("run", ws / "recipe.toml", "-w", ws)
+    assert r.exit_code == 1
+    assert "stage found: foreach matched no identity" in r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("reflectmm: error: recipe: stage found: foreach matched no "
+                                                        "identity, so nothing ran")
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--allow-empty")
+    assert r.exit_code == 0 and "foreach matched no identity" in r.stderr  # still warned
+    (ws / "ids.txt").write_text("# nobody yet\n")
+    (ws / "recipe.toml").write_text(EMPTY.replace('"all found"', '{ file = "ids.txt" }'))
+    assert cli("run", ws / "recipe.toml", "-w", ws).exit_code == 1
+    assert cli("run", ws / "recipe.toml", "-w", ws, "-n").exit_code == 0  # a dry run only warns
