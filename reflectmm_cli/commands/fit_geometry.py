@@ -62,6 +62,7 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
     """(V, 68, 2) full-frame landmarks per view (``--landmarks DIR`` files first, else the capture's), and where
     each came from; a clear error naming the expected file for a view without any."""
     from reflectmm_cli.fitting.landmarks import find_landmark_file, read_landmarks
+    from reflectmm_cli.landmarks import check_in_frame
 
     V = len(view_names)
     out = np.full((V, 68, 2), np.nan)
@@ -78,7 +79,7 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
         if landmarks_dir is not None:
             f = find_landmark_file(landmarks_dir, name)
             if f is not None:
-                out[v] = read_landmarks(f)
+                out[v] = check_in_frame(read_landmarks(f), *np.asarray(capture["image_size"]).reshape(-1)[:2], f)
                 src[v] = str(f)
                 continue
         if cap_lm is not None and np.isfinite(cap_lm[v]).all(-1).sum() >= 6:

@@ -102,6 +102,11 @@ def test_bad_landmark_file(world, cli, tmp_path):
     write_pts(tmp_path / "05_1.pts", np.zeros((60, 2)))
     msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--landmarks", tmp_path, "-o", tmp_path / "g.npz"))
     assert "05_1.pts" in msg and "expected 68 landmarks, found 60" in msg
+    far = np.full((68, 2), 100.0)
+    far[5] = [1e6, 50.0]
+    write_pts(tmp_path / "05_1.pts", far)
+    msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--landmarks", tmp_path, "-o", tmp_path / "g.npz"))
+    assert "05_1.pts: 1 landmark(s) far outside the 240x180 frame (landmark 6 at (1e+06, 50) px)" in msg
 
 
 def test_view_not_in_rig(world, cli, tmp_path):
