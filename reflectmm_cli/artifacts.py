@@ -285,6 +285,24 @@ def _npy_bytes(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def artifact_identity(art: "Artifact") -> str | None:
+    """The identity a per-identity artifact was made for (``meta.report.identity``, else ``meta.identity``)."""
+    rep = art.meta.get("report")
+    ident = rep.get("identity") if isinstance(rep, dict) else None
+    ident = ident if ident is not None else art.meta.get("identity")
+    return None if ident is None else str(ident)
+
+
+def check_identity(art: "Artifact", identity: str | None) -> "Artifact":
+    """Refuse an input artifact made for another identity than the task's (``--id 999`` given 001's files
+    would otherwise label 001's data 999). Artifacts that record no identity pass."""
+    have = artifact_identity(art)
+    if identity is not None and have is not None and have != str(identity):
+        raise ArtifactError(f"is identity {have}'s {art.kind}, but this task is for identity {identity}; "
+                            f"pass the matching file or --id {have}", art.path)
+    return art
+
+
 def refuse_newer_target(path: str | Path) -> None:
     """Refuse to overwrite an artifact whose schema is newer than this release writes (a newer reflectmm made
     it; replacing it with an older format would lose data). Files that are not artifacts are not looked at."""

@@ -16,7 +16,7 @@ from typing import Any
 import click
 import numpy as np
 
-from reflectmm_cli.artifacts import Artifact, path_for_meta, read_artifact, write_artifact, write_png
+from reflectmm_cli.artifacts import Artifact, check_identity, path_for_meta, read_artifact, write_artifact, write_png
 from reflectmm_cli.commands._common import (
     device_option,
     emit,
@@ -169,7 +169,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     from reflectmm_cli.rig import load_rig
 
     cfg = config or FitConfig()
-    capture = read_artifact(capture_path, "capture")
+    capture = check_identity(read_artifact(capture_path, "capture"), identity)
     fm = load_face_model(face_model_path)
     model = ShapeModel.from_face_model(fm)
     rig = load_rig(rig_path)
@@ -342,7 +342,7 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
     truth_list = ctx.input_list("truth", required=False)
     truth_path = truth_list[0] if truth_list else None
     if ctx.param("from_truth"):
-        capture = read_artifact(capture_path, "capture") if capture_path.is_file() else None
+        capture = check_identity(read_artifact(capture_path, "capture"), identity) if capture_path.is_file() else None
         kw: dict[str, Any] = {}
         if capture is not None:
             kw = {"view_names": _str_list(capture["view_names"]), "flash_ids": _str_list(capture["flash_ids"]),

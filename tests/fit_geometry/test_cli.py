@@ -212,3 +212,24 @@ def test_recipe_at_two_paths_gives_identical_bytes(world, cli, tmp_path, from_tr
     g = read_artifact(outs[0], "geometry")
     assert g.meta["report"]["truth_file"] == "../syn/truth/001.npz"
     assert outs[0].read_bytes() == outs[1].read_bytes()
+
+
+def test_inputs_of_another_identity_are_refused(world, cli, tmp_path):
+    cap = world / "preprocess-multipie" / "001.npz"
+    truth = world / "syn" / "truth" / "001.npz"
+    msg = _err(cli("fit-geometry", "--id", "999", "-w", world, "--capture", cap, "--from-truth", truth,
+                   "-o", tmp_path / "g999.npz"))
+    assert f"{cap}: is identity 001's capture, but this task is for identity 999" in msg
+    geo = tmp_path / "g001.npz"
+    assert cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", truth, "-o", geo).exit_code == 0
+    fm = world / "syn" / "face_model.npz"
+    msg = _err(cli("unwrap-uv", "--id", "999", "-w", tmp_path, "--capture", cap, "--geometry", geo,
+                   "--face-model", fm, "--uv-size", "32"))
+    assert f"{cap}: is identity 001's capture, but this task is for identity 999; pass the matching file or " \
+           "--id 001" in msg
+    assert not (tmp_path / "unwrap-uv" / "999.npz").exists()
+    (tmp_path / "r.toml").write_text(
+        'schema = "reflectmm.recipe/1"\n[stages.unwrap-uv]\nforeach = ["999"]\n'
+        f'inputs = {{ capture = "{cap}", geometry = "{geo}", face_model = "{fm}" }}\nparams = {{ uv_size = 32 }}\n')
+    r = cli("run", tmp_path / "r.toml", "-w", tmp_path)
+    assert r.exit_code == 1 and "is identity 001's capture, but this task is for identity 999" in r.stderr
