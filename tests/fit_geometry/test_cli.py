@@ -233,3 +233,22 @@ def test_inputs_of_another_identity_are_refused(world, cli, tmp_path):
         f'inputs = {{ capture = "{cap}", geometry = "{geo}", face_model = "{fm}" }}\nparams = {{ uv_size = 32 }}\n')
     r = cli("run", tmp_path / "r.toml", "-w", tmp_path)
     assert r.exit_code == 1 and "is identity 001's capture, but this task is for identity 999" in r.stderr
+
+
+@pytest.mark.slow
+def test_summary_line_survives_in_captured_logs(world, tmp_path):
+    # stderr to a file or pipe: progress as plain lines, no carriage return overwriting the summary
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    r = subprocess.run([sys.executable, "-m", "reflectmm_cli", "fit-geometry", "--id", "001", "-w", str(world),
+                        "--iters", "20", "--photo-rounds", "1", "--no-overlay", "-o", str(tmp_path / "g.npz")],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "\r" not in r.stderr
+    lines = r.stderr.splitlines()
+    assert any(ln.startswith("fit-geometry 001: landmark RMS") for ln in lines), lines
+    assert any(ln.startswith("fit-geometry: 2/2 stage (100%") for ln in lines), lines
