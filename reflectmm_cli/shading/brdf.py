@@ -53,7 +53,7 @@ def check_distinct_exponents(exponents, what: str = "exponents") -> None:
             c = lobe_correlation(p[i], p[j])
             if c >= COLLINEAR_LOBES:
                 raise ReflectmmError(
-                    f"{what}: {p[i]:g} and {p[j]:g} give numerically collinear lobes (correlation 1 − "
+                    f"{what}: {p[i]:.10g} and {p[j]:.10g} give numerically collinear lobes (correlation 1 − "
                     f"{max(1.0 - c, 0.0):.1e}); their weights cannot be told apart — drop one or separate them "
                     f"by more than ~1 %")
 
