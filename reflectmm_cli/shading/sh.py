@@ -372,7 +372,8 @@ def blinn_phong_sh_coeffs(p, order: int) -> np.ndarray:
     """Funk–Hecke coefficients B_l (l = 0..L) of the normalised half-angle lobe of DESIGN.md §2.
 
     ``B_l = 2π ∫_0^1 f ((1+t)/2)^(p/2) P_l(t) dt`` so that ``B_0 = 1``. Accurate to ~1e-12 for any p > 0:
-    Gauss–Legendre quadrature below p = 200, a closed form above (O(L) work, so p = 1e5 costs nothing). ``p`` may be a scalar (→ (L+1,)) or a 1-D array of K exponents (→ (K, L+1)). float64.
+    Gauss–Legendre quadrature below p = 200, a closed form above (O(L) work, so p = 1e5 costs nothing).
+    ``p`` may be a scalar (→ (L+1,)) or a 1-D array of K exponents (→ (K, L+1)). float64.
     """
     order = _check_order(order)
     pa = np.asarray(p, dtype=np.float64)
