@@ -219,12 +219,15 @@ def build_light_model(maps: Iterable[str | Path | np.ndarray], *, order: int = 8
     C = np.stack(coeffs)  # (M, 3, n)
     A = augment_sh(C, rots)  # (S, 3, n)
     Xn, dc = normalise_sh(A)
-    mean, bases, sigma, var, ratio = fit_light_pca(Xn.reshape(Xn.shape[0], -1), components, log)
+    notes: list[str] = []
+    mean, bases, sigma, var, ratio = fit_light_pca(Xn.reshape(Xn.shape[0], -1), components, notes.append)
     if bases.shape[0] == 0:
         raise ReflectmmError(
             f"build-light-pca: the {len(coeffs)} usable map(s) x {len(rots)} rotation(s) give {Xn.shape[0]} "
             f"sample(s) that do not vary (after normalising each by its mean colour), so a light model would have "
             f"0 components; give more distinct environment maps or --rotations > 1")
+    for note in notes:  # the cap on the component count, once there is a model to cap
+        log(note)
     model = LightModel(order=int(order), mean=mean, bases=bases, sigma=sigma, explained_variance=var,
                        explained_variance_ratio=ratio, dc=dc,
                        sample_map=np.repeat(np.arange(len(coeffs)), len(rots)),
