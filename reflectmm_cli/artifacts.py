@@ -19,6 +19,7 @@ renamed over the target, so an interrupted run leaves the old file or none.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
@@ -124,6 +125,12 @@ def schema_of(path: str | Path) -> str | None:
         return None
 
 
+def path_for_meta(path: str | Path, artifact: str | Path) -> str:
+    """``path`` as stored in the meta of the artifact at ``artifact``: relative to the artifact's folder, with
+    forward slashes, so the same workspace in two places gives the same bytes (see :func:`input_ref`)."""
+    return Path(os.path.relpath(Path(path).absolute(), Path(artifact).absolute().parent)).as_posix()
+
+
 def input_ref(role: str, path: str | Path, relative_to: str | Path | None = None) -> dict[str, Any]:
     """Provenance record of one input file: role, path, sha256 and schema (if an artifact).
 
@@ -149,17 +156,29 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     On any exception the temporary file is removed and ``path`` is untouched.
     """
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=(suffix if suffix is not None else ".tmp"),
-                               dir=target.parent)
-    os.close(fd)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=(suffix if suffix is not None else ".tmp"),
+                                   dir=target.parent)
+        os.close(fd)
+    except OSError as exc:
+        _raise_write_error(exc, target)
+        raise
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        with open(tmp_path, "rb+") as f:
-            os.fsync(f.fileno())
-        os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
-        os.replace(tmp_path, target)
+        try:
+            yield tmp_path
+        except OSError as exc:  # the caller's write into tmp_path (disk full, quota...)
+            _raise_write_error(exc, target)
+            raise
+        try:
+            with open(tmp_path, "rb+") as f:
+                os.fsync(f.fileno())
+            os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
+            os.replace(tmp_path, target)
+        except OSError as exc:
+            _raise_write_error(exc, target)
+            raise
         try:
             dfd = os.open(target.parent, os.O_RDONLY)
             try:
@@ -174,6 +193,22 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         except FileNotFoundError:
             pass
         raise
+
+
+# errors of the file system, not of the data: reported as one line naming the file being written
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG, errno.EIO,
+                 errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG}
+
+
+def _raise_write_error(exc: OSError, target: Path) -> None:
+    """Re-raise a file-system error of an atomic write as a ReflectmmError naming ``target`` (not the
+    hidden temporary file); other errors are left to the caller."""
+    if exc.errno in _WRITE_ERRNOS:
+        what = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+                errno.EROFS: "read-only file system"}.get(exc.errno, exc.strerror or str(exc))
+        where = "" if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS) else f" ({target.parent})"
+        raise ReflectmmError(f"cannot write: {what[:1].lower() + what[1:]}{where} [errno {exc.errno}]",
+                             target) from None
 
 
 def _read_umask() -> int:
@@ -250,6 +285,44 @@ def _npy_bytes(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def artifact_identity(art: "Artifact") -> str | None:
+    """The identity a per-identity artifact was made for (``meta.report.identity``, else ``meta.identity``)."""
+    rep = art.meta.get("report")
+    ident = rep.get("identity") if isinstance(rep, dict) else None
+    ident = ident if ident is not None else art.meta.get("identity")
+    return None if ident is None else str(ident)
+
+
+def check_identity(art: "Artifact", identity: str | None) -> "Artifact":
+    """Refuse an input artifact made for another identity than the task's (``--id 999`` given 001's files
+    would otherwise label 001's data 999). Artifacts that record no identity pass."""
+    have = artifact_identity(art)
+    if identity is not None and have is not None and have != str(identity):
+        raise ArtifactError(f"is identity {have}'s {art.kind}, but this task is for identity {identity}; "
+                            f"pass the matching file or --id {have}", art.path)
+    return art
+
+
+def refuse_newer_target(path: str | Path) -> None:
+    """Refuse to overwrite an artifact whose schema is newer than this release writes (a newer reflectmm made
+    it; replacing it with an older format would lose data). Files that are not artifacts are not looked at."""
+    p = Path(path)
+    if not p.is_file() or p.suffix.lower() not in (".npz", ".exr"):
+        return
+    try:
+        meta = read_meta(p)
+        found, major = parse_schema(meta.get("schema"), p)
+    except ReflectmmError:
+        return  # not an artifact (or corrupt): an ordinary rewrite replaces it
+    supported = SCHEMA_MAJOR.get(found)
+    if supported is not None and major > supported:
+        prod = meta.get("producer") or {}
+        raise ArtifactError(
+            f"holds schema reflectmm.{found}/{major}, written by {prod.get('tool', 'reflectmm')} "
+            f"{prod.get('version', '?')}; this reflectmm {__version__} writes /{supported} and refuses to overwrite "
+            f"it — upgrade reflectmm, or move the file away", p)
+
+
 def write_artifact(path: str | Path, kind: str, arrays: Mapping[str, Any], *,
                    params: Mapping[str, Any] | None = None, inputs: list[dict] | None = None,
                    producer: Mapping[str, Any] | None = None, cache_key: str | None = None,
@@ -273,6 +346,7 @@ def write_artifact(path: str | Path, kind: str, arrays: Mapping[str, Any], *,
         members.append((name, _npy_bytes(arr)))
     members.append((META_KEY, _npy_bytes(np.array(canonical_json(meta)))))
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    refuse_newer_target(path)
     with atomic_path(path) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=method, allowZip64=True) as zf:
             for name, data in members:
@@ -377,6 +451,7 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], meta: Mappin
     spec.attribute("DateTime", "1980:01:01 00:00:00")
     if meta is not None:
         spec.attribute(EXR_META_ATTR, canonical_json(meta))
+    refuse_newer_target(path)
     with atomic_path(path, suffix=".exr") as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:

@@ -40,6 +40,20 @@ class _Group(click.Group):
         self._load()
         return self.commands.get(name)
 
+    # verbosity flags are accepted after the verb too (`reflectmm run r.toml -q`); no verb defines its own
+    _GLOBAL_FLAGS = ("-q", "--quiet", "-v", "-vv", "-vvv", "--verbose")
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        args = list(args)
+        verb = next((i for i, a in enumerate(args) if not a.startswith("-")), None)
+        if verb is not None:
+            end = verb + args[verb:].index("--") if "--" in args[verb:] else len(args)
+            moved = [a for a in args[verb + 1:end] if a in self._GLOBAL_FLAGS]
+            if moved:
+                rest = [a for a in args[verb + 1:end] if a not in self._GLOBAL_FLAGS]
+                args = moved + args[:verb + 1] + rest + args[end:]
+        return super().parse_args(ctx, args)
+
     def invoke(self, ctx: click.Context):
         verbose = ctx.params.get("verbose", 0)
         try:
@@ -79,7 +93,7 @@ class _Group(click.Group):
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
 @click.version_option(__version__, "--version", prog_name="reflectmm")
 @click.option("-v", "--verbose", count=True, help="More logging (debug) and tracebacks on errors.")
-@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars.")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors on stderr; no progress or info.")
 @click.pass_context
 def main(ctx: click.Context, verbose: int, quiet: bool) -> None:
     """Build a 3D morphable face reflectance model (diffuse albedo + multi-lobe Blinn-Phong).

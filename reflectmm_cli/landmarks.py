@@ -78,6 +78,26 @@ def read_landmarks(path: str | Path, n: int = N_LANDMARKS) -> np.ndarray:
     return arr
 
 
+def check_in_frame(points: np.ndarray, width: int, height: int, path: str | Path | None = None,
+                   slack: float = 0.5) -> np.ndarray:
+    """Refuse landmarks far outside a ``width`` × ``height`` frame; return ``points`` unchanged.
+
+    A point may lie a little outside (a jaw point beyond the image edge, estimated by the detector), but one
+    more than ``slack`` × the frame size beyond an edge belongs to another image or is in other units
+    (e.g. 1e6 px): a one-line ReflectmmError naming ``path``. NaN points (missing) are ignored.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    lo = np.array([-slack * width, -slack * height])
+    hi = np.array([(1 + slack) * width, (1 + slack) * height])
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(((pts < lo) | (pts > hi)).any(-1))
+    if bad.size:
+        i = int(bad[0])
+        raise ReflectmmError(f"{bad.size} landmark(s) far outside the {width}x{height} frame (landmark {i + 1} at "
+                             f"({pts[i, 0]:.6g}, {pts[i, 1]:.6g}) px); wrong image, size or units?", path)
+    return points
+
+
 def format_pts(points: np.ndarray, decimals: int = 3) -> str:
     """iBUG ``.pts`` text for ``(n, 2)`` points."""
     pts = np.asarray(points, np.float64)

@@ -29,8 +29,12 @@ class _StderrHandler(logging.StreamHandler):
 
 
 def configure_logging(verbosity: int) -> None:
-    """verbosity: -1 quiet (errors only), 0 normal (info), >=1 debug."""
-    level = logging.ERROR if verbosity < 0 else logging.INFO if verbosity == 0 else logging.DEBUG
+    """verbosity: -1 quiet (warnings and errors: no info, no progress), 0 normal (info), >=1 debug.
+
+    Warnings are never hidden: a skipped input or a capped parameter is a result the user must see even
+    with ``-q``, which only drops progress chatter.
+    """
+    level = logging.WARNING if verbosity < 0 else logging.INFO if verbosity == 0 else logging.DEBUG
     log.setLevel(level)
     if not any(getattr(h, "_reflectmm", False) for h in log.handlers):
         handler = _StderrHandler()
@@ -40,9 +44,46 @@ def configure_logging(verbosity: int) -> None:
 
 
 def progress(iterable: Iterable[T], desc: str = "", total: int | None = None, unit: str = "it") -> Iterator[T]:
-    """A tqdm progress bar on stderr; silent when logging is quieter than INFO."""
-    from tqdm.auto import tqdm
+    """Progress on stderr; silent when logging is quieter than INFO.
 
-    disable = log.getEffectiveLevel() > logging.INFO
-    return iter(tqdm(iterable, desc=desc, total=total, unit=unit, file=sys.stderr, disable=disable,
-                     leave=False, dynamic_ncols=True))
+    On a terminal a tqdm bar (redrawn in place with carriage returns). Otherwise (a log file, a pipe, a CI
+    capture) plain lines, one per 10 % of ``total`` (or at 1, 10, 100 ... items when the total is unknown),
+    so that the messages around it are never overwritten by ``\r``.
+    """
+    if log.getEffectiveLevel() > logging.INFO:
+        return iter(iterable)
+    if total is None:
+        try:
+            total = len(iterable)  # type: ignore[arg-type]
+        except TypeError:
+            total = None
+    stream = sys.stderr
+    try:
+        tty = stream.isatty()
+    except (AttributeError, ValueError):
+        tty = False
+    if tty:
+        from tqdm.auto import tqdm
+
+        return iter(tqdm(iterable, desc=desc, total=total, unit=unit, file=stream, leave=False, dynamic_ncols=True))
+    return _progress_lines(iterable, desc, total, unit)
+
+
+def _progress_lines(iterable: Iterable[T], desc: str, total: int | None, unit: str) -> Iterator[T]:
+    import time
+
+    t0 = time.perf_counter()
+    label = f"{desc}: " if desc else ""
+    next_pct, next_n, n = 10, 1, 0
+    for item in iterable:
+        yield item
+        n += 1
+        if total:
+            pct = 100 * n // total
+            if pct >= next_pct or n == total:
+                print(f"{label}{n}/{total} {unit} ({pct}%, {time.perf_counter() - t0:.1f} s)", file=sys.stderr,
+                      flush=True)
+                next_pct = (pct // 10 + 1) * 10
+        elif n >= next_n:
+            print(f"{label}{n} {unit} ({time.perf_counter() - t0:.1f} s)", file=sys.stderr, flush=True)
+            next_n *= 10

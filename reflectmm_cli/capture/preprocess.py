@@ -23,6 +23,7 @@ from reflectmm_cli.capture.images import ROTATIONS, read_image, read_landmarks, 
 from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, ShotPlan, plan_identity
 from reflectmm_cli.capture.transfer import Transfer, parse_transfer
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.landmarks import check_in_frame
 
 log = logging.getLogger("reflectmm")
 
@@ -146,7 +147,7 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
                 h, w = img.linear.shape[:2]
                 wo, ho = (h, w) if rots[vi] in (90, 270) else (w, h)
                 pts = rotate_points(pts, rots[vi], wo, ho)
-            landmarks[vi] = pts
+            landmarks[vi] = check_in_frame(pts, *img.size, lp)
     W, H = size
     have_lm = np.isfinite(landmarks).all(axis=(1, 2))
     mode = opts.crop
@@ -179,6 +180,12 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
                              plan.images[vi][1:])
             for fi, fl in enumerate(shots):
                 bits_seen.add(fl.bits)
+                if not fl.linear.any():
+                    # a flash that did not fire, or a blank file: its zeros would read as black skin
+                    raise ReflectmmError(f"flash image is entirely black{' in the crop window' if win else ''} "
+                                         f"(flash {plan.flashes[fi]} of view {plan.views[vi]}): the flash did not "
+                                         f"fire or the file is blank — replace it or leave flash {plan.flashes[fi]} "
+                                         f"out of --flashes", fl.path)
                 diff = fl.linear
                 np.subtract(diff, rlin, out=diff)
                 np.maximum(diff, 0.0, out=diff)

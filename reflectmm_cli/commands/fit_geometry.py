@@ -16,7 +16,7 @@ from typing import Any
 import click
 import numpy as np
 
-from reflectmm_cli.artifacts import Artifact, read_artifact, write_artifact, write_png
+from reflectmm_cli.artifacts import Artifact, check_identity, path_for_meta, read_artifact, write_artifact, write_png
 from reflectmm_cli.commands._common import (
     device_option,
     emit,
@@ -62,6 +62,7 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
     """(V, 68, 2) full-frame landmarks per view (``--landmarks DIR`` files first, else the capture's), and where
     each came from; a clear error naming the expected file for a view without any."""
     from reflectmm_cli.fitting.landmarks import find_landmark_file, read_landmarks
+    from reflectmm_cli.landmarks import check_in_frame
 
     V = len(view_names)
     out = np.full((V, 68, 2), np.nan)
@@ -78,7 +79,7 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
         if landmarks_dir is not None:
             f = find_landmark_file(landmarks_dir, name)
             if f is not None:
-                out[v] = read_landmarks(f)
+                out[v] = check_in_frame(read_landmarks(f), *np.asarray(capture["image_size"]).reshape(-1)[:2], f)
                 src[v] = str(f)
                 continue
         if cap_lm is not None and np.isfinite(cap_lm[v]).all(-1).sum() >= 6:
@@ -168,7 +169,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     from reflectmm_cli.rig import load_rig
 
     cfg = config or FitConfig()
-    capture = read_artifact(capture_path, "capture")
+    capture = check_identity(read_artifact(capture_path, "capture"), identity)
     fm = load_face_model(face_model_path)
     model = ShapeModel.from_face_model(fm)
     rig = load_rig(rig_path)
@@ -341,7 +342,7 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
     truth_list = ctx.input_list("truth", required=False)
     truth_path = truth_list[0] if truth_list else None
     if ctx.param("from_truth"):
-        capture = read_artifact(capture_path, "capture") if capture_path.is_file() else None
+        capture = check_identity(read_artifact(capture_path, "capture"), identity) if capture_path.is_file() else None
         kw: dict[str, Any] = {}
         if capture is not None:
             kw = {"view_names": _str_list(capture["view_names"]), "flash_ids": _str_list(capture["flash_ids"]),
@@ -354,6 +355,7 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
 
             kw["landmark_ids"] = load_face_model(fm_list[0]).landmarks
         arrays, report = geometry_from_truth(truth_path, **kw)
+        report["truth_file"] = path_for_meta(truth_path, out)
         write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                        producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
         log.info("fit-geometry %s: ground-truth geometry from %s (%d views)", identity, truth_path, report["views"])
@@ -366,6 +368,8 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
                                       landmarks_dir=lm_list[0] if lm_list else None, focal=ctx.param("focal"),
                                       config=cfg, truth_path=truth_path, device=ctx.device,
                                       flash_intensity=ctx.param("flash_intensity"))
+    if "truth_file" in report:
+        report["truth_file"] = path_for_meta(truth_path, out)
     write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                    producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
     written = [out]

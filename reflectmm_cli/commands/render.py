@@ -106,7 +106,7 @@ def render_face(face_model: Path, *, maps: Path | None = None, model: Path | Non
                 sh_order: int = 8, camera: str = "frontal", shadows: bool = False, shape: str | None = None,
                 exp: str | None = None, geometry: Path | None = None) -> dict:
     """Library entry of ``reflectmm render``: returns image (H,W,3), mask, camera, light description."""
-    from reflectmm_cli.artifacts import read_artifact, read_image
+    from reflectmm_cli.artifacts import read_artifact
     from reflectmm_cli.geometry import (
         RayScene,
         load_face_model,
@@ -144,12 +144,9 @@ def render_face(face_model: Path, *, maps: Path | None = None, model: Path | Non
         if shadows:
             log.warning("--shadows applies to point lights only; SH environment light has no visibility")
         if envmap is not None:
-            from reflectmm_cli.shading import project_envmap
+            from reflectmm_cli.shading import load_envmap, project_envmap
 
-            img = read_image(envmap)
-            if img.shape[2] < 3:
-                img = np.repeat(img[..., :1], 3, axis=2)
-            K = project_envmap(img[..., :3], sh_order)
+            K = project_envmap(load_envmap(envmap), sh_order)
             light = {"type": "envmap", "file": Path(envmap).name, "sh_order": sh_order}
         else:
             K = load_sh(sh)

@@ -49,8 +49,9 @@ def format_plan(report) -> list[str]:
               show_default=True, help="auto: dask with --scheduler, pool with --jobs > 1, else serial.")
 @click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
               help="Address of a running Dask scheduler (implies --executor dask).")
+@click.option("--allow-empty", is_flag=True, help="Succeed even when a stage's foreach matches no identity.")
 @json_option
-def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, scheduler, as_json):
+def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, scheduler, allow_empty, as_json):
     """Run RECIPE (TOML): plan the stage DAG and run every task whose cache key or outputs changed.
 
     Paths in the recipe are relative to the workspace.  Prints the written artifact
@@ -99,6 +100,8 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
         nf = sum(t.status == "failed" for t in bad)
         raise ReflectmmError(f"{nf} task(s) failed, {len(bad) - nf} blocked; the others' results are kept — "
                              f"fix the cause and rerun to resume")
+    if not allow_empty and report.empty_error():
+        raise ReflectmmError(report.empty_error())
 
 
 COMMANDS = [run_cmd]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.artifacts import atomic_write_bytes, read_artifact, write_artifact
+from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
 from reflectmm_cli.commands._common import emit, json_option, output_option, run_stage_cli, workspace_option
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages import StageContext, default_workspace, register_stage
@@ -78,8 +78,8 @@ def run_unwrap(ctx: StageContext) -> list[Path]:
         raise ReflectmmError(f"stage '{ctx.stage_name}': no face_model input, and neither the geometry nor "
                              "the capture's dataset folder nor the workspace provides one", geo_path)
     fm_path = files["face_model"][0]
-    cap = read_artifact(cap_path, "capture")
-    geo = read_artifact(geo_path, "geometry")
+    cap = check_identity(read_artifact(cap_path, "capture"), ctx.identity)
+    geo = check_identity(read_artifact(geo_path, "geometry"), ctx.identity)
     model = load_face_model(fm_path)
     exps = tuple(float(e) for e in ctx.param("exponents", (1.0, 8.0, 64.0)))
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,

@@ -113,6 +113,9 @@ class FaceModel:
             self.mirror = np.ascontiguousarray(self.mirror, dtype=np.int32).reshape(-1)
             if self.mirror.shape != (n,):
                 raise ReflectmmError(f"face model: mirror must be ({n},), got {self.mirror.shape}")
+        for name in ("mean_shape", "uv", "shape_basis", "shape_sigma", "exp_basis", "exp_sigma", "mean_tex",
+                     "tex_basis", "tex_sigma"):
+            _check_finite(getattr(self, name), name)
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -209,6 +212,21 @@ class FaceModel:
 
 
 # ---------------------------------------------------------------------------------------------- normals
+
+def _check_finite(a, name: str, path=None) -> None:
+    """Raise a one-line ReflectmmError if array ``a`` has NaN/inf, naming the first bad vertex/row."""
+    if a is None:
+        return
+    a = np.asarray(a)
+    ok = np.isfinite(a)
+    if ok.all():
+        return
+    bad = ~ok.reshape(a.shape[0], -1).all(1) if a.ndim >= 1 and a.shape[0] else ~ok.reshape(1)
+    where = {"mean_shape": "vertex", "uv": "vertex", "mean_tex": "vertex"}.get(name, "row")
+    first = int(np.flatnonzero(bad)[0])
+    raise ReflectmmError(f"face model: {name} has {int((~ok).sum())} NaN or infinite value(s) "
+                         f"(first at {where} {first})", path)
+
 
 def _is_torch(x) -> bool:
     """True for a torch tensor, without importing torch for numpy callers."""
@@ -593,6 +611,9 @@ def _finish_imported(mean, sb, ss, eb, es, tri, mt, tb, ts, landmarks, uv, skin,
     from reflectmm_cli.geometry.uv import cylindrical_uv, uv_distortion
 
     n = mean.shape[0]
+    _check_finite(mean, "mean_shape", path)  # before anything is computed from it
+    if uv is not None:
+        _check_finite(uv, "uv", path)
     if uv is None:
         uv = cylindrical_uv(mean)
         info["uv"] = "cylindrical (computed)"

@@ -154,6 +154,9 @@ def fit_reflectance_pca(albedos: Sequence[np.ndarray], weights: Sequence[np.ndar
     exps = np.asarray(exponents, np.float64).reshape(-1)
     if exps.shape[0] != K:
         raise ReflectmmError(f"build-pca: {K} lobe-weight channels but {exps.shape[0]} exponents")
+    from reflectmm_cli.shading.brdf import check_distinct_exponents
+
+    check_distinct_exponents(exps, "build-pca: the maps' lobe exponents")
     M_ = np.ones((n, S, S), bool) if masks is None else np.stack([np.asarray(m, bool) for m in masks])
     domain = M_.any(0)
     if not domain.any():

@@ -14,7 +14,9 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import socket
+import sys
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -156,6 +158,55 @@ def _mp_context():
     return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
 
 
+def _proc_start(pid: int) -> str | None:
+    """Start time (clock ticks since boot) of a live process from /proc, None if gone or a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return None
+    return None if fields[0] in (b"Z", b"X") else fields[19].decode()
+
+
+def _parent_alive(pid: int, start: str | None) -> bool:
+    if start is not None or os.path.exists("/proc/self/stat"):
+        return _proc_start(pid) == start  # also catches a recycled pid and a zombie parent
+    try:
+        os.kill(pid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+
+
+def _die_with(pid: int, start: str | None, period: float) -> None:
+    while _parent_alive(pid, start):
+        time.sleep(period)
+    os._exit(1)
+
+
+def _worker_init(parent_pid: int, parent_start: str | None, period: float = 0.5) -> None:
+    """Pool worker initializer: the worker dies with the run that started it, even under ``kill -9``.
+
+    A worker's parent is the forkserver, so Linux's PR_SET_PDEATHSIG covers the forkserver's death only; a
+    daemon thread watches the run's own process (pid + start time, so a recycled pid does not fool it) and
+    exits the worker once it is gone. The resource tracker then sees its last writer close and exits too.
+    """
+    import threading
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):  # pragma: no cover - no libc symbol: the watchdog still works
+            pass
+    threading.Thread(target=_die_with, args=(parent_pid, parent_start, period), daemon=True,
+                     name="reflectmm-parent-watchdog").start()
+
+
 class PoolExecutor(Executor):
     """A local process pool (``--jobs N``) started with forkserver/spawn (no forked torch state)."""
 
@@ -167,7 +218,9 @@ class PoolExecutor(Executor):
 
     def _get_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=_mp_context())
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=_mp_context(),
+                                             initializer=_worker_init,
+                                             initargs=(os.getpid(), _proc_start(os.getpid())))
         return self._pool
 
     def close(self) -> None:

@@ -34,6 +34,7 @@ RUNLOG_FILE = "runlog.jsonl"
 
 # task actions
 RUN, SKIP, BLOCKED, ERROR, DEFERRED, FAILED = "run", "skip", "blocked", "error", "deferred", "failed"
+DONE = "ok"  # a prior status (make_plan's ``prior``): the task ran successfully earlier in this run
 
 
 def state_dir(workspace: Path) -> Path:
@@ -118,6 +119,7 @@ class Plan:
     tasks: dict[str, Task]
     stage_tasks: dict[str, list[str]]
     deferred: list[str]
+    empty: list[str] = field(default_factory=list)  # per-identity stages whose foreach matched no identity
 
     def selected(self) -> list[Task]:
         return [t for t in self.tasks.values() if t.selected]
@@ -173,6 +175,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
     tasks: dict[str, Task] = {}
     stage_tasks: dict[str, list[str]] = {}
     deferred: list[str] = []
+    empty: list[str] = []
     for name in order:
         spec, stage = recipe.stages[name], stages[name]
         if any(u in deferred for u in spec.upstream()):
@@ -185,6 +188,8 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
         if stage_ids is _DEFER:
             deferred.append(name)
             continue
+        if spec.per_identity and not stage_ids:
+            empty.append(name)
         if ids is not None and spec.per_identity:
             wanted = set(ids)
             stage_ids = [i for i in stage_ids if i in wanted]
@@ -198,6 +203,11 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
                 t.action = FAILED if prior[t.tid] == FAILED else BLOCKED
                 t.reason = f"{'failed' if t.action == FAILED else 'blocked'} earlier in this run"
                 continue
+            if prior.get(t.tid) == DONE:
+                # ran earlier in this run: its outputs are fresh, so it neither runs again (even when
+                # forced) nor keeps a deferred "all found" stage waiting
+                t.action, t.reason = SKIP, "ran earlier in this run"
+                continue
             _decide(t, stage, tasks, workspace, hash_memo, forced=(force == "*" or force == name))
     if ids is not None and not deferred:
         known = {t.identity for t in tasks.values()}
@@ -205,7 +215,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
         if unknown:
             log.warning("--ids: no stage has identit%s %s", "y" if len(unknown) == 1 else "ies",
                         ", ".join(unknown[:10]) + (" ..." if len(unknown) > 10 else ""))
-    return Plan(recipe, workspace, tasks, stage_tasks, deferred)
+    return Plan(recipe, workspace, tasks, stage_tasks, deferred, empty)
 
 
 _DEFER = object()
@@ -251,10 +261,7 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
         if found is not None and pending:
             return _DEFER  # the identities are known once the upstream outputs exist
         if found is not None:
-            found = [str(i) for i in found]
-            if not found:
-                log.warning("stage %s: foreach = \"all found\" found no identities", spec.name)
-            return found
+            return [str(i) for i in found]  # none found: Plan.empty, reported by the runner
     for u in spec.upstream():
         if recipe.stages[u].per_identity:
             return [tasks[t].identity for t in stage_tasks.get(u, [])]

@@ -7,6 +7,7 @@ The run log is ``<workspace>/.reflectmm/runlog.jsonl``: one JSON object per task
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -61,6 +62,16 @@ class RunReport:
     tasks: list[TaskOutcome]
     plan_seconds: float = 0.0
     run_seconds: float = 0.0
+    empty: list[str] = field(default_factory=list)  # per-identity stages whose foreach matched nothing
+
+    def empty_error(self) -> str | None:
+        """The one-line refusal of a run in which a stage's foreach matched no identity (None if none did);
+        ``reflectmm run`` fails with it unless ``--allow-empty``."""
+        if not self.empty:
+            return None
+        return (f"{self.recipe}: stage{'s' if len(self.empty) > 1 else ''} {', '.join(self.empty)}: foreach "
+                f"matched no identity, so nothing ran for {'them' if len(self.empty) > 1 else 'it'} — check the "
+                f"inputs it searches, or pass --allow-empty if an empty run is expected")
 
     def by_status(self, status: str) -> list[TaskOutcome]:
         return [t for t in self.tasks if t.status == status]
@@ -82,7 +93,7 @@ class RunReport:
         return {"recipe": self.recipe, "workspace": str(self.workspace), "dry_run": self.dry_run,
                 "counts": self.counts(), "plan_seconds": round(self.plan_seconds, 4),
                 "run_seconds": round(self.run_seconds, 4), "tasks": [t.as_dict() for t in self.tasks],
-                "outputs": self.outputs()}
+                "outputs": self.outputs(), "empty": list(self.empty)}
 
 
 class RunLog:
@@ -90,17 +101,23 @@ class RunLog:
 
     def __init__(self, workspace: Path, recipe: str):
         self.path = state_dir(workspace) / RUNLOG_FILE
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.run_id = uuid.uuid4().hex[:12]
         self.recipe = recipe
+        self._warned = False
 
     def write(self, o: TaskOutcome) -> None:
         rec = {"run": self.run_id, "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                "recipe": self.recipe, "stage": o.stage, "id": o.id, "cache_key": o.cache_key,
                "status": o.status, "reason": o.reason, "duration": round(o.duration, 4), "error": o.error,
                "worker": o.worker}
-        with open(self.path, "a", encoding="utf-8") as f:
-            f.write(json.dumps(rec, sort_keys=True) + "\n")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "a", encoding="utf-8") as f:
+                f.write(json.dumps(rec, sort_keys=True) + "\n")
+        except OSError as exc:  # a read-only workspace still reports its (no-op) run
+            if not self._warned:
+                log.warning("cannot write the run log %s: %s", self.path, exc.strerror or exc)
+                self._warned = True
 
 
 def plan_recipe(recipe: Recipe | str | Path, workspace: Path, **kwargs: Any) -> Plan:
@@ -116,8 +133,8 @@ def plan_recipe(recipe: Recipe | str | Path, workspace: Path, **kwargs: Any) -> 
 def _save_memo(workspace: Path, memo: dict[str, Any]) -> None:
     try:
         save_hash_memo(workspace, memo)
-    except OSError as exc:  # a read-only workspace still plans
-        log.warning("cannot save the hash memo: %s", exc)
+    except (OSError, ReflectmmError) as exc:  # a read-only workspace still plans
+        log.debug("cannot save the hash memo: %s", exc)
 
 
 def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: bool = False,
@@ -140,28 +157,51 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
         rows = [TaskOutcome(t.stage_name, t.identity, t.action, t.reason, t.cache_key,
                             outputs=[str(p) for p in t.outputs]) for t in plan.selected()]
         rows += [TaskOutcome(s, None, DEFERRED, _deferred_reason(plan, s)) for s in plan.deferred]
-        return RunReport(recipe.name, workspace, True, rows, plan_seconds)
+        return _warn_empty(RunReport(recipe.name, workspace, True, rows, plan_seconds, empty=list(plan.empty)))
 
-    with workspace_lock(workspace):
+    with workspace_lock(workspace) as locked:
         memo = load_hash_memo(workspace)
         t0 = time.perf_counter()
         plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo)
         plan_seconds = time.perf_counter() - t0
-        return _run_locked(recipe, workspace, memo, plan, plan_seconds, force=force, only=only, ids=ids,
-                           executor=executor, jobs=jobs, scheduler=scheduler)
+        if locked is not True:  # read-only workspace: only a run with nothing to do may go on
+            todo = [t.tid for t in plan.selected() if t.action == RUN] + list(plan.deferred)
+            if todo:
+                raise ReflectmmError(f"cannot write to the workspace ({locked}); {len(todo)} task(s) need to run "
+                                     f"({todo[0]}{' ...' if len(todo) > 1 else ''}) — make it writable or use "
+                                     f"another --workspace", workspace)
+        return _warn_empty(_run_locked(recipe, workspace, memo, plan, plan_seconds, force=force, only=only,
+                                       ids=ids, executor=executor, jobs=jobs, scheduler=scheduler))
+
+
+def _warn_empty(report: RunReport) -> RunReport:
+    for s in report.empty:
+        log.warning("stage %s: foreach matched no identity; nothing to do for it", s)
+    return report
 
 
 @contextmanager
-def workspace_lock(workspace: Path) -> Iterator[None]:
-    """Hold ``<workspace>/.reflectmm/lock`` for a run; refuse a second concurrent run in the same workspace."""
+def workspace_lock(workspace: Path) -> Iterator[bool | str]:
+    """Hold ``<workspace>/.reflectmm/lock`` for a run; refuse a second concurrent run in the same workspace.
+
+    Yields True when the lock is held, or a reason string when the workspace cannot be written (read-only
+    file system, no permission): the caller may then only do a run that writes nothing.
+    """
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX: no locking
-        yield
+        yield True
         return
     path = state_dir(workspace) / "lock"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+") as f:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        f = open(path, "a+")
+    except OSError as exc:
+        if exc.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+            raise
+        yield f"{exc.strerror or exc}: {path}"
+        return
+    with f:
         try:
             fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -174,7 +214,7 @@ def workspace_lock(workspace: Path) -> Iterator[None]:
             f.truncate()
             f.write(str(os.getpid()))
             f.flush()
-            yield
+            yield True
         finally:
             f.seek(0)
             f.truncate()
@@ -212,7 +252,8 @@ def _run_locked(recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Pla
             ex.close()
     order = {tid: i for i, tid in enumerate(plan.tasks)}
     ordered = sorted(outcomes.values(), key=lambda o: order.get(o.tid, len(order)))
-    return RunReport(recipe.name, workspace, False, ordered, plan_seconds, time.perf_counter() - t1)
+    return RunReport(recipe.name, workspace, False, ordered, plan_seconds, time.perf_counter() - t1,
+                     empty=list(plan.empty))
 
 
 def _deferred_reason(plan: Plan, stage: str) -> str:
@@ -266,7 +307,7 @@ def _execute(plan: Plan, batch: list[TaskSpec], ex: Executor, memo: dict[str, An
             try:
                 write_record(plan.workspace, t.stage_name, t.identity, res["cache_key"], res.get("key_doc"),
                              [Path(p) for p in t.outputs], memo)
-            except OSError as exc:
+            except (OSError, ReflectmmError) as exc:
                 log.warning("%s: cannot write its record: %s", t.tid, exc)
             log.info("[%d/%d] done %s (%.2f s)", finished[0], total, t.tid, o.duration)
         else:

@@ -154,6 +154,9 @@ def _check_exponents(exponents) -> np.ndarray:
     p = np.asarray(exponents, dtype=np.float64).reshape(-1)
     if p.size < 1 or not np.all(np.isfinite(p)) or np.any(p <= 0):
         raise ReflectmmError(f"exponents must be finite and > 0, got {p.tolist()}")
+    from reflectmm_cli.shading.brdf import check_distinct_exponents
+
+    check_distinct_exponents(p)
     return p
 
 

@@ -6,7 +6,15 @@ numpy in → numpy out; any torch tensor in → torch out (differentiable).
 from .brdf import DEFAULT_EXPONENTS, blinn_phong_norm, shade_directional
 from .env import EnvBasis, band_limits, shade_env, specular_view_albedo
 from .light_model import LightModel, build_light_model, light_from_coeffs
-from .envmap import direction_to_equirect, envmap_from_sh, equirect_directions, equirect_weights, project_envmap
+from .envmap import (
+    direction_to_equirect,
+    envmap_from_sh,
+    envmap_rgb,
+    equirect_directions,
+    equirect_weights,
+    load_envmap,
+    project_envmap,
+)
 from .sh import (
     blinn_phong_sh_coeffs,
     fibonacci_sphere,
@@ -30,6 +38,8 @@ __all__ = [
     "blinn_phong_sh_coeffs",
     "direction_to_equirect",
     "envmap_from_sh",
+    "envmap_rgb",
+    "load_envmap",
     "equirect_directions",
     "equirect_weights",
     "fibonacci_sphere",

@@ -6,6 +6,8 @@ looking down −z). ``light_dir`` points from the surface *towards* the light, `
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
@@ -13,7 +15,8 @@ from reflectmm_cli.errors import ReflectmmError
 from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_dtype, device_of, safe_normalize
 from .sh import blinn_phong_norm
 
-__all__ = ["blinn_phong_norm", "shade_directional", "DEFAULT_EXPONENTS"]
+__all__ = ["blinn_phong_norm", "shade_directional", "DEFAULT_EXPONENTS", "lobe_correlation",
+           "check_distinct_exponents"]
 
 DEFAULT_EXPONENTS = (1.0, 8.0, 64.0)
 
@@ -24,6 +27,35 @@ def _check_exponents(p, tm):
     pmin = float((p.detach() if tm else p).min())
     if pmin <= 0:
         raise ReflectmmError(f"shading: argument 'exponents' must be > 0, got min {pmin}")
+
+
+# Two lobes whose correlation is above this are numerically one lobe: a fit cannot split a weight between them
+# (exponents within ~1 % of each other).
+COLLINEAR_LOBES = 1.0 - 1e-5
+
+
+def lobe_correlation(p, q) -> float:
+    """Cosine between the lobes x^p and x^q as functions of x = n·h on [0, 1] (Lebesgue measure).
+
+    ``∫ x^(p+q) dx / sqrt(∫ x^2p dx ∫ x^2q dx) = sqrt((2p+1)(2q+1)) / (p+q+1)``: 1 for p = q, ≈ 1 − ε²/8 for
+    q = p(1 + ε) with large p. The normalisation f_p does not change a cosine. Floats > 0.
+    """
+    p, q = float(p), float(q)
+    return math.sqrt((2.0 * p + 1.0) * (2.0 * q + 1.0)) / (p + q + 1.0)
+
+
+def check_distinct_exponents(exponents, what: str = "exponents") -> None:
+    """Raise a one-line ReflectmmError if two exponents give numerically collinear lobes (duplicates or
+    near-duplicates, correlation ≥ 1 − 1e-5): their weights are not separable and a fit is ill-posed."""
+    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
+    for i in range(p.size):
+        for j in range(i + 1, p.size):
+            c = lobe_correlation(p[i], p[j])
+            if c >= COLLINEAR_LOBES:
+                raise ReflectmmError(
+                    f"{what}: {p[i]:.10g} and {p[j]:.10g} give numerically collinear lobes (correlation 1 − "
+                    f"{max(1.0 - c, 0.0):.1e}); their weights cannot be told apart — drop one or separate them "
+                    f"by more than ~1 %")
 
 
 def shade_directional(albedo, weights, exponents, normal, light_dir, view_dir, irradiance, *,

@@ -22,7 +22,8 @@ from reflectmm_cli.errors import ReflectmmError
 
 from .sh import _check_order, sh_basis_into, sh_rotation
 
-__all__ = ["equirect_directions", "equirect_weights", "project_envmap", "envmap_from_sh", "direction_to_equirect"]
+__all__ = ["equirect_directions", "equirect_weights", "project_envmap", "envmap_from_sh", "direction_to_equirect",
+           "envmap_rgb", "load_envmap"]
 
 _CHUNK = 1 << 16
 
@@ -91,6 +92,50 @@ def _check_image(image, name="image"):
     if not np.isfinite(img).all():
         raise ReflectmmError(f"{name}: contains NaN or inf pixels")
     return img
+
+
+def envmap_rgb(image) -> np.ndarray:
+    """Check an environment map's pixels and return them as (H, W, 3) float32 linear RGB radiance.
+
+    Accepts (H, W) or (H, W, 1) grey maps (repeated to RGB) and (H, W, C ≥ 3) maps (the first three channels
+    are R, G, B; alpha and further channels are ignored). Refuses 2 channels (grey + alpha or an incomplete
+    colour map is ambiguous), non-numeric, NaN/inf and negative pixels with a one-line ReflectmmError (no file
+    name: :func:`load_envmap` adds it). The one check shared by ``render --envmap`` and ``build-light-pca``.
+    """
+    img = np.asarray(image)
+    if img.dtype.kind not in "fiu":
+        raise ReflectmmError(f"pixels of dtype {img.dtype} are not numeric")
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3 or img.shape[0] < 1 or img.shape[1] < 1:
+        raise ReflectmmError(f"not an (H, W, C) image (shape {img.shape})")
+    if img.shape[2] == 2:
+        raise ReflectmmError("has 2 channels; an environment map needs 1 (grey) or 3 or more (R, G, B first)")
+    img = np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img[..., :3]
+    img = img.astype(np.float32, copy=False)
+    bad = ~np.isfinite(img)
+    if bad.any():
+        y, x = np.argwhere(bad.any(-1))[0]
+        raise ReflectmmError(f"{int(bad.any(-1).sum())} NaN or infinite pixel(s) (first at row {y}, column {x})")
+    if (img < 0).any():
+        raise ReflectmmError(f"{int((img < 0).any(-1).sum())} pixel(s) of negative radiance")
+    return img
+
+
+def load_envmap(path) -> np.ndarray:
+    """Read an equirectangular environment map (EXR/HDR/any image) as checked (H, W, 3) float32 RGB
+    (:func:`envmap_rgb`); every refusal is one line naming the file."""
+    from pathlib import Path
+
+    from reflectmm_cli.artifacts import read_image
+
+    try:
+        return envmap_rgb(read_image(path))
+    except ReflectmmError as exc:
+        msg = str(exc)
+        if msg.startswith(f"{path}: "):
+            raise
+        raise ReflectmmError(f"environment map: {msg}", Path(path)) from None
 
 
 # Proper rotation taking our directions to the map's own frame: z' = up (+y), x' = −z, y' = −x (azimuth φ' = −φ).

@@ -22,7 +22,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 from ._array import any_torch, device_of
-from .envmap import envmap_from_sh, project_envmap
+from .envmap import envmap_from_sh, envmap_rgb, project_envmap
 from .sh import sh_rotation
 
 __all__ = [
@@ -148,7 +148,9 @@ def fit_light_pca(samples: np.ndarray, components: int, log: Callable[[str], Any
         _, s, Vt = np.linalg.svd(Xc, full_matrices=False)
     else:
         s, Vt = np.zeros(0), np.zeros((0, F))
-    tol = (s[0] if s.size else 0.0) * max(S, F) * np.finfo(np.float64).eps
+    # rank relative to the samples' own scale too: rotating a constant map only adds round-off (~1e-16)
+    scale = max(float(s[0]) if s.size else 0.0, float(np.abs(X).max()) * math.sqrt(S) if X.size else 0.0)
+    tol = scale * max(S, F) * np.finfo(np.float64).eps
     rank = int((s > tol).sum()) if s.size and s[0] > 0 else 0
     k = min(int(components), rank)
     if k < components and log is not None:
@@ -185,33 +187,16 @@ def build_light_model(maps: Iterable[str | Path | np.ndarray], *, order: int = 8
     if reader is None:
         from reflectmm_cli.artifacts import read_image as reader
     log = log or (lambda msg: None)
-    if int(components) != components or components < 0:
-        raise ReflectmmError(f"--components must be an integer ≥ 0, got {components}")
+    if int(components) != components or components < 1:
+        raise ReflectmmError(f"build-light-pca: --components must be an integer ≥ 1, got {components} "
+                             f"(a light model of 0 components is only its mean)")
     rots = augmentation_rotations(rotations, tilt)
     coeffs, names, skipped = [], [], []
     items = list(maps)
     for item in (progress(items) if progress else items):
         name = str(item) if not isinstance(item, np.ndarray) else f"<array {len(names) + len(skipped)}>"
         try:
-            img = np.asarray(item if isinstance(item, np.ndarray) else reader(Path(item)))
-            if img.dtype.kind not in "fiu":
-                raise ReflectmmError(f"pixels of dtype {img.dtype} are not numeric")
-            if img.dtype.kind != "f":  # (the projection accumulates in float64 block by block)
-                img = img.astype(np.float32)
-            if img.ndim == 2:
-                img = img[..., None]
-            if img.ndim != 3:
-                raise ReflectmmError(f"not an (H, W, C) image (shape {img.shape})")
-            if img.shape[2] == 1:
-                img = np.repeat(img, 3, axis=2)
-            img = img[..., :3]
-            if img.shape[2] != 3:
-                raise ReflectmmError(f"has {img.shape[2]} channels, need 1 or ≥ 3")
-            bad = ~np.isfinite(img)
-            if bad.any():
-                raise ReflectmmError(f"{int(bad.any(-1).sum())} non-finite pixels")
-            if (img < 0).any():
-                raise ReflectmmError("negative radiance")
+            img = envmap_rgb(item if isinstance(item, np.ndarray) else reader(Path(item)))
             K = project_envmap(img, order, quadrature=quadrature)
             if (K[:, 0] <= 0).any():
                 raise ReflectmmError("a colour channel is entirely black")
@@ -234,7 +219,15 @@ def build_light_model(maps: Iterable[str | Path | np.ndarray], *, order: int = 8
     C = np.stack(coeffs)  # (M, 3, n)
     A = augment_sh(C, rots)  # (S, 3, n)
     Xn, dc = normalise_sh(A)
-    mean, bases, sigma, var, ratio = fit_light_pca(Xn.reshape(Xn.shape[0], -1), components, log)
+    notes: list[str] = []
+    mean, bases, sigma, var, ratio = fit_light_pca(Xn.reshape(Xn.shape[0], -1), components, notes.append)
+    if bases.shape[0] == 0:
+        raise ReflectmmError(
+            f"build-light-pca: the {len(coeffs)} usable map(s) x {len(rots)} rotation(s) give {Xn.shape[0]} "
+            f"sample(s) that do not vary (after normalising each by its mean colour), so a light model would have "
+            f"0 components; give more distinct environment maps or --rotations > 1")
+    for note in notes:  # the cap on the component count, once there is a model to cap
+        log(note)
     model = LightModel(order=int(order), mean=mean, bases=bases, sigma=sigma, explained_variance=var,
                        explained_variance_ratio=ratio, dc=dc,
                        sample_map=np.repeat(np.arange(len(coeffs)), len(rots)),

@@ -311,8 +311,38 @@ def blinn_phong_norm(p):
     return (p + 2.0) / (4.0 * math.pi * (2.0 - np.exp2(-p / 2.0)))
 
 
+# Above this exponent the Funk–Hecke coefficients use the closed form of _bp_coeffs_sharp (its error,
+# ≤ (p + 2) 2^(−p/2−1), is below 1e-28 there); below it, Gauss–Legendre with ≤ ~110 nodes.
+SHARP_LOBE_P = 200.0
+
+
+def _bp_coeffs_sharp(p: float, order: int) -> tuple:
+    """B_l (l = 0..order) of a sharp lobe in closed form; exact up to ≤ (p + 2) 2^(−p/2−1).
+
+    With u = (1+t)/2 and q = p/2, ``B_l = 4π f ∫_{1/2}^1 u^q P̃_l(u) du`` where ``P̃_l(u) = P_l(2u − 1)`` is the
+    shifted Legendre polynomial. Over the whole [0, 1] the moment is known in closed form (Rodrigues' formula
+    and l integrations by parts):
+
+        ∫_0^1 u^q P̃_l(u) du = q (q−1) ⋯ (q−l+1) / ((q+1)(q+2) ⋯ (q+l+1))
+                              = 1/(q+l+1) · Π_{j=0}^{l−1} (q−j)/(q+j+1),
+
+    and the dropped part ∫_0^{1/2} is at most 2^(−q−1) in magnitude (|P̃_l| ≤ 1). Cost O(order), any p.
+    For large p it tends to the Gaussian-lobe asymptote B_l ≈ exp(−2 l(l+1)/p).
+    """
+    q = p / 2.0
+    front = 4.0 * math.pi * float(blinn_phong_norm(p))
+    out = np.empty(order + 1)
+    prod = 1.0
+    for l in range(order + 1):  # noqa: E741
+        out[l] = front * prod / (q + l + 1.0)
+        prod *= (q - l) / (q + l + 1.0)
+    return tuple(out)
+
+
 @lru_cache(maxsize=256)
 def _bp_coeffs_cached(p: float, order: int) -> tuple:
+    if p >= SHARP_LOBE_P:
+        return _bp_coeffs_sharp(p, order)
     # B_l = 2π f ∫_0^1 ((1+t)/2)^(p/2) P_l(t) dt; substitute u = (1+t)/2 ∈ [1/2, 1], dt = 2 du.
     # The integrand u^(p/2) P_l(2u−1) is analytic on [1/2, 1] (a polynomial of degree p/2 + l when p/2 is an
     # integer), so Gauss–Legendre with ~(p/2 + L)/2 + 48 nodes is exact or converges exponentially.
@@ -341,8 +371,9 @@ def _bp_coeffs_cached(p: float, order: int) -> tuple:
 def blinn_phong_sh_coeffs(p, order: int) -> np.ndarray:
     """Funk–Hecke coefficients B_l (l = 0..L) of the normalised half-angle lobe of DESIGN.md §2.
 
-    ``B_l = 2π ∫_0^1 f ((1+t)/2)^(p/2) P_l(t) dt`` so that ``B_0 = 1``. Accurate to ~1e-12 for p in [0.5, 1000]
-    (and beyond). ``p`` may be a scalar (→ (L+1,)) or a 1-D array of K exponents (→ (K, L+1)). float64.
+    ``B_l = 2π ∫_0^1 f ((1+t)/2)^(p/2) P_l(t) dt`` so that ``B_0 = 1``. Accurate to ~1e-12 for any p > 0:
+    Gauss–Legendre quadrature below p = 200, a closed form above (O(L) work, so p = 1e5 costs nothing).
+    ``p`` may be a scalar (→ (L+1,)) or a 1-D array of K exponents (→ (K, L+1)). float64.
     """
     order = _check_order(order)
     pa = np.asarray(p, dtype=np.float64)

@@ -243,3 +243,46 @@ def test_id_file_json_and_all(tmp_path, cli):
     res = run(cli, root, tmp_path / "ws2", "--all")
     assert res.exit_code == 0, res.stderr
     assert sorted(p.name for p in (tmp_path / "ws2" / "preprocess-multipie").glob("*.npz")) == ["001.npz", "003.npz"]
+
+
+def _capture_recipe(ws):
+    (ws / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.preprocess-multipie]\nforeach = ["001"]\n'
+                               f'inputs = {{ root = "mp" }}\nparams = {{ views = {json.dumps(list(VIEWS))}, '
+                               f'flashes = {json.dumps(list(FLASHES))} }}\n')
+    return ws / "r.toml"
+
+
+def test_all_black_flash_image_is_refused(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    black = shot_file(root, "001", "05_1", FLASHES[1])
+    write_png(black, np.zeros((32, 48, 3), np.uint8))
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert res.exit_code == 1
+    line = res.stderr.strip().splitlines()[-1]
+    assert line.startswith(f"reflectmm: error: {black}: flash image is entirely black"), line
+    assert f"flash {FLASHES[1]} of view 05_1" in line
+    res = cli("run", _capture_recipe(tmp_path), "-w", tmp_path)
+    assert res.exit_code == 1 and "entirely black" in res.stderr and str(black) in res.stderr
+
+
+def test_landmarks_far_outside_the_frame_are_refused(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    lm = shot_file(root, "001", "13_0", "00", ext="_lm.pts")
+    pts = np.stack([np.linspace(10, 30, 68), np.linspace(8, 20, 68)], 1)
+    pts[30] = [1e6, 12.0]
+    from reflectmm_cli.landmarks import write_pts
+
+    write_pts(lm, pts)
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert res.exit_code == 1
+    line = res.stderr.strip().splitlines()[-1]
+    assert line == (f"reflectmm: error: {lm}: 1 landmark(s) far outside the 48x32 frame (landmark 31 at (1e+06, 12) "
+                    "px); wrong image, size or units?"), line
+    res = cli("run", _capture_recipe(tmp_path), "-w", tmp_path)
+    assert res.exit_code == 1 and "far outside" in res.stderr
+    # a point a little outside (a jaw point past the edge) is fine
+    pts[30] = [52.0, 12.0]
+    write_pts(lm, pts)
+    assert run(cli, root, tmp_path / "ws2", "--id", "001").exit_code == 0

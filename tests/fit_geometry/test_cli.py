@@ -102,6 +102,11 @@ def test_bad_landmark_file(world, cli, tmp_path):
     write_pts(tmp_path / "05_1.pts", np.zeros((60, 2)))
     msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--landmarks", tmp_path, "-o", tmp_path / "g.npz"))
     assert "05_1.pts" in msg and "expected 68 landmarks, found 60" in msg
+    far = np.full((68, 2), 100.0)
+    far[5] = [1e6, 50.0]
+    write_pts(tmp_path / "05_1.pts", far)
+    msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--landmarks", tmp_path, "-o", tmp_path / "g.npz"))
+    assert "05_1.pts: 1 landmark(s) far outside the 240x180 frame (landmark 6 at (1e+06, 50) px)" in msg
 
 
 def test_view_not_in_rig(world, cli, tmp_path):
@@ -182,3 +187,68 @@ def test_landmarks_dir_overrides_capture(world, cli, tmp_path):
     assert np.linalg.norm(g["cam_centers"][v] - tc) > 5.0
     if ref is not None:
         assert np.linalg.norm(g["cam_centers"][v] - tc) > np.linalg.norm(ref["cam_centers"][v] - tc)
+
+
+@pytest.mark.parametrize("from_truth", [False, True])
+def test_recipe_at_two_paths_gives_identical_bytes(world, cli, tmp_path, from_truth):
+    # the report's truth_file is stored relative to the artifact, like its inputs
+    import shutil
+
+    params = '{ from_truth = true }' if from_truth else \
+        '{ landmark_iters = 30, photo_rounds = 1, photo_iters = 5, no_overlay = true }'
+    recipe = ('schema = "reflectmm.recipe/1"\n[stages.fit-geometry]\nforeach = ["001"]\n'
+              'inputs = { capture = "preprocess-multipie/{id}.npz", face_model = "syn/face_model.npz", '
+              'rig = "syn/rig.toml", truth = "syn/truth/{id}.npz" }\n'
+              f'params = {params}\n')
+    outs = []
+    for where in ("one", "two/deeper"):
+        w = tmp_path / where
+        for sub in ("syn", "preprocess-multipie"):
+            shutil.copytree(world / sub, w / sub)
+        (w / "r.toml").write_text(recipe)
+        r = cli("-q", "run", w / "r.toml", "-w", w)
+        assert r.exit_code == 0, r.stderr
+        outs.append(w / "fit-geometry" / "001.npz")
+    g = read_artifact(outs[0], "geometry")
+    assert g.meta["report"]["truth_file"] == "../syn/truth/001.npz"
+    assert outs[0].read_bytes() == outs[1].read_bytes()
+
+
+def test_inputs_of_another_identity_are_refused(world, cli, tmp_path):
+    cap = world / "preprocess-multipie" / "001.npz"
+    truth = world / "syn" / "truth" / "001.npz"
+    msg = _err(cli("fit-geometry", "--id", "999", "-w", world, "--capture", cap, "--from-truth", truth,
+                   "-o", tmp_path / "g999.npz"))
+    assert f"{cap}: is identity 001's capture, but this task is for identity 999" in msg
+    geo = tmp_path / "g001.npz"
+    assert cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", truth, "-o", geo).exit_code == 0
+    fm = world / "syn" / "face_model.npz"
+    msg = _err(cli("unwrap-uv", "--id", "999", "-w", tmp_path, "--capture", cap, "--geometry", geo,
+                   "--face-model", fm, "--uv-size", "32"))
+    assert f"{cap}: is identity 001's capture, but this task is for identity 999; pass the matching file or " \
+           "--id 001" in msg
+    assert not (tmp_path / "unwrap-uv" / "999.npz").exists()
+    (tmp_path / "r.toml").write_text(
+        'schema = "reflectmm.recipe/1"\n[stages.unwrap-uv]\nforeach = ["999"]\n'
+        f'inputs = {{ capture = "{cap}", geometry = "{geo}", face_model = "{fm}" }}\nparams = {{ uv_size = 32 }}\n')
+    r = cli("run", tmp_path / "r.toml", "-w", tmp_path)
+    assert r.exit_code == 1 and "is identity 001's capture, but this task is for identity 999" in r.stderr
+
+
+@pytest.mark.slow
+def test_summary_line_survives_in_captured_logs(world, tmp_path):
+    # stderr to a file or pipe: progress as plain lines, no carriage return overwriting the summary
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    r = subprocess.run([sys.executable, "-m", "reflectmm_cli", "fit-geometry", "--id", "001", "-w", str(world),
+                        "--iters", "20", "--photo-rounds", "1", "--no-overlay", "-o", str(tmp_path / "g.npz")],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "\r" not in r.stderr
+    lines = r.stderr.splitlines()
+    assert any(ln.startswith("fit-geometry 001: landmark RMS") for ln in lines), lines
+    assert any(ln.startswith("fit-geometry: 2/2 stage (100%") for ln in lines), lines

@@ -163,3 +163,54 @@ def test_inspect_text_caps_long_input_lists(cli, tmp_path):
     assert "inputs (30):" in r.stdout and "image: ... 23 more (--json lists all)" in r.stdout
     assert "x  (2, 3)  float64  [0, 0]" in r.stdout
     assert len(json.loads(cli("inspect", p, "--json").stdout)["artifacts"][0]["inputs"]) == 30
+
+
+def _sub(*args):
+    return subprocess.run([sys.executable, "-m", "reflectmm_cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=120)
+
+
+def test_quiet_and_verbose_after_the_verb(tmp_path):
+    d = tmp_path / "data"
+    d.mkdir()
+    (d / "x").write_text("1")
+    recipe = tmp_path / "r.toml"
+    recipe.write_text('schema = "reflectmm.recipe/1"\n[stages.m]\nverb = "checksum"\ninputs = { files = "data" }\n')
+    quiet = _sub("run", recipe, "-w", tmp_path, "-q")
+    assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
+    debug = _sub("run", recipe, "--dry-run", "-w", tmp_path, "-v")
+    assert debug.returncode == 0 and "planned in" in debug.stderr
+    assert _sub("checksum", d, "--quiet", "-w", tmp_path).stderr == ""
+
+
+def test_quiet_keeps_warnings(tmp_path):
+    # build-light-pca's skip notices are warnings, not progress chatter: -q keeps them
+    from reflectmm_cli.artifacts import write_exr
+
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        img = rng.uniform(0.5, 2.0, (8, 16)).astype(np.float32)
+        write_exr(tmp_path / f"e{i}.exr", {"R": img, "G": img * 0.5, "B": img * 0.7})
+    (tmp_path / "junk.exr").write_bytes(b"junk")
+    r = _sub("-q", "build-light-pca", tmp_path, "--order", 2, "-o", tmp_path / "out" / "lm.npz")
+    assert r.returncode == 0, r.stderr
+    assert "skipping" in r.stderr and "junk.exr" in r.stderr and "components explaining" not in r.stderr
+
+
+def test_progress_is_plain_lines_when_stderr_is_not_a_terminal(capsys):
+    from reflectmm_cli.progress import configure_logging, progress
+
+    configure_logging(0)
+    assert list(progress(range(20), desc="work", unit="step")) == list(range(20))
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 10 and lines[0].startswith("work: 2/20 step (10%") and lines[-1].startswith(
+        "work: 20/20 step (100%")
+    assert list(progress(iter(range(150)), desc="gen")) == list(range(150))
+    assert [ln.split(" (")[0] for ln in capsys.readouterr().err.strip().splitlines()] == \
+        ["gen: 1 it", "gen: 10 it", "gen: 100 it"]
+    configure_logging(-1)
+    list(progress(range(5)))
+    assert capsys.readouterr().err == ""
+    configure_logging(0)

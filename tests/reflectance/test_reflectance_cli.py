@@ -97,3 +97,38 @@ def test_cli_errors(cli, tmp_path):
     assert r.exit_code == 1 and "--exponents" in r.stderr
     r = cli("fit-reflectance", "--input", src, "--flash-intensity", "1,2", "--output", tmp_path / "z.npz")
     assert r.exit_code == 1 and "flash_intensity" in r.stderr
+
+
+def test_collinear_exponents_are_refused(cli, tmp_path):
+    # duplicates and near-duplicates are one lobe twice: refused, one line, nothing written
+    _, _, src = _write_obs(tmp_path / "ws", S=6)
+    for exps in (["1", "1", "8"], ["1", "1.0000001", "8"], ["8", "64", "64.3"]):
+        out = tmp_path / "d.npz"
+        r = cli("fit-reflectance", "--input", src, "--exponents", ",".join(exps), "--output", out)
+        assert r.exit_code == 1 and "collinear" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not out.exists()
+    r = cli("fit-reflectance", "--input", src, "--exponents", "1,1.2,8", "--output", tmp_path / "ok.npz")
+    assert r.exit_code == 0, r.stderr  # distinct enough
+
+
+def test_collinear_exponents_refused_in_a_recipe(cli, tmp_path):
+    ws = tmp_path / "ws"
+    _write_obs(ws)
+    (ws / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.fit-reflectance]\nforeach = ["042"]\n'
+                               'inputs = { observations = "unwrap-uv/{id}.npz" }\n'
+                               'params = { exponents = [1, 1.0000001, 8] }\n')
+    r = cli("run", ws / "r.toml", "-w", ws)
+    assert r.exit_code == 1 and "collinear" in r.stderr
+    assert not (ws / "fit-reflectance" / "042.npz").exists()
+
+
+def test_lobe_correlation_against_quadrature():
+    from scipy import integrate
+
+    from reflectmm_cli.shading.brdf import lobe_correlation
+
+    for p, q in ((1, 8), (8, 64), (64, 64.5), (3.3, 3.4)):
+        pq = integrate.quad(lambda x: x ** (p + q), 0, 1)[0]
+        pp = integrate.quad(lambda x: x ** (2 * p), 0, 1)[0]
+        qq = integrate.quad(lambda x: x ** (2 * q), 0, 1)[0]
+        assert abs(lobe_correlation(p, q) - pq / np.sqrt(pp * qq)) < 1e-12

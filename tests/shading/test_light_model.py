@@ -112,8 +112,8 @@ def test_fit_pca_single_sample_and_skips():
     bad[3, 4, 0] = np.inf
     neg = -_sun_map([0, 1, 0], [1, 1, 1])
     good = _sun_map([1, 0, 0], [1, 1, 1])
-    model, skipped = build_light_model([bad, good, neg], order=2, components=3)
-    assert len(skipped) == 2 and "non-finite" in skipped[0][1] and "negative" in skipped[1][1]
+    model, skipped = build_light_model([bad, good, neg], order=2, components=3, rotations=2)
+    assert len(skipped) == 2 and "NaN or infinite" in skipped[0][1] and "negative" in skipped[1][1]
     with pytest.raises(ReflectmmError, match="none of the 2"):
         build_light_model([bad, neg], order=2)
 
@@ -211,3 +211,27 @@ def test_stage_runs_from_a_recipe_context(tmp_path):
     out = st.run(ctx.with_(cache_key=compute_cache_key(st, ctx)))
     assert [p.name for p in out] == ["build-light-pca.npz", "build-light-pca.png"]
     assert read_artifact(out[0], "light-model").arrays["bases"].shape == (3, 27)
+
+
+def test_light_model_of_zero_components_is_refused(tmp_path, cli):
+    maps = tmp_path / "maps"
+    _write_maps(maps)
+    one = maps / "env0.exr"
+    for args, want in (([one], "would have 0 components"),                       # one map, no rotations
+                       ([maps, "--components", 0], "--components must be an integer ≥ 1")):
+        r = cli("build-light-pca", *args, "-o", tmp_path / "lm.npz", "--order", 2)
+        assert r.exit_code == 1 and want in r.stderr, r.stderr
+        assert r.stderr.strip().splitlines()[-1].startswith("reflectmm: error: build-light-pca: ")
+        assert not (tmp_path / "lm.npz").exists()
+    # a constant (non-environment) EXR: normalised samples do not vary even when rotated
+    from reflectmm_cli.artifacts import write_exr
+
+    flat = np.full((16, 32), 0.7, np.float32)
+    write_exr(tmp_path / "flat.exr", {"R": flat, "G": flat, "B": flat})
+    r = cli("build-light-pca", tmp_path / "flat.exr", "--rotations", 4, "-o", tmp_path / "lm.npz", "--order", 2)
+    assert r.exit_code == 1 and "0 components" in r.stderr
+    # the same through a recipe stage
+    (tmp_path / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.build-light-pca]\n'
+                                     f'inputs = {{ envmaps = "{one}" }}\nparams = {{ order = 2 }}\n')
+    r = cli("run", tmp_path / "r.toml", "-w", tmp_path / "ws")
+    assert r.exit_code == 1 and "0 components" in r.stderr
