@@ -15,7 +15,7 @@ from reflectmm_cli.artifacts import write_artifact, write_png
 from reflectmm_cli.commands._common import emit, json_option, output_option, run_stage_cli, workspace_option
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.shading.light_model import (
+from reflectmm_cli.model.light import (
     LIGHT_MODEL_KIND,
     build_light_model,
     find_envmaps,

@@ -2,7 +2,7 @@
 
 Library entry points: :func:`fit_identity` (a full fit from artifacts), :func:`geometry_from_truth`
 (ground-truth geometry of a synthetic identity in the same format); the maths is in
-:mod:`reflectmm_cli.fitting` (docs/fit-geometry.md).
+:mod:`reflectmm_cli.geometry_fit` (docs/fit-geometry.md).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
                      ) -> tuple[np.ndarray, list[str]]:
     """(V, 68, 2) full-frame landmarks per view (``--landmarks DIR`` files first, else the capture's), and where
     each came from; a clear error naming the expected file for a view without any."""
-    from reflectmm_cli.fitting.landmarks import find_landmark_file, read_landmarks
+    from reflectmm_cli.geometry_fit.landmarks import find_landmark_file, read_landmarks
 
     V = len(view_names)
     out = np.full((V, 68, 2), np.nan)
@@ -162,8 +162,8 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
                  truth_path: Path | None = None, device: str = "cpu", flash_intensity: float | None = None
                  ) -> tuple[dict[str, np.ndarray], dict, Any]:
     """Fit one identity. Returns (geometry arrays, report dict, extras for the overlays)."""
-    from reflectmm_cli.fitting import FitConfig, ShapeModel, ViewSet, fit_geometry, flash_positions, initial_poses
-    from reflectmm_cli.fitting.report import truth_errors
+    from reflectmm_cli.geometry_fit import FitConfig, ShapeModel, ViewSet, fit_geometry, flash_positions, initial_poses
+    from reflectmm_cli.geometry_fit.report import truth_errors
     from reflectmm_cli.geometry import load_face_model
     from reflectmm_cli.rig import load_rig
 
@@ -254,7 +254,7 @@ def geometry_from_truth(truth_path: Path, *, view_names: list[str] | None = None
     V = len(names)
     rmse = np.full(V, np.nan)
     lm_fit = np.full((V, 68, 2), np.nan)
-    from reflectmm_cli.fitting.camera_math import camera_centers, project
+    from reflectmm_cli.geometry_fit.camera_math import camera_centers, project
 
     lm_ids = None if landmark_ids is None else np.asarray(landmark_ids, dtype=np.int64)
     if landmarks is not None and lm_ids is None:
@@ -284,7 +284,7 @@ def _truth_landmark_ids(truth: Artifact) -> np.ndarray | None:
     recorded view is nearest to the recorded (noise-free when landmark_noise = 0) 2-D landmark."""
     if "landmarks_2d" not in truth.arrays or "landmark_views" not in truth.arrays:
         return None
-    from reflectmm_cli.fitting.camera_math import project
+    from reflectmm_cli.geometry_fit.camera_math import project
 
     names = _str_list(truth["camera_names"])
     lv = _str_list(truth["landmark_views"])
@@ -315,7 +315,7 @@ def _outputs(ctx: StageContext) -> list[Path]:
 
 
 def _config_from_params(params: dict) -> Any:
-    from reflectmm_cli.fitting import FitConfig
+    from reflectmm_cli.geometry_fit import FitConfig
 
     names = {f.name for f in fields(FitConfig)}
     kw = {k: v for k, v in params.items() if k in names and v is not None}
@@ -330,7 +330,7 @@ def _config_from_params(params: dict) -> Any:
 @register_stage(VERB, version=1, per_identity=True, outputs=_outputs,
                 help="capture + face model + rig -> fitted shape/expression and cameras (geometry)")
 def run_fit_geometry(ctx: StageContext) -> list[Path]:
-    from reflectmm_cli.fitting.report import overlay
+    from reflectmm_cli.geometry_fit.report import overlay
 
     identity = ctx.identity
     if not identity:

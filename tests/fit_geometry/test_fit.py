@@ -6,9 +6,9 @@ import torch
 
 import toy
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.fitting import FitConfig, ViewSet, camera_centers, fit_geometry, initial_poses, project
-from reflectmm_cli.fitting.model import vertex_normals, vertex_normals_torch
-from reflectmm_cli.fitting.photometric import photometric_loss, sh_kernel
+from reflectmm_cli.geometry_fit import FitConfig, ViewSet, camera_centers, fit_geometry, initial_poses, project
+from reflectmm_cli.geometry_fit.model import vertex_normals, vertex_normals_torch
+from reflectmm_cli.geometry_fit.photometric import photometric_loss, sh_kernel
 
 AZ = [-60, -30, 0, 30, 60]
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.fitting.landmarks import (
+from reflectmm_cli.geometry_fit.landmarks import (
     DEFAULT_GROUP_WEIGHTS,
     find_landmark_file,
     landmark_weights,

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from reflectmm_cli.fitting.model import ShapeModel, vertex_normals
+from reflectmm_cli.geometry_fit.model import ShapeModel, vertex_normals
 
 
 def _layout68() -> np.ndarray:

@@ -24,11 +24,11 @@ import numpy as np
 import torch
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.fitting.camera_math import axis_angle_to_matrix, camera_centers, huber, project
-from reflectmm_cli.fitting.init import rigid_align
-from reflectmm_cli.fitting.landmarks import landmark_weights
-from reflectmm_cli.fitting.model import ShapeModel, vertex_normals, vertex_normals_torch
-from reflectmm_cli.fitting.photometric import (
+from reflectmm_cli.geometry_fit.camera_math import axis_angle_to_matrix, camera_centers, huber, project
+from reflectmm_cli.geometry_fit.init import rigid_align
+from reflectmm_cli.geometry_fit.landmarks import landmark_weights
+from reflectmm_cli.geometry_fit.model import ShapeModel, vertex_normals, vertex_normals_torch
+from reflectmm_cli.geometry_fit.photometric import (
     SH_ORDER,
     inside_image,
     photometric_loss,
@@ -37,7 +37,7 @@ from reflectmm_cli.fitting.photometric import (
     solve_albedo,
     solve_lighting,
 )
-from reflectmm_cli.fitting.visibility import vertex_visibility
+from reflectmm_cli.geometry_fit.visibility import vertex_visibility
 from reflectmm_cli.progress import progress
 from reflectmm_cli.threads import torch_threads
 from reflectmm_cli.shading import sh_basis
