@@ -6,6 +6,8 @@ looking down −z). ``light_dir`` points from the surface *towards* the light, `
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
@@ -13,9 +15,56 @@ from reflectmm_cli.errors import ReflectmmError
 from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_dtype, device_of, safe_normalize
 from .sh import blinn_phong_norm
 
-__all__ = ["blinn_phong_norm", "shade_directional", "DEFAULT_EXPONENTS"]
+__all__ = ["blinn_phong_norm", "shade_directional", "DEFAULT_EXPONENTS", "MAX_EXPONENT", "LOBE_RCOND_MIN",
+           "lobe_similarity", "check_exponents"]
 
+#: The paper's three lobes: the one default set of Blinn-Phong exponents (fit, unwrap, simulate, synth).
 DEFAULT_EXPONENTS = (1.0, 8.0, 64.0)
+
+#: Largest accepted lobe exponent.  At p = 10⁴ the lobe cos^p θ_h is already 0.67° wide at half maximum
+#: (θ ≈ √(2 ln 2 / p)), far below what a flash capture resolves (a UV texel at S = 256 spans about 1° of
+#: normal), so larger p only add cost: the SH coefficients B_l of a lobe take time ∝ p (≈ 5 s at 10⁴, minutes
+#: at 10⁵) and the sharper lobes flag every texel.
+MAX_EXPONENT = 10000.0
+
+#: Two lobes are refused as numerically collinear when the 2×2 Gram matrix of their unit-normalised
+#: hemisphere profiles has reciprocal condition (1 − s)/(1 + s) below this (s = :func:`lobe_similarity`);
+#: equal to fit-reflectance's default ``cond_min``, below which every texel would be flagged.
+LOBE_RCOND_MIN = 1e-4
+
+
+def lobe_similarity(p: float, q: float) -> float:
+    """Cosine similarity of the lobes cos^p and cos^q over the hemisphere (closed form).
+
+    ``⟨cos^p, cos^q⟩ = ∫ cos^(p+q) θ dω = 2π/(p+q+1)``, so
+    ``s = √((2p+1)(2q+1)) / (p+q+1)`` ∈ (0, 1], with s = 1 iff p = q.
+    """
+    return math.sqrt((2 * p + 1) * (2 * q + 1)) / (p + q + 1)
+
+
+def check_exponents(exponents) -> None:
+    """Refuse a lobe-exponent set that no fit can use (raises ValueError with one line saying why).
+
+    Every p must be finite, in (0, :data:`MAX_EXPONENT`], and no two lobes may be numerically collinear
+    (:data:`LOBE_RCOND_MIN`): duplicates such as ``1,1,8`` or ``1,1.0000001,8`` would make every texel's
+    design rank-deficient.
+    """
+    ps = [float(p) for p in exponents]
+    if not ps:
+        raise ValueError("no exponents")
+    for p in ps:
+        if not math.isfinite(p) or p <= 0:
+            raise ValueError(f"exponent {p:g} must be > 0")
+        if p > MAX_EXPONENT:
+            raise ValueError(f"exponent {p:g} is above the maximum {MAX_EXPONENT:g} (a lobe that sharp is "
+                             "narrower than a capture resolves)")
+    for i in range(len(ps)):
+        for j in range(i + 1, len(ps)):
+            s = lobe_similarity(ps[i], ps[j])
+            if (1 - s) / (1 + s) < LOBE_RCOND_MIN:
+                what = "duplicate" if ps[i] == ps[j] else "near-duplicate"
+                raise ValueError(f"{what} exponents {ps[i]:g} and {ps[j]:g}: their lobes are numerically "
+                                 "collinear (give distinct exponents, e.g. 1,8,64)")
 
 
 def _check_exponents(p, tm):
