@@ -19,14 +19,14 @@ from typing import Any, Mapping
 import numpy as np
 
 from reflectmm_cli.artifacts import sha256_file
-from reflectmm_cli.capture.images import ROTATIONS, read_image, read_landmarks, rotate_points
+from reflectmm_cli.capture.images import ROTATIONS, read_image, rotate_points
 from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, ShotPlan, plan_identity
 from reflectmm_cli.capture.transfer import Transfer, parse_transfer
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.landmarks import N_LANDMARKS, read_landmarks
 
 log = logging.getLogger("reflectmm")
 
-N_LANDMARKS = 68
 CROP_MODES = ("auto", "landmarks", "signal", "none")
 #: Linear OLAT level above which a pixel counts as lit by a flash (signal crop).
 SIGNAL_THRESHOLD = 0.01
@@ -140,7 +140,7 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
         rooms.append(img)
         lp = plan.landmarks[vi]
         if lp is not None:
-            pts = read_landmarks(lp, N_LANDMARKS)
+            pts = read_landmarks(lp, N_LANDMARKS).astype(np.float32)  # stored as float32
             if rots[vi]:
                 # landmark files annotate the image as stored on disk: rotate them with the image
                 h, w = img.linear.shape[:2]

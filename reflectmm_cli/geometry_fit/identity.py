@@ -40,7 +40,8 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
                      ) -> tuple[np.ndarray, list[str]]:
     """(V, 68, 2) full-frame landmarks per view (``--landmarks DIR`` files first, else the capture's), and where
     each came from; a clear error naming the expected file for a view without any."""
-    from reflectmm_cli.geometry_fit.landmarks import find_landmark_file, read_landmarks
+    from reflectmm_cli.geometry_fit.landmarks import find_landmark_file
+    from reflectmm_cli.landmarks import read_landmarks
 
     V = len(view_names)
     out = np.full((V, 68, 2), np.nan)
@@ -211,7 +212,7 @@ def geometry_from_truth(truth_path: Path, *, view_names: list[str] | None = None
     V = len(names)
     rmse = np.full(V, np.nan)
     lm_fit = np.full((V, 68, 2), np.nan)
-    from reflectmm_cli.geometry_fit.camera_math import camera_centers, project
+    from reflectmm_cli.geometry.camera import camera_centers, project
 
     lm_ids = None if landmark_ids is None else np.asarray(landmark_ids, dtype=np.int64)
     if landmarks is not None and lm_ids is None:
@@ -241,7 +242,7 @@ def _truth_landmark_ids(truth: Artifact) -> np.ndarray | None:
     recorded view is nearest to the recorded (noise-free when landmark_noise = 0) 2-D landmark."""
     if "landmarks_2d" not in truth.arrays or "landmark_views" not in truth.arrays:
         return None
-    from reflectmm_cli.geometry_fit.camera_math import project
+    from reflectmm_cli.geometry.camera import project
 
     names = _str_list(truth["camera_names"])
     lv = _str_list(truth["landmark_views"])

@@ -26,7 +26,8 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import format_pts as _format_pts
-from reflectmm_cli.rig import ALL_FLASHES, Rig, camera_code, load_rig, rig_to_toml
+from reflectmm_cli.capture.layout import camera_code
+from reflectmm_cli.rig import ALL_FLASHES, Rig, load_rig, rig_to_toml
 from reflectmm_cli.synth.skin import LOBE_EXPONENTS, SkinMaps, sample_skin_params, skin_maps
 
 __all__ = ["SynthConfig", "room_light_sh", "encode_png_values", "decode_png_values", "image_path",

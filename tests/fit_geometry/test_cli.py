@@ -6,7 +6,7 @@ from click.testing import CliRunner
 
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.cli import main
-from reflectmm_cli.geometry_fit.camera_math import project
+from reflectmm_cli.geometry.camera import project
 from reflectmm_cli.geometry_fit.landmarks import write_pts
 from reflectmm_cli.geometry_fit.report import truth_errors
 

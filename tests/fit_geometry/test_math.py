@@ -9,14 +9,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from reflectmm_cli.geometry_fit.camera_math import (
+from reflectmm_cli.geometry.camera import (
     axis_angle_to_matrix,
     camera_centers,
-    huber,
     intrinsics,
     matrix_to_axis_angle,
     project,
 )
+from reflectmm_cli.geometry_fit.fit import huber
 from reflectmm_cli.geometry_fit.init import pnp_pose, rigid_align
 
 vec3 = st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=3, max_size=3)
