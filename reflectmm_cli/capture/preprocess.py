@@ -24,6 +24,7 @@ from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, ShotPla
 from reflectmm_cli.capture.transfer import Transfer, parse_transfer
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import N_LANDMARKS, read_landmarks
+from reflectmm_cli.params import parse_list
 
 log = logging.getLogger("reflectmm")
 
@@ -65,10 +66,7 @@ def parse_rotate(items) -> dict[str, int]:
     else:
         pairs = []
         for it in items or []:
-            for tok in str(it).split(","):
-                tok = tok.strip()
-                if not tok:
-                    continue
+            for tok in parse_list(str(it), "--rotate", allow_empty=True):
                 if "=" not in tok:
                     raise ReflectmmError(f"--rotate {tok!r}: expected CAMERA=DEGREES (e.g. 08_1=90)")
                 k, v = tok.split("=", 1)

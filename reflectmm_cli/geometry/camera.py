@@ -280,8 +280,14 @@ def parse_camera_spec(spec: str, *, distance: float = 1000.0, focal_px: float = 
         return deep3d_camera()
     yaw = pitch = 0.0
     if spec != "frontal":
-        for part in spec.split(","):
-            m = _SPEC.match(part.strip())
+        from reflectmm_cli.params import ParamError, parse_list
+
+        try:
+            parts = parse_list(spec, "--camera")
+        except ParamError as exc:
+            raise ReflectmmError(f"--camera '{spec}': {str(exc).split(': ', 1)[-1]}") from None
+        for part in parts:
+            m = _SPEC.match(part)
             if not m:
                 raise ReflectmmError(f"--camera '{spec}': cannot parse '{part}' (use frontal, deep3d or "
                                      "yaw=DEG,pitch=DEG,distance=MM,focal=PX,size=WxH)")

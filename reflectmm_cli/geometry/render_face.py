@@ -48,9 +48,9 @@ def parse_point_light(text: str) -> tuple[np.ndarray, np.ndarray | None]:
     """``"x,y,z"`` or ``"x,y,z:I"`` or ``"x,y,z:r,g,b"`` (mm; intensity in linear pixel units × mm²)."""
     pos, _, inten = text.partition(":")
     try:
-        p = np.array([float(x) for x in pos.split(",")], dtype=np.float64)
-        i = None if not inten else np.array([float(x) for x in inten.split(",")], dtype=np.float64)
-    except ValueError:
+        p = np.array(parse_list(pos, "--point-light", float), dtype=np.float64)
+        i = None if not inten else np.array(parse_list(inten, "--point-light", float), dtype=np.float64)
+    except ParamError:
         raise ReflectmmError(f"--point-light '{text}': expected x,y,z[:I] or x,y,z:r,g,b (numbers)") from None
     if p.shape != (3,) or (i is not None and i.size not in (1, 3)) or not np.all(np.isfinite(p)):
         raise ReflectmmError(f"--point-light '{text}': expected x,y,z[:I] or x,y,z:r,g,b")

@@ -12,7 +12,6 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.params import Param, parse_list
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.shading.brdf import check_exponents
 from reflectmm_cli.stages.base import Stage, StageContext
 from reflectmm_cli.stages.fit_reflectance import SOLVER_PARAMS
 
@@ -21,8 +20,12 @@ VERB = "evaluate-representation"
 
 def _check_sets(text: str) -> None:
     """Every ';'-separated set is a valid exponent list (a single exponent = a global exponent)."""
-    for part in parse_list(text, "exponents_sets", sep=";"):
-        check_exponents(parse_list(part, "exponents_sets", float))
+    from reflectmm_cli.evaluation.representation import parse_exponent_sets
+
+    try:
+        parse_exponent_sets(text)
+    except ReflectmmError as exc:
+        raise ValueError(str(exc).split(": ", 1)[-1]) from None
 
 
 #: Params written to the artifact's meta (all but execution details).
@@ -113,7 +116,7 @@ def run(ctx: StageContext) -> list[Path]:
     lp_files = ctx.input_list("lpips_weights", required=False)
     lp = load_lpips(lp_files[0] if lp_files else None, str(p["lpips_net"]))
     reps = default_representations(str(p["exponents_sets"]), bool(p["baselines"]))
-    holdout = [h.strip() for h in str(p["holdout"]).split(",") if h.strip()]
+    holdout = parse_list(p["holdout"], "holdout")
     obs, ids = [], []
     for f in files:
         art = read_artifact(f, "uv-observations")
