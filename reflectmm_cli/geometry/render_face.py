@@ -88,10 +88,11 @@ def load_sh(path: Path) -> np.ndarray:
     return a
 
 
-def load_reflectance(maps: Path | None, model: Path | None, coeffs: str | None):
+def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: str | None):
     """(albedo (3,S,S), weights (K,S,S), exponents (K,)) from maps or a model at β."""
     from reflectmm_cli.artifacts import read_artifact
 
+    model = reflectance_model
     if (maps is None) == (model is None):
         raise ReflectmmError("give exactly one of --maps or --model")
     if maps is not None:
@@ -121,7 +122,8 @@ def load_reflectance(maps: Path | None, model: Path | None, coeffs: str | None):
 
 # ------------------------------------------------------------------------------------------ library
 
-def render_face(face_model: Path, *, maps: Path | None = None, model: Path | None = None, coeffs: str | None = None,
+def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model: Path | None = None,
+                coeffs: str | None = None,
                 point_light: str | None = None, envmap: Path | None = None, sh: Path | None = None,
                 sh_order: int = 8, camera: str = "frontal", shadows: bool = False, shape: str | None = None,
                 exp: str | None = None, geometry: Path | None = None) -> dict:
@@ -147,7 +149,7 @@ def render_face(face_model: Path, *, maps: Path | None = None, model: Path | Non
             raise ReflectmmError(f"geometry has {verts.shape[0]} vertices, the face model {fm.n_vertices}", geometry)
     else:
         verts = fm.vertices(parse_coeffs(shape, "--shape"), parse_coeffs(exp, "--exp"))
-    albedo, weights, exps = load_reflectance(maps, model, coeffs)
+    albedo, weights, exps = load_reflectance(maps, reflectance_model, coeffs)
     cam = parse_camera_spec(camera)
     scene = RayScene(verts, fm.triangles, vertex_normals(verts, fm.triangles))
     light: dict = {}

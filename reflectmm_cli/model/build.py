@@ -15,7 +15,7 @@ from .pca import add_vertex_model, fit_reflectance_pca
 
 log = logging.getLogger("reflectmm")
 
-__all__ = ["load_maps", "build_model"]
+__all__ = ["load_maps", "build_reflectance_model"]
 
 
 def load_maps(paths: list[Path]):
@@ -41,17 +41,18 @@ def load_maps(paths: list[Path]):
     return ids, albedos, weights, masks, flagged, exps
 
 
-def build_model(map_paths: list[Path], components: int = 80, face_model: Path | None = None):
+def build_reflectance_model(map_paths: list[Path], components: int = 80, face_model: Path | None = None):
     """(ReflectanceModel, FaceModel or None) from reflectance-maps files; with a face model the per-vertex model
     is added (:func:`~reflectmm_cli.model.pca.add_vertex_model`)."""
     ids, A, W, M, F, exps = load_maps(map_paths)
     if len(set(ids)) != len(ids):
         ids = [Path(p).stem for p in map_paths]
-    model = fit_reflectance_pca(A, W, exps, masks=M, flagged=F, components=components, ids=ids, log=log.warning)
+    reflectance_model = fit_reflectance_pca(A, W, exps, masks=M, flagged=F, components=components, ids=ids,
+                                            log=log.warning)
     fm = None
     if face_model is not None:
         from reflectmm_cli.geometry.face_model import load_face_model
 
         fm = load_face_model(face_model)
-        add_vertex_model(model, fm.uv)
-    return model, fm
+        add_vertex_model(reflectance_model, fm.uv)
+    return reflectance_model, fm

@@ -55,7 +55,7 @@ def run(ctx: StageContext) -> list[Path]:
     if out.suffix.lower() != ".exr":
         raise ReflectmmError("render output must be an .exr file (the PNG is written beside it)", out)
     p = ctx.params
-    r = render_face(ctx.input("face_model"), maps=_one(ctx, "maps"), model=_one(ctx, "model"),
+    r = render_face(ctx.input("face_model"), maps=_one(ctx, "maps"), reflectance_model=_one(ctx, "model"),
                     coeffs=p.get("coeffs"), point_light=p.get("point_light"), envmap=_one(ctx, "envmap"),
                     sh=_one(ctx, "sh"), sh_order=p["sh_order"], camera=p["camera"],
                     shadows=p["shadows"], shape=p.get("shape"), exp=p.get("exp"),
