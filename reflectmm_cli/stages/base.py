@@ -136,6 +136,8 @@ class Stage:
             None = undeclared (params pass through unchecked; only for ad-hoc stages registered with
             :func:`register_stage`).
         open_params: undeclared params are accepted as given (and key the cache) instead of refused.
+        cache_params: for a stage without a declaration, the names of the params that key the cache (None: all
+            but :data:`NON_INVALIDATING`); a declared stage says it per param (``invalidates_cache``).
         help: one-line description.
     """
 
@@ -148,6 +150,7 @@ class Stage:
     discover_ids: Callable[[StageContext], list[str]] | None = None
     params: tuple[Param, ...] | None = None
     open_params: bool = False
+    cache_params: tuple[str, ...] | None = None
     help: str = ""
 
     def resolve(self, given: Mapping[str, Any] | None, strict: bool = True) -> dict[str, Any]:
@@ -188,6 +191,8 @@ class Stage:
         if self.params is not None:
             skip = {p.name for p in self.params if not p.invalidates_cache}
             params = {k: v for k, v in params.items() if k not in skip}
+        if self.cache_params is not None:
+            params = {k: v for k, v in params.items() if k in self.cache_params}
         return params
 
     def context(self, *, strict: bool = True, **kwargs: Any) -> StageContext:
