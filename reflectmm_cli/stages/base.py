@@ -63,6 +63,8 @@ class StageContext:
     cache_key: str | None = None
     verb: str = ""
     stage_version: int = 1
+    #: declared params that never change a result (``Param.invalidates_cache`` False): not in meta or the key.
+    volatile_params: frozenset[str] = frozenset()
 
     def output_path(self, name: str | None = None, suffix: str = ".npz") -> Path:
         """Primary output path: the explicit ``output`` if given (for the default name and suffix),
@@ -109,7 +111,8 @@ class StageContext:
 
     def resolved_params(self) -> dict[str, Any]:
         """Params that affect results (what goes into meta and the cache key)."""
-        return {k: v for k, v in sorted(self.params.items()) if k not in NON_INVALIDATING}
+        return {k: v for k, v in sorted(self.params.items())
+                if k not in NON_INVALIDATING and k not in self.volatile_params}
 
     def with_(self, **changes: Any) -> "StageContext":
         return replace(self, **changes)
@@ -204,7 +207,8 @@ class Stage:
         except ParamError as exc:
             raise ParamError(f"stage '{kwargs['stage_name']}': {exc}") from None
         ctx = StageContext(**kwargs)
-        return ctx.with_(verb=self.verb, stage_version=self.version)
+        volatile = frozenset(p.name for p in self.params or () if not p.invalidates_cache)
+        return ctx.with_(verb=self.verb, stage_version=self.version, volatile_params=volatile)
 
 
 def walk_files(folder: Path) -> list[Path]:
