@@ -224,3 +224,16 @@ inputs = { observations = "unwrap-uv/{id}.npz" }
     rep = run_recipe(ws / "r.toml", ws)
     assert rep.ok
     assert "uv_size" not in read_artifact(ws / "fit-reflectance" / "001.npz").params
+
+
+def test_execution_details_never_key_the_cache(tmp_path):
+    st = get_stage("fit-geometry")
+    keys = set()
+    for given in ({}, {"threads": 4}, {"device": "cpu"}):
+        ctx = st.context(workspace=tmp_path, identity="001", params=given)
+        assert "threads" not in ctx.resolved_params()
+        keys.add(compute_cache_key(st, ctx))
+    assert len(keys) == 1
+    # a result-changing param does key it
+    ctx = st.context(workspace=tmp_path, identity="001", params={"w_photo": 2.0})
+    assert compute_cache_key(st, ctx) not in keys
