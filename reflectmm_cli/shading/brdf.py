@@ -63,7 +63,7 @@ def check_exponents(exponents) -> None:
             s = lobe_similarity(ps[i], ps[j])
             if (1 - s) / (1 + s) < LOBE_RCOND_MIN:
                 what = "duplicate" if ps[i] == ps[j] else "near-duplicate"
-                raise ValueError(f"{what} exponents {ps[i]:g} and {ps[j]:g}: their lobes are numerically "
+                raise ValueError(f"{what} exponents {ps[i]:.10g} and {ps[j]:.10g}: their lobes are numerically "
                                  "collinear (give distinct exponents, e.g. 1,8,64)")
 
 
