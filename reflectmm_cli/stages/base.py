@@ -25,7 +25,7 @@ from reflectmm_cli import __version__
 from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param, ParamError, resolve_params
-from reflectmm_cli.workspace import default_workspace
+from reflectmm_cli.workspace import default_workspace, stage_output
 
 #: Bump when the way cache keys are computed changes (invalidates every cache).
 CACHE_HASH_VERSION = 1
@@ -72,8 +72,9 @@ class StageContext:
         if self.output is not None and name is None and suffix == ".npz":
             return Path(self.output)
         base = name or self.identity or self.stage_name
-        folder = Path(self.output).parent if self.output is not None else self.workspace / self.stage_name
-        return folder / f"{base}{suffix}"
+        if self.output is not None:
+            return Path(self.output).parent / f"{base}{suffix}"
+        return stage_output(self.workspace, self.stage_name, base, suffix)
 
     def input(self, role: str) -> Path:
         """The single input path for ``role``; a clear error if missing or ambiguous."""
