@@ -53,8 +53,8 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", default=",".join(str(i) for i in range(len(CONFIGS))),
                     help="indices of the configurations to run")
     args = ap.parse_args(argv)
-    from reflectmm_cli.commands.fit_geometry import fit_identity
-    from reflectmm_cli.fitting import FitConfig
+    from reflectmm_cli.geometry_fit.identity import fit_identity
+    from reflectmm_cli.geometry_fit import FitConfig
 
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -101,7 +101,7 @@ def brute_force_specular(img, n, v, p):
 def load_maps(paths, W, H):
     """Real HDR maps (EXR/HDR), box-downsampled to W×H (the map must be an integer multiple of it or larger)."""
     from reflectmm_cli.artifacts import read_image
-    from reflectmm_cli.shading.light_model import find_envmaps
+    from reflectmm_cli.model.light import find_envmaps
 
     out = []
     for f in find_envmaps(paths):

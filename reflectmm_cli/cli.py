@@ -18,26 +18,47 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.progress import configure_logging
 
 
+#: The verbs: command name → module of reflectmm_cli.commands (the only place that imports them).
+COMMAND_MODULES: dict[str, str] = {
+    "build-light-pca": "build_light_pca",
+    "build-pca": "build_pca",
+    "checksum": "checksum",
+    "evaluate": "evaluate",
+    "face-model": "face_model",
+    "fit-geometry": "fit_geometry",
+    "fit-reflectance": "fit_reflectance",
+    "inspect": "inspect",
+    "preprocess-multipie": "preprocess_multipie",
+    "render": "render",
+    "run": "run",
+    "synth": "synth",
+    "unwrap-uv": "unwrap_uv",
+}
+
+
+def load_command(name: str) -> click.Command | None:
+    """The click command of a verb (imports only its module)."""
+    import importlib
+
+    module = COMMAND_MODULES.get(name)
+    if module is None:
+        return None
+    mod = importlib.import_module(f"reflectmm_cli.commands.{module}")
+    return next((c for c in mod.COMMANDS if c.name == name), None)
+
+
 class _Group(click.Group):
-    """Loads the verbs from ``reflectmm_cli.commands`` and turns errors into one line."""
-
-    _loaded = False
-
-    def _load(self) -> None:
-        if not self._loaded:
-            from reflectmm_cli.stages import load_commands
-
-            for cmd in load_commands():
-                if cmd.name not in self.commands:
-                    self.add_command(cmd)
-            type(self)._loaded = True
+    """Loads a verb's module from :data:`COMMAND_MODULES` when it is used, and turns errors into one line."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        self._load()
-        return sorted(self.commands)
+        return sorted(set(COMMAND_MODULES) | set(self.commands))
 
     def get_command(self, ctx: click.Context, name: str):
-        self._load()
+        if name not in self.commands:
+            cmd = load_command(name)
+            if cmd is None:
+                return None
+            self.add_command(cmd)
         return self.commands.get(name)
 
     # verbosity flags are accepted after the verb too (`reflectmm run r.toml -q`); no verb defines its own

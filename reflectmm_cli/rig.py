@@ -31,17 +31,17 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable
 
 import numpy as np
 
 from reflectmm_cli.artifacts import atomic_write_text
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.camera import intrinsics, look_at_rotation, project
 
 __all__ = [
     "ARC_CAMERAS", "RAISED_CAMERAS", "DEFAULT_VIEWS", "DEFAULT_FLASHES", "ALL_FLASHES",
     "RigCamera", "RigFlash", "Rig", "load_rig", "save_rig", "default_rig_path", "build_default_rig",
-    "look_at_rotation", "camera_code",
 ]
 
 #: Head-height cameras in arc order (15 degrees apart, from the subject's right to the subject's left).
@@ -59,33 +59,6 @@ ALL_FLASHES = tuple(f"{i:02d}" for i in range(1, 19))
 def default_rig_path() -> Path:
     """Path of the packaged default rig table."""
     return Path(__file__).resolve().parent / "data" / "multipie_rig.toml"
-
-
-def camera_code(name: str) -> str:
-    """Multi-PIE file-name code of a camera: ``05_1`` -> ``051``."""
-    return name.replace("_", "")
-
-
-def look_at_rotation(position: Sequence[float], target: Sequence[float], up: Sequence[float]) -> np.ndarray:
-    """World-to-camera rotation R (rows = camera x, y, z axes in world coordinates).
-
-    Camera +z points from ``position`` to ``target``; camera +y is image-down, i.e. opposite to ``up``
-    projected onto the image plane; camera +x = y × z (image right).  Raises ValueError when degenerate.
-    """
-    c = np.asarray(position, np.float64)
-    z = np.asarray(target, np.float64) - c
-    nz = np.linalg.norm(z)
-    if nz <= 0:
-        raise ValueError("look_at equals position")
-    z = z / nz
-    u = np.asarray(up, np.float64)
-    y = -(u - np.dot(u, z) * z)
-    ny = np.linalg.norm(y)
-    if ny <= 1e-9 * max(np.linalg.norm(u), 1e-300):
-        raise ValueError("up is parallel to the viewing direction")
-    y = y / ny
-    x = np.cross(y, z)
-    return np.stack([x, y, z])
 
 
 @dataclass
@@ -110,9 +83,7 @@ class RigCamera:
 
     @property
     def K(self) -> np.ndarray:
-        return np.array([[self.focal_px, 0.0, (self.width - 1) / 2.0],
-                         [0.0, self.focal_px, (self.height - 1) / 2.0],
-                         [0.0, 0.0, 1.0]])
+        return intrinsics(self.focal_px, self.width, self.height)
 
     @property
     def center(self) -> np.ndarray:
@@ -120,13 +91,15 @@ class RigCamera:
 
     @property
     def code(self) -> str:
+        """Multi-PIE file-name code (``05_1`` → ``051``; :func:`reflectmm_cli.capture.layout.camera_code`)."""
+        from reflectmm_cli.capture.layout import camera_code
+
         return camera_code(self.name)
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixel coordinates (..., 2) of model-space points (..., 3)."""
-        x = np.asarray(points, np.float64) @ self.R.T + self.t
-        uv = x[..., :2] / x[..., 2:3]
-        return uv * self.focal_px + np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
+        p = np.asarray(points, np.float64)
+        return project(p.reshape(-1, 3), self.K, self.R, self.t)[0].reshape(p.shape[:-1] + (2,))
 
     def resized(self, width: int, height: int) -> "RigCamera":
         """The same camera with another sensor size; the focal length scales with the height (same framing)."""

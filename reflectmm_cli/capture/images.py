@@ -105,13 +105,6 @@ def read_image(path: str | Path, transfer: Transfer, rotate: int = 0,
     return Image(lut[codes], sat, bits, path, (W, H))
 
 
-def read_landmarks(path: str | Path, n: int = 68) -> np.ndarray:
-    """``(n, 2)`` float32 landmarks (x, y pixels) from an iBUG ``.pts``, a text (n×2 numbers) or ``.npy`` file."""
-    from reflectmm_cli.landmarks import read_landmarks as _read
-
-    return _read(path, n).astype(np.float32)
-
-
 def rotate_points(pts: np.ndarray, rotate: int, width: int, height: int) -> np.ndarray:
     """Pixel coordinates in an image of size (width, height) as stored on disk → coordinates in the image
     rotated clockwise by ``rotate`` degrees (as :func:`read_image` rotates it)."""

@@ -19,15 +19,15 @@ from typing import Any, Mapping
 import numpy as np
 
 from reflectmm_cli.artifacts import sha256_file
-from reflectmm_cli.capture.images import ROTATIONS, read_image, read_landmarks, rotate_points
+from reflectmm_cli.capture.images import ROTATIONS, read_image, rotate_points
 from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, ShotPlan, plan_identity
 from reflectmm_cli.capture.transfer import Transfer, parse_transfer
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.landmarks import check_in_frame
+from reflectmm_cli.landmarks import N_LANDMARKS, check_in_frame, read_landmarks
+from reflectmm_cli.params import parse_list
 
 log = logging.getLogger("reflectmm")
 
-N_LANDMARKS = 68
 CROP_MODES = ("auto", "landmarks", "signal", "none")
 #: Linear OLAT level above which a pixel counts as lit by a flash (signal crop).
 SIGNAL_THRESHOLD = 0.01
@@ -66,10 +66,7 @@ def parse_rotate(items) -> dict[str, int]:
     else:
         pairs = []
         for it in items or []:
-            for tok in str(it).split(","):
-                tok = tok.strip()
-                if not tok:
-                    continue
+            for tok in parse_list(str(it), "--rotate", allow_empty=True):
                 if "=" not in tok:
                     raise ReflectmmError(f"--rotate {tok!r}: expected CAMERA=DEGREES (e.g. 08_1=90)")
                 k, v = tok.split("=", 1)
@@ -141,7 +138,7 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
         rooms.append(img)
         lp = plan.landmarks[vi]
         if lp is not None:
-            pts = read_landmarks(lp, N_LANDMARKS)
+            pts = read_landmarks(lp, N_LANDMARKS).astype(np.float32)  # stored as float32
             if rots[vi]:
                 # landmark files annotate the image as stored on disk: rotate them with the image
                 h, w = img.linear.shape[:2]

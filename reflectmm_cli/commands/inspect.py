@@ -18,7 +18,7 @@ import click
 import numpy as np
 
 from reflectmm_cli.artifacts import (META_KEY, SCHEMA_MAJOR, _meta_from_npz, _open_npz, parse_schema, read_exr)
-from reflectmm_cli.commands._common import json_option
+from reflectmm_cli.commands._common import json_option, silence_stdout
 from reflectmm_cli.errors import ArtifactError, ReflectmmError
 
 
@@ -184,20 +184,9 @@ def inspect_cmd(ctx, files, as_json):
                 for line in format_inspection(d):
                     click.echo(line)
     except BrokenPipeError:  # `reflectmm inspect ... | head`: the reader has gone, that is not an error
-        _silence_stdout()
+        silence_stdout()
     if errors:
         ctx.exit(1)
-
-
-def _silence_stdout() -> None:
-    import os
-    import sys
-
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError, AttributeError):  # not a real file (e.g. a test runner's buffer)
-        pass
 
 
 COMMANDS = [inspect_cmd]

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import json_option, parse_ids, workspace_option
+from reflectmm_cli.commands._common import json_option, parse_ids, silence_stdout, workspace_option
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages import default_workspace
+from reflectmm_cli.workspace import default_workspace
 
 log = logging.getLogger("reflectmm")
 
@@ -83,9 +83,7 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
             for p in report.outputs():
                 click.echo(p)
     except BrokenPipeError:  # `reflectmm run ... | head`: the results are written, the reader has gone
-        from reflectmm_cli.commands.inspect import _silence_stdout
-
-        _silence_stdout()
+        silence_stdout()
     if dry_run:
         log.info("planned in %.3f s", report.plan_seconds)
         return

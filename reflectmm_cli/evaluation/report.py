@@ -21,31 +21,22 @@ import numpy as np
 
 from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.workspace import find_truth_dir, list_artifacts
 
 from .truth import geometry_errors, reflectance_errors
 
-__all__ = ["find_truth_dir", "discover_inputs", "build_report", "pca_reconstruction"]
-
-TRUTH_CANDIDATES = ("truth", "synth/truth", "synth-multipie/truth")
-
-
-def find_truth_dir(workspace: Path) -> Path | None:
-    for c in TRUTH_CANDIDATES:
-        p = Path(workspace) / c
-        if p.is_dir():
-            return p
-    return None
-
+__all__ = ["discover_inputs", "build_report", "pca_reconstruction"]
 
 def _npz(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.npz") if not p.name.startswith(".")) if folder.is_dir() else []
 
 
 def discover_inputs(workspace: Path, truth_dir: Path | None = None) -> dict[str, list[Path]]:
+    """The report's inputs in a workspace: every stage's artifacts (workspace convention) and the truth folder."""
     ws = Path(workspace)
     td = truth_dir if truth_dir is not None else find_truth_dir(ws)
-    return {"geometry": _npz(ws / "fit-geometry"), "maps": _npz(ws / "fit-reflectance"),
-            "model": _npz(ws / "build-pca"), "representation": _npz(ws / "evaluate-representation"),
+    return {"geometry": list_artifacts(ws, "fit-geometry"), "maps": list_artifacts(ws, "fit-reflectance"),
+            "model": list_artifacts(ws, "build-pca"), "representation": list_artifacts(ws, "evaluate-representation"),
             "truth": _npz(Path(td)) if td is not None else []}
 
 

@@ -48,21 +48,26 @@ class Representation:
 
 
 def parse_exponent_sets(text: str) -> list[Representation]:
-    """``"8;16;32;64;1,8,64"`` → K = 1 reps with p = 8…64 and the 3-lobe set; ``diffuse`` / ``0`` = diffuse only."""
+    """``"8;16;32;64;1,8,64"`` → K = 1 reps with p = 8…64 and the 3-lobe set; ``diffuse`` / ``0`` = diffuse only.
+
+    Each set is a comma list (:func:`reflectmm_cli.params.parse_list`) checked by
+    :func:`reflectmm_cli.shading.brdf.check_exponents` (positive, bounded, no collinear lobes)."""
+    from reflectmm_cli.params import ParamError, parse_list
+    from reflectmm_cli.shading.brdf import check_exponents
+
     reps = []
-    for tok in str(text).split(";"):
-        tok = tok.strip()
-        if not tok:
-            continue
+    for tok in parse_list(text, "--exponents-sets", sep=";"):
         if tok.lower() in ("diffuse", "0", "none"):
             reps.append(Representation("diffuse only", ()))
             continue
         try:
-            exps = tuple(float(x) for x in tok.split(","))
-        except ValueError:
+            exps = tuple(parse_list(tok, "--exponents-sets", float))
+        except ParamError:
             raise ReflectmmError(f"--exponents-sets: cannot parse {tok!r} (use e.g. \"8;16;32;64;1,8,64\")") from None
-        if any(not np.isfinite(p) or p <= 0 for p in exps):
-            raise ReflectmmError(f"--exponents-sets: exponents must be > 0, got {tok!r}")
+        try:
+            check_exponents(exps)
+        except ValueError as exc:
+            raise ReflectmmError(f"--exponents-sets: {tok!r}: {exc}") from None
         name = (f"global p={exps[0]:g}" if len(exps) == 1 else f"{len(exps)}-lobe ({','.join(f'{p:g}' for p in exps)})")
         reps.append(Representation(name, exps))
     if not reps:

@@ -1,6 +1,6 @@
 """Face geometry: linear face models and loaders, the procedural face, pinhole cameras, Embree ray casting,
 UV-space rasterisation and a small renderer (docs/geometry.md)."""
-from .camera import Camera, deep3d_camera, look_at, orbit_camera, parse_camera_spec, project_torch
+from .camera import Camera, deep3d_camera, look_at, orbit_camera, parse_camera_spec, project
 from .face_model import (
     FaceModel,
     face_model_from_artifact,
@@ -58,7 +58,7 @@ __all__ = [
     "orbit_camera",
     "parse_camera_spec",
     "procedural_face_model",
-    "project_torch",
+    "project",
     "save_face_model",
     "vertex_normals",
 ]

@@ -1,19 +1,28 @@
-"""Pinhole cameras in the OpenCV convention (docs/pipeline.md).
+"""Pinhole cameras in the OpenCV convention (docs/pipeline.md): the one home of projection, intrinsics,
+look-at and rotations (numpy and torch).
 
 ``x_cam = R @ x_model + t``; ``u = fx·X/Z + s·Y/Z + cx``, ``v = fy·Y/Z + cy``; ``Z > 0`` in front of the
 camera, image ``y`` down, the centre of the top-left pixel is ``(0, 0)``.  Camera centre ``c = −Rᵀt``.
+Rotations are parameterised by axis-angle vectors (Rodrigues); the geometry fit optimises a left-multiplied
+update ``R = exp([δ]×) @ R0`` so that poses near a rotation by π are never at the axis-angle singularity.
 """
 from __future__ import annotations
 
 import math
 import re
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Camera", "look_at", "deep3d_camera", "project_torch", "orbit_camera", "parse_camera_spec"]
+__all__ = ["Camera", "look_at", "look_at_rotation", "deep3d_camera", "orbit_camera", "parse_camera_spec", "project",
+           "camera_centers", "intrinsics", "skew", "axis_angle_to_matrix", "matrix_to_axis_angle"]
+
+
+def _is_torch(x) -> bool:
+    return type(x).__module__.startswith("torch")
 
 
 @dataclass
@@ -68,11 +77,7 @@ class Camera:
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
             raise ReflectmmError(f"camera.project: points must be (M, 3), got {p.shape}")
-        xc = self.to_camera(p)
-        z = xc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            h = xc @ self.K.T
-            uv = h[:, :2] / h[:, 2:3]
+        uv, z = project(p, self.K, self.R, self.t)
         uv[z <= 0] = np.nan
         return uv, z
 
@@ -115,6 +120,86 @@ class Camera:
                 "width": self.width, "height": self.height}
 
 
+def project(points, K, R, t):
+    """The projection: (..., N, 3) model-space points with (..., 3, 3) K, R and (..., 3) t (batched over views
+    by leading dims) → ((..., N, 2) pixels (u, v), (..., N) depth Z along the optical axis).
+
+    ``u = fx·X/Z + s·Y/Z + cx``, ``v = fy·Y/Z + cy`` with ``(X, Y, Z) = R x + t``.  numpy in → numpy out
+    (float64); torch in → torch out (differentiable; K, R, t tensors of the points' dtype).  Points behind the
+    camera (Z ≤ 0) are projected as they come (the caller masks them; :meth:`Camera.project` sets NaN).
+    """
+    if _is_torch(points):
+        import torch
+
+        K, R, t = (torch.as_tensor(a, dtype=points.dtype, device=points.device) for a in (K, R, t))
+        Xc = points @ R.transpose(-1, -2) + t[..., None, :]
+        Z = Xc[..., 2]
+        uv = torch.stack([K[..., 0, 0, None] * Xc[..., 0] / Z + K[..., 0, 1, None] * Xc[..., 1] / Z
+                          + K[..., 0, 2, None],
+                          K[..., 1, 1, None] * Xc[..., 1] / Z + K[..., 1, 2, None]], -1)
+        return uv, Z
+    points = np.asarray(points, dtype=np.float64)
+    R = np.asarray(R, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    Xc = points @ np.swapaxes(R, -1, -2) + t[..., None, :]
+    Z = Xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):  # Z = 0: inf/NaN pixels, for the caller to mask
+        uv = np.stack([K[..., 0, 0, None] * Xc[..., 0] / Z + K[..., 0, 1, None] * Xc[..., 1] / Z + K[..., 0, 2, None],
+                       K[..., 1, 1, None] * Xc[..., 1] / Z + K[..., 1, 2, None]], -1)
+    return uv, Z
+
+
+def camera_centers(R, t):
+    """Camera centres in model space ``c = −Rᵀ t`` for (..., 3, 3) R and (..., 3) t (numpy or torch)."""
+    if _is_torch(R):
+        return -(R.transpose(-1, -2) @ t[..., None])[..., 0]
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    return -np.einsum("...ji,...j->...i", R, t)
+
+
+def skew(w):
+    """(..., 3) → (..., 3, 3) cross-product matrices ``[w]×`` with ``[w]× v = w × v``."""
+    import torch
+
+    z = torch.zeros_like(w[..., 0])
+    return torch.stack([
+        torch.stack([z, -w[..., 2], w[..., 1]], -1),
+        torch.stack([w[..., 2], z, -w[..., 0]], -1),
+        torch.stack([-w[..., 1], w[..., 0], z], -1),
+    ], -2)
+
+
+def axis_angle_to_matrix(w):
+    """Rodrigues: (..., 3) axis-angle (radians, |w| = angle) → (..., 3, 3) rotation matrices.
+
+    ``R = I + sin θ/θ [w]× + (1 − cos θ)/θ² [w]×²``; for θ < 1e-4 the Taylor series is used so the value and
+    the gradient are exact at and near zero (the fit starts every update at exactly zero).
+    """
+    import torch
+
+    theta2 = (w * w).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    small = theta2 < 1e-8
+    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = torch.sqrt(theta2_safe)
+    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, (1.0 - torch.cos(theta)) / theta2_safe)
+    K = skew(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(K.shape)
+    return eye + a * K + b * (K @ K)
+
+
+def matrix_to_axis_angle(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices → (..., 3) axis-angle vectors (numpy, robust near 0 and π)."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=np.float64)
+    flat = R.reshape(-1, 3, 3)
+    out = Rotation.from_matrix(flat).as_rotvec()
+    return out.reshape(R.shape[:-2] + (3,))
+
+
 def intrinsics(focal_px: float, width: int, height: int, cx: float | None = None, cy: float | None = None,
                fy: float | None = None) -> np.ndarray:
     """K with the principal point at the image centre ``((W−1)/2, (H−1)/2)`` unless given."""
@@ -123,21 +208,37 @@ def intrinsics(focal_px: float, width: int, height: int, cx: float | None = None
     return np.array([[focal_px, 0, cx], [0, focal_px if fy is None else fy, cy], [0, 0, 1]], dtype=np.float64)
 
 
+def look_at_rotation(position: Sequence[float], target: Sequence[float], up: Sequence[float]) -> np.ndarray:
+    """World-to-camera rotation R (rows = camera x, y, z axes in world coordinates).
+
+    Camera +z points from ``position`` to ``target``; camera +y is image-down, i.e. opposite to ``up``
+    projected onto the image plane; camera +x = y × z (image right).  Raises ValueError when degenerate.
+    """
+    c = np.asarray(position, np.float64)
+    z = np.asarray(target, np.float64) - c
+    nz = np.linalg.norm(z)
+    if nz <= 0:
+        raise ValueError("look_at equals position")
+    z = z / nz
+    u = np.asarray(up, np.float64)
+    y = -(u - np.dot(u, z) * z)
+    ny = np.linalg.norm(y)
+    if ny <= 1e-9 * max(np.linalg.norm(u), 1e-300):
+        raise ValueError("up is parallel to the viewing direction")
+    y = y / ny
+    x = np.cross(y, z)
+    return np.stack([x, y, z])
+
+
 def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), focal_px: float = 1500.0, width: int = 640,
             height: int = 480, name: str = "camera", cx: float | None = None, cy: float | None = None) -> Camera:
     """A camera at ``eye`` looking at ``target`` with ``up`` appearing up in the image (OpenCV axes:
     +Z forward, +X right, +Y down)."""
     eye = np.asarray(eye, dtype=np.float64)
-    f = np.asarray(target, dtype=np.float64) - eye
-    if np.linalg.norm(f) == 0:
-        raise ReflectmmError(f"camera '{name}': eye and target coincide")
-    f /= np.linalg.norm(f)
-    x = np.cross(f, np.asarray(up, dtype=np.float64))
-    if np.linalg.norm(x) < 1e-9:
-        raise ReflectmmError(f"camera '{name}': up vector is parallel to the viewing direction")
-    x /= np.linalg.norm(x)
-    y = np.cross(f, x)
-    R = np.stack([x, y, f])
+    try:
+        R = look_at_rotation(eye, target, up)
+    except ValueError as exc:
+        raise ReflectmmError(f"camera '{name}': {exc}") from None
     return Camera(intrinsics(focal_px, width, height, cx, cy), R, -R @ eye, width, height, name)
 
 
@@ -169,24 +270,6 @@ def deep3d_camera(focal: float = 1015.0, center: float = 112.0, size: int = 224,
     return Camera(K, R, t, size, size, "deep3d")
 
 
-def project_torch(points, K, R, t):
-    """Differentiable projection of (..., M, 3) points: (uv (..., M, 2), depth (..., M)).
-
-    K, R: (..., 3, 3) and t: (..., 3) tensors (batched over views when given with a leading dim that
-    broadcasts against the points).
-    """
-    import torch
-
-    K = torch.as_tensor(K, dtype=points.dtype, device=points.device)
-    R = torch.as_tensor(R, dtype=points.dtype, device=points.device)
-    t = torch.as_tensor(t, dtype=points.dtype, device=points.device)
-    xc = points @ R.transpose(-1, -2) + t.unsqueeze(-2)
-    h = xc @ K.transpose(-1, -2)
-    z = h[..., 2:3]
-    uv = h[..., :2] / torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
-    return uv, xc[..., 2]
-
-
 _SPEC = re.compile(r"^(yaw|pitch|distance|dist|focal|f|width|height|size)=(-?[0-9.]+(?:x[0-9]+)?)$")
 
 
@@ -198,8 +281,14 @@ def parse_camera_spec(spec: str, *, distance: float = 1000.0, focal_px: float = 
         return deep3d_camera()
     yaw = pitch = 0.0
     if spec != "frontal":
-        for part in spec.split(","):
-            m = _SPEC.match(part.strip())
+        from reflectmm_cli.params import ParamError, parse_list
+
+        try:
+            parts = parse_list(spec, "--camera")
+        except ParamError as exc:
+            raise ReflectmmError(f"--camera '{spec}': {str(exc).split(': ', 1)[-1]}") from None
+        for part in parts:
+            m = _SPEC.match(part)
             if not m:
                 raise ReflectmmError(f"--camera '{spec}': cannot parse '{part}' (use frontal, deep3d or "
                                      "yaw=DEG,pitch=DEG,distance=MM,focal=PX,size=WxH)")

@@ -255,10 +255,11 @@ def face_normals(vertices, triangles, *, normalize: bool = True):
     return n
 
 
-def vertex_normals(vertices, triangles):
+def vertex_normals(vertices, triangles, dtype=np.float32):
     """(N, 3) unit vertex normals: the area-weighted sum of adjacent triangle normals.
 
-    numpy (float64 internally, returned float32) or torch (differentiable, batched over leading dims).
+    numpy (float64 internally, returned as ``dtype``: float32 by default, float64 for the geometry fit) or torch
+    (differentiable, batched over leading dims; the vertices' dtype).
     Degenerate (zero-area) triangles contribute nothing; a vertex with no non-degenerate triangle gets the zero
     vector — every output is finite.
     """
@@ -288,12 +289,12 @@ def vertex_normals(vertices, triangles):
         _accumulate(out, t[:, k], fn)
     ln = np.linalg.norm(out, axis=1, keepdims=True)
     out = np.divide(out, ln, out=np.zeros_like(out), where=ln > 1e-300)
-    return out.astype(np.float32)
+    return out.astype(dtype)
 
 
 def _accumulate(out: np.ndarray, idx: np.ndarray, vals: np.ndarray) -> None:
-    for c in range(out.shape[1]):
-        out[:, c] += np.bincount(idx, weights=vals[:, c], minlength=out.shape[0])
+    # sequential, in triangle order (the same float64 sums as the geometry fit has always used)
+    np.add.at(out, idx, vals)
 
 
 # ---------------------------------------------------------------------------------------------- artifact I/O

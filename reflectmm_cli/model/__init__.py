@@ -1,4 +1,5 @@
-"""Reflectance morphable model: PCA of fitted maps with specular transfer (DESIGN.md §1 step 5).
+"""Statistical models: the reflectance morphable model (PCA of fitted maps with specular transfer, DESIGN.md §1
+step 5, :mod:`.pca`) and the light model (PCA of SH lighting, step 6, :mod:`.light`).
 
 See docs/model.md. numpy in → numpy out; :func:`sample_model` also takes a torch β (differentiable).
 """
@@ -14,8 +15,12 @@ from .pca import (
     sample_model,
     sample_uv_bilinear,
 )
+from .light import LightModel, build_light_model, light_from_coeffs
 
 __all__ = [
+    "LightModel",
+    "build_light_model",
+    "light_from_coeffs",
     "MODEL_KIND",
     "ReflectanceModel",
     "add_vertex_model",

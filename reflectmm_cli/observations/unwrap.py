@@ -28,10 +28,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.camera import project
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 
 log = logging.getLogger("reflectmm")
-
-DEFAULT_EXPONENTS = (1.0, 8.0, 64.0)
 
 
 @dataclass
@@ -58,18 +58,6 @@ def uv_geometry(vertices: np.ndarray, triangles: np.ndarray, uv: np.ndarray, siz
     pos = np.where(mask[..., None], pos, 0.0).astype(np.float32)
     nrm = np.where(mask[..., None], nrm, 0.0).astype(np.float32)
     return UVGeometry(pos, nrm, mask, ras.tri_id, ras.bary)
-
-
-def project(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV pinhole projection: (N,2) pixel coordinates ``(u, v)`` and (N,) depth Z."""
-    X = np.asarray(points, dtype=np.float64) @ np.asarray(R, dtype=np.float64).T + np.asarray(t, dtype=np.float64)
-    Z = X[:, 2]
-    Zs = np.where(np.abs(Z) > 1e-12, Z, 1e-12)
-    x, y = X[:, 0] / Zs, X[:, 1] / Zs
-    K = np.asarray(K, dtype=np.float64)
-    u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
-    v = K[1, 1] * y + K[1, 2]
-    return np.stack([u, v], 1), Z
 
 
 def bilinear(images: np.ndarray, uv: np.ndarray, saturated: np.ndarray | None = None

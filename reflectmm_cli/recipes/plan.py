@@ -23,7 +23,9 @@ from typing import Any
 from reflectmm_cli.artifacts import atomic_write_text, canonical_json, read_meta
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.recipes.recipe import ALL_FOUND, Recipe, Ref, StageSpec
-from reflectmm_cli.stages import Stage, StageContext, cache_key_doc, file_digest, get_stage, key_of_doc
+from reflectmm_cli.params import ParamError
+from reflectmm_cli.stages import (NON_INVALIDATING, Stage, StageContext, cache_key_doc, file_digest, get_stage,
+                                  key_of_doc)
 
 log = logging.getLogger("reflectmm")
 
@@ -159,6 +161,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
             stages[name] = get_stage(spec.verb)
         except ReflectmmError as exc:
             raise ReflectmmError(f"[stages.{name}]: {exc}", recipe.path) from None
+        stage_params(spec, stages[name], recipe.path)  # validate before anything runs: one line per problem
         if stages[name].per_identity and not spec.per_identity:
             raise ReflectmmError(f"[stages.{name}]: verb '{spec.verb}' runs per identity; give foreach "
                                  f'(a list of ids, {{ file = "ids.txt" }} or "{ALL_FOUND}")', recipe.path)
@@ -221,6 +224,27 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
 _DEFER = object()
 
 
+def stage_params(spec: StageSpec, stage: Stage, recipe_path: Path | None,
+                 refs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A stage's params as the command line would resolve them: validated against the verb's declaration,
+    defaults filled, canonical.  ``[defaults]`` params the verb does not declare are left out; an own param it
+    does not declare, or a bad value, is a one-line error naming the recipe file and the stage.  ``refs`` are
+    the resolved paths of params that reference other stages (before planning they count as given)."""
+    declared = None if stage.params is None else {p.name for p in stage.params}
+    given: dict[str, Any] = {}
+    for k, v in spec.params.items():
+        if k in spec.param_refs:
+            v = (refs or {}).get(k)
+        if (declared is not None and not stage.open_params and k not in spec.own_params and k not in declared
+                and k not in NON_INVALIDATING):
+            continue  # a [defaults] param for other verbs
+        given[k] = v
+    try:
+        return stage.resolve(given)
+    except ParamError as exc:
+        raise ReflectmmError(f"[stages.{spec.name}] params: {exc}", recipe_path) from None
+
+
 def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, tasks: dict[str, Task],
                stage_tasks: dict[str, list[str]], memo: dict[str, Any] | None) -> Any:
     fe = spec.foreach
@@ -229,7 +253,7 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
     if isinstance(fe, list):
         return list(fe)
     if isinstance(fe, dict):
-        from reflectmm_cli.commands._common import parse_ids
+        from reflectmm_cli.params import parse_ids
 
         p = Path(fe["file"])
         p = p if p.is_absolute() else workspace / p
@@ -241,11 +265,13 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
         upstream_tasks = [tid for u in spec.upstream() for tid in stage_tasks.get(u, [])]
         pending = any(tasks[t].action in (RUN, ERROR, BLOCKED, FAILED) if tasks[t].selected else
                       not all(Path(p).exists() for p in tasks[t].outputs) for t in upstream_tasks)
-        ctx = stage.context(workspace=workspace, stage_name=spec.name, identity=None, params=dict(spec.params))
+        ctx = stage.context(workspace=workspace, stage_name=spec.name, identity=None,
+                            params=stage_params(spec, stage, recipe.path))
         # discovery sees the stage's inputs as an aggregate would; per-identity paths ({id}) are left out
         lenient = StageSpec(spec.name, spec.verb, spec.params, {
             role: [it for it in items if isinstance(it, Ref) or "{id}" not in it]
-            for role, items in spec.inputs.items()}, spec.foreach, spec.resources, spec.param_refs)
+            for role, items in spec.inputs.items()}, spec.foreach, spec.resources, spec.param_refs,
+            spec.own_params)
         try:
             inputs, _ = _resolve_inputs(lenient, ctx, workspace, tasks, stage_tasks, identity=None, aggregate=True)
         except _PlanError as exc:
@@ -272,16 +298,19 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
 def _make_task(spec: StageSpec, stage: Stage, workspace: Path, ident: str | None,
                tasks: dict[str, Task], stage_tasks: dict[str, list[str]]) -> Task:
     tid = task_id(spec.name, ident)
-    params = dict(spec.params)
+    params = stage_params(spec, stage, None)
     device = str(params.get("device", "cpu"))
     ctx = stage.context(workspace=workspace, stage_name=spec.name, identity=ident, params=params, device=device)
     task = Task(tid, spec.name, spec.verb, ident, ctx, resources=dict(spec.resources))
     try:
         inputs, deps = _resolve_inputs(spec, ctx, workspace, tasks, stage_tasks, ident, aggregate=ident is None)
+        refs: dict[str, Any] = {}
         for pname, ref in spec.param_refs.items():
             paths, pdeps = _resolve_ref(ref, spec, workspace, tasks, stage_tasks, ident, ident is None)
-            params[pname] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
+            refs[pname] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
             deps += [d for d in pdeps if d not in deps]
+        if refs:
+            params = stage_params(spec, stage, None, refs)
         task.ctx = ctx.with_(inputs=inputs, params=params)
         task.deps = deps
         try:

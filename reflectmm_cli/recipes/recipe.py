@@ -81,6 +81,9 @@ class StageSpec:
     resources: dict[str, Any] = field(default_factory=dict)
     #: params whose string values are references (name -> Ref), resolved to paths at plan time.
     param_refs: dict[str, Ref] = field(default_factory=dict)
+    #: names given in the stage's own ``params`` table (the rest came from ``[defaults]``): an own param the
+    #: verb does not declare is an error, a ``[defaults]`` param it does not declare is not for it.
+    own_params: frozenset[str] = frozenset()
 
     @property
     def per_identity(self) -> bool:
@@ -254,7 +257,8 @@ def _build(doc: dict[str, Any], path: Path) -> Recipe:
                                          f"(e.g. \"512MB\", \"4GB\")", path) from None
             elif rv < 0:
                 raise ReflectmmError(f"{where} resources.{rk}: must be >= 0, got {rv}", path)
-        stages[sname] = StageSpec(sname, verb, merged, inputs, foreach, dict(resources), param_refs)
+        stages[sname] = StageSpec(sname, verb, merged, inputs, foreach, dict(resources), param_refs,
+                                  frozenset(params))
 
     recipe = Recipe(path, name, dict(defaults), stages)
     for spec in stages.values():

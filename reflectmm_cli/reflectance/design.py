@@ -39,15 +39,11 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
-
-try:  # the shading core owns the normalisation; keep a local copy of the formula as a fallback
-    from reflectmm_cli.shading import blinn_phong_norm as _shading_norm
-except ImportError:  # pragma: no cover
-    _shading_norm = None
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
+from reflectmm_cli.shading.sh import blinn_phong_norm
 
 __all__ = [
     "Design",
-    "blinn_phong_norm",
     "check_observations",
     "conditioning",
     "conditioning_from_obs",
@@ -61,14 +57,6 @@ __all__ = [
 ]
 
 DEFAULT_CHUNK = 4096
-
-
-def blinn_phong_norm(p) -> np.ndarray:
-    """``f = (p + 2) / (4π (2 − 2^(−p/2)))`` (DESIGN.md §2), float64 numpy."""
-    p = np.asarray(p, dtype=np.float64)
-    if _shading_norm is not None:
-        return np.asarray(_shading_norm(p), dtype=np.float64)
-    return (p + 2.0) / (4.0 * np.pi * (2.0 - np.exp2(-p / 2.0)))  # pragma: no cover
 
 
 def iter_chunks(n: int, size: int = DEFAULT_CHUNK) -> Iterator[slice]:
@@ -250,7 +238,7 @@ class Conditioning:
 
 def conditioning(position: np.ndarray, normal: np.ndarray, cam_centers: np.ndarray, flash_pos: np.ndarray,
                  flash_intensity: np.ndarray, pair_view: np.ndarray, pair_flash: np.ndarray,
-                 observed: np.ndarray, exponents: Sequence[float] = (1.0, 8.0, 64.0),
+                 observed: np.ndarray, exponents: Sequence[float] = DEFAULT_EXPONENTS,
                  mask: np.ndarray | None = None, mirror_weight: float = 0.0,
                  chunk: int = DEFAULT_CHUNK) -> Conditioning:
     """Per-texel conditioning of the 3+K unknowns (definition in the module docstring).
@@ -332,7 +320,7 @@ def check_observations(obs: Mapping[str, np.ndarray], path=None) -> int:
     return S
 
 
-def conditioning_from_obs(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8.0, 64.0),
+def conditioning_from_obs(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT_EXPONENTS,
                           mirror_weight: float = 0.0, chunk: int = DEFAULT_CHUNK,
                           flash_intensity=None) -> Conditioning:
     """:func:`conditioning` of a uv-observations mapping (artifact arrays)."""

@@ -36,6 +36,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 
 from .design import (DEFAULT_CHUNK, check_observations, design_columns, design_rows, gram_conditioning,
                      iter_chunks, mirror_index, pair_irradiance)
@@ -376,7 +377,7 @@ def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, sym
 
 # --------------------------------------------------------------------------- public API
 
-def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8.0, 64.0), solver: str = "fast",
+def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT_EXPONENTS, solver: str = "fast",
              symmetry: float = 1.0, loss: str = "l1", prior: float = 1e-4, pair_mask=None, flash_intensity=None,
              *, irls_iterations: int = 10, irls_delta: float = 1e-3, irls_tol: float = 1e-3,
              irls_obj_tol: float = 1e-3, cond_min: float = 1e-4,

@@ -22,6 +22,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading import shade_directional
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 
 from .design import conditioning
 
@@ -78,7 +79,7 @@ def multipie_rig(radius_mm: float = RIG_RADIUS_MM):
     return np.array(ARC_VIEWS), cams, np.array(ids), np.stack(fl)
 
 
-def default_reflectance(size: int, exponents: Sequence[float] = (1.0, 8.0, 64.0), asymmetric: bool = False,
+def default_reflectance(size: int, exponents: Sequence[float] = DEFAULT_EXPONENTS, asymmetric: bool = False,
                         seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Smooth, skin-like ground truth: albedo (3,S,S) in [0.2, 0.75], weights (K,S,S) > 0.
 
@@ -105,7 +106,7 @@ def default_reflectance(size: int, exponents: Sequence[float] = (1.0, 8.0, 64.0)
     return np.clip(albedo, 0.0, None), np.clip(weights, 0.0, None)
 
 
-def simulate_observations(size: int = 64, exponents: Sequence[float] = (1.0, 8.0, 64.0),
+def simulate_observations(size: int = 64, exponents: Sequence[float] = DEFAULT_EXPONENTS,
                           albedo: np.ndarray | None = None, weights: np.ndarray | None = None,
                           views: Sequence[int] | None = None, flashes: Sequence[int] | None = None, seed: int = 0,
                           noise: float = 0.0, irradiance: float = 2.5, view_cutoff: float = 0.1,

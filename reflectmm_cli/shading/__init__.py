@@ -1,11 +1,10 @@
-"""Shading core: multi-lobe Blinn-Phong BRDF, real spherical harmonics, SH environment lighting and the
-light model (DESIGN.md §2). Conventions and formulas: docs/shading.md.
+"""Shading core: multi-lobe Blinn-Phong BRDF, real spherical harmonics, SH environment lighting (DESIGN.md §2;
+the light model lives in :mod:`reflectmm_cli.model.light`). Conventions and formulas: docs/shading.md.
 
 numpy in → numpy out; any torch tensor in → torch out (differentiable).
 """
 from .brdf import DEFAULT_EXPONENTS, blinn_phong_norm, shade_directional
 from .env import EnvBasis, band_limits, shade_env, specular_view_albedo
-from .light_model import LightModel, build_light_model, light_from_coeffs
 from .envmap import (
     direction_to_equirect,
     envmap_from_sh,
@@ -29,9 +28,6 @@ from .sh import (
 __all__ = [
     "DEFAULT_EXPONENTS",
     "EnvBasis",
-    "LightModel",
-    "build_light_model",
-    "light_from_coeffs",
     "sh_from_deep3d",
     "band_limits",
     "blinn_phong_norm",

@@ -15,10 +15,76 @@ from reflectmm_cli.errors import ReflectmmError
 from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_dtype, device_of, safe_normalize
 from .sh import blinn_phong_norm
 
-__all__ = ["blinn_phong_norm", "shade_directional", "DEFAULT_EXPONENTS", "lobe_correlation",
-           "check_distinct_exponents"]
+__all__ = ["blinn_phong_norm", "shade_directional", "DEFAULT_EXPONENTS", "MAX_EXPONENT", "LOBE_RCOND_MIN",
+           "lobe_similarity", "check_exponents", "check_distinct_exponents"]
 
+#: The paper's three lobes: the one default set of Blinn-Phong exponents (fit, unwrap, simulate, synth).
 DEFAULT_EXPONENTS = (1.0, 8.0, 64.0)
+
+#: Largest accepted lobe exponent.  At p = 10⁴ the lobe cos^p θ_h is already 0.67° wide at half maximum
+#: (θ ≈ √(2 ln 2 / p)), far below what a flash capture resolves (a UV texel at S = 256 spans about 1° of
+#: normal), so larger p only add cost: the SH coefficients B_l of a lobe take time ∝ p (≈ 5 s at 10⁴, minutes
+#: at 10⁵) and the sharper lobes flag every texel.
+MAX_EXPONENT = 10000.0
+
+#: Two lobes are refused as numerically collinear when the 2×2 Gram matrix of their unit-normalised
+#: hemisphere profiles has reciprocal condition (1 − s)/(1 + s) below this (s = :func:`lobe_similarity`);
+#: equal to fit-reflectance's default ``cond_min``, below which every texel would be flagged.
+LOBE_RCOND_MIN = 1e-4
+
+
+def lobe_similarity(p: float, q: float) -> float:
+    """Cosine similarity of the lobes cos^p and cos^q over the hemisphere (closed form).
+
+    ``⟨cos^p, cos^q⟩ = ∫ cos^(p+q) θ dω = 2π/(p+q+1)``, so
+    ``s = √((2p+1)(2q+1)) / (p+q+1)`` ∈ (0, 1], with s = 1 iff p = q.
+    """
+    return math.sqrt((2 * p + 1) * (2 * q + 1)) / (p + q + 1)
+
+
+def _collinear_pair(ps: list[float]) -> tuple[float, float] | None:
+    """The first pair of exponents whose lobes are numerically collinear (:data:`LOBE_RCOND_MIN`), or None."""
+    for i in range(len(ps)):
+        for j in range(i + 1, len(ps)):
+            s = lobe_similarity(ps[i], ps[j])
+            if (1 - s) / (1 + s) < LOBE_RCOND_MIN:
+                return ps[i], ps[j]
+    return None
+
+
+def check_exponents(exponents) -> None:
+    """Refuse a lobe-exponent set that no fit can use (raises ValueError with one line saying why).
+
+    Every p must be finite, in (0, :data:`MAX_EXPONENT`], and no two lobes may be numerically collinear
+    (:data:`LOBE_RCOND_MIN`): duplicates such as ``1,1,8`` or ``1,1.0000001,8`` would make every texel's
+    design rank-deficient.  The parameter check of every stage that takes exponents.
+    """
+    ps = [float(p) for p in exponents]
+    if not ps:
+        raise ValueError("no exponents")
+    for p in ps:
+        if not math.isfinite(p) or p <= 0:
+            raise ValueError(f"exponent {p:g} must be > 0")
+        if p > MAX_EXPONENT:
+            raise ValueError(f"exponent {p:g} is above the maximum {MAX_EXPONENT:g} (a lobe that sharp is "
+                             "narrower than a capture resolves)")
+    pair = _collinear_pair(ps)
+    if pair is not None:
+        what = "duplicate" if pair[0] == pair[1] else "near-duplicate"
+        raise ValueError(f"{what} exponents {pair[0]:.10g} and {pair[1]:.10g}: their lobes are numerically "
+                         "collinear (give distinct exponents, e.g. 1,8,64)")
+
+
+def check_distinct_exponents(exponents, what: str = "exponents") -> None:
+    """The library's own guard (fit_maps, build-pca), whatever the caller validated: a one-line ReflectmmError if
+    two exponents give numerically collinear lobes (the same rule as :func:`check_exponents`; large p are
+    allowed here, the shading core handles them cheaply)."""
+    pair = _collinear_pair([float(p) for p in np.asarray(exponents, dtype=np.float64).reshape(-1)])
+    if pair is not None:
+        s = lobe_similarity(*pair)
+        raise ReflectmmError(
+            f"{what}: {pair[0]:.10g} and {pair[1]:.10g} give numerically collinear lobes (similarity 1 − "
+            f"{max(1.0 - s, 0.0):.1e}); their weights cannot be told apart — drop one or separate them further")
 
 
 def _check_exponents(p, tm):
@@ -27,35 +93,6 @@ def _check_exponents(p, tm):
     pmin = float((p.detach() if tm else p).min())
     if pmin <= 0:
         raise ReflectmmError(f"shading: argument 'exponents' must be > 0, got min {pmin}")
-
-
-# Two lobes whose correlation is above this are numerically one lobe: a fit cannot split a weight between them
-# (exponents within ~1 % of each other).
-COLLINEAR_LOBES = 1.0 - 1e-5
-
-
-def lobe_correlation(p, q) -> float:
-    """Cosine between the lobes x^p and x^q as functions of x = n·h on [0, 1] (Lebesgue measure).
-
-    ``∫ x^(p+q) dx / sqrt(∫ x^2p dx ∫ x^2q dx) = sqrt((2p+1)(2q+1)) / (p+q+1)``: 1 for p = q, ≈ 1 − ε²/8 for
-    q = p(1 + ε) with large p. The normalisation f_p does not change a cosine. Floats > 0.
-    """
-    p, q = float(p), float(q)
-    return math.sqrt((2.0 * p + 1.0) * (2.0 * q + 1.0)) / (p + q + 1.0)
-
-
-def check_distinct_exponents(exponents, what: str = "exponents") -> None:
-    """Raise a one-line ReflectmmError if two exponents give numerically collinear lobes (duplicates or
-    near-duplicates, correlation ≥ 1 − 1e-5): their weights are not separable and a fit is ill-posed."""
-    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
-    for i in range(p.size):
-        for j in range(i + 1, p.size):
-            c = lobe_correlation(p[i], p[j])
-            if c >= COLLINEAR_LOBES:
-                raise ReflectmmError(
-                    f"{what}: {p[i]:.10g} and {p[j]:.10g} give numerically collinear lobes (correlation 1 − "
-                    f"{max(1.0 - c, 0.0):.1e}); their weights cannot be told apart — drop one or separate them "
-                    f"by more than ~1 %")
 
 
 def shade_directional(albedo, weights, exponents, normal, light_dir, view_dir, irradiance, *,

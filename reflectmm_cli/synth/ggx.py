@@ -27,6 +27,7 @@ from functools import lru_cache
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 
 __all__ = ["SKIN_F0", "ggx_ndf", "smith_g2", "schlick_fresnel", "ggx_brdf", "ggx_directional",
            "ggx_specular_albedo", "fit_lobes_to_ggx", "ggx_lobe_weights"]
@@ -210,7 +211,7 @@ def _lobe_fit_table(exponents: tuple[float, ...], f0: float) -> np.ndarray:
     return out
 
 
-def fit_lobes_to_ggx(roughness, spec_intensity=1.0, exponents=(1.0, 8.0, 64.0), f0: float = SKIN_F0) -> np.ndarray:
+def fit_lobes_to_ggx(roughness, spec_intensity=1.0, exponents=DEFAULT_EXPONENTS, f0: float = SKIN_F0) -> np.ndarray:
     """Best non-negative 3-lobe (K-lobe) approximation of the GGX specular lobe at normal view.
 
     For each α, NNLS of ``Σ w_i f_i (n·h)^p_i`` against ``F D V (n·l)`` over the light hemisphere at v = n,

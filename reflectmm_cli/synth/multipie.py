@@ -26,8 +26,10 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import format_pts as _format_pts
-from reflectmm_cli.rig import ALL_FLASHES, Rig, camera_code, load_rig, rig_to_toml
-from reflectmm_cli.synth.skin import LOBE_EXPONENTS, SkinMaps, sample_skin_params, skin_maps
+from reflectmm_cli.capture.layout import camera_code
+from reflectmm_cli.rig import ALL_FLASHES, Rig, load_rig, rig_to_toml
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
+from reflectmm_cli.synth.skin import SkinMaps, sample_skin_params, skin_maps
 
 __all__ = ["SynthConfig", "room_light_sh", "encode_png_values", "decode_png_values", "image_path",
            "landmark_path", "Identity", "make_identity", "render_identity", "synth_multipie", "format_pts",
@@ -58,7 +60,7 @@ class SynthConfig:
     background: float = 0.02                 # linear value of the backdrop
     face_vertices: int = 35000               # resolution of the procedural face model (if none is given)
     supersample: int = 1                     # k×k rays per pixel, box-filtered in linear space
-    exponents: tuple[float, ...] = field(default=LOBE_EXPONENTS)
+    exponents: tuple[float, ...] = field(default=DEFAULT_EXPONENTS)
 
     def __post_init__(self) -> None:
         if self.brdf not in ("ggx", "model"):

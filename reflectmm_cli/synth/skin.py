@@ -28,11 +28,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_specular_albedo
 
-__all__ = ["SkinParams", "SkinMaps", "region_masks", "sample_skin_params", "skin_maps", "LOBE_EXPONENTS"]
+__all__ = ["SkinParams", "SkinMaps", "region_masks", "sample_skin_params", "skin_maps"]
 
-LOBE_EXPONENTS = (1.0, 8.0, 64.0)
 
 # absorption per unit pigment (R, G, B): melanin absorbs more towards blue, haemoglobin mostly green/blue
 _C0 = np.array([0.72, 0.60, 0.52])
@@ -61,7 +61,7 @@ class SkinMaps:
     roughness: np.ndarray       # (S, S) float32, GGX α
     spec_intensity: np.ndarray  # (S, S) float32, ρ
     spec_albedo: np.ndarray     # (S, S) float32
-    weights: np.ndarray         # (3, S, S) float32 for LOBE_EXPONENTS
+    weights: np.ndarray         # (3, S, S) float32 for DEFAULT_EXPONENTS
     regions: dict[str, np.ndarray]
     params: SkinParams
 
@@ -159,7 +159,7 @@ def _low_freq(rng: np.random.Generator, size: int, scale_px: float) -> np.ndarra
 
 
 def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f0: float = SKIN_F0,
-              exponents=LOBE_EXPONENTS, brdf: str = "ggx") -> SkinMaps:
+              exponents=DEFAULT_EXPONENTS, brdf: str = "ggx") -> SkinMaps:
     """The reflectance maps of one identity (see the module docstring); deterministic in (landmarks, params).
 
     ``brdf="model"``: the weights are the rendering BRDF; on top of the GGX fit they get a broad-lobe "sheen"

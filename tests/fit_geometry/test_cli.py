@@ -6,9 +6,9 @@ from click.testing import CliRunner
 
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.cli import main
-from reflectmm_cli.fitting.camera_math import project
-from reflectmm_cli.fitting.landmarks import write_pts
-from reflectmm_cli.fitting.report import truth_errors
+from reflectmm_cli.geometry.camera import project
+from reflectmm_cli.geometry_fit.landmarks import write_pts
+from reflectmm_cli.geometry_fit.report import truth_errors
 
 VIEWS = "13_0,14_0,05_1,05_0,04_1"
 

@@ -6,9 +6,11 @@ import torch
 
 import toy
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.fitting import FitConfig, ViewSet, camera_centers, fit_geometry, initial_poses, project
-from reflectmm_cli.fitting.model import vertex_normals, vertex_normals_torch
-from reflectmm_cli.fitting.photometric import photometric_loss, sh_kernel
+from reflectmm_cli.geometry.camera import camera_centers, project
+from reflectmm_cli.geometry_fit import FitConfig, ViewSet, fit_geometry, initial_poses
+from reflectmm_cli.geometry.face_model import vertex_normals
+from reflectmm_cli.geometry.face_model import vertex_normals as vertex_normals_torch
+from reflectmm_cli.geometry_fit.photometric import photometric_loss, sh_kernel
 
 AZ = [-60, -30, 0, 30, 60]
 
@@ -75,7 +77,7 @@ def test_missing_landmarks_are_ignored_and_too_few_refused():
 
 def test_vertex_normals_torch_matches_numpy():
     m = toy.toy_model()
-    n_np = vertex_normals(m.mean, m.triangles)
+    n_np = vertex_normals(m.mean, m.triangles, dtype=np.float64)
     n_t = vertex_normals_torch(torch.tensor(m.mean), torch.tensor(m.triangles)).numpy()
     assert np.allclose(n_np, n_t, atol=1e-12)
     front = m.mean[:, 2] > 40

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.fitting.landmarks import (
+from reflectmm_cli.geometry_fit.landmarks import (
     DEFAULT_GROUP_WEIGHTS,
     find_landmark_file,
     landmark_weights,
-    read_landmarks,
     write_pts,
 )
+from reflectmm_cli.landmarks import read_landmarks
 
 
 def _pts(n=68, seed=0):

@@ -9,15 +9,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from reflectmm_cli.fitting.camera_math import (
+from reflectmm_cli.geometry.camera import (
     axis_angle_to_matrix,
     camera_centers,
-    huber,
     intrinsics,
     matrix_to_axis_angle,
     project,
 )
-from reflectmm_cli.fitting.init import pnp_pose, rigid_align
+from reflectmm_cli.geometry_fit.fit import huber
+from reflectmm_cli.geometry_fit.init import pnp_pose, rigid_align
 
 vec3 = st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=3, max_size=3)
 
@@ -116,7 +116,7 @@ def test_pnp_refines_a_perturbed_pose():
 
 
 def test_flash_positions_follow_the_rig_transform():
-    from reflectmm_cli.fitting.init import flash_positions
+    from reflectmm_cli.geometry_fit.init import flash_positions
     from reflectmm_cli.rig import ALL_FLASHES, DEFAULT_VIEWS, load_rig
 
     rig = load_rig()

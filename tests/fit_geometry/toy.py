@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from reflectmm_cli.fitting.model import ShapeModel, vertex_normals
+from reflectmm_cli.geometry.face_model import vertex_normals
+from reflectmm_cli.geometry_fit.model import ShapeModel
 
 
 def _layout68() -> np.ndarray:
@@ -56,7 +57,7 @@ def toy_model(n_lon: int = 41, n_lat: int = 41, n_shape: int = 8, n_exp: int = 4
             tri.append([p, p + n_lon + 1, p + n_lon])
     tri = np.array(tri)
     # orient outward (+z for the front)
-    nrm = vertex_normals(mean, tri)
+    nrm = vertex_normals(mean, tri, dtype=np.float64)
     if nrm[(n_lat // 2) * n_lon + n_lon // 2, 2] < 0:
         tri = tri[:, ::-1].copy()
     lay = _layout68()
@@ -137,7 +138,7 @@ def render(vertices, triangles, albedo, sh, K, R, t, width, height):
     tri_id, ray_id, loc = ray.intersects_id(np.broadcast_to(c, d.shape), d, multiple_hits=False,
                                             return_locations=True)
     img = np.zeros((height * width, 3))
-    vn = vertex_normals(vertices, triangles)
+    vn = vertex_normals(vertices, triangles, dtype=np.float64)
     bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri_id], loc)
     f = triangles[tri_id]
     n = (bary[:, :, None] * vn[f]).sum(1)

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.geometry import Camera, deep3d_camera, look_at, orbit_camera, parse_camera_spec, project_torch
+from reflectmm_cli.geometry import Camera, deep3d_camera, look_at, orbit_camera, parse_camera_spec
+from reflectmm_cli.geometry import project as project_torch
 
 
 def test_frontal_closed_form():

@@ -110,7 +110,7 @@ def test_missing_corrupt_or_foreign_output_reruns(ws):
 def test_stage_version_change_reruns(ws, monkeypatch):
     from dataclasses import replace
 
-    from reflectmm_cli import stages
+    from reflectmm_cli.stages import registry as stages
 
     run_recipe(ws / "recipe.toml", ws)
     st = stages.get_stage("checksum")
@@ -264,7 +264,7 @@ def test_hash_memo_avoids_rehashing(ws, monkeypatch):
     run_recipe(ws / "recipe.toml", ws)
     memo = json.loads((ws / ".reflectmm" / "hashes.json").read_text())
     assert str((ws / "data" / "001" / "a.txt").resolve()) in memo
-    import reflectmm_cli.stages as stages
+    import reflectmm_cli.stages.base as stages
 
     calls = []
     real = stages.sha256_file

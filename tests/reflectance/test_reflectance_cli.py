@@ -120,15 +120,3 @@ def test_collinear_exponents_refused_in_a_recipe(cli, tmp_path):
     r = cli("run", ws / "r.toml", "-w", ws)
     assert r.exit_code == 1 and "collinear" in r.stderr
     assert not (ws / "fit-reflectance" / "042.npz").exists()
-
-
-def test_lobe_correlation_against_quadrature():
-    from scipy import integrate
-
-    from reflectmm_cli.shading.brdf import lobe_correlation
-
-    for p, q in ((1, 8), (8, 64), (64, 64.5), (3.3, 3.4)):
-        pq = integrate.quad(lambda x: x ** (p + q), 0, 1)[0]
-        pp = integrate.quad(lambda x: x ** (2 * p), 0, 1)[0]
-        qq = integrate.quad(lambda x: x ** (2 * q), 0, 1)[0]
-        assert abs(lobe_correlation(p, q) - pq / np.sqrt(pp * qq)) < 1e-12

@@ -6,7 +6,7 @@ import pytest
 from _shading_ref import real_sh_matrix_ref
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading import equirect_directions, project_envmap
-from reflectmm_cli.shading.light_model import (
+from reflectmm_cli.model.light import (
     augment_sh,
     augmentation_rotations,
     build_light_model,

@@ -13,7 +13,7 @@ import pytest
 
 from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.geometry import Camera, RayScene, load_face_model, sample_uv_map, shadow_mask
-from reflectmm_cli.observations.unwrap import project
+from reflectmm_cli.geometry.camera import project
 from reflectmm_cli.shading.brdf import shade_directional
 
 QUANT = 2 * 1.2 * 0.5 / 255

@@ -6,7 +6,8 @@ import pytest
 from _sphere_scene import RADIUS, make_scene, quad, seg_hits_quad, shading
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.observations.unwrap import bilinear, project
+from reflectmm_cli.geometry.camera import project
+from reflectmm_cli.observations.unwrap import bilinear
 
 QUANT = 2 * 1.2 * 0.5 / 255  # flash and room shot each within half an 8-bit step of x**(1/1.2)
 

@@ -140,24 +140,3 @@ class TorchShape:
         if ze.numel():
             v = v + ze @ self.lm_E[:ze.numel()]
         return v.reshape(-1, 3)
-
-
-def vertex_normals_torch(vertices: torch.Tensor, triangles: torch.Tensor) -> torch.Tensor:
-    """Area-weighted unit vertex normals (N, 3) of a triangle mesh (differentiable)."""
-    a, b, c = vertices[triangles[:, 0]], vertices[triangles[:, 1]], vertices[triangles[:, 2]]
-    fn = torch.cross(b - a, c - a, dim=-1)
-    vn = torch.zeros_like(vertices)
-    for k in range(3):
-        vn = vn.index_add(0, triangles[:, k], fn)
-    return vn / vn.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """numpy version of :func:`vertex_normals_torch`."""
-    v = np.asarray(vertices, dtype=np.float64)
-    tri = np.asarray(triangles, dtype=np.int64)
-    fn = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
-    vn = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(vn, tri[:, k], fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-12)

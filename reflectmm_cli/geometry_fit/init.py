@@ -6,7 +6,7 @@ import logging
 
 import numpy as np
 
-from reflectmm_cli.fitting.camera_math import camera_centers, project
+from reflectmm_cli.geometry.camera import camera_centers, project
 
 log = logging.getLogger("reflectmm")
 

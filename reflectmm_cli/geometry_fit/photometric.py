@@ -8,7 +8,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from reflectmm_cli.fitting.camera_math import project
+from reflectmm_cli.geometry.camera import project
 from reflectmm_cli.shading import lambert_sh_coeffs, sh_basis
 
 SH_ORDER = 2

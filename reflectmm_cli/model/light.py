@@ -21,9 +21,9 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-from ._array import any_torch, device_of
-from .envmap import envmap_from_sh, envmap_rgb, project_envmap
-from .sh import sh_rotation
+from reflectmm_cli.shading._array import any_torch, device_of
+from reflectmm_cli.shading.envmap import envmap_from_sh, envmap_rgb, project_envmap
+from reflectmm_cli.shading.sh import sh_rotation
 
 __all__ = [
     "LIGHT_MODEL_KIND",

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from reflectmm_cli.capture.layout import camera_code
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import N_LANDMARKS, write_pts  # noqa: F401  (re-exported)
-from reflectmm_cli.landmarks import read_landmarks as _read_landmarks
 
 
 #: iBUG-68 groups (0-based, half-open ranges).
@@ -56,16 +56,6 @@ def landmark_weights(group_weights: dict[str, float] | None = None) -> np.ndarra
     return w
 
 
-def read_landmarks(path: str | Path) -> np.ndarray:
-    """Read one landmark file (.pts, .txt, .npy) → (68, 2) float64; a clear error for a wrong count."""
-    return _read_landmarks(path, N_LANDMARKS)
-
-
-def camera_code(view_name: str) -> str:
-    """Multi-PIE camera folder name → file code: ``05_1`` → ``051``."""
-    return view_name.replace("_", "")
-
-
 def find_landmark_file(folder: str | Path, view_name: str) -> Path | None:
     """The landmark file of a view in ``folder``: ``<view>.{pts,txt,npy}`` or a Multi-PIE style
     ``*_<CCC>_00_lm.{pts,txt,npy}`` (searched recursively); None if there is none."""
@@ -74,7 +64,10 @@ def find_landmark_file(folder: str | Path, view_name: str) -> Path | None:
         p = folder / f"{view_name}{ext}"
         if p.is_file():
             return p
-    code = camera_code(view_name)
+    try:
+        code = camera_code(view_name)
+    except ReflectmmError:
+        return None  # not a Multi-PIE camera name: no Multi-PIE style file names to look for
     for ext in (".pts", ".txt", ".npy"):
         hits = sorted(folder.rglob(f"*_{code}_00_lm{ext}"))
         if len(hits) > 1:

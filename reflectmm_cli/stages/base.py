@@ -1,13 +1,16 @@
-"""Stages: the unit of work shared by the CLI verbs and recipes.
+"""Stage machinery: :class:`Stage`, :class:`StageContext`, cache keys, and :func:`run_stage`.
 
-Every verb that produces artifacts registers a :class:`Stage` with
-:func:`register_stage`.  The CLI command and the recipe runner both build a
-:class:`StageContext` and call ``stage.run(ctx)``, so a verb behaves the same from
-the shell and inside ``reflectmm run``.
+A stage is the unit of work shared by the CLI verbs and recipes: options → read artifacts → library call →
+write artifacts.  The CLI command and the recipe runner both build a :class:`StageContext` through
+:meth:`Stage.context` (which validates the params against the stage's declaration and fills the defaults)
+and call ``stage.run(ctx)``, so a verb behaves the same — and gets the same cache key — from the shell and
+inside ``reflectmm run``.
 
-Workspace convention (DESIGN.md §5): ``<workspace>/<stage_name>/<identity>.npz``
-(``<workspace>/<stage_name>/<name>.npz`` for stages that are not per identity),
-overridable with an explicit output path.
+Workspace convention (DESIGN.md §5, :mod:`reflectmm_cli.workspace`): ``<workspace>/<stage_name>/<identity>.npz``
+(``<workspace>/<stage_name>/<name>.npz`` for stages that are not per identity), overridable with an explicit
+output path.
+
+No click in this package: the planner and Dask workers import it.
 """
 
 from __future__ import annotations
@@ -21,17 +24,14 @@ from typing import Any, Callable, Iterable, Mapping
 from reflectmm_cli import __version__
 from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import Param, ParamError, resolve_params
+from reflectmm_cli.workspace import default_workspace, stage_output
 
 #: Bump when the way cache keys are computed changes (invalidates every cache).
 CACHE_HASH_VERSION = 1
 
 #: Params that never change a result (execution details) and so never invalidate a cache.
 NON_INVALIDATING = frozenset({"device", "jobs", "executor", "scheduler", "progress", "workspace"})
-
-
-def default_workspace() -> Path:
-    """``$REFLECTMM_WORKSPACE`` or the current directory."""
-    return Path(os.environ.get("REFLECTMM_WORKSPACE") or ".").resolve()
 
 
 @dataclass
@@ -43,7 +43,8 @@ class StageContext:
         stage_name: the recipe's name for this stage (defaults to the verb); names the
             output folder ``<workspace>/<stage_name>/``.
         identity: the identity this run is for (per-identity stages), else None.
-        params: resolved parameters (recipe defaults + stage params, or CLI options).
+        params: resolved parameters: the stage's declared params with defaults filled and values
+            canonicalised (:meth:`Stage.resolve`), plus execution details (``device``).
         inputs: role -> concrete input paths (files or folders).
         output: explicit primary output path that overrides the workspace convention.
         device: torch device string (``cpu``, ``cuda``, ``cuda:1``, or ``auto``).
@@ -62,6 +63,8 @@ class StageContext:
     cache_key: str | None = None
     verb: str = ""
     stage_version: int = 1
+    #: declared params that never change a result (``Param.invalidates_cache`` False): not in meta or the key.
+    volatile_params: frozenset[str] = frozenset()
 
     def output_path(self, name: str | None = None, suffix: str = ".npz") -> Path:
         """Primary output path: the explicit ``output`` if given (for the default name and suffix),
@@ -69,8 +72,9 @@ class StageContext:
         if self.output is not None and name is None and suffix == ".npz":
             return Path(self.output)
         base = name or self.identity or self.stage_name
-        folder = Path(self.output).parent if self.output is not None else self.workspace / self.stage_name
-        return folder / f"{base}{suffix}"
+        if self.output is not None:
+            return Path(self.output).parent / f"{base}{suffix}"
+        return stage_output(self.workspace, self.stage_name, base, suffix)
 
     def input(self, role: str) -> Path:
         """The single input path for ``role``; a clear error if missing or ambiguous."""
@@ -108,7 +112,8 @@ class StageContext:
 
     def resolved_params(self) -> dict[str, Any]:
         """Params that affect results (what goes into meta and the cache key)."""
-        return {k: v for k, v in sorted(self.params.items()) if k not in NON_INVALIDATING}
+        return {k: v for k, v in sorted(self.params.items())
+                if k not in NON_INVALIDATING and k not in self.volatile_params}
 
     def with_(self, **changes: Any) -> "StageContext":
         return replace(self, **changes)
@@ -131,8 +136,12 @@ class Stage:
         discover_ids: ``discover_ids(ctx) -> [ids]`` for ``foreach = "all found"`` (``ctx.inputs``
             holds the stage's inputs resolved as for an aggregate; return None to let the recipe
             planner use the identities of the upstream per-identity stage).
-        cache_params: names of params that invalidate results; None means all but
-            :data:`NON_INVALIDATING`.
+        params: the stage's parameter declaration (tuple of :class:`~reflectmm_cli.params.Param`);
+            None = undeclared (params pass through unchecked; only for ad-hoc stages registered with
+            :func:`register_stage`).
+        open_params: undeclared params are accepted as given (and key the cache) instead of refused.
+        cache_params: for a stage without a declaration, the names of the params that key the cache (None: all
+            but :data:`NON_INVALIDATING`); a declared stage says it per param (``invalidates_cache``).
         help: one-line description.
     """
 
@@ -143,8 +152,25 @@ class Stage:
     outputs: Callable[[StageContext], list[Path]] | None = None
     input_files: Callable[[StageContext], dict[str, list[Path]]] | None = None
     discover_ids: Callable[[StageContext], list[str]] | None = None
+    params: tuple[Param, ...] | None = None
+    open_params: bool = False
     cache_params: tuple[str, ...] | None = None
     help: str = ""
+
+    def resolve(self, given: Mapping[str, Any] | None, strict: bool = True) -> dict[str, Any]:
+        """Params validated against the declaration, defaults filled, canonical (what keys the cache).
+
+        ``strict=False`` drops undeclared names instead of refusing them (recipe ``[defaults]``).
+        Raises :class:`~reflectmm_cli.params.ParamError` (one line naming the param)."""
+        given = dict(given or {})
+        if self.params is None:
+            return {k: v for k, v in sorted(given.items()) if v is not None}
+        extra = {k: v for k, v in given.items() if k not in {p.name for p in self.params}
+                 and k not in NON_INVALIDATING} if self.open_params else {}
+        out = resolve_params(self.params, {k: v for k, v in given.items() if k not in extra}, strict=strict,
+                             ignore=NON_INVALIDATING)
+        out.update({k: v for k, v in extra.items() if v is not None})
+        return dict(sorted(out.items()))
 
     def expected_outputs(self, ctx: StageContext) -> list[Path]:
         return list(self.outputs(ctx)) if self.outputs else [ctx.output_path()]
@@ -166,14 +192,24 @@ class Stage:
 
     def key_params(self, ctx: StageContext) -> dict[str, Any]:
         params = ctx.resolved_params()
+        if self.params is not None:
+            skip = {p.name for p in self.params if not p.invalidates_cache}
+            params = {k: v for k, v in params.items() if k not in skip}
         if self.cache_params is not None:
             params = {k: v for k, v in params.items() if k in self.cache_params}
         return params
 
-    def context(self, **kwargs: Any) -> StageContext:
+    def context(self, *, strict: bool = True, **kwargs: Any) -> StageContext:
+        """A context for this stage; ``params`` are resolved (:meth:`resolve`), so defaults are filled in
+        before any cache key is computed.  Errors name the stage: ``stage 'unwrap-uv': uv_size: ...``."""
         kwargs.setdefault("stage_name", self.verb)
+        try:
+            kwargs["params"] = self.resolve(kwargs.get("params"), strict=strict)
+        except ParamError as exc:
+            raise ParamError(f"stage '{kwargs['stage_name']}': {exc}") from None
         ctx = StageContext(**kwargs)
-        return ctx.with_(verb=self.verb, stage_version=self.version)
+        volatile = frozenset(p.name for p in self.params or () if not p.invalidates_cache)
+        return ctx.with_(verb=self.verb, stage_version=self.version, volatile_params=volatile)
 
 
 def walk_files(folder: Path) -> list[Path]:
@@ -182,51 +218,6 @@ def walk_files(folder: Path) -> list[Path]:
     folder = Path(folder)
     return sorted(q for q in folder.rglob("*")
                   if q.is_file() and not any(part.startswith(".") for part in q.relative_to(folder).parts))
-
-
-_REGISTRY: dict[str, Stage] = {}
-
-
-def register_stage(verb: str, version: int = 1, per_identity: bool = False, **kwargs: Any
-                   ) -> Callable[[Callable[[StageContext], list[Path]]], Callable[[StageContext], list[Path]]]:
-    """Decorator registering ``run(ctx) -> list[Path]`` as the stage for ``verb``."""
-
-    def deco(fn: Callable[[StageContext], list[Path]]) -> Callable[[StageContext], list[Path]]:
-        if verb in _REGISTRY and _REGISTRY[verb].run is not fn:
-            raise RuntimeError(f"stage '{verb}' registered twice")
-        _REGISTRY[verb] = Stage(verb=verb, version=version, run=fn, per_identity=per_identity, **kwargs)
-        return fn
-
-    return deco
-
-
-def get_stage(verb: str) -> Stage:
-    load_commands()
-    try:
-        return _REGISTRY[verb]
-    except KeyError:
-        raise ReflectmmError(f"unknown stage verb '{verb}' (known: {', '.join(sorted(_REGISTRY))})") from None
-
-
-def all_stages() -> dict[str, Stage]:
-    load_commands()
-    return dict(_REGISTRY)
-
-
-def load_commands() -> list[Any]:
-    """Import every module in ``reflectmm_cli.commands``; return their click commands."""
-    import importlib
-    import pkgutil
-
-    import reflectmm_cli.commands as pkg
-
-    commands = []
-    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
-        if info.name.startswith("_"):
-            continue
-        mod = importlib.import_module(f"{pkg.__name__}.{info.name}")
-        commands.extend(getattr(mod, "COMMANDS", []))
-    return commands
 
 
 def file_digest(path: Path, cache: dict[str, Any] | None = None) -> str:
@@ -276,3 +267,27 @@ def resolve_device(device: str) -> str:
     except (RuntimeError, ValueError):
         raise ReflectmmError(f"--device {device}: not a torch device string") from None
     return device
+
+
+def run_stage(stage: "Stage | str", *, workspace: Path | None = None, identity: str | None = None,
+              params: Mapping[str, Any] | None = None, inputs: Mapping[str, Iterable[Path]] | None = None,
+              output: Path | None = None, device: str = "cpu", stage_name: str | None = None) -> list[Path]:
+    """Run a stage once (the command line's path, also the Python API), with the cache key a recipe computes.
+
+    ``params`` are the given values (None = not given); they are validated and completed with the declared
+    defaults before the cache key.  Every input path must exist.  Returns the paths written.
+    """
+    if isinstance(stage, str):
+        from reflectmm_cli.stages.registry import get_stage
+
+        stage = get_stage(stage)
+    ctx = stage.context(workspace=Path(workspace or default_workspace()).resolve(),
+                        stage_name=stage_name or stage.verb, identity=identity, params=dict(params or {}),
+                        inputs={k: [Path(p) for p in v] for k, v in (inputs or {}).items()},
+                        output=output, device=resolve_device(device) if device else "cpu")
+    for role, paths in ctx.inputs.items():
+        for p in paths:
+            if not Path(p).exists():
+                raise ReflectmmError(f"input '{role}' not found", p)
+    ctx = ctx.with_(cache_key=compute_cache_key(stage, ctx))
+    return list(stage.run(ctx))

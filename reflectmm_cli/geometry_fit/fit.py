@@ -24,11 +24,12 @@ import numpy as np
 import torch
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.fitting.camera_math import axis_angle_to_matrix, camera_centers, huber, project
-from reflectmm_cli.fitting.init import rigid_align
-from reflectmm_cli.fitting.landmarks import landmark_weights
-from reflectmm_cli.fitting.model import ShapeModel, vertex_normals, vertex_normals_torch
-from reflectmm_cli.fitting.photometric import (
+from reflectmm_cli.geometry.camera import axis_angle_to_matrix, camera_centers, project
+from reflectmm_cli.geometry_fit.init import rigid_align
+from reflectmm_cli.geometry_fit.landmarks import landmark_weights
+from reflectmm_cli.geometry.face_model import vertex_normals
+from reflectmm_cli.geometry_fit.model import ShapeModel
+from reflectmm_cli.geometry_fit.photometric import (
     SH_ORDER,
     inside_image,
     photometric_loss,
@@ -37,7 +38,7 @@ from reflectmm_cli.fitting.photometric import (
     solve_albedo,
     solve_lighting,
 )
-from reflectmm_cli.fitting.visibility import vertex_visibility
+from reflectmm_cli.geometry_fit.visibility import vertex_visibility
 from reflectmm_cli.progress import progress
 from reflectmm_cli.threads import torch_threads
 from reflectmm_cli.shading import sh_basis
@@ -46,6 +47,11 @@ log = logging.getLogger("reflectmm")
 
 #: Skin colour (linear RGB) used as the albedo when the model has no texture and a per-vertex estimate is off.
 DEFAULT_SKIN = np.array([0.55, 0.38, 0.30])
+
+
+def huber(x: torch.Tensor, delta: float) -> torch.Tensor:
+    """Huber penalty of residual magnitudes ``x`` ≥ 0: ½x² for x ≤ δ, δ(x − ½δ) beyond (C¹)."""
+    return torch.where(x <= delta, 0.5 * x * x, delta * (x - 0.5 * delta))
 
 
 @dataclass
@@ -321,7 +327,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                 X = verts()
                 R, t = poses()
                 Xn, Rn, tn = X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
-            nrm = vertex_normals(Xn, model.triangles)
+            nrm = vertex_normals(Xn, model.triangles, dtype=np.float64)
             centers = camera_centers(Rn, tn)
             vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample, cos_cutoff=cfg.photo_min_cos)
             uv, _ = project(Xn[sample][None].repeat(V, 0), Kimg, Rn, tn)
@@ -344,7 +350,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             def stage2():
                 Xs = sub.vertices(zs, ze)
                 R, t = poses()
-                nv = vertex_normals_torch(Xs, sub_tri_t)
+                nv = vertex_normals(Xs, sub_tri_t)
                 lp, _ = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, images_t, alb_t, sh_t, kernel, scale)
                 lml = lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0]
                 return cfg.w_landmark * lml + cfg.w_photo * lp + prior(R, t)
@@ -357,7 +363,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             with torch.no_grad():
                 Xs = sub.vertices(zs, ze)
                 R, t = poses()
-                nv = vertex_normals_torch(Xs, sub_tri_t)
+                nv = vertex_normals(Xs, sub_tri_t)
                 raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
                 _, r = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
                 r = r.cpu().numpy()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from reflectmm_cli.fitting.camera_math import camera_centers, project
+from reflectmm_cli.geometry.camera import camera_centers, project
 
 
 def inter_ocular_mm(vertices: np.ndarray, landmarks: np.ndarray) -> float:

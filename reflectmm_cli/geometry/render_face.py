@@ -1,0 +1,177 @@
+"""Render a face model with reflectance under a point light or an environment map: the library entry of
+``reflectmm render`` (:func:`render_face`).
+
+Reflectance comes from a ``reflectance-maps`` artifact (albedo (3,S,S), weights (K,S,S), exponents (K,)) or a
+``reflectance-model`` artifact sampled at coefficients β (units of σ; default the mean).  Geometry is the face
+model's mean, given shape/expression coefficients, or a ``geometry`` artifact's fitted vertices.  Light is a
+point light (``x,y,z[:I]``, radiant intensity I, ``E = I/d²``, optional ray-traced shadows) or SH environment
+light (an equirectangular EXR/HDR projected to SH, or SH coefficients from a file).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import ParamError, parse_list
+
+log = logging.getLogger("reflectmm")
+
+__all__ = ["parse_coeffs", "parse_point_light", "load_sh", "load_reflectance", "render_face"]
+
+
+def parse_coeffs(text: str | None, what: str = "coefficients") -> np.ndarray | None:
+    """``"0.5,-1,2"`` or a path to .npy/.txt/.json → 1-D float array (None stays None)."""
+    if text is None or text == "":
+        return None
+    p = Path(text)
+    if p.suffix.lower() in (".npy", ".txt", ".json", ".csv") and p.exists():
+        try:
+            if p.suffix.lower() == ".npy":
+                return np.asarray(np.load(p, allow_pickle=False), dtype=np.float64).reshape(-1)
+            if p.suffix.lower() == ".json":
+                return np.asarray(json.loads(p.read_text()), dtype=np.float64).reshape(-1)
+            return np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=1).reshape(-1)
+        except (OSError, ValueError) as exc:
+            raise ReflectmmError(f"cannot read {what} ({exc})", p) from None
+    try:
+        return np.array(parse_list(text if "," in text else ",".join(text.split()), what, float), dtype=np.float64)
+    except ParamError:
+        raise ReflectmmError(f"{what}: expected comma-separated numbers or a .npy/.txt/.json file, got "
+                             f"'{text}'") from None
+
+
+def parse_point_light(text: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """``"x,y,z"`` or ``"x,y,z:I"`` or ``"x,y,z:r,g,b"`` (mm; intensity in linear pixel units × mm²)."""
+    pos, _, inten = text.partition(":")
+    try:
+        p = np.array(parse_list(pos, "--point-light", float), dtype=np.float64)
+        i = None if not inten else np.array(parse_list(inten, "--point-light", float), dtype=np.float64)
+    except ParamError:
+        raise ReflectmmError(f"--point-light '{text}': expected x,y,z[:I] or x,y,z:r,g,b (numbers)") from None
+    if p.shape != (3,) or (i is not None and i.size not in (1, 3)) or not np.all(np.isfinite(p)):
+        raise ReflectmmError(f"--point-light '{text}': expected x,y,z[:I] or x,y,z:r,g,b")
+    if i is not None and np.any(i < 0):
+        raise ReflectmmError(f"--point-light '{text}': intensity must be ≥ 0")
+    return p, i
+
+
+def load_sh(path: Path) -> np.ndarray:
+    """SH coefficients (3, (L+1)²) from .npy / .txt / .json (also (n, 3)) or an NPZ with 'sh' / 'coeffs'."""
+    path = Path(path)
+    if not path.exists():
+        raise ReflectmmError("file not found", path)
+    try:
+        if path.suffix.lower() == ".npy":
+            a = np.load(path, allow_pickle=False)
+        elif path.suffix.lower() == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                key = next((k for k in ("sh", "coeffs", "sh_coeffs") if k in z.files), None)
+                if key is None:
+                    raise ReflectmmError(f"no 'sh' or 'coeffs' array (has: {', '.join(z.files)})", path)
+                a = z[key]
+        elif path.suffix.lower() == ".json":
+            a = np.asarray(json.loads(path.read_text()), dtype=np.float64)
+        else:
+            a = np.loadtxt(path, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise ReflectmmError(f"cannot read SH coefficients ({exc})", path) from None
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim == 2 and a.shape[1] == 3 and a.shape[0] != 3:
+        a = a.T
+    n = a.shape[-1] if a.ndim == 2 else 0
+    if a.ndim != 2 or a.shape[0] != 3 or int(round(np.sqrt(n))) ** 2 != n:
+        raise ReflectmmError(f"SH coefficients must be (3, (L+1)²), got {a.shape}", path)
+    return a
+
+
+def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: str | None):
+    """(albedo (3,S,S), weights (K,S,S), exponents (K,)) from maps or a model at β."""
+    from reflectmm_cli.artifacts import read_artifact
+
+    model = reflectance_model
+    if (maps is None) == (model is None):
+        raise ReflectmmError("give exactly one of --maps or --model")
+    if maps is not None:
+        art = read_artifact(maps, "reflectance-maps")
+        a, w, e = art["albedo"], art["weights"], art["exponents"]
+        if coeffs:
+            raise ReflectmmError("--coeffs applies to --model only")
+    else:
+        from reflectmm_cli.model import sample_model
+
+        art = read_artifact(model, "reflectance-model")
+        beta = parse_coeffs(coeffs, "--coeffs")
+        m = int(np.shape(art["sigma"])[0])
+        if beta is None:
+            beta = np.zeros(0)
+        if beta.size > m:
+            raise ReflectmmError(f"--coeffs: {beta.size} coefficients given, the model has {m}", model)
+        a, w = sample_model(art.arrays, beta if beta.size else np.zeros(1), "uv")
+        e = art["exponents"]
+    a, w, e = np.asarray(a, np.float32), np.asarray(w, np.float32), np.asarray(e, np.float64).reshape(-1)
+    if a.ndim != 3 or a.shape[0] != 3 or a.shape[1] != a.shape[2]:
+        raise ReflectmmError(f"albedo must be (3, S, S), got {a.shape}", maps or model)
+    if w.shape != (e.size,) + a.shape[1:]:
+        raise ReflectmmError(f"weights must be ({e.size}, {a.shape[1]}, {a.shape[2]}), got {w.shape}", maps or model)
+    return a, w, e
+
+
+# ------------------------------------------------------------------------------------------ library
+
+def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model: Path | None = None,
+                coeffs: str | None = None,
+                point_light: str | None = None, envmap: Path | None = None, sh: Path | None = None,
+                sh_order: int = 8, camera: str = "frontal", shadows: bool = False, shape: str | None = None,
+                exp: str | None = None, geometry: Path | None = None) -> dict:
+    """Library entry of ``reflectmm render``: returns image (H,W,3), mask, camera, light description."""
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.geometry import (
+        RayScene,
+        load_face_model,
+        parse_camera_spec,
+        render_envmap,
+        render_point_light,
+        vertex_normals,
+    )
+
+    n_lights = sum(x is not None for x in (point_light, envmap, sh))
+    if n_lights != 1:
+        raise ReflectmmError("give exactly one light: --point-light, --envmap or --sh")
+    fm = load_face_model(face_model)
+    if geometry is not None:
+        g = read_artifact(geometry, "geometry")
+        verts = np.asarray(g["vertices"], dtype=np.float64)
+        if verts.shape != fm.mean_shape.shape:
+            raise ReflectmmError(f"geometry has {verts.shape[0]} vertices, the face model {fm.n_vertices}", geometry)
+    else:
+        verts = fm.vertices(parse_coeffs(shape, "--shape"), parse_coeffs(exp, "--exp"))
+    albedo, weights, exps = load_reflectance(maps, reflectance_model, coeffs)
+    cam = parse_camera_spec(camera)
+    scene = RayScene(verts, fm.triangles, vertex_normals(verts, fm.triangles))
+    light: dict = {}
+    if point_light is not None:
+        pos, inten = parse_point_light(point_light)
+        if inten is None:
+            inten = np.array([np.pi * float(pos @ pos)])  # irradiance π at the origin
+        res = render_point_light(scene, cam, albedo, weights, exps, pos, inten, uv=fm.uv, shadows=shadows)
+        light = {"type": "point", "position": pos.tolist(), "intensity": np.atleast_1d(inten).tolist(),
+                 "shadows": bool(shadows), "shadow_rays": res.rays}
+        if shadows:
+            log.info("shadow rays: %d cast, %d skipped (n·l ≤ 0)", res.rays["cast"], res.rays["skipped"])
+    else:
+        if shadows:
+            log.warning("--shadows applies to point lights only; SH environment light has no visibility")
+        if envmap is not None:
+            from reflectmm_cli.shading import load_envmap, project_envmap
+
+            K = project_envmap(load_envmap(envmap), sh_order)
+            light = {"type": "envmap", "file": Path(envmap).name, "sh_order": sh_order}
+        else:
+            K = load_sh(sh)
+            light = {"type": "sh", "file": Path(sh).name, "sh_order": int(np.sqrt(K.shape[1])) - 1}
+        res = render_envmap(scene, cam, albedo, weights, exps, K, uv=fm.uv)
+    return {"image": res.image, "mask": res.mask, "camera": cam, "light": light}

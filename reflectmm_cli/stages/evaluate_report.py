@@ -1,0 +1,51 @@
+"""Stage ``evaluate-report``: the closing report of a run — errors of every stage against ground truth
+(library: :func:`reflectmm_cli.evaluation.report.build_report`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from reflectmm_cli.artifacts import atomic_write_text, write_artifact
+from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
+from reflectmm_cli.progress import progress
+from reflectmm_cli.stages.base import Stage, StageContext
+
+VERB = "evaluate-report"
+
+PARAMS = ()
+
+
+def _report_outputs(ctx: StageContext) -> list[Path]:
+    """[evaluation artifact (primary, carries the cache key), markdown report]."""
+    if ctx.output is not None and Path(ctx.output).suffix.lower() != ".npz":
+        md = Path(ctx.output)
+        return [md.with_suffix(".npz"), md]
+    npz = ctx.output_path()
+    return [npz, npz.with_suffix(".md")]
+
+
+def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.evaluation.report import build_report
+
+    out_npz, out_md = _report_outputs(ctx)
+    text, doc = build_report(ctx.workspace, out_md,
+                             geometry=ctx.input_list("geometry", required=False),
+                             maps=ctx.input_list("maps", required=False),
+                             models=ctx.input_list("model", required=False),
+                             truth=ctx.input_list("truth", required=False),
+                             representation=ctx.input_list("representation", required=False),
+                             progress=lambda it, **k: progress(it, **k))
+    flat = flatten("", doc, {})
+    names = sorted(flat)
+    write_artifact(out_npz, EVAL_KIND, {"names": np.array(names, dtype=str),
+                                        "values": np.array([flat[n] for n in names], np.float64)},
+                   params=ctx.resolved_params(), inputs=ctx.input_refs(out_npz.parent), producer=ctx.producer(),
+                   cache_key=ctx.cache_key, extra_meta={"evaluation": "report", "report": doc})
+    atomic_write_text(out_md, text)
+    return [out_md, out_npz]
+
+
+STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
+              help="closing report of a run: errors of every stage against ground truth")

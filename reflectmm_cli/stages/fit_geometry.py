@@ -1,0 +1,168 @@
+"""Stage ``fit-geometry``: capture + face model + rig → fitted shape, expression and cameras (``geometry``).
+
+Library: :func:`reflectmm_cli.geometry_fit.identity.fit_identity` (docs/fit-geometry.md).  The fit's
+parameters are the fields of :class:`~reflectmm_cli.geometry_fit.FitConfig` (their defaults are its defaults).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from reflectmm_cli.artifacts import check_identity, path_for_meta, read_artifact, write_artifact, write_png
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry_fit import FitConfig
+from reflectmm_cli.geometry_fit.identity import fit_identity, geometry_from_truth
+from reflectmm_cli.params import Param
+from reflectmm_cli.stages.base import Stage, StageContext
+
+log = logging.getLogger("reflectmm")
+
+VERB = "fit-geometry"
+
+_CFG = FitConfig()
+
+
+def _cfg(name: str, kind: str, **kw: Any) -> Param:
+    """A Param for a FitConfig field, its default taken from FitConfig (declared once, there)."""
+    default = getattr(_CFG, name)
+    return Param(name, kind, list(default) if isinstance(default, tuple) else default, **kw)
+
+
+PARAMS = (
+    Param("focal", "float", None, range=(1e-3, None), unit="px", help="focal length (default: rig)."),
+    _cfg("landmark_iters", "int", range=(0, 100000), option="",
+         help="L-BFGS iterations of the landmark stage (--iters sets it and photo_iters = iters // 10)."),
+    _cfg("photo_rounds", "int", range=(0, 10),
+         help="photometric rounds with refreshed visibility (0 = landmarks only)."),
+    _cfg("photo_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per photometric round."),
+    _cfg("landmark_sigma_px", "float", range=(1e-3, None), option="--landmark-sigma", unit="px",
+         help="assumed landmark noise: balances landmarks against the priors."),
+    _cfg("huber_px", "float", range=(0.0, None), low_open=True, option="", unit="px",
+         help="Huber threshold of the landmark residual."),
+    _cfg("w_landmark", "float", range=(0.0, None), option="", help="weight of the landmark term."),
+    _cfg("w_photo", "float", range=(0.0, None), help="weight of the photometric term."),
+    _cfg("w_shape", "float", range=(0.0, None), option="", help="weight of the shape prior."),
+    _cfg("w_exp", "float", range=(0.0, None), option="", help="weight of the expression prior."),
+    _cfg("rig_sigma_mm", "float", range=(0.0, None), option="--rig-sigma", unit="mm",
+         help="soft rig constraint σ (0 = free pose per view)."),
+    _cfg("head_sigma_mm", "float", range=(0.0, None), option="", unit="mm",
+         help="prior on where the head sits in the rig frame (0 = off)."),
+    _cfg("fit_expression", "bool", option="", help="fit expression coefficients."),
+    _cfg("photo_vertices", "int", range=(1, 1000000), option="", help="skin vertices in the photometric term."),
+    _cfg("photo_min_cos", "float", range=(-1.0, 1.0), option="", help="n·v threshold of the photometric term."),
+    _cfg("photo_blur_px", "floats", range=(0.0, None), option="", unit="px",
+         help="Gaussian blur of the images per photometric round."),
+    _cfg("albedo", "str", choices=("auto", "texture", "per-vertex", "constant"),
+         help="albedo of the photometric term (auto: the model's mean texture if it has one, else a per-vertex "
+              "estimate; constant = one skin colour)."),
+    _cfg("dtype", "str", choices=("float64", "float32"), help="precision of the optimisation (float32 for GPUs)."),
+    _cfg("threads", "int", range=(1, 256), option="", invalidates_cache=False,
+         help="torch intra-op threads during the fit."),
+    Param("flash_intensity", "float", None, range=(0.0, None), low_open=True,
+          help="radiant intensity of every flash (default: the rig table's values). On real data use 1: "
+               "intensity and reflectance share one global scale."),
+    Param("from_truth", "bool", False, option="",
+          help="write the ground-truth geometry of the truth input instead of fitting."),
+    Param("no_overlay", "bool", False, help="do not write the per-view overlay PNGs."),
+)
+
+_CONFIG_FIELDS = {f.name for f in fields(FitConfig)}
+
+
+def _str_list(a) -> list[str]:
+    return [str(x) for x in np.asarray(a).reshape(-1)]
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    out = ctx.output_path()
+    paths = [out]
+    caps = ctx.inputs.get("capture") or []
+    if ctx.params["from_truth"] or ctx.params["no_overlay"] or len(caps) != 1 or not Path(caps[0]).is_file():
+        return paths
+    try:  # read only the view names (the planner calls this; the OLAT stack can be large)
+        with np.load(caps[0], allow_pickle=False) as npz:
+            names = _str_list(npz["view_names"])
+    except (OSError, KeyError, ValueError):
+        return paths
+    return paths + [ctx.output_path(f"{ctx.identity}_overlay_{n}", ".png") for n in names]
+
+
+def config_from_params(params: dict) -> FitConfig:
+    """The FitConfig of resolved stage params."""
+    kw = {k: v for k, v in params.items() if k in _CONFIG_FIELDS and v is not None}
+    if "photo_blur_px" in kw:
+        kw["photo_blur_px"] = tuple(float(x) for x in kw["photo_blur_px"])
+    return FitConfig(**kw)
+
+
+def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.geometry_fit.report import overlay
+
+    identity = ctx.identity
+    if not identity:
+        raise ReflectmmError("fit-geometry runs per identity: give --id")
+    out = ctx.output_path()
+    t0 = time.perf_counter()
+    capture_path = ctx.input("capture")
+    truth_list = ctx.input_list("truth", required=False)
+    truth_path = truth_list[0] if truth_list else None
+    if ctx.params["from_truth"]:
+        capture = check_identity(read_artifact(capture_path, "capture"), identity) if capture_path.is_file() else None
+        kw: dict[str, Any] = {}
+        if capture is not None:
+            kw = {"view_names": _str_list(capture["view_names"]), "flash_ids": _str_list(capture["flash_ids"]),
+                  "image_size": tuple(int(x) for x in np.asarray(capture["image_size"]).reshape(-1)[:2]),
+                  "landmarks": np.asarray(capture["landmarks"], np.float64) if "landmarks" in capture.arrays
+                  else None}
+        fm_list = ctx.input_list("face_model", required=False)
+        if fm_list:
+            from reflectmm_cli.geometry import load_face_model
+
+            kw["landmark_ids"] = load_face_model(fm_list[0]).landmarks
+        arrays, report = geometry_from_truth(truth_path, **kw)
+        report["truth_file"] = path_for_meta(truth_path, out)
+        write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
+                       producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
+        log.info("fit-geometry %s: ground-truth geometry from %s (%d views)", identity, truth_path, report["views"])
+        return [out]
+    fm_path = ctx.input("face_model")
+    rig_list = ctx.input_list("rig", required=False)
+    lm_list = ctx.input_list("landmarks", required=False)
+    cfg = config_from_params(ctx.params)
+    arrays, report, ex = fit_identity(capture_path, fm_path, identity, rig_path=rig_list[0] if rig_list else None,
+                                      landmarks_dir=lm_list[0] if lm_list else None, focal=ctx.params.get("focal"),
+                                      config=cfg, truth_path=truth_path, device=ctx.device,
+                                      flash_intensity=ctx.params.get("flash_intensity"))
+    if "truth_file" in report:
+        report["truth_file"] = path_for_meta(truth_path, out)
+    write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
+                   producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
+    written = [out]
+    if not ctx.params["no_overlay"]:
+        model = ex["model"]
+        scale = max(1, int(np.ceil(360 / max(ex["room"].shape[1], 1))))
+        for v, name in enumerate(arrays["view_names"]):
+            img = overlay(ex["room"][v], arrays["vertices"].astype(np.float64), model.triangles, arrays["K"][v],
+                          arrays["R"][v], arrays["t"][v], arrays["landmarks_given"][v], arrays["landmarks_fit"][v],
+                          origin=ex["origin"][v], scale=scale)
+            written.append(write_png(ctx.output_path(f"{identity}_overlay_{name}", ".png"), img))
+    pr = arrays["photo_residual"]
+    photo = float(np.nanmedian(pr)) if np.isfinite(pr).any() else float("nan")
+    msg = (f"fit-geometry {identity}: landmark RMS {np.median(arrays['landmark_rmse_px']):.2f} px (median of "
+           f"{len(arrays['view_names'])} views), photometric RMS {photo:.4f}")
+    if "err_vertex_rmse_mm" in arrays:
+        msg += (f"; vs truth: landmarks {np.median(arrays['err_landmark_px']):.2f} px, vertices "
+                f"{float(arrays['err_vertex_rmse_mm']):.2f} mm RMS ({100 * float(arrays['err_vertex_rmse_iod']):.1f}% "
+                f"of the inter-ocular distance), camera centres {np.median(arrays['err_cam_center_mm']):.1f} mm")
+    log.info("%s; %.1f s", msg, time.perf_counter() - t0)
+    return written
+
+
+STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, params=PARAMS,
+              help="capture + face model + rig -> fitted shape/expression and cameras (geometry)")

@@ -1,0 +1,125 @@
+"""Stage ``fit-reflectance``: one identity's UV observations → diffuse albedo and lobe-weight maps (DESIGN.md §3).
+
+Reads a ``uv-observations`` artifact, calls :func:`reflectmm_cli.reflectance.fit_maps`, writes the
+``reflectance-maps`` artifact, an EXR with named channels and PNG previews next to it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from reflectmm_cli.artifacts import make_meta, read_artifact, write_artifact, write_exr, write_png
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import Param
+from reflectmm_cli.progress import log, progress
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS, check_exponents
+from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.workspace import stage_output
+
+VERB = "fit-reflectance"
+
+#: Lobe exponents: positive, at most MAX_EXPONENT, no two collinear lobes (shading.brdf.check_exponents).
+EXPONENTS = Param("exponents", "floats", list(DEFAULT_EXPONENTS), check=check_exponents,
+                  help="Lobe exponents, comma separated (distinct, each in (0, 10000]).")
+
+#: The solver's parameters, shared with evaluate-representation (which refits every representation).
+SOLVER_PARAMS = (
+    Param("solver", "str", "fast", choices=("fast", "adam"),
+          help="fast: exact batched IRLS/NNLS per texel; adam: the paper's Adam reference."),
+    Param("symmetry", "float", 1.0, range=(0.0, 1.0),
+          help="Mirror pooling weight (fast) / random flips on (adam, when > 0)."),
+    Param("symmetry_mode", "str", "ill-posed", choices=("ill-posed", "all"),
+          help="Fast solver: pool a texel with its mirror only where its own data are ill-posed (few "
+               "observations or conditioning < --cond-min), or every texel (all: the paper's random flip)."),
+    Param("loss", "str", "l1", choices=("l1", "l2"),
+          help="cos-weighted L1 (the paper's, IRLS) or cos-weighted least squares (fast solver)."),
+    Param("prior", "float", 1e-4, range=(0.0, None),
+          help="Tikhonov strength towards the neighbourhood prior, × trace of each texel's data term."),
+    Param("prior_tail", "float", 100.0, range=(0.0, None),
+          help="Extra prior on a lobe weight whose lobe is seen only in its tail: × prior × "
+               "(1 − observability/0.5)² (0 = off)."),
+)
+
+PARAMS = (EXPONENTS,) + SOLVER_PARAMS + (
+    Param("steps", "int", 1000, range=(1, None), help="Adam steps."),
+    Param("flash_intensity", "floats", None, range=(0.0, None), low_open=True,
+          help="Flash radiant intensity (one value or one per flash, comma separated); default: the "
+               "observations' values. Sets the global scale of C and W."),
+    Param("cond_min", "float", 1e-4, range=(0.0, 1.0), help="Flag texels whose pooled conditioning is below this."),
+    Param("seed", "int", 0, help="Seed of Adam's random flips."),
+)
+
+PREVIEWS = ("albedo", "weights", "residual", "flagged")
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    out = ctx.output_path()
+    return [out, out.with_suffix(".exr")] + [out.with_name(f"{out.stem}_{k}.png") for k in PREVIEWS]
+
+
+def input_path(ctx: StageContext) -> Path:
+    """The uv-observations input: the given one, else ``<ws>/unwrap-uv/<id>.npz``."""
+    if ctx.inputs.get("observations"):
+        return ctx.input("observations")
+    if ctx.identity is None:
+        raise ReflectmmError("fit-reflectance: give --id or --input")
+    return stage_output(ctx.workspace, "unwrap-uv", ctx.identity)
+
+
+def _input_files(ctx: StageContext) -> dict[str, list[Path]]:
+    return {"observations": [input_path(ctx)]}
+
+
+def _channel_name(p: float) -> str:
+    return f"weight.p{p:g}".replace(".", "_").replace("weight_p", "weight.p")
+
+
+def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.reflectance import fit_maps
+    from reflectmm_cli.reflectance.previews import (albedo_preview, flagged_preview, residual_preview,
+                                                    weights_preview)
+
+    p = ctx.params
+    src = input_path(ctx)
+    if not src.exists():
+        raise ReflectmmError("uv-observations input not found (run unwrap-uv first or give --input)", src)
+    obs = read_artifact(src, "uv-observations")
+    fi = p.get("flash_intensity")
+    maps = fit_maps(obs.arrays, exponents=p["exponents"], solver=p["solver"], symmetry=p["symmetry"],
+                    symmetry_mode=p["symmetry_mode"], loss=p["loss"], prior=p["prior"], prior_tail=p["prior_tail"],
+                    flash_intensity=fi, steps=p["steps"], device=ctx.device, seed=p["seed"],
+                    cond_min=p["cond_min"], progress=progress, path=src)
+    stats = {k: v for k, v in maps.stats.items() if k != "time_s"}  # no timings in artifacts (byte-identical reruns)
+    out = ctx.output_path()
+    resolved = {q.name: p.get(q.name) for q in sorted(PARAMS, key=lambda q: q.name)}
+    inputs = ctx.input_refs(out.parent, files={"observations": [src]})
+    extra = {"stats": stats,
+             "scale": "radiance = C·E·cos/π + Σ W·E·f·cos_h^p with E = flash_intensity/d²; scaling "
+                      "flash_intensity by k scales C and W by 1/k (global scale ambiguity)",
+             "flash_intensity_used": (fi if fi is not None else [float(v) for v in obs["flash_intensity"]])}
+    write_artifact(out, "reflectance-maps", maps.arrays(), params=resolved, inputs=inputs, producer=ctx.producer(),
+                   cache_key=ctx.cache_key, extra_meta=extra)
+    meta = make_meta("reflectance-maps", params=resolved, inputs=inputs, producer=ctx.producer(),
+                     cache_key=ctx.cache_key, extra=extra)
+    channels = {f"albedo.{c}": maps.albedo[i] for i, c in enumerate("RGB")}
+    for k, e in enumerate(maps.exponents):
+        channels[_channel_name(float(e))] = maps.weights[k]
+    exr = write_exr(out.with_suffix(".exr"), channels, meta)
+    pngs = [
+        write_png(out.with_name(f"{out.stem}_albedo.png"), albedo_preview(maps.albedo, maps.mask)),
+        write_png(out.with_name(f"{out.stem}_weights.png"), weights_preview(maps.weights, maps.mask)),
+        write_png(out.with_name(f"{out.stem}_residual.png"), residual_preview(maps.residual, maps.mask)),
+        write_png(out.with_name(f"{out.stem}_flagged.png"),
+                  flagged_preview(maps.mask, maps.flagged, maps.observability)),
+    ]
+    s = maps.stats
+    log.info(f"fit-reflectance {ctx.identity or out.stem}: {p['solver']} solver, {s['n_texels']} texels, "
+             f"{s['n_flagged']} flagged, {s['n_observable']} fully observable, median RMS residual "
+             f"{s['residual_rms_median']:.3g}, {s['time_s']:.2f} s")
+    return [out, exr] + pngs
+
+
+# version 2: mirror pooling only where a texel's own data are ill-posed by default (symmetry_mode)
+# version 3: tail prior on lobe weights seen only in their lobe's tail (prior_tail)
+STAGE = Stage(VERB, version=3, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
+              params=PARAMS, help="fit diffuse albedo and lobe-weight maps to one identity's UV observations")

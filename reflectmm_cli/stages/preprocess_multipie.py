@@ -1,0 +1,93 @@
+"""Stage ``preprocess-multipie``: one identity's Multi-PIE shots → linear OLAT stack (``capture`` artifact)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from reflectmm_cli.artifacts import atomic_write_bytes, write_artifact
+from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, discover_identities, plan_identity
+from reflectmm_cli.capture.preprocess import (CROP_MODES, CaptureOptions, contact_sheet, encode_png, parse_rotate,
+                                              preprocess_identity, source_refs)
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import Param
+from reflectmm_cli.stages.base import Stage, StageContext
+
+log = logging.getLogger("reflectmm")
+
+VERB = "preprocess-multipie"
+
+PARAMS = (
+    Param("session", "str", "auto", help="Session 01..04, or auto = first session holding the recording."),
+    Param("recording", "str", "01", help="Recording number (01 = neutral)."),
+    Param("views", "strs", list(DEFAULT_VIEWS), help="Cameras, comma separated."),
+    Param("flashes", "strs", list(DEFAULT_FLASHES), help="Flash shots, comma separated."),
+    Param("transfer", "str", "gamma1.2", help="Pixel value -> linear: gamma1.2 (x**1.2), srgb, linear, or gamma:G."),
+    Param("rotate", "custom", {}, convert=parse_rotate, multiple=True, metavar="CAM=DEG",
+          help="Rotate a camera's images clockwise by 90/180/270 degrees after reading (repeatable)."),
+    Param("crop", "str", "auto", choices=tuple(CROP_MODES),
+          help="Store a face window (landmarks / lit pixels) or full frames (none)."),
+    Param("crop_margin", "float", 0.6, range=(0.0, None),
+          help="Margin around the landmark box, as a fraction of its larger side."),
+)
+
+
+def options_from_ctx(ctx: StageContext) -> CaptureOptions:
+    """The library's CaptureOptions from the resolved params and the optional landmarks input."""
+    p = ctx.params
+    lm = ctx.inputs.get("landmarks") or []
+    return CaptureOptions(session=p["session"], recording=p["recording"], views=tuple(p["views"]),
+                          flashes=tuple(p["flashes"]), transfer=p["transfer"], rotate=dict(p["rotate"]),
+                          landmarks_dir=Path(lm[0]) if lm else None, crop=p["crop"], crop_margin=p["crop_margin"])
+
+
+def _require_identity(ctx: StageContext) -> str:
+    if not ctx.identity:
+        raise ReflectmmError(f"stage '{ctx.stage_name}' runs per identity: give --id or a recipe foreach")
+    return ctx.identity
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    out = ctx.output_path()
+    return [out, out.with_name(out.stem + "_contact.png")]
+
+
+def _input_files(ctx: StageContext) -> dict[str, list[Path]]:
+    """Only this identity's source images and landmark files key the cache."""
+    opts = options_from_ctx(ctx)
+    try:
+        plan = plan_identity(ctx.input("root"), _require_identity(ctx), session=opts.session,
+                             recording=opts.recording, views=opts.views, flashes=opts.flashes,
+                             landmarks_dir=opts.landmarks_dir)
+    except ReflectmmError:
+        return {"image": [], "landmarks": []}  # the run itself reports the problem
+    return {"image": plan.files(), "landmarks": plan.landmark_files()}
+
+
+def _discover(ctx: StageContext) -> list[str]:
+    return discover_identities(ctx.input("root"))
+
+
+def run(ctx: StageContext) -> list[Path]:
+    identity = _require_identity(ctx)
+    root = ctx.input("root")
+    opts = options_from_ctx(ctx)
+    t0 = time.perf_counter()
+    arrays, plan, report = preprocess_identity(root, identity, opts)
+    out, sheet = _outputs(ctx)
+    params = dict(ctx.resolved_params())
+    params.update(opts.params())
+    params["session"] = plan.session  # resolved
+    write_artifact(out, "capture", arrays, params=params, inputs=source_refs(root, plan, out.parent),
+                   producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
+    atomic_write_bytes(sheet, encode_png(contact_sheet(arrays)))
+    log.info("preprocess-multipie %s: session %s, %d views x %d flashes, %dx%d crop (%s) of %dx%d, "
+             "landmarks in %d views, %.2f%% saturated, %.2f s", identity, plan.session, report["views"],
+             report["flashes"], *report["crop_size"], report["crop"], *report["image_size"],
+             report["landmark_views"], 100 * report["saturated_fraction"], time.perf_counter() - t0)
+    return [out, sheet]
+
+
+STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
+              discover_ids=_discover, params=PARAMS, help="Multi-PIE shots -> linear OLAT stack per identity")

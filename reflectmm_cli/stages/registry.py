@@ -1,0 +1,80 @@
+"""The explicit list of built-in stages: verb → module of :mod:`reflectmm_cli.stages`.
+
+Each module defines ``STAGE`` (a :class:`~reflectmm_cli.stages.base.Stage`).  Looking a verb up imports only
+that module (no click, no scanning of packages), so the recipe planner and Dask workers find a stage without
+loading the command line.  A new stage: write ``reflectmm_cli/stages/<verb>.py`` and add one line here.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any, Callable
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages.base import Stage, StageContext
+
+#: verb → module name under reflectmm_cli.stages (the built-in stages, in pipeline order).
+STAGE_MODULES: dict[str, str] = {
+    "synth-multipie": "synth_multipie",
+    "synth-envmaps": "synth_envmaps",
+    "face-model-create": "face_model_create",
+    "face-model-import": "face_model_import",
+    "preprocess-multipie": "preprocess_multipie",
+    "fit-geometry": "fit_geometry",
+    "unwrap-uv": "unwrap_uv",
+    "fit-reflectance": "fit_reflectance",
+    "build-pca": "build_pca",
+    "build-light-pca": "build_light_pca",
+    "render": "render",
+    "evaluate-truth": "evaluate_truth",
+    "evaluate-representation": "evaluate_representation",
+    "evaluate-report": "evaluate_report",
+    "checksum": "checksum",
+}
+
+#: verb → Stage: the built-in stages loaded so far and those registered with :func:`register_stage`.
+_REGISTRY: dict[str, Stage] = {}
+
+
+def _load(verb: str) -> Stage:
+    if verb not in _REGISTRY:
+        mod = importlib.import_module(f"reflectmm_cli.stages.{STAGE_MODULES[verb]}")
+        stage = mod.STAGE
+        if stage.verb != verb:  # pragma: no cover - a wrong registry line
+            raise RuntimeError(f"stages.{STAGE_MODULES[verb]} defines '{stage.verb}', registered as '{verb}'")
+        _REGISTRY[verb] = stage
+    return _REGISTRY[verb]
+
+
+def get_stage(verb: str) -> Stage:
+    """The stage of ``verb``; a one-line error listing the known verbs otherwise."""
+    if verb in _REGISTRY or verb in STAGE_MODULES:
+        return _load(verb)
+    from reflectmm_cli.params import closest_name
+
+    known = sorted(set(STAGE_MODULES) | set(_REGISTRY))
+    near = closest_name(verb, known)
+    hint = f"did you mean '{near}'? " if near else ""
+    raise ReflectmmError(f"unknown stage verb '{verb}' ({hint}known: {', '.join(known)})")
+
+
+def all_stages() -> dict[str, Stage]:
+    """Every stage (built-in and registered), by verb."""
+    for v in STAGE_MODULES:
+        _load(v)
+    return dict(_REGISTRY)
+
+
+def register_stage(verb: str, version: int = 1, per_identity: bool = False, **kwargs: Any
+                   ) -> Callable[[Callable[[StageContext], list[Path]]], Callable[[StageContext], list[Path]]]:
+    """Decorator registering ``run(ctx) -> list[Path]`` as an extra stage (tests, extensions); built-in stages
+    are listed in :data:`STAGE_MODULES` instead."""
+
+    def deco(fn: Callable[[StageContext], list[Path]]) -> Callable[[StageContext], list[Path]]:
+        if verb in STAGE_MODULES or (verb in _REGISTRY and _REGISTRY[verb].run is not fn):
+            raise RuntimeError(f"stage '{verb}' registered twice")
+        _REGISTRY[verb] = Stage(verb=verb, version=version, run=fn, per_identity=per_identity, **kwargs)
+        return fn
+
+    return deco

@@ -1,0 +1,87 @@
+"""Stage ``unwrap-uv``: capture + fitted geometry → per-texel observations (``uv-observations`` artifact)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import Param
+from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.fit_reflectance import EXPONENTS
+from reflectmm_cli.workspace import find_face_model
+
+log = logging.getLogger("reflectmm")
+
+VERB = "unwrap-uv"
+
+#: Largest UV map: 4096² texels × (views × flashes) observations is already tens of GB.
+MAX_UV_SIZE = 4096
+
+PARAMS = (
+    Param("uv_size", "int", 256, range=(8, MAX_UV_SIZE), unit="texels", help="UV map size S."),
+    Param("grazing_deg", "float", 80.0, range=(0.0, 90.0), low_open=True, unit="degrees",
+          help="A view sees a texel only if the angle between normal and view direction is below this."),
+    replace(EXPONENTS, help="Lobe exponents used for the conditioning map."),
+)
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    out = ctx.output_path()
+    return [out, out.with_name(out.stem + "_preview.png")]
+
+
+def _resolved_inputs(ctx: StageContext) -> dict[str, list[Path]]:
+    """ctx.inputs plus the default face model when the recipe leaves it out (so it keys the cache too)."""
+    files = {k: [Path(p) for p in v] for k, v in ctx.inputs.items()}
+    if not files.get("face_model"):
+        cap, geo = files.get("capture") or [], files.get("geometry") or []
+        if len(cap) == 1 and len(geo) == 1 and cap[0].is_file() and geo[0].is_file():
+            try:
+                fm = find_face_model(ctx.workspace, capture=cap[0], geometry=geo[0])
+            except ReflectmmError:
+                fm = None
+            if fm is not None:
+                files["face_model"] = [fm]
+    return files
+
+
+def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.capture.preprocess import encode_png
+    from reflectmm_cli.geometry.face_model import load_face_model
+    from reflectmm_cli.observations.unwrap import previews, unwrap_observations
+
+    t0 = time.perf_counter()
+    cap_path = ctx.input("capture")
+    geo_path = ctx.input("geometry")
+    files = _resolved_inputs(ctx)  # recipes may leave face_model out: the same default as the command line
+    if not files.get("face_model"):
+        raise ReflectmmError(f"stage '{ctx.stage_name}': no face_model input, and neither the geometry nor "
+                             "the capture's dataset folder nor the workspace provides one", geo_path)
+    fm_path = files["face_model"][0]
+    cap = check_identity(read_artifact(cap_path, "capture"), ctx.identity)
+    geo = check_identity(read_artifact(geo_path, "geometry"), ctx.identity)
+    model = load_face_model(fm_path)
+    p = ctx.params
+    arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
+                                         uv_size=p["uv_size"], grazing_deg=p["grazing_deg"],
+                                         exponents=tuple(p["exponents"]),
+                                         geometry_path=geo_path, capture_path=cap_path)
+    out, prev = _outputs(ctx)
+    write_artifact(out, "uv-observations", arrays, params=ctx.resolved_params(),
+                   inputs=ctx.input_refs(out.parent, files),
+                   producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
+    atomic_write_bytes(prev, encode_png(previews(arrays)))
+    log.info("unwrap-uv %s: %d texels, %d views x %d flashes, %d observed texel-pairs; rays: %d view, %d shadow "
+             "(skipped %d back-facing, %d unseen); %d texels unseen by every view; %.2f s", ctx.identity,
+             report["texels"], report["views"], report["flashes"], report["observed_pairs"], report["rays_view"],
+             report["rays_shadow"], report["skipped_backfacing_light"], report["skipped_unseen"],
+             report["texels_unseen"], time.perf_counter() - t0)
+    return [out, prev]
+
+
+STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
+              params=PARAMS, help="capture + geometry -> per-texel OLAT observations in UV space")

@@ -1,0 +1,133 @@
+"""Workspace conventions in one place: default paths and the discovery rules every verb shares.
+
+* The workspace: ``--workspace``, else ``$REFLECTMM_WORKSPACE``, else the current directory.
+* A stage's output: ``<workspace>/<stage>/<id>.npz`` (``<stage>/<stage>.npz`` for a stage that is not per
+  identity) — :func:`stage_output`; recipes name stages after verbs so both agree.
+* Face model (one search order, first hit wins — :func:`find_face_model`): the face model a geometry artifact
+  records → ``face_model.npz`` of the capture's dataset folder → ``<ws>/face_model.npz`` →
+  ``<ws>/synth/face_model.npz`` → ``<ws>/synth-multipie/face_model.npz``.
+* Rig: ``rig.toml`` of the capture's dataset folder, else None (the packaged Multi-PIE rig).
+* Ground truth (one rule — :func:`find_truth_dir`): ``truth/`` of the capture's dataset folder → ``<ws>/truth``
+  → ``<ws>/synth/truth`` → ``<ws>/synth-multipie/truth``; per identity ``<dir>/<id>.npz``.
+
+No click here: stages, the planner, the report and the commands all import this module.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+__all__ = ["default_workspace", "resolve_workspace", "stage_dir", "stage_output", "capture_root",
+           "face_model_from_geometry", "find_face_model", "find_rig", "find_truth_dir", "find_truth",
+           "list_artifacts", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
+
+#: File name of a dataset's / workspace's face model.
+FACE_MODEL_NAME = "face_model.npz"
+#: Where a face model is looked for inside a workspace (after the geometry's and the dataset's own).
+WORKSPACE_FACE_MODELS = ("face_model.npz", "synth/face_model.npz", "synth-multipie/face_model.npz")
+#: Where ground truth (synth-truth ``<id>.npz``) is looked for inside a workspace (after the dataset's own).
+WORKSPACE_TRUTH_DIRS = ("truth", "synth/truth", "synth-multipie/truth")
+
+
+def default_workspace() -> Path:
+    """``$REFLECTMM_WORKSPACE`` or the current directory (absolute)."""
+    return Path(os.environ.get("REFLECTMM_WORKSPACE") or ".").resolve()
+
+
+def resolve_workspace(workspace: Path | str | None) -> Path:
+    """The given workspace (absolute) or :func:`default_workspace`."""
+    return Path(workspace).resolve() if workspace is not None else default_workspace()
+
+
+def stage_dir(workspace: Path, stage: str) -> Path:
+    """``<workspace>/<stage>/``: the folder a stage writes into."""
+    return Path(workspace) / stage
+
+
+def stage_output(workspace: Path, stage: str, name: str | None = None, suffix: str = ".npz") -> Path:
+    """``<workspace>/<stage>/<name><suffix>`` (name = the identity, or the stage name for an aggregate)."""
+    return stage_dir(workspace, stage) / f"{name if name is not None else stage}{suffix}"
+
+
+def list_artifacts(workspace: Path, stage: str) -> list[Path]:
+    """The ``*.npz`` a stage wrote in ``<workspace>/<stage>/`` (sorted; hidden temp files left out)."""
+    folder = stage_dir(workspace, stage)
+    return sorted(p for p in folder.glob("*.npz") if not p.name.startswith(".")) if folder.is_dir() else []
+
+
+def _meta_of(artifact: Any) -> tuple[dict, Path | None]:
+    """(meta, path) of an Artifact or of an artifact path."""
+    if isinstance(artifact, (str, Path)):
+        from reflectmm_cli.artifacts import read_meta
+
+        return read_meta(Path(artifact)), Path(artifact)
+    return artifact.meta, (Path(artifact.path) if artifact.path is not None else None)
+
+
+def capture_root(capture: Any) -> Path | None:
+    """The dataset folder a capture artifact (Artifact or path) was made from — its meta input of role
+    ``root`` — if it exists."""
+    meta, path = _meta_of(capture)
+    for ref in meta.get("inputs", []):
+        if ref.get("role") == "root" and path is not None:
+            p = (path.parent / ref.get("path", "")).resolve()
+            if p.is_dir():
+                return p
+    return None
+
+
+def face_model_from_geometry(geometry: Any) -> Path | None:
+    """The face model a geometry artifact (Artifact or path) was fitted with, if recorded and present."""
+    meta, path = _meta_of(geometry)
+    for ref in meta.get("inputs", []):
+        role = str(ref.get("role", "")).replace("-", "_")
+        if path is not None and (role in ("face_model", "model") or "face" in role):
+            p = (path.parent / ref.get("path", "")).resolve()
+            if p.is_file():
+                return p
+    return None
+
+
+def find_face_model(workspace: Path, capture: Any = None, geometry: Any = None) -> Path | None:
+    """The face model by the one search order (module docstring); None if there is none."""
+    if geometry is not None:
+        found = face_model_from_geometry(geometry)
+        if found is not None:
+            return found
+    candidates: list[Path] = []
+    if capture is not None:
+        root = capture_root(capture)
+        if root is not None:
+            candidates.append(root / FACE_MODEL_NAME)
+    candidates += [Path(workspace) / c for c in WORKSPACE_FACE_MODELS]
+    return next((p for p in candidates if p.is_file()), None)
+
+
+def find_rig(capture: Any) -> Path | None:
+    """``rig.toml`` of the capture's dataset folder, if present (else the caller uses the packaged rig)."""
+    root = capture_root(capture) if capture is not None else None
+    if root is not None and (root / "rig.toml").is_file():
+        return root / "rig.toml"
+    return None
+
+
+def find_truth_dir(workspace: Path | None, capture: Any = None) -> Path | None:
+    """The ground-truth folder by the one rule (module docstring); None if there is none."""
+    candidates: list[Path] = []
+    if capture is not None:
+        root = capture_root(capture)
+        if root is not None:
+            candidates.append(root / "truth")
+    if workspace is not None:
+        candidates += [Path(workspace) / c for c in WORKSPACE_TRUTH_DIRS]
+    return next((p for p in candidates if p.is_dir()), None)
+
+
+def find_truth(workspace: Path | None, identity: str, capture: Any = None) -> Path | None:
+    """``<truth dir>/<identity>.npz`` if it exists."""
+    d = find_truth_dir(workspace, capture)
+    if d is not None and (d / f"{identity}.npz").is_file():
+        return d / f"{identity}.npz"
+    return None
