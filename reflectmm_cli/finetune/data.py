@@ -14,8 +14,10 @@ One uncompressed NPZ per shard of N aligned S×S images; its arrays (all documen
 from __future__ import annotations
 
 import json
+import os
 import struct
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
@@ -26,7 +28,8 @@ from reflectmm_cli.errors import ArtifactError, ReflectmmError
 from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
 
 __all__ = ["SHARD_KIND", "ENCODINGS", "SPLITS", "PER_IMAGE_KEYS", "write_shard", "Shard", "open_shard",
-           "iter_batches", "linearize"]
+           "iter_batches", "linearize", "PrepareConfig", "WildInput", "list_wild_inputs", "name_split",
+           "prepare_wild_images", "prepare_wild_shard", "shard_names"]
 
 SHARD_KIND = "wild-shard"
 ENCODINGS = ("gamma1.2", "srgb", "linear")
@@ -259,3 +262,293 @@ def _gather(sh: list[Shard], pairs: list[tuple[int, int]], keys) -> dict[str, np
     batch["shard_index"] = np.array([p[0] for p in pairs], np.int64)
     batch["image_index"] = np.array([p[1] for p in pairs], np.int64)
     return batch
+
+
+# --------------------------------------------------------------------------- prepare-wild
+
+_IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+_LM_EXT = (".pts", ".txt", ".npy")
+
+
+@dataclass
+class PrepareConfig:
+    """Parameters of ``prepare-wild`` (recorded in the shard meta)."""
+
+    size: int = 224
+    aligned: bool = False           # images are already aligned S×S crops (landmarks in crop pixels)
+    from_truth: bool = False        # geometry from synth-wild truth (implies aligned)
+    encoding: str = "srgb"          # encoding of real images (synth wild records its own)
+    shard_size: int = 256
+    split_fractions: tuple = (0.9, 0.05, 0.05)   # by name hash, when no synth-wild manifest gives the split
+    fit_landmark_iters: int = 200
+    fit_photo_rounds: int = 1
+    fit_photo_iters: int = 30
+
+    def to_params(self) -> dict:
+        d = dict(self.__dict__)
+        d["split_fractions"] = list(self.split_fractions)
+        return d
+
+
+@dataclass
+class WildInput:
+    name: str
+    image: Path
+    landmarks: Path | None = None
+    mask: Path | None = None
+
+
+def list_wild_inputs(images_dir: str | Path, landmarks_dir: str | Path | None = None,
+                     masks_dir: str | Path | None = None) -> list[WildInput]:
+    """Images of a folder (sorted by name) paired with ``<landmarks_dir>/<stem>.pts|.txt|.npy`` (default: the
+    images folder, then a sibling ``landmarks/``) and ``<masks_dir>/<stem>.png`` label images.  Missing
+    partners are left None (reported per image later)."""
+    images_dir = Path(images_dir)
+    if not images_dir.is_dir():
+        raise ReflectmmError("images folder not found", images_dir)
+    files = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in _IMAGE_EXT and p.is_file())
+    if not files:
+        raise ReflectmmError("no images (png/jpg/bmp/tif/webp) in folder", images_dir)
+    lm_dirs = [Path(landmarks_dir)] if landmarks_dir else [images_dir, images_dir.parent / "landmarks"]
+    out = []
+    for f in files:
+        lm = next((d / (f.stem + e) for d in lm_dirs for e in _LM_EXT if (d / (f.stem + e)).is_file()), None)
+        mk = None
+        if masks_dir:
+            mk = next((Path(masks_dir) / (f.stem + e) for e in (".png", ".bmp", ".tif")
+                       if (Path(masks_dir) / (f.stem + e)).is_file()), None)
+        out.append(WildInput(f.stem, f, lm, mk))
+    return out
+
+
+def name_split(name: str, fractions=(0.9, 0.05, 0.05)) -> str:
+    """Deterministic split of an image id by the sha256 of its name (FFHQ-like data: one image per person)."""
+    import hashlib
+
+    u = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2.0 ** 64
+    f = np.cumsum(np.asarray(fractions, np.float64) / sum(fractions))
+    return SPLITS[int(np.searchsorted(f, u, side="right"))] if u < f[-1] else SPLITS[-1]
+
+
+def _read_u8(path: Path) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ReflectmmError("cannot read image (unreadable or not an image)", path)
+    if img.dtype == np.uint16:
+        img = (img // 257).astype(np.uint8)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    if img.shape[2] == 4:
+        img = img[..., :3]
+    return np.ascontiguousarray(img[..., ::-1])
+
+
+def _truth_for(truth_dir: Path, name: str):
+    from reflectmm_cli.artifacts import read_artifact
+
+    p = truth_dir / "truth" / f"{name}.npz"
+    if not p.is_file():
+        raise ReflectmmError("no synth-wild truth for this image", p)
+    return read_artifact(p, "wild-truth")
+
+
+def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareConfig, *,
+                        truth_dir: str | Path | None = None, splits: Mapping[str, str] | None = None,
+                        progress_fn=None) -> tuple[dict[str, np.ndarray], dict, list[str]]:
+    """Align, fit (or read) geometry, rasterise the G-buffer and build the skin mask of each input.
+
+    Returns ``(arrays, report, errors)``: the shard arrays of the images that succeeded (see
+    :func:`write_shard`), a report {per-image landmark RMSE (px), vertex error (mm, when truth exists),
+    seconds}, and one-line error messages (each naming its file) for the images that were skipped.
+    """
+    import time
+
+    from reflectmm_cli.finetune.align import (align_image, fit_single_image, skin_mask_from_labels,
+                                              skin_mask_from_model, warp_to_crop)
+    from reflectmm_cli.geometry import RayScene, deep3d_camera
+    from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, pack_gbuffers
+    from reflectmm_cli.geometry.camera import Camera
+    from reflectmm_cli.geometry.raycast import rasterize
+    from reflectmm_cli.landmarks import read_landmarks
+
+    S = int(cfg.size)
+    K_crop = deep3d_camera().with_size(S, S).K
+    truth_dir = Path(truth_dir) if truth_dir is not None else None
+    if cfg.from_truth and truth_dir is None:
+        raise ReflectmmError("--from-truth needs the synth-wild folder (its truth/ sub-folder)")
+    per: dict[str, list] = {k: [] for k in ("names", "split", "image", "skin_mask", "landmarks", "shape",
+                                             "expression", "R", "t", "K")}
+    truth: dict[str, list] = {}
+    gbs, errors = [], []
+    rep = {"names": [], "landmark_rmse_px": [], "vertex_error_mm": [], "seconds": []}
+    id_cache: dict[int, Any] = {}
+    it = progress_fn(inputs) if progress_fn else inputs
+    for inp in it:
+        t0 = time.perf_counter()
+        try:
+            if inp.landmarks is None:
+                raise ReflectmmError("no landmark file with the same name (.pts/.txt/.npy)", inp.image)
+            img = _read_u8(inp.image)
+            lm = read_landmarks(inp.landmarks)
+            encoding = cfg.encoding
+            tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
+            if tr is not None:
+                encoding = tr.meta.get("encoding", encoding)
+            if cfg.aligned or cfg.from_truth:
+                if img.shape[0] != img.shape[1]:
+                    raise ReflectmmError(f"--aligned image is {img.shape[1]}x{img.shape[0]}, not square", inp.image)
+                k = S / img.shape[0]
+                A = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2]])    # pixel-centre rescale
+                crop = img if k == 1 else np.clip(np.round(warp_to_crop(img, A, S)), 0, 255).astype(np.uint8)
+                lm_c = lm * k + (k - 1) / 2
+            else:
+                al = align_image(img, lm, face_model, S)
+                crop, lm_c, A = al.image, al.landmarks, al.transform
+            if not np.isfinite(lm_c).all():
+                raise ReflectmmError("landmarks are not finite", inp.landmarks)
+            lin = linearize(crop, encoding)
+            if cfg.from_truth:
+                shape = np.asarray(tr["shape"], np.float64)
+                exp = np.asarray(tr["expression"], np.float64)
+                R, t = np.asarray(tr["R"], np.float64), np.asarray(tr["t"], np.float64)
+                K0 = np.asarray(tr["K"], np.float64)
+                kk = S / int(tr["face_mask"].shape[0])
+                K = K0.copy()
+                K[0, 0], K[1, 1] = K0[0, 0] * kk, K0[1, 1] * kk
+                K[:2, 2] = (K0[:2, 2] + 0.5) * kk - 0.5       # pixel-centre convention (Camera.with_size)
+            else:
+                from reflectmm_cli.fitting.fit import FitConfig
+
+                fc = FitConfig(landmark_iters=cfg.fit_landmark_iters, photo_rounds=cfg.fit_photo_rounds,
+                               photo_iters=cfg.fit_photo_iters, photo_blur_px=(1.0,), photo_vertices=1500)
+                fit = fit_single_image(face_model, lm_c, lin if cfg.fit_photo_rounds > 0 else None, K_crop,
+                                       config=fc, size=S)
+                shape, exp, R, t, K = fit.shape_coeffs, fit.exp_coeffs, fit.R[0], fit.t[0], K_crop
+            verts = face_model.vertices(shape, exp).astype(np.float64)
+            scene = RayScene(verts, face_model.triangles)
+            cam = Camera(K, R, t, S, S, inp.name)
+            gb = gbuffer_from_raster(rasterize(scene, cam), face_model.triangles, cam)
+            if not gb["face_mask"].any():
+                raise ReflectmmError("the fitted face covers no pixel of the crop", inp.image)
+            proj, _ = cam.project(verts[face_model.landmarks])
+            rep_lm = float(np.sqrt(np.mean(np.sum((proj - lm_c) ** 2, -1))))
+            vis_px = np.zeros((S, S), bool)
+            yx = gb["pix_yx"][gb["visible"]].astype(np.int64)
+            vis_px[yx[:, 0], yx[:, 1]] = True
+            if inp.mask is not None:
+                lab = _read_u8(inp.mask)[..., 0]
+                lab_c = warp_to_crop(lab, A, S, interpolation="nearest")
+                skin = skin_mask_from_labels(lab_c) & vis_px
+            elif tr is not None and cfg.from_truth:
+                skin = np.asarray(tr["skin_mask"], bool) & vis_px
+            else:
+                skin = skin_mask_from_model(gb, face_model.skin_mask, lin) & vis_px
+            verr = float("nan")
+            if tr is not None:
+                vt = face_model.vertices(tr["shape"], tr["expression"]).astype(np.float64)
+                cam_t = vt @ np.asarray(tr["R"]).T + np.asarray(tr["t"])
+                cam_f = verts @ R.T + t
+                verr = float(np.sqrt(np.mean(np.sum((cam_f - cam_t) ** 2, -1))))
+                d = (cam_f - cam_f.mean(0)) - (cam_t - cam_t.mean(0))
+                rep.setdefault("vertex_error_centred_mm", []).append(float(np.sqrt(np.mean(np.sum(d * d, -1)))))
+                if cfg.from_truth:
+                    ident = int(tr.meta["identity"])
+                    if ident not in id_cache:
+                        from reflectmm_cli.artifacts import read_artifact
+
+                        id_cache.clear()
+                        id_cache[ident] = read_artifact(truth_dir / "identities" / f"id{ident:05d}.npz", "wild-truth")
+                    ia = id_cache[ident]
+                    for k_, v_ in (("truth_sh", np.asarray(tr["sh"], np.float32)),
+                                   ("truth_vertex_albedo", np.asarray(ia["vertex_albedo"], np.float16)),
+                                   ("truth_vertex_weights", np.asarray(ia["vertex_weights"], np.float16)),
+                                   ("truth_vertex_spec_albedo", np.asarray(ia["vertex_spec_albedo"], np.float16)),
+                                   ("truth_vertex_roughness", np.asarray(ia["vertex_roughness"], np.float16)),
+                                   ("truth_diffuse", np.asarray(tr["diffuse"], np.float16)),
+                                   ("truth_specular", np.asarray(tr["specular"], np.float16))):
+                        truth.setdefault(k_, []).append(v_)
+        except ReflectmmError as exc:
+            errors.append(str(exc).splitlines()[0])
+            continue
+        per["names"].append(inp.name)
+        per["split"].append((splits or {}).get(inp.name) or name_split(inp.name, cfg.split_fractions))
+        per["image"].append(crop)
+        per["skin_mask"].append(skin & gb["face_mask"])
+        per["landmarks"].append(np.asarray(lm_c, np.float32))
+        per["shape"].append(np.asarray(shape, np.float32))
+        per["expression"].append(np.asarray(exp, np.float32))
+        per["R"].append(R), per["t"].append(t), per["K"].append(K)
+        gbs.append(gb)
+        rep["names"].append(inp.name)
+        rep["landmark_rmse_px"].append(rep_lm)
+        rep["vertex_error_mm"].append(verr)
+        rep["seconds"].append(time.perf_counter() - t0)
+    arrays: dict[str, np.ndarray] = {}
+    if gbs:
+        arrays = {k: np.array(v) if k in ("names", "split") else np.stack(v) for k, v in per.items()}
+        arrays["shape"] = arrays["shape"].astype(np.float32)
+        arrays["expression"] = arrays["expression"].astype(np.float32)
+        packed = pack_gbuffers(gbs)
+        arrays.update(packed)
+        arrays.update({k: np.stack(v) for k, v in truth.items()})
+    return arrays, rep, errors
+
+
+def shard_names(n_images: int, shard_size: int) -> list[str]:
+    return [f"shard_{i:05d}" for i in range(-(-n_images // max(1, shard_size)))]
+
+
+def prepare_wild_shard(images_dir, out_dir, face_model, face_model_path, cfg: PrepareConfig, shard_index: int, *,
+                       landmarks_dir=None, masks_dir=None, truth_dir=None, producer=None, cache_key=None,
+                       progress_fn=None) -> tuple[Path | None, dict, list[str]]:
+    """One shard of ``prepare-wild``: images ``[i·M, (i+1)·M)`` of the sorted folder → ``out_dir/shard_NNNNN.npz``
+    plus ``shard_NNNNN_overlay.png`` (skin masks over the first 16 crops).  Returns (path or None, report,
+    errors).  ``truth_dir`` (a synth-wild folder) supplies the split, truth arrays and vertex errors."""
+    from reflectmm_cli.artifacts import input_ref, read_artifact, sha256_file, write_png
+    from reflectmm_cli.finetune.align import mask_overlay
+
+    inputs = list_wild_inputs(images_dir, landmarks_dir, masks_dir)
+    M = int(cfg.shard_size)
+    chunk = inputs[shard_index * M:(shard_index + 1) * M]
+    if not chunk:
+        raise ReflectmmError(f"shard {shard_index} is empty ({len(inputs)} images, {M} per shard)", images_dir)
+    splits = None
+    if truth_dir is not None and (Path(truth_dir) / "manifest.npz").is_file():
+        man = read_artifact(Path(truth_dir) / "manifest.npz", "wild-manifest")
+        splits = dict(zip(man["names"].tolist(), man["split"].tolist()))
+    arrays, rep, errors = prepare_wild_images(chunk, face_model, cfg, truth_dir=truth_dir, splits=splits,
+                                              progress_fn=progress_fn)
+    out_dir = Path(out_dir)
+    path = out_dir / f"{shard_names(len(inputs), M)[shard_index]}.npz"
+    if not arrays:
+        return None, rep, errors
+    fm = Path(face_model_path)
+    rel = os.path.relpath(fm.resolve(), out_dir.resolve())
+    write_shard(path, arrays, encoding=str(_encoding_of(cfg, truth_dir)), face_model_sha256=sha256_file(fm),
+                face_model_path=rel, params=cfg.to_params(), inputs=[input_ref("face_model", fm, out_dir)],
+                producer=producer, cache_key=cache_key,
+                extra_meta={"shard_index": shard_index, "skipped": errors,
+                            "landmark_rmse_px_median": float(np.median(rep["landmark_rmse_px"])),
+                            "skin_labels": "CelebAMask-HQ ids 1 skin, 2 nose, 11 upper lip, 12 lower lip"
+                            if masks_dir else None})
+    n = min(16, len(arrays["names"]))
+    tiles = [mask_overlay(arrays["image"][i], arrays["skin_mask"][i]) for i in range(n)]
+    cols = min(4, n)
+    rows = -(-n // cols)
+    S = arrays["image"].shape[1]
+    sheet = np.zeros((rows * S, cols * S, 3), np.uint8)
+    for i, tl in enumerate(tiles):
+        r, c = divmod(i, cols)
+        sheet[r * S:(r + 1) * S, c * S:(c + 1) * S] = tl
+    write_png(out_dir / f"{path.stem}_overlay.png", sheet)
+    return path, rep, errors
+
+
+def _encoding_of(cfg: PrepareConfig, truth_dir) -> str:
+    if truth_dir is not None and (Path(truth_dir) / "manifest.npz").is_file():
+        from reflectmm_cli.artifacts import read_meta
+
+        return read_meta(Path(truth_dir) / "manifest.npz").get("encoding", cfg.encoding)
+    return cfg.encoding
