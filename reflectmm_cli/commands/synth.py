@@ -2,7 +2,8 @@
 
 * ``synth multipie`` — identities with known shape and spatially varying reflectance rendered on a Multi-PIE-like
   rig, written in the exact Multi-PIE layout with landmarks, plus ground truth (stage ``synth-multipie``);
-* ``synth envmaps`` — procedural HDR environment maps as EXR (stage ``synth-envmaps``).
+* ``synth envmaps`` — procedural HDR environment maps as EXR (stage ``synth-envmaps``);
+* ``synth wild`` — in-the-wild-like renders with ground truth for finetuning (stage ``synth-wild``).
 
 Both are recipe stages that are not per identity; their output is a folder: ``--out DIR``, else
 ``<workspace>/<stage_name>/``.
@@ -205,6 +206,102 @@ def multipie_cmd(identities, out, seed, brdf, image_size, uv_size, cameras, flas
     emit(paths, as_json)
 
 
+# --------------------------------------------------------------------------- wild
+
+WILD_DEFAULTS = {"count": 16, "seed": 0, "size": 224, "images_per_identity": 4, "occluder_fraction": 0.2,
+                 "landmark_noise": 1.0, "encoding": "gamma1.2", "noise": 0.004, "envmaps": 8, "envmap_width": 512,
+                 "uv_size": 256, "face_vertices": 35000, "ao_rays": 12, "spec_rays": 6}
+
+
+def wild_config(params: dict):
+    """WildConfig from stage params (CLI options or recipe params)."""
+    from reflectmm_cli.synth.wild import WildConfig
+
+    p = {**WILD_DEFAULTS, **{k: v for k, v in params.items() if v is not None}}
+    unknown = set(p) - set(WILD_DEFAULTS)
+    if unknown:
+        raise ReflectmmError(f"synth-wild: unknown param(s) {', '.join(sorted(unknown))} "
+                             f"(known: {', '.join(sorted(WILD_DEFAULTS))})")
+    return WildConfig(**{k: (type(WILD_DEFAULTS[k])(v)) for k, v in p.items()})
+
+
+def _wild_outputs(ctx: StageContext) -> list[Path]:
+    out = _out_dir(ctx)
+    return [out / "manifest.npz", out / "face_model.npz", out / "contact_sheet.png"]
+
+
+@register_stage("synth-wild", version=1, per_identity=False, outputs=_wild_outputs,
+                help="in-the-wild-like renders with ground truth (for finetuning)")
+def run_synth_wild(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.geometry import load_face_model
+    from reflectmm_cli.synth.wild import synth_wild
+
+    cfg = wild_config(ctx.params)
+    out = _out_dir(ctx)
+    fm = ctx.input_list("face_model", required=False)
+    summary = synth_wild(out, cfg, face_model=load_face_model(fm[0]) if fm else None, producer=ctx.producer(),
+                         cache_key=ctx.cache_key)
+    log.info(f"synth wild: {cfg.count} images of {summary['identities']} identities in {out} "
+             f"({summary['seconds_per_image']:.3f} s/image + {summary['envmap_setup_seconds']:.1f} s map setup)")
+    return _wild_outputs(ctx)
+
+
+@click.command("wild")
+@click.option("--count", "-n", type=click.IntRange(1, None), default=16, show_default=True, help="Number of images.")
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default <workspace>/synth-wild/).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (image k depends on seed, k).")
+@click.option("--size", type=click.IntRange(32, 1024), default=224, show_default=True,
+              help="Image size S (the Deep3DFaceRecon camera scaled to S x S).")
+@click.option("--images-per-identity", type=click.IntRange(1, None), default=4, show_default=True,
+              help="Images of each identity (different pose, expression, lighting).")
+@click.option("--occluder-fraction", type=click.FloatRange(0, 1), default=0.2, show_default=True,
+              help="Fraction of images with a hand- or hat-like occluder.")
+@click.option("--landmark-noise", type=click.FloatRange(0, None), default=1.0, show_default=True,
+              help="Gaussian landmark noise sigma in pixels.")
+@click.option("--encoding", type=click.Choice(["gamma1.2", "srgb"]), default="gamma1.2", show_default=True,
+              help="Display encoding of the PNGs (recorded).")
+@click.option("--noise", type=click.FloatRange(0, None), default=0.004, show_default=True,
+              help="Read-noise sigma (linear); shot noise is added on top.")
+@click.option("--envmaps", type=click.IntRange(1, None), default=8, show_default=True,
+              help="Number of procedural HDR maps in the pool.")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="face-model artifact (default: the procedural model, written to DIR/face_model.npz).")
+@click.option("--face-vertices", type=click.IntRange(200, 500000), default=35000, show_default=True,
+              help="Vertex count of the procedural face model (when --face-model is not given).")
+@click.option("--shard-size", type=click.IntRange(1, None), default=None,
+              help="Also write prepare-wild shards of this many images (geometry from the truth) to DIR/shards/.")
+@workspace_option
+@json_option
+def wild_cmd(count, out, seed, size, images_per_identity, occluder_fraction, landmark_noise, encoding, noise,
+             envmaps, face_model, face_vertices, shard_size, workspace, as_json):
+    """Render in-the-wild-like face images with ground truth for finetuning (docs/wild.md).
+
+    Writes DIR/images/NAME.png, DIR/landmarks/NAME.pts, DIR/truth/NAME.npz, DIR/identities/IDNNNNN.npz,
+    DIR/envmaps/, DIR/face_model.npz, DIR/manifest.npz (split by identity) and DIR/contact_sheet.png.
+    """
+    params = {"count": count, "seed": seed, "size": size, "images_per_identity": images_per_identity,
+              "occluder_fraction": occluder_fraction, "landmark_noise": landmark_noise, "encoding": encoding,
+              "noise": noise, "envmaps": envmaps}
+    if face_model is None:
+        params["face_vertices"] = face_vertices
+    wild_config(params)
+    inputs = {"face_model": [face_model]} if face_model is not None else {}
+    paths = run_stage_cli("synth-wild", workspace=workspace, params=params, inputs=inputs, output=out,
+                          stage_name="synth-wild")
+    if shard_size:
+        from reflectmm_cli.finetune.data import shard_names
+
+        folder = paths[0].parent
+        for name in shard_names(count, shard_size):
+            paths += run_stage_cli("prepare-wild", workspace=workspace, identity=name,
+                                   params={"shard_size": shard_size, "from_truth": True, "aligned": True, "size": size},
+                                   inputs={"images": [folder / "images"], "truth": [folder],
+                                           "face_model": [folder / "face_model.npz"]},
+                                   output=folder / "shards", stage_name="prepare-wild")
+    emit(paths, as_json)
+
+
 @click.group("synth")
 def synth_group():
     """The synthetic world: Multi-PIE-like captures with ground truth, HDR environment maps."""
@@ -212,5 +309,6 @@ def synth_group():
 
 synth_group.add_command(multipie_cmd)
 synth_group.add_command(envmaps_cmd)
+synth_group.add_command(wild_cmd)
 
 COMMANDS = [synth_group]
