@@ -545,7 +545,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
     fm_path = save_face_model(model, out / "face_model.npz", params={"face_vertices": cfg.face_vertices})
     params = cfg.to_params()
     prod = producer or {"stage": "synth-wild"}
-    n_env = min(cfg.envmaps, cfg.count)
+    n_env = int(cfg.envmaps)   # images depend on (seed, index) only, not on --count
     write_envmaps(out / "envmaps", n_env, cfg.seed, cfg.envmap_width, contact_sheet=False)
     t_env = time.perf_counter()
     envs = [split_map(make_envmap(cfg.seed, i, cfg.envmap_width)[0], prefilter_width=cfg.prefilter_width)
