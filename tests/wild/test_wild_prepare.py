@@ -3,6 +3,8 @@ import shutil
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.align import (CELEBAMASK_SKIN_LABELS, align_image, crop_transform, five_points,
@@ -156,3 +158,56 @@ def test_single_image_fit_on_synth_wild(wild_small):
         err_mean = np.sqrt((((vm @ R.T) - (vm @ R.T).mean(0) - (ct - ct.mean(0))) ** 2).sum(1).mean())
         assert err_fit < 15.0
         assert err_fit <= err_mean + 0.5
+
+
+def test_prepare_with_label_masks(wild_small, tmp_path):
+    """Parsing labels written by the test: skin (1) inside the truth skin mask, hair (13) elsewhere, one lip
+    pixel block (12) and one eye block (4); the shard's skin mask follows the labels."""
+    import cv2
+
+    from reflectmm_cli.artifacts import read_artifact
+
+    out, fm = wild_small
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    names = sorted(p.stem for p in (out / "images").iterdir())[:2]
+    want = {}
+    for n in names:
+        tr = read_artifact(out / "truth" / f"{n}.npz")
+        lab = np.where(tr["skin_mask"], 1, 13).astype(np.uint8)
+        lab[40:44, 40:44] = 4
+        lab[60:62, 44:50] = 12
+        cv2.imwrite(str(masks / f"{n}.png"), lab)
+        want[n] = (np.isin(lab, [1, 2, 11, 12]), tr)
+    imgs = tmp_path / "images"
+    imgs.mkdir()
+    for n in names:
+        shutil.copy(out / "images" / f"{n}.png", imgs / f"{n}.png")
+    cfg = PrepareConfig(size=96, from_truth=True, aligned=True, shard_size=8)
+    p, rep, err = prepare_wild_shard(imgs, tmp_path / "s", fm, out / "face_model.npz", cfg, 0,
+                                     landmarks_dir=out / "landmarks", masks_dir=masks, truth_dir=out)
+    assert not err
+    sh = open_shard(p)
+    for i, n in enumerate(sh["names"].tolist()):
+        lab_skin, tr = want[n]
+        g = sh.gbuffer(i)
+        vis = np.zeros((96, 96), bool)
+        yx = g["pix_yx"][g["visible"]].astype(int)
+        vis[yx[:, 0], yx[:, 1]] = True
+        assert np.array_equal(sh["skin_mask"][i], lab_skin & vis & sh["face_mask"][i])
+        assert not sh["skin_mask"][i][40:44, 40:44].any()
+    assert "CelebAMask" in sh.meta["skin_labels"]
+
+
+@settings(max_examples=40, deadline=None)
+@given(s=st.floats(0.2, 8.0), tx=st.floats(-500, 1500), ty=st.floats(-500, 1500), H=st.integers(50, 3000),
+       roll=st.floats(-0.3, 0.3))
+def test_similarity_recovers_scale_and_centre(s, tx, ty, H, roll):
+    """Property: for any scale, centre, image height and in-plane rotation, the orthographic fit returns the
+    scale and the image position of the model origin (exactly up to rounding)."""
+    X = np.array([[-32.0, 40, 90], [32, 40, 90], [0, 5, 118], [-25, -32, 92], [25, -32, 92]])
+    c, sn = np.cos(roll), np.sin(roll)
+    xy = X[:, :2] @ np.array([[c, -sn], [sn, c]]).T
+    p = np.stack([s * xy[:, 0] + tx, ty - s * xy[:, 1]], 1)
+    t, s_fit = similarity_from_five_points(p, X, H)
+    assert s_fit == pytest.approx(s, rel=1e-6) and np.allclose(t, [tx, ty], atol=1e-6 * max(1, abs(tx), abs(ty)))
