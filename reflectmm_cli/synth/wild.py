@@ -385,8 +385,10 @@ def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildCo
     face = np.zeros((S, S), bool)
     face[yx[:, 0], yx[:, 1]] = True
     # background: the map seen through each pixel
+    t3 = time.perf_counter()
     _, dirs = cam.rays()
     bg = env.radiance((dirs @ M.T) @ Q).reshape(S, S, 3).astype(np.float32)
+    st["background_s"] = st.get("background_s", 0) + time.perf_counter() - t3
     lm, _ = cam.project(verts[model.landmarks])
     gb16 = {k: (v.astype(np.float16) if k in ("normal", "view", "reflect") else v) for k, v in gb.items()}
     return {"gbuffer": gb16, "diffuse": D, "specular": Sp, "background": bg, "face": face,
@@ -561,6 +563,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
     for i in prog(range(cfg.count), desc="synth wild", unit="img"):
         sc = sample_scene(model, cfg, i)
         sc.envmap = sc.envmap % n_env
+        t_sk = time.perf_counter()
         if sc.identity not in skins:
             skins.clear()
             skins[sc.identity] = sk = sample_wild_skin(model, _rng(cfg.seed, sc.identity, 4), cfg.uv_size)
@@ -572,6 +575,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
                 extra_meta={"content": "identity", "identity": sc.identity, "skin_params": sk.params,
                             "exponents": list(LOBE_EXPONENTS), "split": str(splits[sc.identity])})
         sk = skins[sc.identity]
+        stats["identity_s"] = stats.get("identity_s", 0) + time.perf_counter() - t_sk
         env = envs[sc.envmap]
         r = render_wild(model, sk, sc, env, cfg, stats=stats)
         face = r["face"]
@@ -582,6 +586,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
         orng = _rng(sc.seed, 11)
         if sc.occluder != "none":
             occ_mask, occ_img = draw_occluder(sc.occluder, orng, face, r["landmarks"], r["sh"])
+        t_w = time.perf_counter()
         lin = compose_image(r, sc, cfg, scale, occ_mask, occ_img)
         img = encode_display(lin, cfg.encoding)
         write_png(out / "images" / f"{sc.name}.png", img)
@@ -608,6 +613,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
                         "occluder": sc.occluder, "encoding": cfg.encoding, "split": str(splits[sc.identity]),
                         "sh_frame": "light frame (+y up, camera looks down -z)",
                         "layers": "linear radiance, image = diffuse + specular on shaded_mask"})
+        stats["compose_write_s"] = stats.get("compose_write_s", 0) + time.perf_counter() - t_w
         names.append(sc.name), ids.append(sc.identity), spl.append(str(splits[sc.identity]))
         envi.append(sc.envmap), poses.append(sc.pose_deg), occl.append(sc.occluder)
         if len(thumbs) < 24:
