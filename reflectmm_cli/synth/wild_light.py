@@ -188,8 +188,8 @@ class SplitMap:
         return out
 
 
-def split_map(image: np.ndarray, *, max_sources: int = 3, threshold: float = 30.0, source_radius_deg: float = 4.0,
-              prefilter_width: int = 128, source_width: int = 256, min_fraction: float = 0.01) -> SplitMap:
+def split_map(image: np.ndarray, *, max_sources: int = 6, threshold: float = 30.0, source_radius_deg: float = 4.0,
+              prefilter_width: int = 128, source_width: int = 256, min_fraction: float = 0.004) -> SplitMap:
     """Split an HDR map into directional sources + residual and precompute its lighting (see module docstring).
 
     ``prefilter_width``/``source_width``: resolution of the prefiltered residual maps and of the residual they
