@@ -7,9 +7,11 @@ Alignment (the convention of Deep3DFaceRecon's ``util/preprocess.py``, re-derive
    mean of 42 and 45, nose tip 30, mouth corners 48 and 54 — in that order (:func:`five_points`);
 2. an orthographic fit of the face model's mean 3D five points (mm, +y up) to them in y-up image coordinates:
    a 2×3 linear map + translation by least squares; ``s`` = mean norm of its two rows (pixels per mm) and
-   ``t`` = where the model origin lands (:func:`similarity_from_five_points`);
-3. the image is scaled by ``k = rescale / s`` with ``rescale`` = 102 px per decimetre = 1.02 px/mm (Deep3D's
-   ``rescale_factor`` for its decimetre model) and cropped to S×S so that ``t`` lands on the crop centre:
+   ``t`` = where the mean shape's centroid lands (Deep3D re-centres its BFM on that centroid, so its origin is
+   this point) (:func:`similarity_from_five_points`);
+3. the image is scaled by ``k = rescale / s`` with ``rescale`` = 102 px per decimetre = 1.02 px/mm at S = 224
+   (Deep3D's ``rescale_factor`` for its decimetre model; × S/224 for other sizes) and cropped to S×S so that
+   ``t`` lands on the crop centre:
    ``x' = k (x − t_x) + c``, ``y' = k (y − t_y) + c`` in y-down pixel-centre coordinates, ``c = 112`` at
    S = 224 (scaled with S).  Deep3D rounds the resized size and crop corner to integers; this sub-pixel
    difference is not reproduced.
@@ -22,7 +24,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["FIVE_POINT_NAMES", "five_points", "model_five_points", "similarity_from_five_points", "crop_transform",
+__all__ = ["FIVE_POINT_NAMES", "five_points", "model_five_points", "model_centre", "similarity_from_five_points", "crop_transform",
            "warp_to_crop", "transform_points", "AlignResult", "align_image", "fit_single_image",
            "CELEBAMASK_SKIN_LABELS", "skin_mask_from_labels", "skin_mask_from_model", "mask_overlay"]
 
@@ -43,18 +45,25 @@ def model_five_points(face_model) -> np.ndarray:
     return five_points_3d(face_model.mean_shape.astype(np.float64)[face_model.landmarks])
 
 
+def model_centre(face_model) -> np.ndarray:
+    """(3,) centroid of the mean shape: the point the crop is centred on (Deep3D re-centres its BFM so that
+    its origin is this centroid)."""
+    return face_model.mean_shape.astype(np.float64).mean(0)
+
+
 def five_points_3d(lm3d) -> np.ndarray:
     lm = np.asarray(lm3d, np.float64)
     return np.stack([(lm[36] + lm[39]) / 2, (lm[42] + lm[45]) / 2, lm[30], lm[48], lm[54]])
 
 
-def similarity_from_five_points(p2d, p3d, image_height: int) -> tuple[np.ndarray, float]:
-    """Orthographic fit ``[x, y_up] ≈ A·X + b`` of 3D points (N,3) to image points (N,2, y down).
+def similarity_from_five_points(p2d, p3d, image_height: int, centre=None) -> tuple[np.ndarray, float]:
+    """Orthographic fit ``[x, y_up] ≈ A·(X − centre) + b`` of 3D points (N,3) to image points (N,2, y down).
 
-    Returns (t (2,) the model origin in y-down pixels, s = mean row norm of A in pixels per model unit).
+    Returns (t (2,) where ``centre`` (default the model origin) lands, in y-down pixels; s = mean row norm of A
+    in pixels per model unit).
     """
     p = np.asarray(p2d, np.float64)
-    X = np.asarray(p3d, np.float64)
+    X = np.asarray(p3d, np.float64) - (0.0 if centre is None else np.asarray(centre, np.float64))
     y_up = (image_height - 1) - p[:, 1]
     D = np.concatenate([X, np.ones((len(X), 1))], 1)
     cx, *_ = np.linalg.lstsq(D, p[:, 0], rcond=None)
@@ -105,8 +114,9 @@ class AlignResult:
 def align_image(image, lm68, face_model, size: int = 224) -> AlignResult:
     """Deep3DFaceRecon alignment of one image with its 68 landmarks (see the module docstring)."""
     img = np.asarray(image)
-    t, s = similarity_from_five_points(five_points(lm68), model_five_points(face_model), img.shape[0])
-    A = crop_transform(t, s, size)
+    t, s = similarity_from_five_points(five_points(lm68), model_five_points(face_model), img.shape[0],
+                                       centre=model_centre(face_model))
+    A = crop_transform(t, s, size, RESCALE_PX_PER_MM * size / 224.0)
     out = warp_to_crop(img, A, size)
     if img.dtype == np.uint8:
         out = np.clip(np.round(out), 0, 255).astype(np.uint8)

@@ -57,7 +57,8 @@ def test_alignment_is_equivariant_to_scale_and_shift(small_face):
     lm2 = (lm + 0.5) * 2 - 0.5 + [120, 50]
     b = align_image(canvas, lm2, small_face, 64)
     assert np.allclose(a.landmarks, b.landmarks, atol=1e-6)
-    assert np.abs(a.image.astype(float) - b.image).mean() < 4.0
+    # compare where both crops see the photo (the crop reaches past the 300² image's border)
+    assert np.abs(a.image[16:48, 16:48].astype(float) - b.image[16:48, 16:48]).mean() < 4.0
 
 
 def test_masks_from_label_images():
@@ -211,3 +212,36 @@ def test_similarity_recovers_scale_and_centre(s, tx, ty, H, roll):
     p = np.stack([s * xy[:, 0] + tx, ty - s * xy[:, 1]], 1)
     t, s_fit = similarity_from_five_points(p, X, H)
     assert s_fit == pytest.approx(s, rel=1e-6) and np.allclose(t, [tx, ty], atol=1e-6 * max(1, abs(tx), abs(ty)))
+
+
+def test_prepare_real_alignment_path(wild_small, tmp_path):
+    """Not aligned: a synth wild image pasted, enlarged, into a bigger photo is re-cropped with the Deep3D
+    similarity and fitted; the fitted landmarks match the carried-over ones."""
+    import cv2
+
+    from reflectmm_cli.finetune.data import prepare_wild_images
+
+    out, fm = wild_small
+    n = sorted(p.stem for p in (out / "images").iterdir())[0]
+    img = cv2.imread(str(out / "images" / f"{n}.png"))
+    from reflectmm_cli.landmarks import read_landmarks
+    lm = read_landmarks(out / "landmarks" / f"{n}.pts")
+    big = cv2.resize(img, (192, 192), interpolation=cv2.INTER_CUBIC)
+    canvas = np.full((300, 260, 3), 40, np.uint8)
+    canvas[70:262, 30:222] = big
+    (tmp_path / "im").mkdir()
+    cv2.imwrite(str(tmp_path / "im" / "photo.png"), canvas)
+    write_pts(tmp_path / "im" / "photo.pts", (lm + 0.5) * 2 - 0.5 + [30, 70])
+    cfg = PrepareConfig(size=96, fit_landmark_iters=100, fit_photo_rounds=0)
+    arrays, rep, err = prepare_wild_images(list_wild_inputs(tmp_path / "im"), fm, cfg)
+    assert not err and arrays["image"].shape == (1, 96, 96, 3)
+    assert rep["landmark_rmse_px"][0] < 2.5
+    # the crop is centred on the face's centroid (the Deep3D convention), eyes above the nose
+    l5 = arrays["landmarks"][0]
+    assert l5[36:48, 1].mean() < l5[30, 1]
+    from reflectmm_cli.finetune.align import model_centre
+    from reflectmm_cli.geometry import Camera
+    cam = Camera(arrays["K"][0], arrays["R"][0], arrays["t"][0], 96, 96)
+    c, _ = cam.project(model_centre(fm)[None])
+    assert np.abs(c[0] - 48).max() < 6
+    assert arrays["skin_mask"][0].sum() > 0.3 * arrays["face_mask"][0].sum()
