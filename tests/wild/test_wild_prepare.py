@@ -245,3 +245,31 @@ def test_prepare_real_alignment_path(wild_small, tmp_path):
     c, _ = cam.project(model_centre(fm)[None])
     assert np.abs(c[0] - 48).max() < 6
     assert arrays["skin_mask"][0].sum() > 0.3 * arrays["face_mask"][0].sum()
+
+
+def test_prepare_wild_is_a_per_shard_recipe_stage(wild_small, tmp_path):
+    from reflectmm_cli.recipes import run_recipe
+
+    out, fm = wild_small
+    ws = tmp_path / "ws"
+    shutil.copytree(out, ws / "wild")
+    (ws / "recipe.toml").write_text("""
+schema = "reflectmm.recipe/1"
+[stages.prepare-wild]
+foreach = "all found"
+inputs = { images = "wild/images", truth = "wild", face_model = "wild/face_model.npz" }
+params = { shard_size = 3, from_truth = true, aligned = true, size = 96 }
+""")
+    rep = run_recipe(ws / "recipe.toml", ws)
+    assert rep.ok, [t.error for t in rep.tasks]
+    assert sorted(t.tid for t in rep.tasks) == ["prepare-wild/shard_00000", "prepare-wild/shard_00001"]
+    assert len(open_shard(ws / "prepare-wild" / "shard_00000.npz")) == 3
+    again = run_recipe(ws / "recipe.toml", ws, dry_run=True)
+    assert {t.status for t in again.tasks} == {"skip"}
+    # changing one image of the second shard reruns only that shard
+    last = sorted((ws / "wild" / "images").iterdir())[-1]
+    last.write_bytes((ws / "wild" / "images" / sorted(p.name for p in (ws / "wild" / "images").iterdir())[0])
+                     .read_bytes())
+    plan = run_recipe(ws / "recipe.toml", ws, dry_run=True)
+    assert {t.tid: t.status for t in plan.tasks} == {"prepare-wild/shard_00000": "skip",
+                                                     "prepare-wild/shard_00001": "run"}
