@@ -25,6 +25,7 @@ from reflectmm_cli.synth.skin import LOBE_EXPONENTS, region_masks
 from reflectmm_cli.synth.wild_light import SplitMap, _hammersley, ggx_view_albedo, sample_ggx_h, split_map
 
 __all__ = ["WildConfig", "WildSkin", "head_pose_rotation", "sample_wild_skin", "WildScene", "sample_scene",
+           "IdentityGeometry", "vertex_ambient_occlusion", "vertex_lobe_visibility", "identity_expression",
            "render_wild", "reference_radiance", "encode_display", "synth_wild", "ENCODINGS"]
 
 ENCODINGS = ("gamma1.2", "srgb")
@@ -50,6 +51,8 @@ class WildConfig:
     ao_rays: int = 12                # ambient-occlusion rays per touched vertex
     spec_rays: int = 6               # GGX-lobe visibility rays per touched vertex
     prefilter_width: int = 128
+    expression_per_identity: bool = True   # one expression per identity: geometry, Embree scene and ambient
+                                           # occlusion are then computed once per identity
     split: tuple = (0.8, 0.1, 0.1)   # train/val/test fractions of the identities
 
     def __post_init__(self) -> None:
@@ -233,6 +236,11 @@ def identity_shape(model, seed: int, identity: int) -> np.ndarray:
     return np.clip(rng.normal(size=model.n_shape), -3, 3) * model.shape_sigma.astype(np.float64)
 
 
+def identity_expression(model, seed: int, identity: int) -> np.ndarray:
+    rng = _rng(seed, identity, 5)
+    return np.clip(rng.normal(size=model.n_exp), -2.5, 2.5) * model.exp_sigma.astype(np.float64) * 0.7
+
+
 def sample_scene(model, cfg: WildConfig, index: int) -> WildScene:
     """The random scene of image ``index`` (0-based); depends on (seed, index) only."""
     from reflectmm_cli.geometry import deep3d_camera
@@ -240,6 +248,8 @@ def sample_scene(model, cfg: WildConfig, index: int) -> WildScene:
     rng = _rng(cfg.seed, index, 2)
     ident = index // int(cfg.images_per_identity)
     exp = np.clip(rng.normal(size=model.n_exp), -2.5, 2.5) * model.exp_sigma.astype(np.float64) * 0.7
+    if cfg.expression_per_identity:
+        exp = identity_expression(model, cfg.seed, ident)
     pose = np.array([rng.uniform(-50, 50), rng.uniform(-20, 20), rng.uniform(-10, 10)])
     R = np.diag([1.0, -1.0, -1.0]) @ head_pose_rotation(*pose)
     cam = deep3d_camera()
@@ -265,57 +275,96 @@ def _frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t1, np.cross(n, t1)
 
 
-def _vertex_visibility(scene, verts, normals, eye, alpha, ids, n_ao, n_spec, rng):
-    """Per-vertex ambient occlusion and GGX-lobe visibility for the vertices ``ids`` (0..1 each)."""
+_GOLDEN = 0.6180339887498949
+
+
+def vertex_ambient_occlusion(scene, verts, normals, ids, n_rays: int, phase: float = 0.0) -> np.ndarray:
+    """(M,) fraction of ``n_rays`` cosine-distributed rays (Hammersley, rotated about the normal by an angle that
+    depends only on the vertex id and ``phase``) leaving vertex ``ids`` unoccluded — the same value whichever
+    image asks for it first."""
     x, n = verts[ids], normals[ids]
     M = len(ids)
-    ao = np.ones(M)
-    vs = np.ones(M)
+    if n_rays <= 0 or M == 0:
+        return np.ones(M)
+    eps = scene.default_eps * 3
+    t1, t2 = _frame(n)
+    rot = 2 * math.pi * np.modf(ids * _GOLDEN + phase)[0]
+    u = _hammersley(n_rays)
+    r = np.sqrt(u[:, 0])
+    a = 2 * math.pi * u[:, 1][None, :] + rot[:, None]
+    lx, ly = r[None, :] * np.cos(a), r[None, :] * np.sin(a)
+    lz = np.broadcast_to(np.sqrt(1 - u[:, 0])[None, :], (M, n_rays))
+    d = (lx[..., None] * t1[:, None] + ly[..., None] * t2[:, None] + lz[..., None] * n[:, None]).reshape(-1, 3)
+    o = np.repeat(x + eps * n, n_rays, 0)
+    occ = scene.occluded(o, d, np.full(len(d), 1e5)).reshape(M, n_rays)
+    return 1.0 - occ.mean(1)
+
+
+def vertex_lobe_visibility(scene, verts, normals, eye, alpha, ids, n_rays: int, rng) -> np.ndarray:
+    """(M,) fraction of ``n_rays`` GGX-lobe directions (half vectors ~ D(h)(n·h), reflected about the view,
+    above the horizon) from vertex ``ids`` that escape; 1 where no sample is above the horizon."""
+    x, n = verts[ids], normals[ids]
+    M = len(ids)
+    if n_rays <= 0 or M == 0:
+        return np.ones(M)
     eps = scene.default_eps * 3
     t1, t2 = _frame(n)
     rot = rng.uniform(0, 2 * math.pi, M)
-    if n_ao > 0:
-        u = _hammersley(n_ao)
-        r = np.sqrt(u[:, 0])
-        ph = 2 * math.pi * u[:, 1]
-        a = ph[None, :] + rot[:, None]
-        lx, ly, lz = r[None, :] * np.cos(a), r[None, :] * np.sin(a), np.sqrt(1 - u[:, 0])[None, :] * np.ones((M, 1))
-        d = lx[..., None] * t1[:, None] + ly[..., None] * t2[:, None] + lz[..., None] * n[:, None]
-        d = d.reshape(-1, 3)
-        o = np.repeat(x + eps * n, n_ao, 0)
-        occ = scene.occluded(o, d, np.full(len(d), 1e5)).reshape(M, n_ao)
-        ao = 1.0 - occ.mean(1)
-    if n_spec > 0:
-        v = eye[None, :] - x
-        v /= np.linalg.norm(v, axis=1, keepdims=True)
-        u = _hammersley(n_spec)
-        hl = sample_ggx_h(np.broadcast_to(u, (M, n_spec, 2)), alpha[:, None])     # (M, k, 3) local
-        c, s = np.cos(rot)[:, None], np.sin(rot)[:, None]
-        hx, hy = c * hl[..., 0] - s * hl[..., 1], s * hl[..., 0] + c * hl[..., 1]
-        h = hx[..., None] * t1[:, None] + hy[..., None] * t2[:, None] + hl[..., 2:3] * n[:, None]
-        vh = (h * v[:, None]).sum(-1)
-        l = 2 * vh[..., None] * h - v[:, None]
-        ok = ((l * n[:, None]).sum(-1) > 0) & (vh > 0)
-        o = np.repeat(x + eps * n, n_spec, 0)
-        occ = np.ones(M * n_spec, bool)
-        okf = ok.reshape(-1)
-        occ[okf] = scene.occluded(o[okf], l.reshape(-1, 3)[okf], np.full(int(okf.sum()), 1e5))
-        cnt = ok.sum(1)
-        vs = np.where(cnt > 0, ((~occ.reshape(M, n_spec)) & ok).sum(1) / np.maximum(cnt, 1), 1.0)
-    return ao, vs
+    v = eye[None, :] - x
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    u = _hammersley(n_rays)
+    hl = sample_ggx_h(np.broadcast_to(u, (M, n_rays, 2)), alpha[:, None])     # (M, k, 3) local
+    c, s_ = np.cos(rot)[:, None], np.sin(rot)[:, None]
+    hx, hy = c * hl[..., 0] - s_ * hl[..., 1], s_ * hl[..., 0] + c * hl[..., 1]
+    h = hx[..., None] * t1[:, None] + hy[..., None] * t2[:, None] + hl[..., 2:3] * n[:, None]
+    vh = (h * v[:, None]).sum(-1)
+    l = 2 * vh[..., None] * h - v[:, None]
+    ok = ((l * n[:, None]).sum(-1) > 0) & (vh > 0)
+    o = np.repeat(x + eps * n, n_rays, 0)
+    occ = np.ones(M * n_rays, bool)
+    okf = ok.reshape(-1)
+    occ[okf] = scene.occluded(o[okf], l.reshape(-1, 3)[okf], np.full(int(okf.sum()), 1e5))
+    cnt = ok.sum(1)
+    return np.where(cnt > 0, ((~occ.reshape(M, n_rays)) & ok).sum(1) / np.maximum(cnt, 1), 1.0)
 
 
-def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildConfig, *, stats: dict | None = None
-                ) -> dict:
+class IdentityGeometry:
+    """Vertices, normals, Embree scene and a lazily filled per-vertex ambient-occlusion cache of one
+    (shape, expression); shared by the images of an identity."""
+
+    def __init__(self, model, shape, expression, phase: float = 0.0):
+        from reflectmm_cli.geometry import RayScene, vertex_normals
+
+        self.shape = np.asarray(shape, np.float64)
+        self.expression = np.asarray(expression, np.float64)
+        self.vertices = model.vertices(self.shape, self.expression).astype(np.float64)
+        self.normals = vertex_normals(self.vertices, model.triangles).astype(np.float64)
+        self.scene = RayScene(self.vertices, model.triangles, self.normals)
+        self.ao = np.full(len(self.vertices), np.nan)
+        self.phase = float(phase)
+
+    def matches(self, shape, expression) -> bool:
+        return np.array_equal(self.shape, shape) and np.array_equal(self.expression, expression)
+
+    def ambient_occlusion(self, ids, n_rays: int) -> np.ndarray:
+        miss = ids[np.isnan(self.ao[ids])]
+        if miss.size:
+            self.ao[miss] = vertex_ambient_occlusion(self.scene, self.vertices, self.normals, miss, n_rays,
+                                                     self.phase)
+        return self.ao[ids]
+
+
+def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildConfig, *, stats: dict | None = None,
+                geometry: IdentityGeometry | None = None) -> dict:
     """Render one image (linear, before occluder/noise/encoding).
 
     Returns a dict: ``gbuffer`` (float16 G-buffer of :mod:`reflectmm_cli.geometry.gbuffer`), ``diffuse``,
     ``specular`` (S,S,3) float32 linear radiance of the face (0 elsewhere; unit scale), ``background`` (S,S,3)
     the map behind the head, ``face`` (S,S) bool pixels shaded as face (hits with n·v > 0), ``sh`` (3, 81) the
     order-8 SH of the full map in the light frame (unit scale), ``landmarks`` (68, 2), ``scene`` (RayScene),
-    ``vertices`` (V,3).
+    ``vertices`` (V,3).  ``geometry``: an :class:`IdentityGeometry` of the same (shape, expression) to reuse.
     """
-    from reflectmm_cli.geometry import Camera, RayScene, rasterize, vertex_normals
+    from reflectmm_cli.geometry import Camera, rasterize
     from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, model_to_light
     from reflectmm_cli.shading import lambert_sh_coeffs, sh_basis, sh_rotation
     from reflectmm_cli.geometry.raycast import shadow_mask
@@ -323,9 +372,9 @@ def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildCo
     st = stats if stats is not None else {}
     t0 = time.perf_counter()
     S = int(cfg.size)
-    verts = model.vertices(sc.shape, sc.expression).astype(np.float64)
-    normals = vertex_normals(verts, model.triangles).astype(np.float64)
-    scene = RayScene(verts, model.triangles, normals)
+    if geometry is None or not geometry.matches(sc.shape, sc.expression):
+        geometry = IdentityGeometry(model, sc.shape, sc.expression, phase=_GOLDEN * sc.identity)
+    verts, normals, scene = geometry.vertices, geometry.normals, geometry.scene
     cam = Camera(sc.K, sc.R, sc.t, S, S, sc.name)
     ras = rasterize(scene, cam)
     st["raster_s"] = st.get("raster_s", 0) + time.perf_counter() - t0
@@ -343,9 +392,9 @@ def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildCo
     # per-vertex visibility of the touched vertices
     t1 = time.perf_counter()
     uid, inv = np.unique(ids, return_inverse=True)
-    rng = _rng(sc.seed, 7)
-    ao_v, vs_v = _vertex_visibility(scene, verts, normals, cam.center, skin.roughness[uid].astype(np.float64), uid,
-                                    cfg.ao_rays, cfg.spec_rays, rng)
+    ao_v = geometry.ambient_occlusion(uid, cfg.ao_rays)
+    vs_v = vertex_lobe_visibility(scene, verts, normals, cam.center, skin.roughness[uid].astype(np.float64), uid,
+                                  cfg.spec_rays, _rng(sc.seed, 7))
     inv = inv.reshape(ids.shape)
     ao = (b * ao_v[inv]).sum(1)
     vspec = (b * vs_v[inv]).sum(1)
@@ -393,7 +442,7 @@ def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildCo
     gb16 = {k: (v.astype(np.float16) if k in ("normal", "view", "reflect") else v) for k, v in gb.items()}
     return {"gbuffer": gb16, "diffuse": D, "specular": Sp, "background": bg, "face": face,
             "sh": env.sh @ sh_rotation(Q, 8).T, "landmarks": lm, "scene": scene, "vertices": verts,
-            "ao": ao, "spec_visibility": vspec}
+            "ao": ao, "spec_visibility": vspec, "geometry": geometry}
 
 
 def reference_radiance(scene, x_model, n_model, eye, M, env: SplitMap, Q, albedo, rho, alpha, *,
@@ -556,6 +605,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
     n_id = -(-cfg.count // cfg.images_per_identity)
     splits = identity_split(n_id, cfg.seed, cfg.split)
     skins: dict[int, WildSkin] = {}
+    geom: IdentityGeometry | None = None
     names, ids, spl, envi, poses, occl = [], [], [], [], [], []
     thumbs = []
     stats: dict = {}
@@ -577,7 +627,8 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
         sk = skins[sc.identity]
         stats["identity_s"] = stats.get("identity_s", 0) + time.perf_counter() - t_sk
         env = envs[sc.envmap]
-        r = render_wild(model, sk, sc, env, cfg, stats=stats)
+        r = render_wild(model, sk, sc, env, cfg, stats=stats, geometry=geom)
+        geom = r["geometry"]
         face = r["face"]
         lum = ((r["diffuse"] + r["specular"])[face] @ np.array([0.2126, 0.7152, 0.0722]))
         p90 = float(np.percentile(lum, 90)) if lum.size else 1.0
