@@ -29,7 +29,7 @@ from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
 
 __all__ = ["SHARD_KIND", "ENCODINGS", "SPLITS", "PER_IMAGE_KEYS", "write_shard", "Shard", "open_shard",
            "iter_batches", "linearize", "PrepareConfig", "WildInput", "list_wild_inputs", "name_split",
-           "prepare_wild_images", "prepare_wild_shard", "shard_names"]
+           "prepare_wild_images", "prepare_wild_shard", "shard_names", "geometry_hash"]
 
 SHARD_KIND = "wild-shard"
 ENCODINGS = ("gamma1.2", "srgb", "linear")
@@ -496,6 +496,18 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
     return arrays, rep, errors
 
 
+def geometry_hash(arrays: Mapping[str, np.ndarray], face_model_sha256: str) -> str:
+    """sha256 of what the G-buffers depend on: the face model's hash, image size and each image's
+    (shape, expression, R, t, K) — equal hashes mean identical G-buffers."""
+    import hashlib
+
+    h = hashlib.sha256(face_model_sha256.encode())
+    h.update(str(int(np.asarray(arrays["image"]).shape[1])).encode())
+    for k in ("shape", "expression", "R", "t", "K"):
+        h.update(np.ascontiguousarray(arrays[k]).tobytes())
+    return h.hexdigest()
+
+
 def shard_names(n_images: int, shard_size: int) -> list[str]:
     return [f"shard_{i:05d}" for i in range(-(-n_images // max(1, shard_size)))]
 
@@ -530,6 +542,7 @@ def prepare_wild_shard(images_dir, out_dir, face_model, face_model_path, cfg: Pr
                 face_model_path=rel, params=cfg.to_params(), inputs=[input_ref("face_model", fm, out_dir)],
                 producer=producer, cache_key=cache_key,
                 extra_meta={"shard_index": shard_index, "skipped": errors,
+                            "geometry_sha256": geometry_hash(arrays, sha256_file(fm)),
                             "landmark_rmse_px_median": float(np.median(rep["landmark_rmse_px"])),
                             "skin_labels": "CelebAMask-HQ ids 1 skin, 2 nose, 11 upper lip, 12 lower lip"
                             if masks_dir else None})

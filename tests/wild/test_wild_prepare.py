@@ -111,6 +111,12 @@ def test_prepare_from_truth_shard_and_loader(wild_small, tmp_path):
     seen = sum(len(b["names"]) for b in iter_batches([p0, p1], 2, split=None))
     assert seen == 4
     assert open_shard(p0).meta["face_model"]["path"].endswith("face_model.npz")
+    # the geometry hash is reproducible and changes with the geometry
+    from reflectmm_cli.finetune.data import geometry_hash
+    a = {k: np.asarray(sh[k]) for k in ("image", "shape", "expression", "R", "t", "K")}
+    assert sh.meta["geometry_sha256"] == geometry_hash(a, sh.meta["face_model"]["sha256"])
+    a["t"] = a["t"] + 1e-9
+    assert sh.meta["geometry_sha256"] != geometry_hash(a, sh.meta["face_model"]["sha256"])
 
 
 def test_prepare_reports_bad_inputs_and_writes_the_others(wild_small, tmp_path, cli):
