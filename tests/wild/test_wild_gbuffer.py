@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from conftest import head_rotation
+from wild_testutil import head_rotation
 from reflectmm_cli.geometry import Camera, RayScene, deep3d_camera, render_envmap
 from reflectmm_cli.geometry.gbuffer import (gbuffer_for_image, gbuffer_nbytes, light_from_model_sh, pack_gbuffers,
                                             shade_gbuffer, unpack_gbuffer)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from conftest import head_rotation
+from wild_testutil import head_rotation
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.data import iter_batches, linearize, open_shard, write_shard
 from reflectmm_cli.geometry import Camera, deep3d_camera
