@@ -54,6 +54,9 @@ SCHEMA_MAJOR: dict[str, int] = {
     "render": 1,
     "evaluation": 1,
     "envmap": 1,
+    "wild-shard": 1,
+    "wild-truth": 1,
+    "wild-manifest": 1,
 }
 
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)

@@ -1,0 +1,86 @@
+"""68-point landmark detection with dlib (optional extra ``reflectmm[landmarks]``: ``dlib-bin`` +
+``face-recognition-models``, which ship the HOG frontal face detector and the iBUG 68-point shape predictor;
+nothing is downloaded at run time).
+
+:func:`detect_landmarks` returns every face of an image (largest first) with its box, detector score and
+68 landmarks in the pixel-centre convention of geometry/camera.py (dlib reports integer pixel indices whose
+centre is that convention's integer coordinate).
+"""
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+__all__ = ["Face", "predictor_path", "detect_landmarks", "pick_face"]
+
+_MISSING = ("landmark detection needs the optional extra: pip install 'reflectmm[landmarks]' "
+            "(dlib-bin and face-recognition-models)")
+
+
+@dataclass
+class Face:
+    box: tuple[int, int, int, int]   # left, top, right, bottom (pixels)
+    score: float                      # dlib detector score
+    landmarks: np.ndarray             # (68, 2) float64 (x, y)
+
+    @property
+    def area(self) -> int:
+        return max(0, self.box[2] - self.box[0]) * max(0, self.box[3] - self.box[1])
+
+
+def predictor_path() -> Path:
+    """The 68-point model file of ``face_recognition_models`` (``pose_predictor_model_location()``; located
+    without importing the package when its ``pkg_resources`` import is unavailable)."""
+    try:
+        import face_recognition_models
+
+        return Path(face_recognition_models.pose_predictor_model_location())
+    except ImportError:
+        spec = importlib.util.find_spec("face_recognition_models")
+        if spec is None or not spec.submodule_search_locations:
+            raise ReflectmmError(_MISSING) from None
+        p = Path(list(spec.submodule_search_locations)[0]) / "models" / "shape_predictor_68_face_landmarks.dat"
+        if not p.is_file():
+            raise ReflectmmError(f"face_recognition_models has no 68-point model at {p}") from None
+        return p
+
+
+@lru_cache(maxsize=1)
+def _models():
+    try:
+        import dlib
+    except ImportError:
+        raise ReflectmmError(_MISSING) from None
+    return dlib.get_frontal_face_detector(), dlib.shape_predictor(str(predictor_path()))
+
+
+def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1) -> list[Face]:
+    """All faces of an RGB uint8 image (H, W, 3), sorted by box area then score (largest first)."""
+    img = np.ascontiguousarray(np.asarray(image_rgb))
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ReflectmmError(f"detect_landmarks: expected an RGB uint8 image, got {img.dtype} {img.shape}")
+    det, pred = _models()
+    rects, scores, _ = det.run(img, int(upsample))
+    faces = []
+    for r, s in zip(rects, scores):
+        sh = pred(img, r)
+        lm = np.array([[p.x, p.y] for p in sh.parts()], np.float64)
+        faces.append(Face((r.left(), r.top(), r.right(), r.bottom()), float(s), lm))
+    faces.sort(key=lambda f: (-f.area, -f.score))
+    return faces
+
+
+def pick_face(faces: list[Face], index: int | None = None) -> Face | None:
+    """The largest face, or face number ``index`` of the largest-first order; None if there is none."""
+    if not faces:
+        return None
+    i = 0 if index is None else int(index)
+    if not 0 <= i < len(faces):
+        return None
+    return faces[i]

@@ -1,0 +1,567 @@
+"""The in-the-wild shard dataset (kind ``wild-shard``, schema ``reflectmm.wild-shard/1``; docs/wild.md).
+
+One uncompressed NPZ per shard of N aligned S×S images; its arrays (all documented in docs/wild.md):
+``names``, ``split``, ``image`` (N,S,S,3) uint8, ``face_mask``/``skin_mask`` (N,S,S) bool, ``landmarks``
+(N,68,2) float32, the packed G-buffer (``pix_offset`` (N+1,) int64, ``pix_yx``, ``vert_ids``, ``bary``,
+``normal``, ``view``, ``reflect``, ``visible`` — see :mod:`reflectmm_cli.geometry.gbuffer`), the geometry
+(``shape``, ``expression``, ``R``, ``t``, ``K``) and optional ``truth_*`` arrays on synthetic data.
+
+* :func:`write_shard` — checks shapes/dtypes and writes with ``write_artifact(..., compress=False)``;
+* :class:`Shard` / :func:`open_shard` — memory-maps every member through its zip offset (no copy, no
+  decompression: pages are read on demand);
+* :func:`iter_batches` — a torch-free batch iterator over one or more shards returning numpy arrays.
+"""
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import numpy as np
+
+from reflectmm_cli.artifacts import META_KEY, check_schema, write_artifact
+from reflectmm_cli.errors import ArtifactError, ReflectmmError
+from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
+
+__all__ = ["SHARD_KIND", "ENCODINGS", "SPLITS", "PER_IMAGE_KEYS", "write_shard", "Shard", "open_shard",
+           "iter_batches", "linearize", "PrepareConfig", "WildInput", "list_wild_inputs", "name_split",
+           "prepare_wild_images", "prepare_wild_shard", "shard_names", "geometry_hash"]
+
+SHARD_KIND = "wild-shard"
+ENCODINGS = ("gamma1.2", "srgb", "linear")
+SPLITS = ("train", "val", "test")
+
+# name → (dtype, shape after the leading N with S = image size; None = any)
+_PER_IMAGE = {
+    "image": (np.uint8, ("S", "S", 3)),
+    "face_mask": (np.bool_, ("S", "S")),
+    "skin_mask": (np.bool_, ("S", "S")),
+    "landmarks": (np.float32, (68, 2)),
+    "shape": (np.float32, (None,)),
+    "expression": (np.float32, (None,)),
+    "R": (np.float64, (3, 3)),
+    "t": (np.float64, (3,)),
+    "K": (np.float64, (3, 3)),
+}
+_PER_PIXEL = {
+    "pix_yx": (np.int16, (2,)), "vert_ids": (np.int32, (3,)), "bary": (np.float32, (3,)),
+    "normal": (np.float16, (3,)), "view": (np.float16, (3,)), "reflect": (np.float16, (3,)),
+    "visible": (np.bool_, ()),
+}
+#: Arrays with one entry per image (the batch iterator slices these).
+PER_IMAGE_KEYS = ("names", "split") + tuple(_PER_IMAGE)
+
+
+def linearize(image_u8: np.ndarray, encoding: str) -> np.ndarray:
+    """uint8 codes → linear float32 in [0, 1]: gamma1.2 ``x^1.2``, srgb the sRGB EOTF, linear ``x``."""
+    x = np.asarray(image_u8, np.float32) / 255.0
+    if encoding == "gamma1.2":
+        return x ** np.float32(1.2)
+    if encoding == "srgb":
+        return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** np.float32(2.4)).astype(np.float32)
+    if encoding == "linear":
+        return x
+    raise ReflectmmError(f"unknown image encoding {encoding!r} (one of {', '.join(ENCODINGS)})")
+
+
+def _check(path, name, arr, dtype, shape, n, S):
+    if arr.dtype != dtype:
+        raise ReflectmmError(f"shard array '{name}' must be {np.dtype(dtype).name}, got {arr.dtype}", path)
+    want = [n] + [S if d == "S" else d for d in shape]
+    if arr.ndim != len(want) or any(w is not None and w != g for w, g in zip(want, arr.shape)):
+        raise ReflectmmError(f"shard array '{name}' has shape {arr.shape}, expected {tuple(want)}", path)
+
+
+def write_shard(path: str | Path, arrays: Mapping[str, Any], *, encoding: str, face_model_sha256: str,
+                face_model_path: str, params: Mapping[str, Any] | None = None, inputs: list | None = None,
+                producer: Mapping[str, Any] | None = None, cache_key: str | None = None,
+                extra_meta: Mapping[str, Any] | None = None) -> Path:
+    """Validate and write one shard (uncompressed NPZ).  ``arrays`` holds every array of the format (see the
+    module docstring) with the documented dtypes; ``truth_*`` arrays are passed through.  Meta records
+    ``face_model`` {sha256, path (relative to the shard)}, ``image_size``, ``encoding`` and ``sh_order`` = 8.
+    """
+    path = Path(path)
+    if encoding not in ENCODINGS:
+        raise ReflectmmError(f"unknown image encoding {encoding!r} (one of {', '.join(ENCODINGS)})", path)
+    a = {k: np.asarray(v) for k, v in arrays.items()}
+    for k in ("names", "split", "pix_offset", *_PER_IMAGE, *_PER_PIXEL):
+        if k not in a:
+            raise ReflectmmError(f"shard is missing array '{k}'", path)
+    n = len(a["names"])
+    S = a["image"].shape[1] if a["image"].ndim == 4 else -1
+    if a["names"].dtype.kind != "U" or a["split"].dtype.kind != "U" or a["split"].shape != (n,):
+        raise ReflectmmError("shard arrays 'names' and 'split' must be (N,) unicode", path)
+    bad = sorted(set(a["split"].tolist()) - set(SPLITS))
+    if bad:
+        raise ReflectmmError(f"shard split values {bad} are not train/val/test", path)
+    for k, (dt, shp) in _PER_IMAGE.items():
+        _check(path, k, a[k], dt, shp, n, S)
+    off = a["pix_offset"]
+    if off.dtype != np.int64 or off.shape != (n + 1,) or off[0] != 0 or np.any(np.diff(off) < 0):
+        raise ReflectmmError("shard array 'pix_offset' must be (N+1,) int64, non-decreasing from 0", path)
+    P = int(off[-1])
+    for k, (dt, shp) in _PER_PIXEL.items():
+        _check(path, k, a[k], dt, shp, P, S)
+    counts = a["face_mask"].reshape(n, -1).sum(1)
+    if not np.array_equal(counts, np.diff(off)):
+        raise ReflectmmError("shard G-buffer rows do not match the face masks' pixel counts", path)
+    if np.any(a["skin_mask"] & ~a["face_mask"]):
+        raise ReflectmmError("shard skin_mask has pixels outside face_mask", path)
+    meta = {"face_model": {"sha256": face_model_sha256, "path": face_model_path}, "image_size": int(S),
+            "encoding": encoding, "sh_order": 8, "count": n}
+    meta.update(extra_meta or {})
+    return write_artifact(path, SHARD_KIND, a, params=params, inputs=inputs, producer=producer,
+                          cache_key=cache_key, extra_meta=meta, compress=False)
+
+
+def _member_offsets(path: Path) -> dict[str, tuple[int, int]]:
+    """name → (offset of the member's data in the file, size) for the stored (uncompressed) zip members."""
+    out = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
+        for info in zf.infolist():
+            if info.compress_type != zipfile.ZIP_STORED:
+                raise ArtifactError(f"member {info.filename} is compressed; shards must be stored uncompressed "
+                                    "to be memory-mapped", path)
+            f.seek(info.header_offset)
+            head = f.read(30)
+            if head[:4] != b"PK\x03\x04":
+                raise ArtifactError(f"corrupt zip local header of {info.filename}", path)
+            name_len, extra_len = struct.unpack("<HH", head[26:30])
+            out[info.filename[:-4] if info.filename.endswith(".npy") else info.filename] = (
+                info.header_offset + 30 + name_len + extra_len, info.file_size)
+    return out
+
+
+def _npy_memmap(path: Path, offset: int) -> np.ndarray:
+    with open(path, "rb") as f:
+        f.seek(offset)
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        else:
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        data_off = f.tell()
+    if dtype.hasobject:
+        raise ArtifactError("object arrays are not allowed in shards", path)
+    if int(np.prod(shape)) == 0:
+        return np.zeros(shape, dtype)
+    return np.memmap(path, dtype=dtype, mode="r", offset=data_off, shape=shape, order="F" if fortran else "C")
+
+
+class Shard:
+    """A ``wild-shard`` file opened for reading; every array is a read-only ``np.memmap`` into the file.
+
+    ``shard[name]`` → array; ``shard.meta`` → dict; ``len(shard)`` → N; ``shard.gbuffer(i)`` → the G-buffer
+    rows of image i (views); ``shard.encoding``; ``shard.image_size``.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ArtifactError("shard file not found", self.path)
+        if not zipfile.is_zipfile(self.path):
+            raise ArtifactError("not an NPZ artifact (not a zip archive)", self.path)
+        self._offsets = _member_offsets(self.path)
+        if META_KEY not in self._offsets:
+            raise ArtifactError("not a reflectmm artifact (no __meta__ entry)", self.path)
+        self.meta = json.loads(str(np.asarray(_npy_memmap(self.path, self._offsets[META_KEY][0])).reshape(-1)[0]))
+        check_schema(self.meta, SHARD_KIND, self.path)
+        self._cache: dict[str, np.ndarray] = {}
+
+    @property
+    def names(self) -> list[str]:
+        return sorted(k for k in self._offsets if k != META_KEY)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._offsets and name != META_KEY
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self:
+            raise ArtifactError(f"wild-shard has no array '{name}'", self.path)
+        if name not in self._cache:
+            self._cache[name] = _npy_memmap(self.path, self._offsets[name][0])
+        return self._cache[name]
+
+    def __len__(self) -> int:
+        return int(self["pix_offset"].shape[0]) - 1
+
+    @property
+    def encoding(self) -> str:
+        return str(self.meta.get("encoding", "linear"))
+
+    @property
+    def image_size(self) -> int:
+        return int(self.meta.get("image_size", self["image"].shape[1]))
+
+    def gbuffer(self, i: int) -> dict[str, np.ndarray]:
+        off = self["pix_offset"]
+        a, b = int(off[i]), int(off[i + 1])
+        out = {k: self[k][a:b] for k in GBUFFER_KEYS}
+        out["face_mask"] = self["face_mask"][i]
+        return out
+
+
+def open_shard(path: str | Path) -> Shard:
+    """Open a ``wild-shard`` NPZ for memory-mapped reading."""
+    return Shard(path)
+
+
+def iter_batches(shards: Sequence[str | Path | Shard], batch_size: int, *, split: str | None = "train",
+                 shuffle: bool = True, seed: int = 0, epoch: int = 0, drop_last: bool = False,
+                 keys: Sequence[str] | None = None) -> Iterator[dict[str, np.ndarray]]:
+    """Batches of images (numpy, no torch) over the images of ``split`` (None: all) in the given shards.
+
+    Each batch dict has the per-image arrays (B, ...) — ``image`` uint8 as stored, ``skin_mask``, ``face_mask``,
+    ``landmarks``, geometry, ``truth_*`` when present — plus the batch's G-buffer rows concatenated:
+    ``pix_offset`` (B+1,) int64 (relative to the batch), ``pix_yx`` … ``visible`` (P_batch, ...), and
+    ``shard_index``/``image_index`` (B,) int64.  ``keys`` restricts the per-image arrays read.
+    Order: a permutation of (shard, image) pairs from ``seed`` and ``epoch`` when ``shuffle``; deterministic.
+    Images in a batch are read shard by shard in increasing index order (sequential disk access).
+    """
+    if batch_size < 1:
+        raise ReflectmmError(f"batch size must be ≥ 1, got {batch_size}")
+    sh = [s if isinstance(s, Shard) else open_shard(s) for s in shards]
+    items = []
+    for si, s in enumerate(sh):
+        sel = np.arange(len(s)) if split is None else np.flatnonzero(np.asarray(s["split"]) == split)
+        items.extend((si, int(i)) for i in sel)
+    order = np.arange(len(items))
+    if shuffle:
+        order = np.random.default_rng([int(seed), int(epoch)]).permutation(len(items))
+    for b0 in range(0, len(order), batch_size):
+        idx = order[b0:b0 + batch_size]
+        if drop_last and len(idx) < batch_size:
+            break
+        pairs = sorted(items[k] for k in idx)
+        yield _gather(sh, pairs, keys)
+
+
+def _gather(sh: list[Shard], pairs: list[tuple[int, int]], keys) -> dict[str, np.ndarray]:
+    out: dict[str, list] = {}
+    gb: dict[str, list] = {k: [] for k in GBUFFER_KEYS}
+    counts = []
+    for si, i in pairs:
+        s = sh[si]
+        names = [k for k in s.names if k not in GBUFFER_KEYS and k != "pix_offset"
+                 and (keys is None or k in keys or k in ("names", "split"))]
+        for k in names:
+            out.setdefault(k, []).append(np.asarray(s[k][i]))
+        off = s["pix_offset"]
+        a, b = int(off[i]), int(off[i + 1])
+        for k in GBUFFER_KEYS:
+            gb[k].append(np.asarray(s[k][a:b]))
+        counts.append(b - a)
+    batch = {k: np.stack(v) for k, v in out.items()}
+    for k, v in gb.items():
+        batch[k] = np.concatenate(v, 0)
+    batch["pix_offset"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    batch["shard_index"] = np.array([p[0] for p in pairs], np.int64)
+    batch["image_index"] = np.array([p[1] for p in pairs], np.int64)
+    return batch
+
+
+# --------------------------------------------------------------------------- prepare-wild
+
+_IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+_LM_EXT = (".pts", ".txt", ".npy")
+
+
+@dataclass
+class PrepareConfig:
+    """Parameters of ``prepare-wild`` (recorded in the shard meta)."""
+
+    size: int = 224
+    aligned: bool = False           # images are already aligned S×S crops (landmarks in crop pixels)
+    from_truth: bool = False        # geometry from synth-wild truth (implies aligned)
+    encoding: str = "srgb"          # encoding of real images (synth wild records its own)
+    shard_size: int = 256
+    split_fractions: tuple = (0.9, 0.05, 0.05)   # by name hash, when no synth-wild manifest gives the split
+    fit_landmark_iters: int = 200
+    fit_photo_rounds: int = 1
+    fit_photo_iters: int = 30
+
+    def to_params(self) -> dict:
+        d = dict(self.__dict__)
+        d["split_fractions"] = list(self.split_fractions)
+        return d
+
+
+@dataclass
+class WildInput:
+    name: str
+    image: Path
+    landmarks: Path | None = None
+    mask: Path | None = None
+
+
+def list_wild_inputs(images_dir: str | Path, landmarks_dir: str | Path | None = None,
+                     masks_dir: str | Path | None = None) -> list[WildInput]:
+    """Images of a folder (sorted by name) paired with ``<landmarks_dir>/<stem>.pts|.txt|.npy`` (default: the
+    images folder, then a sibling ``landmarks/``) and ``<masks_dir>/<stem>.png`` label images.  Missing
+    partners are left None (reported per image later)."""
+    images_dir = Path(images_dir)
+    if not images_dir.is_dir():
+        raise ReflectmmError("images folder not found", images_dir)
+    files = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in _IMAGE_EXT and p.is_file())
+    if not files:
+        raise ReflectmmError("no images (png/jpg/bmp/tif/webp) in folder", images_dir)
+    lm_dirs = [Path(landmarks_dir)] if landmarks_dir else [images_dir, images_dir.parent / "landmarks"]
+    out = []
+    for f in files:
+        lm = next((d / (f.stem + e) for d in lm_dirs for e in _LM_EXT if (d / (f.stem + e)).is_file()), None)
+        mk = None
+        if masks_dir:
+            mk = next((Path(masks_dir) / (f.stem + e) for e in (".png", ".bmp", ".tif")
+                       if (Path(masks_dir) / (f.stem + e)).is_file()), None)
+        out.append(WildInput(f.stem, f, lm, mk))
+    return out
+
+
+def name_split(name: str, fractions=(0.9, 0.05, 0.05)) -> str:
+    """Deterministic split of an image id by the sha256 of its name (FFHQ-like data: one image per person)."""
+    import hashlib
+
+    u = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2.0 ** 64
+    f = np.cumsum(np.asarray(fractions, np.float64) / sum(fractions))
+    return SPLITS[int(np.searchsorted(f, u, side="right"))] if u < f[-1] else SPLITS[-1]
+
+
+def _read_u8(path: Path) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ReflectmmError("cannot read image (unreadable or not an image)", path)
+    if img.dtype == np.uint16:
+        img = (img // 257).astype(np.uint8)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    if img.shape[2] == 4:
+        img = img[..., :3]
+    return np.ascontiguousarray(img[..., ::-1])
+
+
+def _truth_for(truth_dir: Path, name: str):
+    from reflectmm_cli.artifacts import read_artifact
+
+    p = truth_dir / "truth" / f"{name}.npz"
+    if not p.is_file():
+        raise ReflectmmError("no synth-wild truth for this image", p)
+    return read_artifact(p, "wild-truth")
+
+
+def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareConfig, *,
+                        truth_dir: str | Path | None = None, splits: Mapping[str, str] | None = None,
+                        progress_fn=None) -> tuple[dict[str, np.ndarray], dict, list[str]]:
+    """Align, fit (or read) geometry, rasterise the G-buffer and build the skin mask of each input.
+
+    Returns ``(arrays, report, errors)``: the shard arrays of the images that succeeded (see
+    :func:`write_shard`), a report {per-image landmark RMSE (px), vertex error (mm, when truth exists),
+    seconds}, and one-line error messages (each naming its file) for the images that were skipped.
+    """
+    import time
+
+    from reflectmm_cli.finetune.align import (align_image, fit_single_image, skin_mask_from_labels,
+                                              skin_mask_from_model, warp_to_crop)
+    from reflectmm_cli.geometry import RayScene, deep3d_camera
+    from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, pack_gbuffers
+    from reflectmm_cli.geometry.camera import Camera
+    from reflectmm_cli.geometry.raycast import rasterize
+    from reflectmm_cli.landmarks import read_landmarks
+
+    S = int(cfg.size)
+    K_crop = deep3d_camera().with_size(S, S).K
+    truth_dir = Path(truth_dir) if truth_dir is not None else None
+    if cfg.from_truth and truth_dir is None:
+        raise ReflectmmError("--from-truth needs the synth-wild folder (its truth/ sub-folder)")
+    per: dict[str, list] = {k: [] for k in ("names", "split", "image", "skin_mask", "landmarks", "shape",
+                                             "expression", "R", "t", "K")}
+    truth: dict[str, list] = {}
+    gbs, errors = [], []
+    rep = {"names": [], "landmark_rmse_px": [], "vertex_error_mm": [], "seconds": []}
+    id_cache: dict[int, Any] = {}
+    it = progress_fn(inputs) if progress_fn else inputs
+    for inp in it:
+        t0 = time.perf_counter()
+        try:
+            if inp.landmarks is None:
+                raise ReflectmmError("no landmark file with the same name (.pts/.txt/.npy)", inp.image)
+            img = _read_u8(inp.image)
+            lm = read_landmarks(inp.landmarks)
+            encoding = cfg.encoding
+            tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
+            if tr is not None:
+                encoding = tr.meta.get("encoding", encoding)
+            if cfg.aligned or cfg.from_truth:
+                if img.shape[0] != img.shape[1]:
+                    raise ReflectmmError(f"--aligned image is {img.shape[1]}x{img.shape[0]}, not square", inp.image)
+                k = S / img.shape[0]
+                A = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2]])    # pixel-centre rescale
+                crop = img if k == 1 else np.clip(np.round(warp_to_crop(img, A, S)), 0, 255).astype(np.uint8)
+                lm_c = lm * k + (k - 1) / 2
+            else:
+                al = align_image(img, lm, face_model, S)
+                crop, lm_c, A = al.image, al.landmarks, al.transform
+            if not np.isfinite(lm_c).all():
+                raise ReflectmmError("landmarks are not finite", inp.landmarks)
+            lin = linearize(crop, encoding)
+            if cfg.from_truth:
+                shape = np.asarray(tr["shape"], np.float64)
+                exp = np.asarray(tr["expression"], np.float64)
+                R, t = np.asarray(tr["R"], np.float64), np.asarray(tr["t"], np.float64)
+                K0 = np.asarray(tr["K"], np.float64)
+                kk = S / int(tr["face_mask"].shape[0])
+                K = K0.copy()
+                K[0, 0], K[1, 1] = K0[0, 0] * kk, K0[1, 1] * kk
+                K[:2, 2] = (K0[:2, 2] + 0.5) * kk - 0.5       # pixel-centre convention (Camera.with_size)
+            else:
+                from reflectmm_cli.geometry_fit.fit import FitConfig
+
+                fc = FitConfig(landmark_iters=cfg.fit_landmark_iters, photo_rounds=cfg.fit_photo_rounds,
+                               photo_iters=cfg.fit_photo_iters, photo_blur_px=(1.0,), photo_vertices=1500)
+                fit = fit_single_image(face_model, lm_c, lin if cfg.fit_photo_rounds > 0 else None, K_crop,
+                                       config=fc, size=S)
+                shape, exp, R, t, K = fit.shape_coeffs, fit.exp_coeffs, fit.R[0], fit.t[0], K_crop
+            verts = face_model.vertices(shape, exp).astype(np.float64)
+            scene = RayScene(verts, face_model.triangles)
+            cam = Camera(K, R, t, S, S, inp.name)
+            gb = gbuffer_from_raster(rasterize(scene, cam), face_model.triangles, cam)
+            if not gb["face_mask"].any():
+                raise ReflectmmError("the fitted face covers no pixel of the crop", inp.image)
+            proj, _ = cam.project(verts[face_model.landmarks])
+            rep_lm = float(np.sqrt(np.mean(np.sum((proj - lm_c) ** 2, -1))))
+            vis_px = np.zeros((S, S), bool)
+            yx = gb["pix_yx"][gb["visible"]].astype(np.int64)
+            vis_px[yx[:, 0], yx[:, 1]] = True
+            if inp.mask is not None:
+                lab = _read_u8(inp.mask)[..., 0]
+                lab_c = warp_to_crop(lab, A, S, interpolation="nearest")
+                skin = skin_mask_from_labels(lab_c) & vis_px
+            elif tr is not None and cfg.from_truth:
+                skin = np.asarray(tr["skin_mask"], bool) & vis_px
+            else:
+                skin = skin_mask_from_model(gb, face_model.skin_mask, lin) & vis_px
+            verr = float("nan")
+            if tr is not None:
+                vt = face_model.vertices(tr["shape"], tr["expression"]).astype(np.float64)
+                cam_t = vt @ np.asarray(tr["R"]).T + np.asarray(tr["t"])
+                cam_f = verts @ R.T + t
+                verr = float(np.sqrt(np.mean(np.sum((cam_f - cam_t) ** 2, -1))))
+                d = (cam_f - cam_f.mean(0)) - (cam_t - cam_t.mean(0))
+                rep.setdefault("vertex_error_centred_mm", []).append(float(np.sqrt(np.mean(np.sum(d * d, -1)))))
+                if cfg.from_truth:
+                    ident = int(tr.meta["identity"])
+                    if ident not in id_cache:
+                        from reflectmm_cli.artifacts import read_artifact
+
+                        id_cache.clear()
+                        id_cache[ident] = read_artifact(truth_dir / "identities" / f"id{ident:05d}.npz", "wild-truth")
+                    ia = id_cache[ident]
+                    for k_, v_ in (("truth_sh", np.asarray(tr["sh"], np.float32)),
+                                   ("truth_vertex_albedo", np.asarray(ia["vertex_albedo"], np.float16)),
+                                   ("truth_vertex_weights", np.asarray(ia["vertex_weights"], np.float16)),
+                                   ("truth_vertex_spec_albedo", np.asarray(ia["vertex_spec_albedo"], np.float16)),
+                                   ("truth_vertex_roughness", np.asarray(ia["vertex_roughness"], np.float16)),
+                                   ("truth_diffuse", np.asarray(tr["diffuse"], np.float16)),
+                                   ("truth_specular", np.asarray(tr["specular"], np.float16))):
+                        truth.setdefault(k_, []).append(v_)
+        except ReflectmmError as exc:
+            errors.append(str(exc).splitlines()[0])
+            continue
+        per["names"].append(inp.name)
+        per["split"].append((splits or {}).get(inp.name) or name_split(inp.name, cfg.split_fractions))
+        per["image"].append(crop)
+        per["skin_mask"].append(skin & gb["face_mask"])
+        per["landmarks"].append(np.asarray(lm_c, np.float32))
+        per["shape"].append(np.asarray(shape, np.float32))
+        per["expression"].append(np.asarray(exp, np.float32))
+        per["R"].append(R), per["t"].append(t), per["K"].append(K)
+        gbs.append(gb)
+        rep["names"].append(inp.name)
+        rep["landmark_rmse_px"].append(rep_lm)
+        rep["vertex_error_mm"].append(verr)
+        rep["seconds"].append(time.perf_counter() - t0)
+    arrays: dict[str, np.ndarray] = {}
+    if gbs:
+        arrays = {k: np.array(v) if k in ("names", "split") else np.stack(v) for k, v in per.items()}
+        arrays["shape"] = arrays["shape"].astype(np.float32)
+        arrays["expression"] = arrays["expression"].astype(np.float32)
+        packed = pack_gbuffers(gbs)
+        arrays.update(packed)
+        arrays.update({k: np.stack(v) for k, v in truth.items()})
+    return arrays, rep, errors
+
+
+def geometry_hash(arrays: Mapping[str, np.ndarray], face_model_sha256: str) -> str:
+    """sha256 of what the G-buffers depend on: the face model's hash, image size and each image's
+    (shape, expression, R, t, K) — equal hashes mean identical G-buffers."""
+    import hashlib
+
+    h = hashlib.sha256(face_model_sha256.encode())
+    h.update(str(int(np.asarray(arrays["image"]).shape[1])).encode())
+    for k in ("shape", "expression", "R", "t", "K"):
+        h.update(np.ascontiguousarray(arrays[k]).tobytes())
+    return h.hexdigest()
+
+
+def shard_names(n_images: int, shard_size: int) -> list[str]:
+    return [f"shard_{i:05d}" for i in range(-(-n_images // max(1, shard_size)))]
+
+
+def prepare_wild_shard(images_dir, out_dir, face_model, face_model_path, cfg: PrepareConfig, shard_index: int, *,
+                       landmarks_dir=None, masks_dir=None, truth_dir=None, producer=None, cache_key=None,
+                       progress_fn=None) -> tuple[Path | None, dict, list[str]]:
+    """One shard of ``prepare-wild``: images ``[i·M, (i+1)·M)`` of the sorted folder → ``out_dir/shard_NNNNN.npz``
+    plus ``shard_NNNNN_overlay.png`` (skin masks over the first 16 crops).  Returns (path or None, report,
+    errors).  ``truth_dir`` (a synth-wild folder) supplies the split, truth arrays and vertex errors."""
+    from reflectmm_cli.artifacts import input_ref, read_artifact, sha256_file, write_png
+    from reflectmm_cli.finetune.align import mask_overlay
+
+    inputs = list_wild_inputs(images_dir, landmarks_dir, masks_dir)
+    M = int(cfg.shard_size)
+    chunk = inputs[shard_index * M:(shard_index + 1) * M]
+    if not chunk:
+        raise ReflectmmError(f"shard {shard_index} is empty ({len(inputs)} images, {M} per shard)", images_dir)
+    splits = None
+    if truth_dir is not None and (Path(truth_dir) / "manifest.npz").is_file():
+        man = read_artifact(Path(truth_dir) / "manifest.npz", "wild-manifest")
+        splits = dict(zip(man["names"].tolist(), man["split"].tolist()))
+    arrays, rep, errors = prepare_wild_images(chunk, face_model, cfg, truth_dir=truth_dir, splits=splits,
+                                              progress_fn=progress_fn)
+    out_dir = Path(out_dir)
+    path = out_dir / f"{shard_names(len(inputs), M)[shard_index]}.npz"
+    if not arrays:
+        return None, rep, errors
+    fm = Path(face_model_path)
+    rel = os.path.relpath(fm.resolve(), out_dir.resolve())
+    write_shard(path, arrays, encoding=str(_encoding_of(cfg, truth_dir)), face_model_sha256=sha256_file(fm),
+                face_model_path=rel, params=cfg.to_params(), inputs=[input_ref("face_model", fm, out_dir)],
+                producer=producer, cache_key=cache_key,
+                extra_meta={"shard_index": shard_index, "skipped": errors,
+                            "geometry_sha256": geometry_hash(arrays, sha256_file(fm)),
+                            "landmark_rmse_px_median": float(np.median(rep["landmark_rmse_px"])),
+                            "skin_labels": "CelebAMask-HQ ids 1 skin, 2 nose, 11 upper lip, 12 lower lip"
+                            if masks_dir else None})
+    n = min(16, len(arrays["names"]))
+    tiles = [mask_overlay(arrays["image"][i], arrays["skin_mask"][i]) for i in range(n)]
+    cols = min(4, n)
+    rows = -(-n // cols)
+    S = arrays["image"].shape[1]
+    sheet = np.zeros((rows * S, cols * S, 3), np.uint8)
+    for i, tl in enumerate(tiles):
+        r, c = divmod(i, cols)
+        sheet[r * S:(r + 1) * S, c * S:(c + 1) * S] = tl
+    write_png(out_dir / f"{path.stem}_overlay.png", sheet)
+    return path, rep, errors
+
+
+def _encoding_of(cfg: PrepareConfig, truth_dir) -> str:
+    if truth_dir is not None and (Path(truth_dir) / "manifest.npz").is_file():
+        from reflectmm_cli.artifacts import read_meta
+
+        return read_meta(Path(truth_dir) / "manifest.npz").get("encoding", cfg.encoding)
+    return cfg.encoding

@@ -1,0 +1,57 @@
+"""detect-landmarks on a real photograph and on synth wild renders."""
+import numpy as np
+import pytest
+
+pytest.importorskip("dlib")
+
+from reflectmm_cli.detection import detect_landmarks, pick_face  # noqa: E402
+from reflectmm_cli.landmarks import read_landmarks  # noqa: E402
+
+
+def test_astronaut_landmarks_fall_on_her_face(tmp_path, cli):
+    from skimage import data
+
+    img = data.astronaut()
+    faces = detect_landmarks(img)
+    assert faces
+    f = pick_face(faces)
+    lm = f.landmarks
+    l, t, r, b = f.box
+    # the face of Eileen Collins is in the upper middle of the 512² photo (rows ~80-170, cols ~170-270)
+    assert 150 < lm[30, 0] < 290 and 70 < lm[30, 1] < 190
+    inside = (lm[:, 0] >= l - 10) & (lm[:, 0] <= r + 10) & (lm[:, 1] >= t - 10) & (lm[:, 1] <= b + 25)
+    assert inside.mean() > 0.9
+    eyes = lm[36:48, 1].mean()
+    assert eyes < lm[30, 1] < lm[48:68, 1].mean()                   # eyes above nose above mouth
+    assert lm[36:42, 0].mean() < lm[42:48, 0].mean()                  # image-left eye first
+    # through the command: writes a .pts readable by the shared reader
+    from reflectmm_cli.artifacts import write_png
+    write_png(tmp_path / "astronaut.png", img)
+    res = cli("detect-landmarks", tmp_path / "astronaut.png", "--out", tmp_path / "lm")
+    assert res.exit_code == 0, res.stderr
+    assert np.allclose(read_landmarks(tmp_path / "lm" / "astronaut.pts"), lm)
+
+
+def test_no_face_is_reported_and_others_written(tmp_path, cli):
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+    write_png(tmp_path / "a.png", data.astronaut())
+    write_png(tmp_path / "blank.png", np.full((120, 160, 3), 0.5))
+    res = cli("detect-landmarks", tmp_path / "a.png", tmp_path / "blank.png", "--out", tmp_path / "lm")
+    assert res.exit_code == 1
+    assert "blank.png" in res.stderr and "no face" in res.stderr
+    assert (tmp_path / "lm" / "a.pts").is_file() and not (tmp_path / "lm" / "blank.pts").exists()
+
+
+def test_missing_extra_gives_one_line_error(monkeypatch):
+    import sys
+
+    from reflectmm_cli import detection
+    from reflectmm_cli.errors import ReflectmmError
+
+    detection._models.cache_clear()
+    monkeypatch.setitem(sys.modules, "dlib", None)
+    with pytest.raises(ReflectmmError, match=r"reflectmm\[landmarks\]"):
+        detect_landmarks(np.zeros((8, 8, 3), np.uint8))
+    detection._models.cache_clear()
