@@ -62,6 +62,7 @@ class ShardSet:
     truth: dict = field(default_factory=dict)
     sources: list = field(default_factory=list)
     face_model: dict | None = None
+    landmarks: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.names.shape[0])
