@@ -186,3 +186,29 @@ def make_dataset(tmp: Path, n_images=12, size=32, seed=0, order=2, split=None, n
 def write_model(path, model):
     write_artifact(path, MODEL_KIND, model_arrays(model))
     return path
+
+
+def write_face_model(path, V, tri, uv):
+    """A minimal face-model artifact for the cap (no shape/expression variation)."""
+    from reflectmm_cli.geometry.face_model import FaceModel, save_face_model
+
+    n = V.shape[0]
+    fm = FaceModel(mean_shape=V, shape_basis=np.zeros((1, n, 3)), shape_sigma=np.ones(1),
+                   exp_basis=np.zeros((1, n, 3)), exp_sigma=np.ones(1), triangles=tri, uv=uv,
+                   landmarks=np.arange(68) % n, skin_mask=np.ones(n, bool), name="cap")
+    return save_face_model(fm, path)
+
+
+def wrong_initial(truth, V, seed=5):
+    """The truth with its mean albedo perturbed by a smooth spatial pattern and its third diffuse component
+    replaced by an unrelated unit vector (the true component is missing)."""
+    import copy
+
+    init = copy.deepcopy(truth)
+    x, y = V[:, 0] / RADIUS, V[:, 1] / RADIUS
+    init.vertex_albedo_mean = (truth.vertex_albedo_mean + 0.12 * np.stack(
+        [np.sin(2 * x + 1), np.cos(3 * y), np.sin(3 * x * y)], -1)).astype(np.float32)
+    b3 = np.random.default_rng(seed).normal(size=truth.vertex_albedo_basis[2].shape)
+    init.vertex_albedo_basis = truth.vertex_albedo_basis.copy()
+    init.vertex_albedo_basis[2] = b3 / np.linalg.norm(b3)
+    return init

@@ -33,6 +33,7 @@ def test_matches_independent_numpy_render(data):
     assert float(full[0][~torch.as_tensor(ss.face_mask[0])].abs().max()) == 0.0
 
 
+@pytest.mark.slow
 def test_gradcheck_beta_gamma_z_model(data):
     """torch.autograd.gradcheck (float64 central differences) w.r.t. β, γ, z, model means and bases."""
     ss = load_shards(data["shards"])
