@@ -80,17 +80,17 @@ def finetuned_model(initial, vertex_arrays: dict, face_model=None):
 
 
 def loss_curves_png(history: list, width: int = 720, height: int = 360) -> np.ndarray:
-    """(H,W,3) float image: log10 of each loss term per step (thin) and validation totals (dots)."""
+    """(H,W,3) uint8 image: log10 of each loss term per step (thin) and validation totals (dots)."""
     import cv2
 
     steps = [h for h in history if h.get("type") == "step"]
     vals = [h for h in history if h.get("type") == "val" and "val_total" in h]
-    img = np.ones((height, width, 3), np.float32)
+    img = np.full((height, width, 3), 255, np.uint8)
     if not steps:
         return img
     keys = [k for k in ("loss", "photo", "per", "coef", "light", "upd", "norm", "ortho") if k in steps[-1]]
-    colours = [(0, 0, 0), (0.85, 0.2, 0.1), (0.5, 0.1, 0.6), (0.1, 0.5, 0.1), (0.9, 0.6, 0.0), (0.1, 0.3, 0.9),
-               (0.3, 0.6, 0.9), (0.6, 0.4, 0.2)]
+    colours = [(0, 0, 0), (217, 51, 26), (128, 26, 153), (26, 128, 26), (230, 153, 0), (26, 77, 230),
+               (77, 153, 230), (153, 102, 51)]
     g = np.array([h["global_step"] for h in steps], np.float64)
     series = {k: np.log10(np.maximum([h.get(k, np.nan) for h in steps], 1e-12)) for k in keys}
     allv = np.concatenate([v[np.isfinite(v)] for v in series.values()] +
@@ -101,10 +101,10 @@ def loss_curves_png(history: list, width: int = 720, height: int = 360) -> np.nd
     L, R, T, Bm = 60, 130, 20, 30
     X = lambda s: L + (s - g.min()) / max(g.max() - g.min(), 1) * (width - L - R)  # noqa: E731
     Y = lambda v: T + (hi - v) / (hi - lo) * (height - T - Bm)  # noqa: E731
-    cv2.rectangle(img, (L, T), (width - R, height - Bm), (0.6, 0.6, 0.6), 1)
+    cv2.rectangle(img, (L, T), (width - R, height - Bm), (153, 153, 153), 1)
     for lv in np.arange(np.floor(lo), np.ceil(hi) + 1):
         if lo <= lv <= hi:
-            cv2.putText(img, f"1e{int(lv)}", (4, int(Y(lv)) + 4), cv2.FONT_HERSHEY_PLAIN, 0.9, (0.3, 0.3, 0.3), 1)
+            cv2.putText(img, f"1e{int(lv)}", (4, int(Y(lv)) + 4), cv2.FONT_HERSHEY_PLAIN, 0.9, (77, 77, 77), 1)
     for i, k in enumerate(keys):
         v = series[k]
         pts = np.stack([X(g), Y(v)], -1)[np.isfinite(v)].astype(np.int32)
@@ -117,9 +117,9 @@ def loss_curves_png(history: list, width: int = 720, height: int = 360) -> np.nd
     p2 = [h["global_step"] for h in steps if h["phase"] == 2]
     if p2:
         x2 = int(X(p2[0]))
-        cv2.line(img, (x2, T), (x2, height - Bm), (0.4, 0.4, 0.4), 1)
-        cv2.putText(img, "phase 2", (x2 + 3, height - Bm - 5), cv2.FONT_HERSHEY_PLAIN, 0.9, (0.4, 0.4, 0.4), 1)
-    cv2.putText(img, "global step", (width // 2 - 40, height - 8), cv2.FONT_HERSHEY_PLAIN, 1.0, (0.2, 0.2, 0.2), 1)
+        cv2.line(img, (x2, T), (x2, height - Bm), (102, 102, 102), 1)
+        cv2.putText(img, "phase 2", (x2 + 3, height - Bm - 5), cv2.FONT_HERSHEY_PLAIN, 0.9, (102, 102, 102), 1)
+    cv2.putText(img, "global step", (width // 2 - 40, height - 8), cv2.FONT_HERSHEY_PLAIN, 1.0, (51, 51, 51), 1)
     return img
 
 
@@ -171,9 +171,11 @@ def write_finetune_outputs(result, initial, out: Path, *, face_model=None, input
     new, info = finetuned_model(initial, result.params.vertex_arrays(), face_model)
     ortho = {"before": basis_orthonormality(initial.vertex_albedo_basis[:result.params.n_components]),
              "after": basis_orthonormality(new.vertex_albedo_basis[:result.params.n_components])}
-    upd = {k: float(np.sqrt(np.mean((getattr(new, k)[:result.params.n_components] if k.endswith("basis") else
-                                      getattr(new, k)) - result.initial[k]) ** 2)))
-           for k in result.initial}
+    M = result.params.n_components
+    upd = {}
+    for k, v0 in result.initial.items():
+        v = getattr(new, k)[:M] if k.endswith("basis") else getattr(new, k)
+        upd[k] = float(np.sqrt(np.mean((np.asarray(v, np.float64) - v0) ** 2)))
     written = []
     enc_meta = {"config": result.config.to_dict(), "perceptual": result.perceptual, "steps": result.steps,
                 "inputs": inputs or [], "producer": producer or {}}

@@ -347,8 +347,8 @@ class Trainer:
                 if show:
                     ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
                     sys.stderr.write(f"\rfinetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
-                                     f"[{self.global_step}/{total_steps}] loss {float(total):.4g} "
-                                     + " ".join(f"{k_} {float(v):.3g}" for k_, v in terms.items())
+                                     f"[{self.global_step}/{total_steps}] loss {rec['loss']:.4g} "
+                                     + " ".join(f"{k_} {rec[k_]:.3g}" for k_ in terms)
                                      + f" {ips:.1f} img/s ")
                     sys.stderr.flush()
                 last = k + 1 == self.steps_per_epoch
