@@ -92,9 +92,13 @@ def loss_curves_png(history: list, width: int = 720, height: int = 360) -> np.nd
     colours = [(0, 0, 0), (217, 51, 26), (128, 26, 153), (26, 128, 26), (230, 153, 0), (26, 77, 230),
                (77, 153, 230), (153, 102, 51)]
     g = np.array([h["global_step"] for h in steps], np.float64)
-    series = {k: np.log10(np.maximum([h.get(k, np.nan) for h in steps], 1e-12)) for k in keys}
+    def lg(x):  # zero / absent terms (e.g. the priors at step 1, L_upd before phase 2) are not drawn
+        x = np.asarray(x, np.float64)
+        return np.where(x > 0, np.log10(np.where(x > 0, x, 1.0)), np.nan)
+
+    series = {k: lg([h.get(k, np.nan) for h in steps]) for k in keys}
     allv = np.concatenate([v[np.isfinite(v)] for v in series.values()] +
-                          [np.log10(np.maximum([h["val_total"] for h in vals], 1e-12))] if vals else
+                          [lg([h["val_total"] for h in vals])] if vals else
                           [v[np.isfinite(v)] for v in series.values()])
     lo, hi = float(allv.min()), float(allv.max())
     hi = hi if hi > lo else lo + 1

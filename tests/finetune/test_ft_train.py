@@ -85,3 +85,27 @@ def test_core_claim_phase2_moves_model_towards_truth(tmp_path):
     va = [h for h in a.history if h["type"] == "val"][-1]["val_photo"]
     vb = [h for h in b.history if h["type"] == "val"][-1]["val_photo"]
     assert va < vb, (va, vb)
+
+
+def test_perceptual_on_with_user_weights_and_cached_targets(data, tmp_path):
+    from safetensors.torch import save_file
+
+    from reflectmm_cli.finetune.identity import build_iresnet, load_identity_net
+    from reflectmm_cli.finetune.train import Trainer
+
+    torch.manual_seed(0)
+    net = build_iresnet((1, 1, 1, 1), width=8, embedding=16)
+    save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(tmp_path / "id.safetensors"))
+    idn = load_identity_net(tmp_path / "id.safetensors")
+    calls = []
+    orig = idn.features
+    idn.features = lambda img, lm: (calls.append(img.requires_grad), orig(img, lm))[1]
+    ss = load_shards(data["shards"])
+    tr = Trainer(ss, data["truth"], data["light"], FinetuneConfig(epochs1=2, epochs2=0, **TINY), tmp_path / "w",
+                 identity=idn, progress=False)
+    tr.run()
+    steps = [h for h in tr.history if h["type"] == "step"]
+    assert all("per" in h and h["per"] > 0 for h in steps)
+    # target features: one no-grad call per new image, then cached (train + val images, each once)
+    n_target_calls = sum(1 for g in calls if not g)
+    assert len(tr.feat_cache) == len(ss) and n_target_calls <= len(ss)
