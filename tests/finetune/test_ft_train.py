@@ -99,13 +99,17 @@ def test_perceptual_on_with_user_weights_and_cached_targets(data, tmp_path):
     idn = load_identity_net(tmp_path / "id.safetensors")
     calls = []
     orig = idn.features
-    idn.features = lambda img, lm: (calls.append(img.requires_grad), orig(img, lm))[1]
+    idn.features = lambda img, lm: (calls.append((torch.is_grad_enabled(), img.shape[0])), orig(img, lm))[1]
     ss = load_shards(data["shards"])
-    tr = Trainer(ss, data["truth"], data["light"], FinetuneConfig(epochs1=2, epochs2=0, **TINY), tmp_path / "w",
-                 identity=idn, progress=False)
-    tr.run()
+    from reflectmm_cli.threads import torch_threads
+
+    with torch_threads(1):
+        tr = Trainer(ss, data["truth"], data["light"], FinetuneConfig(epochs1=2, epochs2=0, **TINY), tmp_path / "w",
+                     identity=idn, progress=False)
+        tr.run()
     steps = [h for h in tr.history if h["type"] == "step"]
     assert all("per" in h and h["per"] > 0 for h in steps)
-    # target features: one no-grad call per new image, then cached (train + val images, each once)
-    n_target_calls = sum(1 for g in calls if not g)
-    assert len(tr.feat_cache) == len(ss) and n_target_calls <= len(ss)
+    # no-grad feature images = targets (every image once, then cached) + the 2 validation passes' predictions
+    n_val = len(ss.indices("val"))
+    assert sum(n for g, n in calls if not g) == len(ss) + 2 * n_val
+    assert len(tr.feat_cache) == len(ss)
