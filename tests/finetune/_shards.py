@@ -86,9 +86,9 @@ def small_light_model(order=2, k=4, seed=1) -> LightModel:
                       map_names=["a", "b", "c", "d"])
 
 
-def gbuffer(V, tri, size=32, distance=400.0):
+def gbuffer(V, tri, size=32, distance=400.0, frame=0.8):
     eye = np.array([0.0, 0.0, distance])
-    cam = look_at(eye, (0, 0, 0), (0, 1, 0), focal_px=size * distance / (2.0 * RADIUS * 0.8), width=size,
+    cam = look_at(eye, (0, 0, 0), (0, 1, 0), focal_px=size * distance / (2.0 * RADIUS * frame), width=size,
                   height=size)
     r = rasterize(RayScene(V, tri), cam)
     m = r.mask
