@@ -191,6 +191,10 @@ def pixel_reflectance(params: ModelParams, beta, gb: GBufferBatch):
                              f"has {params.n_vertices} vertices (wrong face model?)")
     uniq, inv = torch.unique(flat, return_inverse=True)
     U = int(uniq.numel())
+    if U > params.n_vertices // 2:
+        # most of the face is touched: a gather of the model costs more than it saves (and its backward
+        # scatters into a zero V-sized copy); use the whole tables with the vertex ids as they are
+        uniq, inv, U = None, flat, params.n_vertices
     am, ab, wm, wb = params.effective(uniq)
     coef = beta * params.sigma[:m]  # (B, m)
     alb = am + torch.einsum("bm,muc->buc", coef, ab[:m])  # (B, U, 3)
@@ -227,14 +231,18 @@ def shade_gbuffer(params: ModelParams, beta, sh, gb: GBufferBatch, *, band_tol: 
     alb, wts = pixel_reflectance(params, beta, gb)
     order = int(round(np.sqrt(sh.shape[-1]))) - 1
     diff, spec = [], []
+    counts = [int(c) for c in np.diff(gb.offsets)]
+    # torch.split, not slicing: the backward of B slices would build B zero copies of the whole batch
+    a_parts, w_parts = torch.split(alb, counts), torch.split(wts, counts)
+    sh_parts = torch.unbind(sh, 0)
+    exps = params.exponents.to(alb.dtype)
     for b in range(gb.n_images):
         s0, s1 = int(gb.offsets[b]), int(gb.offsets[b + 1])
         if s1 == s0:
             continue
         basis = bases[b] if bases is not None else EnvBasis(gb.normal[s0:s1], gb.view[s0:s1], order,
                                                             dtype=alb.dtype, device=alb.device)
-        d, s = shade_env(alb[s0:s1], wts[s0:s1], params.exponents.to(alb.dtype), None, None, sh[b],
-                         basis=basis, band_tol=band_tol)
+        d, s = shade_env(a_parts[b], w_parts[b], exps, None, None, sh_parts[b], basis=basis, band_tol=band_tol)
         diff.append(d)
         spec.append(s)
     if not diff:
