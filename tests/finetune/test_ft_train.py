@@ -75,16 +75,16 @@ def test_core_claim_phase2_moves_model_towards_truth(tmp_path):
     def mean_err(am):
         return float(np.sqrt(((am[used] - T.vertex_albedo_mean[used]) ** 2).mean()))
 
-    a = finetune(ss, init, d["light"], FinetuneConfig(epochs1=15, epochs2=6, **TINY), tmp_path / "a", threads=1,
-                 progress=False)
-    # the same number of steps without the model update (phase 1 only)
-    b = finetune(ss, init, d["light"], FinetuneConfig(epochs1=21, epochs2=0, **TINY), tmp_path / "b", threads=1,
-                 progress=False)
+    cfg = FinetuneConfig(epochs1=15, epochs2=6, **{**TINY, "lr2": TINY["lr1"]})
+    a = finetune(ss, init, d["light"], cfg, tmp_path / "a", threads=1, progress=False)
+    # the identical schedule with the model frozen (model lr 0): isolates what the model update does
+    b = finetune(ss, init, d["light"], cfg.replace(model_lr=0.0), tmp_path / "b", threads=1, progress=False)
+    assert b.params.vertex_arrays()["vertex_albedo_mean"].tobytes() == init.vertex_albedo_mean.tobytes()
     e0, e1 = mean_err(init.vertex_albedo_mean), mean_err(a.params.vertex_arrays()["vertex_albedo_mean"])
-    assert e1 < 0.95 * e0, (e0, e1)
+    assert e1 < 0.95 * e0, (e0, e1)  # measured: 0.0733 → 0.0667
     va = [h for h in a.history if h["type"] == "val"][-1]["val_photo"]
     vb = [h for h in b.history if h["type"] == "val"][-1]["val_photo"]
-    assert va < vb, (va, vb)
+    assert va < 0.95 * vb, (va, vb)  # measured: 0.203 vs 0.239
 
 
 def test_perceptual_on_with_user_weights_and_cached_targets(data, tmp_path):
