@@ -112,9 +112,10 @@ class Trainer:
         self.initial_np = self.params.vertex_arrays()
         self.B = int(config.batch_size)
         n = len(self.train_idx)
-        self.steps_per_epoch = n // self.B + (1 if n % self.B >= 2 or (n < self.B and n >= 1) else 0)
-        if self.steps_per_epoch == 0:
-            self.steps_per_epoch = 1
+        if n < 2 or self.B < 2:
+            raise ReflectmmError(f"finetune: BatchNorm needs batches of at least 2 images (train split: {n} "
+                                 f"images, batch size {self.B})")
+        self.steps_per_epoch = -(-n // self.B)
         self.plan = [(1, e) for e in range(config.epochs1)] + [(2, e) for e in range(config.epochs2)]
         self.phase = 1
         self.opt = self._optimizer(1)
@@ -328,8 +329,8 @@ class Trainer:
             t_epoch, n_img = time.perf_counter(), 0
             for k in range(k0, self.steps_per_epoch):
                 idx = perm[k * self.B:(k + 1) * self.B]
-                if len(idx) < 2 and len(perm) >= 2:  # BatchNorm needs 2 images: wrap around
-                    idx = np.concatenate([idx, perm[:2 - len(idx)]])
+                if len(idx) < 2:  # a last batch of one image: BatchNorm needs 2, take the epoch's first too
+                    idx = np.concatenate([idx, perm[:1]])
                 ts = time.perf_counter()
                 total, terms, _ = self._forward(idx, train=True)
                 if not torch.isfinite(total):
