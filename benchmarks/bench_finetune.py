@@ -86,20 +86,21 @@ def run_arch(arch: str, reps: int, batch: int) -> dict:
     T = {k: [] for k in ("loading", "encoder", "shading_losses", "optimiser", "full_step")}
     b = ss.batch(idx)
     x = torch.as_tensor(b["images"]).permute(0, 3, 1, 2).float() / 255.0
-    for r in range(reps + 1):  # encoder forward+backward (surrogate gradient on its outputs)
+
+    def encoder_pass():
         t1 = time.perf_counter()
         beta, gamma, z = tr.encoder(x)
         torch.autograd.backward([beta, gamma, z], [torch.full_like(beta, 1e-3), torch.full_like(gamma, 1e-3),
                                                    torch.full_like(z, 1e-3)])
-        if r:
-            T["encoder"].append(time.perf_counter() - t1)
-    for r in range(2 * reps + 2):  # loading, shading + losses (encoder outputs as leaves), optimiser
+        return time.perf_counter() - t1, (beta, gamma, z)
+
+    def shading_pass(outs):
         t0 = time.perf_counter()
         b = ss.batch(idx)
         gb = batch_gbuffer(b)
-        x = torch.as_tensor(b["images"]).permute(0, 3, 1, 2).float() / 255.0
+        torch.as_tensor(b["images"]).permute(0, 3, 1, 2).float() / 255.0
         t2 = time.perf_counter()
-        bl, gl, zl = (v.detach().requires_grad_(True) for v in (beta, gamma, z))
+        bl, gl, zl = (v.detach().requires_grad_(True) for v in outs)
         sh = lighting(light, gl, zl)
         d, s, _, _ = shade_gbuffer(tr.params, bl, sh, gb)
         cur = dict(zip(("albedo_mean", "albedo_basis", "weights_mean", "weights_basis"), tr.params.effective()))
@@ -109,10 +110,17 @@ def run_arch(arch: str, reps: int, batch: int) -> dict:
         t3 = time.perf_counter()
         tr.opt.step()
         tr.opt.zero_grad(set_to_none=True)
-        t4 = time.perf_counter()
-        if r >= 2:
-            for k, v in zip(("loading", "shading_losses", "optimiser"), (t2 - t0, t3 - t2, t4 - t3)):
-                T[k].append(v)
+        return t2 - t0, t3 - t2, time.perf_counter() - t3
+
+    # encoder and shading passes alternate, so both see the same machine load (the ratio is what matters)
+    for r in range(reps + 1):
+        te, outs = encoder_pass()
+        parts = [shading_pass(outs) for _ in range(2)]
+        if r:
+            T["encoder"].append(te)
+            for p_ in parts:
+                for k, v in zip(("loading", "shading_losses", "optimiser"), p_):
+                    T[k].append(v)
     for r in range(max(2, reps - 1)):  # real steps
         t4 = time.perf_counter()
         total, _, _ = tr._forward(idx, True)
@@ -150,8 +158,9 @@ def main():
     r0 = rows[0]
     print(f"Finetuning step, phase 2, batch {r0['batch']}, 224², {r0['vertices']} vertices, "
           f"{r0['face_pixels_per_image']} face pixels/image, M = {r0['components']}, N_L = {r0['light_components']}, "
-          f"order-8 SH, 2 threads; medians of {reps} encoder passes, {2 * reps} shading/loss/optimiser passes, "
-          f"{max(2, reps - 1)} real steps; load average during the runs "
+          f"order-8 SH, 2 threads; medians of {reps} encoder passes and {2 * reps} shading/loss/optimiser passes "
+          f"(interleaved), {max(2, reps - 1)} real steps; "
+          f"load average during the runs "
           + ", ".join("%.1f" % r["load_average"][0] for r in rows) + ".\n")
     print("| arch | loading | encoder fwd+bwd | shading+losses fwd+bwd | optimiser | full step | shading+losses "
           "share | images/s | peak RSS |")
