@@ -113,3 +113,22 @@ def test_perceptual_on_with_user_weights_and_cached_targets(data, tmp_path):
     n_val = len(ss.indices("val"))
     assert sum(n for g, n in calls if not g) == len(ss) + 2 * n_val
     assert len(tr.feat_cache) == len(ss)
+
+
+def test_released_variant_updates_lobe_weights_only_along_the_mean_ratio(data, tmp_path):
+    ss = load_shards(data["shards"])
+    init = wrong_initial(data["truth"], data["V"])
+    cfg = FinetuneConfig.released(epochs1=1, epochs2=1, **{**TINY, "lr2": 2e-4})
+    assert cfg.photometric == "l2norm" and cfg.w_photo == 1.92 and cfg.trainable == "albedo"
+    r = finetune(ss, init, data["light"], cfg, tmp_path, threads=1, progress=False)
+    steps = [h for h in r.history if h["type"] == "step" and h["phase"] == 2]
+    assert steps and "norm" in steps[-1] and "ortho" in steps[-1] and "upd" not in steps[-1]
+    after = r.params.vertex_arrays()
+    wm0 = init.vertex_weights_mean.astype(np.float64)
+    rho = wm0 / wm0.sum(1, keepdims=True)
+    for k in ("vertex_weights_mean", "vertex_weights_basis"):
+        dW = after[k].astype(np.float64) - np.asarray(getattr(init, k), np.float64)
+        assert np.abs(dW).max() > 0  # it moved
+        ds = dW.sum(-1, keepdims=True)  # the specular-albedo change
+        np.testing.assert_allclose(dW, ds * rho, atol=1e-6)  # ... distributed by the fixed mean ratio
+    assert np.abs(after["vertex_albedo_mean"] - init.vertex_albedo_mean).max() > 0
