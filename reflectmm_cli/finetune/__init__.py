@@ -1,1 +1,3 @@
-"""Finetuning on in-the-wild images (DESIGN.md §7): alignment (:mod:`.align`) and the shard dataset (:mod:`.data`)."""
+"""Finetuning the reflectance model on in-the-wild images (update-by-reconstruction, DESIGN.md §7) and
+single-image reconstruction with the trained encoder: alignment (:mod:`.align`), the shard dataset
+(:mod:`.data`), encoder, losses, G-buffer shading and the training loop. See docs/finetune.md."""

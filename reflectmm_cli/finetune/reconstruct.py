@@ -1,0 +1,118 @@
+"""Single-image reconstruction with a trained encoder: β, γ, z per image and its renders (full, diffuse and
+specular layers, diffuse albedo, lobe-weight maps) through the same G-buffer shading path as training.
+This is what ``evaluate`` uses."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+__all__ = ["Reconstruction", "reconstruct", "write_reconstruction", "RECONSTRUCTION_KIND", "reconstruction_png"]
+
+RECONSTRUCTION_KIND = "reconstruction"
+
+
+@dataclass
+class Reconstruction:
+    """Per image (N of them, S×S, K lobes): ``names`` (N,); ``beta`` (N,M); ``gamma`` (N,N_L); ``z`` (N,3);
+    ``sh`` (N,3,(L+1)²) lighting in the light frame; linear layers ``full``, ``diffuse``, ``specular``, ``albedo``
+    (N,S,S,3) and ``weights`` (N,S,S,K), 0 outside ``face_mask`` (N,S,S); ``image`` (N,S,S,3) uint8 input;
+    ``encoding`` (N,) how the input is encoded."""
+
+    names: np.ndarray
+    beta: np.ndarray
+    gamma: np.ndarray
+    z: np.ndarray
+    sh: np.ndarray
+    full: np.ndarray
+    diffuse: np.ndarray
+    specular: np.ndarray
+    albedo: np.ndarray
+    weights: np.ndarray
+    face_mask: np.ndarray
+    image: np.ndarray
+    encoding: np.ndarray
+
+    def arrays(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def reconstruct(shards, encoder, model, light, *, indices=None, split: str | None = None, batch_size: int = 8,
+                device="cpu") -> Reconstruction:
+    """Reconstruct the images ``indices`` (or all of ``split``, or all) of ``shards``.
+
+    Args:
+        shards: :class:`~reflectmm_cli.finetune.shards.ShardSet`; encoder: from :func:`load_encoder`;
+        model: the (finetuned) reflectance model; light: the light model the encoder was trained with.
+    """
+    import torch
+
+    from .render import ModelParams, batch_gbuffer, lighting, scatter_pixels, shade_gbuffer
+    from .train import check_inputs
+
+    check_inputs(shards, model, light)
+    if encoder.n_reflectance > model.n_components or encoder.n_light > light.n_components:
+        raise ReflectmmError(f"reconstruct: the encoder predicts {encoder.n_reflectance} reflectance / "
+                             f"{encoder.n_light} light coefficients, the models have {model.n_components} / "
+                             f"{light.n_components}")
+    idx = (np.arange(len(shards)) if indices is None and split is None else
+           shards.indices(split) if indices is None else np.asarray(indices, np.int64))
+    if len(idx) == 0:
+        raise ReflectmmError(f"reconstruct: no images{'' if split is None else f' in split {split!r}'}")
+    params = ModelParams(model, device, n_components=encoder.n_reflectance)
+    out = {k: [] for k in ("beta", "gamma", "z", "sh", "full", "diffuse", "specular", "albedo", "weights")}
+    encoder.eval()
+    with torch.no_grad():
+        for s0 in range(0, len(idx), batch_size):
+            ib = idx[s0:s0 + batch_size]
+            b = shards.batch(ib, with_target=False)
+            gb = batch_gbuffer(b, device)
+            x = torch.as_tensor(b["images"], device=device).permute(0, 3, 1, 2).float() / 255.0
+            beta, gamma, z = encoder(x)
+            sh = lighting(light, gamma, z)
+            d, s, a, w = shade_gbuffer(params, beta, sh, gb)
+            for k, v in (("beta", beta), ("gamma", gamma), ("z", z), ("sh", sh)):
+                out[k].append(v.cpu().numpy())
+            for k, v in (("full", d + s), ("diffuse", d), ("specular", s), ("albedo", a), ("weights", w)):
+                out[k].append(scatter_pixels(v, gb).cpu().numpy())
+    cat = {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
+    return Reconstruction(names=shards.names[idx], face_mask=shards.face_mask[idx], image=shards.image[idx],
+                          encoding=shards.encoding[idx], **cat)
+
+
+def reconstruction_png(rec: Reconstruction, i: int) -> np.ndarray:
+    """One row for image i (paper Fig. 4 style): input | reconstruction | diffuse | specular | albedo |
+    lobe weights ×3 (RGB = lobes 1, 2, 3) — sRGB display, grey background outside the face."""
+    from reflectmm_cli.model.preview import BG, linear_to_srgb
+
+    from .shards import linearise
+
+    m = rec.face_mask[i][..., None]
+    inp = linear_to_srgb(linearise(rec.image[i], str(rec.encoding[i])))
+    w = rec.weights[i]
+    wv = w[..., :3] if w.shape[-1] >= 3 else np.repeat(w.sum(-1, keepdims=True), 3, -1)
+    cells = [inp, np.where(m, linear_to_srgb(rec.full[i]), inp)]
+    cells += [np.where(m, linear_to_srgb(rec.diffuse[i]), BG), np.where(m, linear_to_srgb(rec.specular[i]), BG),
+              np.where(m, linear_to_srgb(rec.albedo[i]), BG), np.where(m, np.clip(wv * 3, 0, 1), BG)]
+    return np.concatenate([np.pad(c, ((1, 1), (1, 1), (0, 0)), constant_values=1.0) for c in cells], 1)
+
+
+def write_reconstruction(rec: Reconstruction, out: Path, *, png_rows: int = 16, inputs=None, params=None,
+                         producer=None, cache_key=None) -> list[Path]:
+    """The ``reconstruction`` artifact (all arrays, float16 images) and a PNG of the first ``png_rows`` images."""
+    from reflectmm_cli.artifacts import write_artifact, write_png
+
+    out = Path(out)
+    arrays = rec.arrays()
+    for k in ("full", "diffuse", "specular", "albedo", "weights"):
+        arrays[k] = arrays[k].astype(np.float16)
+    png = out.with_suffix(".png")
+    n = min(png_rows, len(rec.names))
+    write_png(png, np.concatenate([reconstruction_png(rec, i) for i in range(n)], 0))
+    write_artifact(out, RECONSTRUCTION_KIND, arrays, params=params or {}, inputs=inputs or [], producer=producer,
+                   cache_key=cache_key, extra_meta={"columns_png": ["input", "reconstruction", "diffuse", "specular",
+                                                                    "albedo", "lobe weights x3"]})
+    return [png, out]

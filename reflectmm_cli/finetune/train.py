@@ -1,0 +1,412 @@
+"""The two-phase finetuning loop (DESIGN.md §7): phase 1 trains the encoder with the model frozen, phase 2 trains
+the encoder and the model's mean and bases jointly. Adam; deterministic on CPU for a seed; atomic checkpoints
+(one safetensors file with the JSON state in its header) every N steps and at each epoch end; ``resume``.
+
+Call: ``result = finetune(shards, model, light, config, workdir)`` → :class:`FinetuneResult`; then
+:func:`reflectmm_cli.finetune.outputs.write_finetune_outputs` writes the artifacts.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+
+from .config import FinetuneConfig
+from .shards import ShardSet
+
+__all__ = ["FinetuneResult", "finetune", "check_inputs", "Trainer", "CHECKPOINT_NAME", "LOG_NAME"]
+
+CHECKPOINT_NAME = "checkpoint.safetensors"
+LOG_NAME = "log.jsonl"
+CHECKPOINT_SCHEMA = "reflectmm.finetune-checkpoint/1"
+
+
+@dataclass
+class FinetuneResult:
+    """What training produced.
+
+    Attributes:
+        params: final :class:`~reflectmm_cli.finetune.render.ModelParams` (the effective per-vertex model).
+        encoder: the trained encoder (eval mode).
+        initial: the initial per-vertex arrays (``vertex_*`` numpy).
+        history: step and validation records (as in the JSONL log).
+        config: the config used; perceptual: "off" or the identity network's name; z0: the head's z at start.
+        steps: global steps done; stopped_early: True when ``stop_after`` ended the run.
+    """
+
+    params: object
+    encoder: object
+    initial: dict
+    history: list
+    config: FinetuneConfig
+    perceptual: str
+    z0: float
+    steps: int
+    stopped_early: bool = False
+    n_train: int = 0
+    n_val: int = 0
+    stats: dict = field(default_factory=dict)
+
+
+def check_inputs(shards: ShardSet, model, light) -> None:
+    """One-line errors for a model/light-model/shard mismatch (vertex count, SH order, per-vertex part)."""
+    if getattr(model, "vertex_albedo_mean", None) is None:
+        raise ReflectmmError("finetune: the reflectance model has no per-vertex part (build it with --face-model)")
+    V = int(model.vertex_albedo_mean.shape[0])
+    vmax = int(shards.vert_ids.max()) if shards.vert_ids.size else -1
+    if vmax >= V:
+        raise ReflectmmError(f"finetune: the shards reference vertex {vmax} but the reflectance model has {V} "
+                             f"vertices (shards made with another face model?)")
+    if int(light.order) != int(shards.sh_order):
+        raise ReflectmmError(f"finetune: the light model has SH order {light.order} but the shards were prepared "
+                             f"for order {shards.sh_order}")
+    if model.vertex_weights_mean.shape[-1] != len(model.exponents):
+        raise ReflectmmError("finetune: the model's lobe weights and exponents disagree in count")
+
+
+def _np(t):
+    return t.detach().cpu().numpy()
+
+
+class Trainer:
+    """State of one finetuning run (encoder, model parameters, optimiser, schedule position)."""
+
+    def __init__(self, shards: ShardSet, model, light, config: FinetuneConfig, workdir: Path, *, device="cpu",
+                 identity=None, init_weights=None, log: Callable[[str], None] | None = None, progress=True):
+        import torch
+
+        from .encoder import build_encoder, load_trunk
+        from .render import ModelParams
+
+        check_inputs(shards, model, light)
+        self.torch = torch
+        self.shards, self.model, self.light, self.cfg = shards, model, light, config
+        self.workdir = Path(workdir)
+        self.device = torch.device(device)
+        self.identity = identity
+        self.log = log or (lambda s: None)
+        self.show_progress = progress
+        self.train_idx = shards.indices("train")
+        self.val_idx = shards.indices("val")
+        if len(self.train_idx) == 0:
+            raise ReflectmmError("finetune: the shards have no image in the 'train' split")
+        M = model.n_components if config.n_reflectance is None else min(config.n_reflectance, model.n_components)
+        NL = light.n_components if config.n_light is None else min(config.n_light, light.n_components)
+        self.M, self.NL = M, NL
+        dc = getattr(light, "dc", None)
+        self.z0 = float(np.mean(dc)) if dc is not None and np.size(dc) and np.all(np.asarray(dc) > 0) else 1.0
+        torch.manual_seed(config.seed)
+        self.encoder = build_encoder(config.arch, M, NL, config.width, self.z0).to(self.device)
+        if init_weights:
+            load_trunk(self.encoder, init_weights)
+        self.params = ModelParams(model, self.device, trainable=None, n_components=M)
+        self.initial = {k: v.detach().clone() for k, v in
+                        zip(("albedo_mean", "albedo_basis", "weights_mean", "weights_basis"), self.params.effective())}
+        self.initial_np = self.params.vertex_arrays()
+        self.B = int(config.batch_size)
+        n = len(self.train_idx)
+        if n < 2 or self.B < 2:
+            raise ReflectmmError(f"finetune: BatchNorm needs batches of at least 2 images (train split: {n} "
+                                 f"images, batch size {self.B})")
+        self.steps_per_epoch = -(-n // self.B)
+        self.plan = [(1, e) for e in range(config.epochs1)] + [(2, e) for e in range(config.epochs2)]
+        self.phase = 1
+        self.opt = self._optimizer(1)
+        self.pos = (0, 0)  # (plan index, step within epoch)
+        self.global_step = 0
+        self.history: list[dict] = []
+        self.feat_cache: dict[str, object] = {}
+
+    # ------------------------------------------------------------------ optimiser / phases
+    def _optimizer(self, phase):
+        torch = self.torch
+        cfg = self.cfg
+        groups = [{"params": list(self.encoder.parameters()), "lr": cfg.lr1 if phase == 1 else cfg.lr2}]
+        if phase == 2:
+            groups.append({"params": self.params.parameters(), "lr": cfg.model_lr})
+        return torch.optim.Adam(groups, betas=tuple(cfg.betas))
+
+    def _enter_phase2(self):
+        from .render import ModelParams
+
+        if self.phase == 2:
+            return
+        cur = self.params
+        self.params = ModelParams(self.model, self.device, trainable=self.cfg.trainable, n_components=self.M)
+        assert cur is not None
+        self.phase = 2
+        self.opt = self._optimizer(2)
+
+    # ------------------------------------------------------------------ one batch
+    def _forward(self, idx, train: bool):
+        torch = self.torch
+        from . import losses as L
+        from .render import batch_gbuffer, lighting, scatter_pixels, shade_gbuffer
+
+        t0 = time.perf_counter()
+        b = self.shards.batch(idx)
+        gb = batch_gbuffer(b, self.device)
+        x = torch.as_tensor(b["images"], device=self.device).permute(0, 3, 1, 2).float() / 255.0
+        t1 = time.perf_counter()
+        beta, gamma, z = self.encoder(x)
+        sh = lighting(self.light, gamma[:, :self.NL] if self.NL else gamma, z)
+        d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb)
+        pred = d + s
+        cfg = self.cfg
+        terms = {"photo": L.photometric(pred, gb.target, gb.skin, cfg.photometric),
+                 "coef": L.coefficient_prior(beta, gamma), "light": L.light_monochrome(sh)}
+        weights = {"photo": cfg.w_photo, "coef": cfg.w_coef, "light": cfg.w_light}
+        if self.identity is not None and cfg.w_per > 0:
+            lin = torch.as_tensor(b["linear"], device=self.device)
+            img = scatter_pixels(pred, gb, background=lin)
+            lms = self.shards_landmarks(idx)
+            tf = self._target_features(idx, lin, lms)
+            terms["per"] = L.perceptual(self.identity.features(img, lms), tf)
+            weights["per"] = cfg.w_per
+        if self.phase == 2:
+            if cfg.model_reg == "l1":
+                cur = dict(zip(("albedo_mean", "albedo_basis", "weights_mean", "weights_basis"),
+                               self.params.effective()))
+                terms["upd"] = L.model_update_l1(cur, self.initial)
+                weights["upd"] = cfg.w_upd
+            else:
+                _, ab, _, wb = self.params.effective()
+                nrm, orth = L.basis_norm_ortho(ab, self.initial["albedo_basis"], wb, self.initial["weights_basis"],
+                                               self.params.sigma)
+                terms["norm"], terms["ortho"] = nrm, orth
+                weights["norm"], weights["ortho"] = cfg.w_upd, cfg.w_ortho
+        total = sum(weights[k] * v for k, v in terms.items())
+        return total, terms, t1 - t0
+
+    def shards_landmarks(self, idx):
+        lm = getattr(self.shards, "landmarks", None)
+        if lm is None:
+            return np.full((len(idx), 68, 2), np.nan)
+        return lm[np.asarray(idx)]
+
+    def _target_features(self, idx, lin, lms):
+        torch = self.torch
+        missing = [j for j, i in enumerate(idx) if str(self.shards.names[i]) not in self.feat_cache]
+        if missing:
+            with torch.no_grad():
+                f = self.identity.features(lin[missing], lms[missing])
+            for j, row in zip(missing, f):
+                self.feat_cache[str(self.shards.names[idx[j]])] = row
+        return torch.stack([self.feat_cache[str(self.shards.names[i])] for i in idx])
+
+    def _validate(self):
+        torch = self.torch
+        if len(self.val_idx) == 0:
+            return None
+        self.encoder.eval()
+        sums, n = {}, 0
+        with torch.no_grad():
+            for s0 in range(0, len(self.val_idx), self.B):
+                idx = self.val_idx[s0:s0 + self.B]
+                total, terms, _ = self._forward(idx, train=False)
+                for k, v in {"total": total, **terms}.items():
+                    sums[k] = sums.get(k, 0.0) + float(v) * len(idx)
+                n += len(idx)
+        self.encoder.train()
+        return {k: v / n for k, v in sums.items()}
+
+    # ------------------------------------------------------------------ checkpoints
+    @property
+    def ckpt_path(self) -> Path:
+        return self.workdir / CHECKPOINT_NAME
+
+    @property
+    def log_path(self) -> Path:
+        return self.workdir / LOG_NAME
+
+    def save_checkpoint(self):
+        from safetensors.torch import save
+
+        from reflectmm_cli.artifacts import atomic_write_bytes, canonical_json
+
+        tensors = {f"encoder/{k}": v.detach().cpu().contiguous() for k, v in self.encoder.state_dict().items()}
+        if self.phase == 2:
+            tensors.update({f"model/{k}": v.detach().cpu().contiguous()
+                            for k, v in self.params.named_parameters().items()})
+        sd = self.opt.state_dict()
+        for pi, st in sd["state"].items():
+            for k, v in st.items():
+                tensors[f"opt/{pi}/{k}"] = (v if self.torch.is_tensor(v) else self.torch.tensor(v)).detach().cpu()
+        meta = {"schema": CHECKPOINT_SCHEMA, "phase": self.phase, "plan_index": self.pos[0], "step": self.pos[1],
+                "global_step": self.global_step, "config": self.cfg.to_dict(),
+                "param_groups": [{k: v for k, v in g.items() if k != "params"} | {"params": g["params"]}
+                                 for g in sd["param_groups"]],
+                "data": [str(p) for p in self.shards.sources], "n_train": int(len(self.train_idx))}
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(self.ckpt_path, save(tensors, metadata={"__meta__": canonical_json(meta)}))
+
+    def load_checkpoint(self) -> bool:
+        """Restore the last checkpoint if there is one (returns False if none). Refuses a different config/data."""
+        from safetensors import safe_open
+
+        p = self.ckpt_path
+        if not p.is_file():
+            return False
+        try:
+            with safe_open(str(p), "pt") as f:
+                meta = json.loads(f.metadata()["__meta__"])
+                tensors = {k: f.get_tensor(k) for k in f.keys()}
+        except Exception as e:
+            raise ReflectmmError(f"unreadable checkpoint ({type(e).__name__}: {e}); delete it to start over", p) \
+                from None
+        if meta.get("schema") != CHECKPOINT_SCHEMA:
+            raise ReflectmmError(f"not a finetune checkpoint (schema {meta.get('schema')!r})", p)
+        if meta["config"] != self.cfg.to_dict():
+            diff = sorted(k for k in meta["config"] if meta["config"][k] != self.cfg.to_dict().get(k))
+            raise ReflectmmError(f"checkpoint was made with other settings ({', '.join(diff)}); use the same "
+                                 f"options or delete it", p)
+        if int(meta.get("n_train", -1)) != int(len(self.train_idx)):
+            raise ReflectmmError("checkpoint was made with other data (train split size differs)", p)
+        if meta["phase"] == 2:
+            self._enter_phase2()
+            for k, v in self.params.named_parameters().items():
+                with self.torch.no_grad():
+                    v.copy_(tensors[f"model/{k}"])
+        enc = {k[len("encoder/"):]: v for k, v in tensors.items() if k.startswith("encoder/")}
+        self.encoder.load_state_dict(enc)
+        state = {}
+        for k, v in tensors.items():
+            if k.startswith("opt/"):
+                _, pi, name = k.split("/", 2)
+                state.setdefault(int(pi), {})[name] = v
+        sd = self.opt.state_dict()
+        sd["state"] = state
+        sd["param_groups"] = [dict(g) for g in meta["param_groups"]]
+        for g in sd["param_groups"]:
+            if "betas" in g:
+                g["betas"] = tuple(g["betas"])
+        self.opt.load_state_dict(sd)
+        self.pos = (int(meta["plan_index"]), int(meta["step"]))
+        self.global_step = int(meta["global_step"])
+        # the log keeps what happened up to the checkpoint
+        if self.log_path.is_file():
+            lines = [ln for ln in self.log_path.read_text().splitlines() if ln.strip()]
+            kept = [ln for ln in lines if json.loads(ln)["global_step"] <= self.global_step]
+            self.history = [json.loads(ln) for ln in kept]
+            from reflectmm_cli.artifacts import atomic_write_text
+
+            atomic_write_text(self.log_path, "".join(ln + "\n" for ln in kept))
+        return True
+
+    def _append_log(self, rec):
+        self.history.append(rec)
+        with open(self.log_path, "a") as f:
+            f.write(json.dumps(rec, sort_keys=True) + "\n")
+
+    # ------------------------------------------------------------------ the loop
+    def run(self, stop_after: int | None = None) -> bool:
+        """Train from the current position to the end; ``stop_after`` global steps ends early (returns True)."""
+        torch = self.torch
+        from reflectmm_cli.progress import log as plog
+        import logging
+        import sys
+
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        if self.global_step == 0 and self.pos == (0, 0) and self.log_path.exists():
+            self.log_path.unlink()
+        self.encoder.train()
+        show = self.show_progress and plog.getEffectiveLevel() <= logging.INFO
+        total_steps = len(self.plan) * self.steps_per_epoch
+        while self.pos[0] < len(self.plan):
+            pi, k0 = self.pos
+            phase, ep = self.plan[pi]
+            if phase == 2:
+                self._enter_phase2()
+            rng = np.random.default_rng([self.cfg.seed, phase, ep])
+            perm = self.train_idx[rng.permutation(len(self.train_idx))]
+            t_epoch, n_img = time.perf_counter(), 0
+            for k in range(k0, self.steps_per_epoch):
+                idx = perm[k * self.B:(k + 1) * self.B]
+                if len(idx) < 2:  # a last batch of one image: BatchNorm needs 2, take the epoch's first too
+                    idx = np.concatenate([idx, perm[:1]])
+                ts = time.perf_counter()
+                total, terms, _ = self._forward(idx, train=True)
+                if not torch.isfinite(total):
+                    raise ReflectmmError(f"finetune: the loss became {float(total)} at step {self.global_step} "
+                                         f"(phase {phase}, epoch {ep}); lower the learning rate")
+                self.opt.zero_grad(set_to_none=True)
+                total.backward()
+                self.opt.step()
+                self.global_step += 1
+                self.pos = (pi, k + 1)
+                n_img += len(idx)
+                rec = {"type": "step", "phase": phase, "epoch": ep, "step": k, "global_step": self.global_step,
+                       "loss": float(total.detach()), **{k_: float(v.detach()) for k_, v in terms.items()}}
+                self._append_log(rec)
+                if show:
+                    ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
+                    sys.stderr.write(f"\rfinetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
+                                     f"[{self.global_step}/{total_steps}] loss {rec['loss']:.4g} "
+                                     + " ".join(f"{k_} {rec[k_]:.3g}" for k_ in terms)
+                                     + f" {ips:.1f} img/s ")
+                    sys.stderr.flush()
+                last = k + 1 == self.steps_per_epoch
+                if not last and self.global_step % self.cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+                if stop_after is not None and self.global_step >= stop_after and not last:
+                    return True
+            val = self._validate()
+            rec = {"type": "val", "phase": phase, "epoch": ep, "global_step": self.global_step,
+                   **({} if val is None else {f"val_{k_}": v for k_, v in val.items()})}
+            self._append_log(rec)
+            if show:
+                sys.stderr.write("\n")
+            el = time.perf_counter() - t_epoch
+            self.log(f"finetune: phase {phase} epoch {ep + 1}: {n_img / max(el, 1e-9):.1f} images/s"
+                     + ("" if val is None else f", validation loss {val['total']:.4g} (photometric "
+                                               f"{val['photo']:.4g})"))
+            self.pos = (pi + 1, 0)
+            self.save_checkpoint()
+            if stop_after is not None and self.global_step >= stop_after:
+                return True
+        return False
+
+
+def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: str | Path, *, device="cpu",
+             identity=None, init_weights=None, resume: bool = False, stop_after: int | None = None,
+             log: Callable[[str], None] | None = None, progress: bool = True,
+             threads: int | None = None) -> FinetuneResult:
+    """Library entry of ``finetune``.
+
+    Args:
+        shards: the data (:func:`reflectmm_cli.finetune.shards.load_shards`); "train" split trains, "val" validates.
+        model: initial :class:`~reflectmm_cli.model.pca.ReflectanceModel` with its per-vertex part.
+        light: :class:`~reflectmm_cli.shading.LightModel` (order = the shards' ``sh_order``).
+        config: :class:`FinetuneConfig`.
+        workdir: folder of the checkpoint and the JSONL log.
+        identity: an :class:`~reflectmm_cli.finetune.identity.IdentityNet` (L_per on) or None (L_per off).
+        init_weights: optional safetensors ImageNet trunk (torchvision key names).
+        resume: continue from ``workdir``'s checkpoint (an error if it was made with other settings);
+            without it an existing checkpoint is ignored and overwritten.
+        stop_after: stop after this many global steps (tests; simulates an interruption).
+        threads: torch CPU threads for the run (None: unchanged). Small images on a busy machine run fastest
+            with 1 (thread spin-waiting in tiny BatchNorm/conv calls costs more than it gains).
+    Returns:
+        :class:`FinetuneResult`.
+    """
+    from reflectmm_cli.threads import torch_threads
+
+    with torch_threads(threads):
+        tr = Trainer(shards, model, light, config, workdir, device=device, identity=identity,
+                     init_weights=init_weights, log=log, progress=progress)
+        if resume:
+            if tr.load_checkpoint():
+                (log or (lambda s: None))(f"finetune: resumed at global step {tr.global_step}")
+        stopped = tr.run(stop_after)
+    tr.encoder.eval()
+    return FinetuneResult(params=tr.params, encoder=tr.encoder, initial=tr.initial_np, history=tr.history,
+                          config=config, perceptual="off" if identity is None or config.w_per == 0 else
+                          f"{identity.name} ({identity.path.name})", z0=tr.z0, steps=tr.global_step,
+                          stopped_early=stopped, n_train=int(len(tr.train_idx)), n_val=int(len(tr.val_idx)))
