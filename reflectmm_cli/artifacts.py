@@ -527,6 +527,30 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
 
 
+#: File endings read as images by the in-the-wild verbs (``prepare-wild``, ``detect-landmarks``).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+
+def read_image_u8(path: str | Path) -> np.ndarray:
+    """Read a photograph / label image as RGB uint8 (H, W, 3) with OpenCV, values as stored (no linearisation).
+
+    16-bit files are scaled to 8 bits, grey images repeated to 3 channels, alpha dropped.  Raises
+    ReflectmmError naming the file when it is unreadable or not an image.
+    """
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ReflectmmError("cannot read image (unreadable or not an image)", path)
+    if img.dtype == np.uint16:
+        img = (img // 257).astype(np.uint8)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    if img.shape[2] == 4:
+        img = img[..., :3]
+    return np.ascontiguousarray(img[..., ::-1])
+
+
 def write_png(path: str | Path, image: np.ndarray) -> Path:
     """Write a display image (H×W or H×W×3/4, float in [0,1] or uint8) as an 8-bit PNG atomically."""
     import cv2

@@ -17,7 +17,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Face", "predictor_path", "detect_landmarks", "pick_face"]
+__all__ = ["Face", "predictor_path", "detect_landmarks", "pick_face", "detect_landmark_files"]
 
 _MISSING = ("landmark detection needs the optional extra: pip install 'reflectmm[landmarks]' "
             "(dlib-bin and face-recognition-models)")
@@ -84,3 +84,32 @@ def pick_face(faces: list[Face], index: int | None = None) -> Face | None:
     if not 0 <= i < len(faces):
         return None
     return faces[i]
+
+
+def detect_landmark_files(images, out_dir, *, face_index: int | None = None, upsample: int = 1,
+                          progress_fn=None) -> tuple[list[Path], list[str]]:
+    """Detect the face of each image file and write ``out_dir/<stem>.pts`` (68 iBUG points, pixel-centre
+    convention; read by ``preprocess-multipie`` and ``prepare-wild``).
+
+    Returns ``(written .pts paths, one-line errors)``: an unreadable image or one without the selected face is
+    an error naming the file, and the other images are still written.  A missing optional extra is raised at
+    once (it would fail every image).
+    """
+    from reflectmm_cli.artifacts import read_image_u8
+    from reflectmm_cli.landmarks import write_pts
+
+    _models()
+    written: list[Path] = []
+    errors: list[str] = []
+    for p in (progress_fn(images) if progress_fn else images):
+        p = Path(p)
+        try:
+            faces = detect_landmarks(read_image_u8(p), upsample=upsample)
+            f = pick_face(faces, face_index)
+            if f is None:
+                raise ReflectmmError("no face found" if not faces else
+                                     f"face index {face_index} but only {len(faces)} face(s) found", p)
+            written.append(write_pts(Path(out_dir) / f"{p.stem}.pts", f.landmarks))
+        except ReflectmmError as exc:
+            errors.append(str(exc).splitlines()[0])
+    return written, errors

@@ -7,6 +7,9 @@
   records → ``face_model.npz`` of the capture's dataset folder → ``<ws>/face_model.npz`` →
   ``<ws>/synth/face_model.npz`` → ``<ws>/synth-multipie/face_model.npz``.
 * Rig: ``rig.toml`` of the capture's dataset folder, else None (the packaged Multi-PIE rig).
+* In-the-wild images (:func:`find_wild_truth`, :func:`wild_face_model`): the ``synth wild`` folder of an
+  images folder is its parent when that holds ``manifest.npz``; the face model defaults to that folder's
+  ``face_model.npz``.
 * Ground truth (one rule — :func:`find_truth_dir`): ``truth/`` of the capture's dataset folder → ``<ws>/truth``
   → ``<ws>/synth/truth`` → ``<ws>/synth-multipie/truth``; per identity ``<dir>/<id>.npz``.
 
@@ -21,7 +24,7 @@ from typing import Any
 
 __all__ = ["default_workspace", "resolve_workspace", "stage_dir", "stage_output", "capture_root",
            "face_model_from_geometry", "find_face_model", "find_rig", "find_truth_dir", "find_truth",
-           "list_artifacts", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
+           "list_artifacts", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
 #: File name of a dataset's / workspace's face model.
 FACE_MODEL_NAME = "face_model.npz"
@@ -130,4 +133,21 @@ def find_truth(workspace: Path | None, identity: str, capture: Any = None) -> Pa
     d = find_truth_dir(workspace, capture)
     if d is not None and (d / f"{identity}.npz").is_file():
         return d / f"{identity}.npz"
+    return None
+
+
+def find_wild_truth(images: Path | None) -> Path | None:
+    """The ``synth wild`` folder an images folder belongs to: its parent if that holds ``manifest.npz``."""
+    if images is None:
+        return None
+    parent = Path(images).parent
+    return parent if (parent / "manifest.npz").is_file() else None
+
+
+def wild_face_model(face_model: Path | None, truth: Path | None) -> Path | None:
+    """The face model of ``prepare-wild``: the given one, else ``<synth wild folder>/face_model.npz``."""
+    if face_model is not None:
+        return Path(face_model)
+    if truth is not None and (Path(truth) / FACE_MODEL_NAME).is_file():
+        return Path(truth) / FACE_MODEL_NAME
     return None

@@ -1,4 +1,5 @@
-"""``reflectmm synth``: click wrappers of the ``synth-multipie`` and ``synth-envmaps`` stages (docs/synthetic.md)."""
+"""``reflectmm synth``: click wrappers of the ``synth-multipie``, ``synth-envmaps`` (docs/synthetic.md) and
+``synth-wild`` (docs/wild.md) stages."""
 
 from __future__ import annotations
 
@@ -6,9 +7,11 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import (emit, given_params, json_option, param_options, run_stage_cli,
-                                            workspace_option)
-from reflectmm_cli.stages import synth_envmaps, synth_multipie
+from reflectmm_cli.commands._common import (ParamType, emit, given_params, json_option, param_options,
+                                            run_stage_cli, workspace_option)
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages import prepare_wild, synth_envmaps, synth_multipie, synth_wild
+from reflectmm_cli.workspace import resolve_workspace
 
 
 @click.command("envmaps")
@@ -56,12 +59,49 @@ def multipie_cmd(out, face_model, rig, workspace, as_json, **kw):
     emit(paths, as_json)
 
 
+_SHARD_SIZE = next(p for p in prepare_wild.PARAMS if p.name == "shard_size")
+
+
+@click.command("wild")
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default <workspace>/synth-wild/).")
+@click.option("--face-model", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="face-model artifact (default: the procedural model, written to DIR/face_model.npz).")
+@param_options(synth_wild.PARAMS)
+@click.option("--shard-size", type=ParamType(_SHARD_SIZE), default=None,
+              help="Also write prepare-wild shards of this many images (geometry from the truth) to DIR/shards/.")
+@workspace_option
+@json_option
+def wild_cmd(out, face_model, shard_size, workspace, as_json, **kw):
+    """Render in-the-wild-like face images with ground truth for finetuning (docs/wild.md).
+
+    Writes DIR/images/NAME.png, DIR/landmarks/NAME.pts, DIR/truth/NAME.npz, DIR/identities/IDNNNNN.npz,
+    DIR/envmaps/, DIR/face_model.npz, DIR/manifest.npz (split by identity) and DIR/contact_sheet.png.
+    """
+    ws = resolve_workspace(workspace)
+    params = given_params(kw, synth_wild.PARAMS)
+    inputs = {"face_model": [face_model]} if face_model is not None else {}
+    paths = run_stage_cli(synth_wild.VERB, workspace=ws, params=params, inputs=inputs, output=out)
+    if shard_size:
+        folder = paths[0].parent
+        shards, failed = prepare_wild.run_shards(
+            ws, {"shard_size": shard_size, "from_truth": True, "aligned": True, "size": synth_wild.STAGE.resolve(params)["size"]},
+            {"images": [folder / "images"], "truth": [folder], "face_model": [folder / "face_model.npz"]},
+            folder / "shards")
+        paths += shards
+        if failed:
+            emit(paths, as_json)
+            raise ReflectmmError(failed[0])
+    emit(paths, as_json)
+
+
 @click.group("synth")
 def synth_group():
-    """The synthetic world: Multi-PIE-like captures with ground truth, HDR environment maps."""
+    """The synthetic world: Multi-PIE-like captures and in-the-wild images with ground truth, HDR maps."""
 
 
 synth_group.add_command(multipie_cmd)
 synth_group.add_command(envmaps_cmd)
+synth_group.add_command(wild_cmd)
 
 COMMANDS = [synth_group]

@@ -23,7 +23,7 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from reflectmm_cli.artifacts import META_KEY, check_schema, write_artifact
+from reflectmm_cli.artifacts import IMAGE_EXTENSIONS, META_KEY, check_schema, read_image_u8, write_artifact
 from reflectmm_cli.errors import ArtifactError, ReflectmmError
 from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
 
@@ -266,7 +266,6 @@ def _gather(sh: list[Shard], pairs: list[tuple[int, int]], keys) -> dict[str, np
 
 # --------------------------------------------------------------------------- prepare-wild
 
-_IMAGE_EXT = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 _LM_EXT = (".pts", ".txt", ".npy")
 
 
@@ -306,7 +305,7 @@ def list_wild_inputs(images_dir: str | Path, landmarks_dir: str | Path | None = 
     images_dir = Path(images_dir)
     if not images_dir.is_dir():
         raise ReflectmmError("images folder not found", images_dir)
-    files = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in _IMAGE_EXT and p.is_file())
+    files = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
     if not files:
         raise ReflectmmError("no images (png/jpg/bmp/tif/webp) in folder", images_dir)
     lm_dirs = [Path(landmarks_dir)] if landmarks_dir else [images_dir, images_dir.parent / "landmarks"]
@@ -328,21 +327,6 @@ def name_split(name: str, fractions=(0.9, 0.05, 0.05)) -> str:
     u = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2.0 ** 64
     f = np.cumsum(np.asarray(fractions, np.float64) / sum(fractions))
     return SPLITS[int(np.searchsorted(f, u, side="right"))] if u < f[-1] else SPLITS[-1]
-
-
-def _read_u8(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ReflectmmError("cannot read image (unreadable or not an image)", path)
-    if img.dtype == np.uint16:
-        img = (img // 257).astype(np.uint8)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, -1)
-    if img.shape[2] == 4:
-        img = img[..., :3]
-    return np.ascontiguousarray(img[..., ::-1])
 
 
 def _truth_for(truth_dir: Path, name: str):
@@ -390,7 +374,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
         try:
             if inp.landmarks is None:
                 raise ReflectmmError("no landmark file with the same name (.pts/.txt/.npy)", inp.image)
-            img = _read_u8(inp.image)
+            img = read_image_u8(inp.image)
             lm = read_landmarks(inp.landmarks)
             encoding = cfg.encoding
             tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
@@ -438,7 +422,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
             yx = gb["pix_yx"][gb["visible"]].astype(np.int64)
             vis_px[yx[:, 0], yx[:, 1]] = True
             if inp.mask is not None:
-                lab = _read_u8(inp.mask)[..., 0]
+                lab = read_image_u8(inp.mask)[..., 0]
                 lab_c = warp_to_crop(lab, A, S, interpolation="nearest")
                 skin = skin_mask_from_labels(lab_c) & vis_px
             elif tr is not None and cfg.from_truth:

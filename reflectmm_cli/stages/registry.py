@@ -18,6 +18,9 @@ from reflectmm_cli.stages.base import Stage, StageContext
 STAGE_MODULES: dict[str, str] = {
     "synth-multipie": "synth_multipie",
     "synth-envmaps": "synth_envmaps",
+    "synth-wild": "synth_wild",
+    "detect-landmarks": "detect_landmarks",
+    "prepare-wild": "prepare_wild",
     "face-model-create": "face_model_create",
     "face-model-import": "face_model_import",
     "preprocess-multipie": "preprocess_multipie",

@@ -35,7 +35,10 @@ ROUGHNESS_RANGE = (0.05, 0.9)   # GGX α: p=64 ↔ α≈0.17 and p=1 ↔ α≈0.
 
 @dataclass
 class WildConfig:
-    """Parameters of ``synth wild`` (recorded in every artifact's meta)."""
+    """Parameters of ``synth wild`` (recorded in every artifact's meta).
+
+    The defaults here are the only ones: the ``synth-wild`` stage (reflectmm_cli/stages/synth_wild.py) declares
+    its params with them and adds the ranges and choices that the command line and recipes validate."""
 
     count: int = 16
     seed: int = 0
@@ -57,19 +60,6 @@ class WildConfig:
     split: tuple = (0.8, 0.1, 0.1)   # train/val/test fractions of the identities
 
     def __post_init__(self) -> None:
-        if int(self.count) < 1:
-            raise ReflectmmError(f"--count must be ≥ 1, got {self.count}")
-        if not 32 <= int(self.size) <= 1024:
-            raise ReflectmmError(f"--size must be 32..1024, got {self.size}")
-        if not 0.0 <= float(self.occluder_fraction) <= 1.0:
-            raise ReflectmmError(f"--occluder-fraction must be in [0, 1], got {self.occluder_fraction}")
-        if self.encoding not in ENCODINGS:
-            raise ReflectmmError(f"--encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}")
-        for k in ("landmark_noise", "noise"):
-            if not float(getattr(self, k)) >= 0:
-                raise ReflectmmError(f"--{k.replace('_', '-')} must be ≥ 0")
-        if int(self.images_per_identity) < 1 or int(self.envmaps) < 1:
-            raise ReflectmmError("--images-per-identity and --envmaps must be ≥ 1")
         self.split = tuple(float(x) for x in self.split)
 
     def to_params(self) -> dict:

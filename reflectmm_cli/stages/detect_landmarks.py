@@ -1,0 +1,68 @@
+"""Stage ``detect-landmarks``: 68 iBUG landmarks with dlib (optional extra ``reflectmm[landmarks]``;
+docs/wild.md).
+
+Not per identity.  Input role ``images``: image files and/or folders (a folder gives its images, sorted).
+Output: ``<stem>.pts`` per image in the explicit output folder, else ``<workspace>/<stage_name>/``.  Images
+without a (selected) face are reported one line each, the others are written, and the run then fails.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import Param
+from reflectmm_cli.progress import log
+from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.synth_multipie import out_dir
+
+VERB = "detect-landmarks"
+
+PARAMS = (
+    Param("face_index", "int", None, range=(0, None),
+          help="Which face when several are found (0 = largest; default the largest)."),
+    Param("upsample", "int", 1, range=(0, 3), help="Detector upsampling (finds smaller faces, slower)."),
+)
+
+
+def image_files(ctx: StageContext) -> list[Path]:
+    """The ``images`` input: files as given, folders expanded to their images (sorted)."""
+    from reflectmm_cli.artifacts import IMAGE_EXTENSIONS
+
+    out: list[Path] = []
+    for p in ctx.input_list("images"):
+        if p.is_dir():
+            out += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
+        else:
+            out.append(p)
+    return out
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    return [out_dir(ctx) / f"{p.stem}.pts" for p in image_files(ctx)]
+
+
+def _files(ctx: StageContext) -> dict[str, list[Path]]:
+    return {"images": image_files(ctx)}
+
+
+def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.detection import detect_landmark_files
+    from reflectmm_cli.progress import progress
+
+    images = image_files(ctx)
+    if not images:
+        raise ReflectmmError(f"{VERB}: no images (png/jpg/bmp/tif/webp) in the input")
+    written, errors = detect_landmark_files(images, out_dir(ctx), face_index=ctx.params.get("face_index"),
+                                            upsample=ctx.params["upsample"],
+                                            progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
+    for e in errors:
+        log.error(f"{VERB}: {e}")
+    if errors:
+        raise ReflectmmError(f"{len(errors)} of {len(images)} image(s) without landmarks (listed above); "
+                             "the others were written")
+    return written
+
+
+STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, input_files=_files, params=PARAMS,
+              help="68-point iBUG landmarks with dlib")
