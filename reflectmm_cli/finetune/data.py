@@ -271,7 +271,10 @@ _LM_EXT = (".pts", ".txt", ".npy")
 
 @dataclass
 class PrepareConfig:
-    """Parameters of ``prepare-wild`` (recorded in the shard meta)."""
+    """Parameters of ``prepare-wild`` (recorded in the shard meta).
+
+    The defaults here are the only ones: the ``prepare-wild`` stage (reflectmm_cli/stages/prepare_wild.py)
+    declares its params with them and adds the ranges and choices that the command line and recipes validate."""
 
     size: int = 224
     aligned: bool = False           # images are already aligned S×S crops (landmarks in crop pixels)
@@ -282,6 +285,9 @@ class PrepareConfig:
     fit_landmark_iters: int = 200
     fit_photo_rounds: int = 1
     fit_photo_iters: int = 30
+
+    def __post_init__(self) -> None:
+        self.split_fractions = tuple(float(x) for x in self.split_fractions)
 
     def to_params(self) -> dict:
         d = dict(self.__dict__)

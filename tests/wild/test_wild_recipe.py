@@ -1,0 +1,101 @@
+"""The in-the-wild stages in a recipe: synth-wild → prepare-wild (foreach all found) through `reflectmm run`,
+a no-op rerun, recipe params validated exactly like the command line's options."""
+import json
+from dataclasses import fields
+
+import numpy as np
+import pytest
+
+from reflectmm_cli.finetune.data import PrepareConfig, open_shard
+from reflectmm_cli.stages import get_stage
+from reflectmm_cli.synth.wild import WildConfig
+
+TINY = ("count = 3, size = 48, images_per_identity = 1, envmaps = 1, envmap_width = 32, prefilter_width = 16, "
+        "uv_size = 16, face_vertices = 2000, ao_rays = 2, spec_rays = 2, occluder_fraction = 0.0")
+
+
+def _recipe(synth_params: str = TINY, prepare_params: str = "shard_size = 2, from_truth = true, size = 48") -> str:
+    return f"""schema = "reflectmm.recipe/1"
+[stages.synth-wild]
+params = {{ {synth_params} }}
+
+[stages.prepare-wild]
+foreach = "all found"
+inputs = {{ images = "@synth-wild.dir/images", truth = "@synth-wild.dir", face_model = "@synth-wild.outputs.face_model" }}
+params = {{ {prepare_params} }}
+"""
+
+
+def test_params_take_the_config_defaults_and_are_config_fields():
+    """One default per value: every declared param of synth-wild / prepare-wild is a field of the library
+    config with the same default (allow_skipped is the stage's own: it only decides the exit status)."""
+    for verb, cfg in (("synth-wild", WildConfig()), ("prepare-wild", PrepareConfig())):
+        names = {f.name for f in fields(cfg)}
+        for p in get_stage(verb).params:
+            if p.name == "allow_skipped":
+                assert not p.invalidates_cache
+                continue
+            assert p.name in names, (verb, p.name)
+            d = getattr(cfg, p.name)
+            assert p.default == (list(d) if isinstance(d, tuple) else d), (verb, p.name)
+    # the resolved defaults build the default config
+    from reflectmm_cli.stages.prepare_wild import prepare_config
+    from reflectmm_cli.stages.synth_wild import wild_config
+    assert wild_config(get_stage("synth-wild").resolve({})) == WildConfig()
+    assert prepare_config(get_stage("prepare-wild").resolve({})) == PrepareConfig()
+
+
+def test_synth_wild_then_prepare_wild_recipe_runs_then_reruns_nothing(tmp_path, cli):
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "r.toml").write_text(_recipe())
+    res = cli("run", ws / "r.toml", "--workspace", ws, "--json")
+    assert res.exit_code == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert {(t["stage"], t["id"], t["status"]) for t in doc["tasks"]} == {
+        ("synth-wild", None, "ok"), ("prepare-wild", "shard_00000", "ok"), ("prepare-wild", "shard_00001", "ok")}
+    a, b = open_shard(ws / "prepare-wild" / "shard_00000.npz"), open_shard(ws / "prepare-wild" / "shard_00001.npz")
+    assert len(a) == 2 and len(b) == 1 and a.image_size == 48 and "truth_sh" in a
+    # a rerun executes nothing
+    res = cli("run", ws / "r.toml", "--workspace", ws, "--json")
+    assert res.exit_code == 0, res.stderr
+    assert {t["status"] for t in json.loads(res.stdout)["tasks"]} == {"skipped"}
+    # the command line with the same params gives the same key: the shard is recognised as up to date
+    res = cli("prepare-wild", "--images", ws / "synth-wild" / "images", "--shard-size", 2, "--from-truth",
+              "--size", 48, "--shard", "shard_00001", "--workspace", ws)
+    assert res.exit_code == 0, res.stderr
+    res = cli("run", ws / "r.toml", "--workspace", ws, "--json")
+    assert {t["status"] for t in json.loads(res.stdout)["tasks"]} == {"skipped"}
+    assert np.array_equal(open_shard(ws / "prepare-wild" / "shard_00001.npz")["image"], b["image"])
+    # one shard's image changed: only that shard reruns
+    img = ws / "synth-wild" / "images" / f"{b['names'][0]}.png"
+    img.write_bytes((ws / "synth-wild" / "images" / f"{a['names'][0]}.png").read_bytes())
+    res = cli("run", ws / "r.toml", "--workspace", ws, "--dry-run", "--json")
+    assert {(t["id"], t["status"]) for t in json.loads(res.stdout)["tasks"]} == {
+        (None, "skip"), ("shard_00000", "skip"), ("shard_00001", "run")}
+
+
+@pytest.mark.parametrize("synth, prepare, msg", [
+    (TINY.replace("size = 48", "size = 2.5"), "shard_size = 2", "[stages.synth-wild] params: size: 2.5 is not an integer"),
+    (TINY.replace("size = 48", "size = 8"), "shard_size = 2", "size: 8 is below the minimum 32"),
+    (TINY + ", encoding = 'jpeg'", "shard_size = 2", "encoding: 'jpeg' is not one of gamma1.2, srgb"),
+    (TINY.replace("occluder_fraction = 0.0", "occluder_fraction = 1.5"), "shard_size = 2", "occluder_fraction: 1.5 is above the maximum 1"),
+    (TINY, "shard_sise = 2", "[stages.prepare-wild] params: unknown param 'shard_sise' (did you mean 'shard_size'?)"),
+    (TINY, "shard_size = 0", "shard_size: 0 is below the minimum 1"),
+    (TINY, "from_truth = 'maybe'", "from_truth: 'maybe' is not true or false"),
+])
+def test_bad_recipe_params_are_one_line_errors(tmp_path, cli, synth, prepare, msg):
+    (tmp_path / "r.toml").write_text(_recipe(synth, prepare))
+    res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path)
+    assert res.exit_code == 1
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("reflectmm: error: ") and msg in lines[0], res.stderr
+    assert not (tmp_path / "synth-wild").exists()
+
+
+def test_the_command_line_refuses_the_same_values(tmp_path, cli):
+    res = cli("synth", "wild", "--size", "2.5", "--out", tmp_path / "w")
+    assert res.exit_code == 1 and "--size: 2.5 is not an integer" in res.stderr
+    res = cli("synth", "wild", "--envmap-width", "33", "--out", tmp_path / "w")
+    assert res.exit_code == 1 and "--envmap-width: 33 is not even" in res.stderr
+    assert not (tmp_path / "w").exists()
