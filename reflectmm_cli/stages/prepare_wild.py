@@ -22,16 +22,12 @@ from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
 from reflectmm_cli.stages.synth_multipie import out_dir
+from reflectmm_cli.stages.synth_wild import check_split_fractions
 from reflectmm_cli.workspace import find_wild_truth, wild_face_model
 
 VERB = "prepare-wild"
 
 _D = PrepareConfig()
-
-
-def _fractions(v: list[float]) -> None:
-    if len(v) != 3 or sum(v) <= 0:
-        raise ValueError(f"{v} is not three train/val/test fractions with a positive sum")
 
 
 PARAMS = (
@@ -42,7 +38,7 @@ PARAMS = (
     Param("encoding", "str", _D.encoding, choices=ENCODINGS,
           help="Encoding of real images (synth wild records its own)."),
     Param("shard_size", "int", _D.shard_size, range=(1, 1_000_000), help="Images per shard."),
-    Param("split_fractions", "floats", list(_D.split_fractions), range=(0.0, None), check=_fractions, option="",
+    Param("split_fractions", "floats", list(_D.split_fractions), range=(0.0, None), check=check_split_fractions, option="",
           help="Train/val/test fractions of the split by name hash, when no synth-wild manifest gives it "
                "(recipe only)."),
     Param("fit_landmark_iters", "int", _D.fit_landmark_iters, range=(0, 100000),

@@ -24,7 +24,8 @@ VERB = "synth-wild"
 _D = WildConfig()
 
 
-def _fractions(v: list[float]) -> None:
+def check_split_fractions(v: list[float]) -> None:
+    """A train/val/test split: three non-negative fractions (the range does the sign) with a positive sum."""
     if len(v) != 3 or sum(v) <= 0:
         raise ValueError(f"{v} is not three train/val/test fractions with a positive sum")
 
@@ -57,7 +58,7 @@ PARAMS = (
     Param("expression_per_identity", "bool", _D.expression_per_identity, option="--no-expression-per-identity",
           help="One expression per identity (geometry and occlusion computed once per identity); "
                "--no-expression-per-identity draws one per image."),
-    Param("split", "floats", list(_D.split), range=(0.0, None), check=_fractions, option="",
+    Param("split", "floats", list(_D.split), range=(0.0, None), check=check_split_fractions, option="",
           help="Train/val/test fractions of the identities (recipe only)."),
 )
 
