@@ -145,15 +145,14 @@ def _loader(path: Path, copies: int, tmp: Path, epochs: int = 5):
 def _detection(out: Path, cfg):
     import numpy as np
 
-    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.artifacts import read_artifact, read_image_u8
     from reflectmm_cli.detection import detect_landmarks, pick_face
-    from reflectmm_cli.finetune.data import _read_u8
 
     man = read_artifact(out / "manifest.npz", "wild-manifest")
     rows = {}
     for n, pose in zip(man["names"].tolist(), man["pose_deg"]):
         tr = read_artifact(out / "truth" / f"{n}.npz", "wild-truth")
-        f = pick_face(detect_landmarks(_read_u8(out / "images" / f"{n}.png")))
+        f = pick_face(detect_landmarks(read_image_u8(out / "images" / f"{n}.png")))
         b = "0-15" if abs(pose[0]) < 15 else "15-30" if abs(pose[0]) < 30 else "30-50"
         r = rows.setdefault(b, {"n": 0, "hit": 0, "err": []})
         r["n"] += 1
