@@ -99,3 +99,18 @@ def test_the_command_line_refuses_the_same_values(tmp_path, cli):
     res = cli("synth", "wild", "--envmap-width", "33", "--out", tmp_path / "w")
     assert res.exit_code == 1 and "--envmap-width: 33 is not even" in res.stderr
     assert not (tmp_path / "w").exists()
+
+
+def test_the_recipes_in_the_wild_docs_parse_and_their_params_resolve():
+    import re
+    from pathlib import Path
+
+    from reflectmm_cli.recipes import parse_recipe_text
+
+    doc = Path(__file__).resolve().parents[2] / "docs" / "wild.md"
+    blocks = [b for b in re.findall(r"```toml\n(.*?)```", doc.read_text(), re.S) if "schema" in b]
+    assert blocks
+    for text in blocks:
+        recipe = parse_recipe_text(text, doc)
+        for spec in recipe.stages.values():
+            get_stage(spec.verb).resolve(spec.params)
