@@ -114,3 +114,25 @@ def test_the_recipes_in_the_wild_docs_parse_and_their_params_resolve():
         recipe = parse_recipe_text(text, doc)
         for spec in recipe.stages.values():
             get_stage(spec.verb).resolve(spec.params)
+
+
+def test_detect_landmarks_is_a_recipe_stage_over_a_folder(tmp_path, cli):
+    pytest.importorskip("dlib")
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+    from reflectmm_cli.landmarks import read_landmarks
+
+    write_png(tmp_path / "photos" / "astronaut.png", data.astronaut())
+    (tmp_path / "photos" / "notes.txt").write_text("not an image")
+    (tmp_path / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.detect-landmarks]\n'
+                                     'inputs = { images = "photos" }\nparams = { upsample = 1 }\n')
+    res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path, "--json")
+    assert res.exit_code == 0, res.stderr
+    assert json.loads(res.stdout)["outputs"] == [str(tmp_path / "detect-landmarks" / "astronaut.pts")]
+    assert read_landmarks(tmp_path / "detect-landmarks" / "astronaut.pts").shape == (68, 2)
+    res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path, "--json")
+    assert {t["status"] for t in json.loads(res.stdout)["tasks"]} == {"skipped"}
+    (tmp_path / "r.toml").write_text((tmp_path / "r.toml").read_text().replace("upsample = 1", "upsample = 4"))
+    res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path)
+    assert res.exit_code == 1 and "upsample: 4 is above the maximum 3" in res.stderr
