@@ -20,8 +20,9 @@ from typing import Callable
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_directional, ggx_specular_albedo
-from reflectmm_cli.synth.skin import LOBE_EXPONENTS, region_masks
+from reflectmm_cli.synth.skin import region_masks
 from reflectmm_cli.synth.wild_light import SplitMap, _hammersley, ggx_view_albedo, sample_ggx_h, split_map
 
 __all__ = ["WildConfig", "WildSkin", "head_pose_rotation", "sample_wild_skin", "WildScene", "sample_scene",
@@ -202,7 +203,7 @@ def sample_wild_skin(model, rng: np.random.Generator, uv_size: int = 256, f0: fl
     return WildSkin(albedo=v_alb.astype(np.float32), roughness=v_rough.astype(np.float32),
                     spec_intensity=v_rho.astype(np.float32),
                     spec_albedo=ggx_specular_albedo(v_rough, v_rho, f0).astype(np.float32),
-                    weights=fit_lobes_to_ggx(v_rough, v_rho, LOBE_EXPONENTS, f0).astype(np.float32),
+                    weights=fit_lobes_to_ggx(v_rough, v_rho, DEFAULT_EXPONENTS, f0).astype(np.float32),
                     skin=skin, params=params)
 
 
@@ -623,7 +624,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
                 "vertex_weights": sk.weights, "vertex_skin": sk.skin, "shape": sc.shape.astype(np.float32)},
                 params=params, producer=prod, cache_key=cache_key,
                 extra_meta={"content": "identity", "identity": sc.identity, "skin_params": sk.params,
-                            "exponents": list(LOBE_EXPONENTS), "split": str(splits[sc.identity])})
+                            "exponents": list(DEFAULT_EXPONENTS), "split": str(splits[sc.identity])})
         sk = skins[sc.identity]
         stats["identity_s"] = stats.get("identity_s", 0) + time.perf_counter() - t_sk
         env = envs[sc.envmap]
