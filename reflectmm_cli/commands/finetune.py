@@ -10,15 +10,9 @@ from reflectmm_cli.commands._common import (device_option, emit, given_params, j
                                             param_options, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.finetune import PARAMS, VERB
-from reflectmm_cli.workspace import find_face_model, list_artifacts, resolve_workspace, stage_output
+from reflectmm_cli.workspace import default_input, find_face_model, list_artifacts, resolve_workspace
 
 _FILE = click.Path(dir_okay=False, path_type=Path)
-
-
-def _default(path: Path, option: str) -> Path:
-    if not path.is_file():
-        raise ReflectmmError(f"{option}: not given and {path} does not exist")
-    return path
 
 
 @click.command(VERB)
@@ -51,8 +45,8 @@ def finetune_cmd(model, light_model, data, face_model, identity_weights, init_we
     data = list(data) or list_artifacts(ws, "prepare-wild")
     if not data:
         raise ReflectmmError(f"--data: not given and no shards in {ws / 'prepare-wild'}")
-    inputs = {"model": [model or _default(stage_output(ws, "build-pca"), "--model")],
-              "light_model": [light_model or _default(stage_output(ws, "build-light-pca"), "--light-model")],
+    inputs = {"model": [model or default_input(ws, "build-pca", "--model")],
+              "light_model": [light_model or default_input(ws, "build-light-pca", "--light-model")],
               "data": data}
     face_model = face_model or find_face_model(ws, geometry=data[0] if Path(data[0]).is_file() else None)
     for role, p in (("face_model", face_model), ("identity_weights", identity_weights),

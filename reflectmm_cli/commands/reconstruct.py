@@ -10,16 +10,10 @@ from reflectmm_cli.commands._common import (device_option, emit, given_params, j
                                             param_options, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.reconstruct import PARAMS, VERB
-from reflectmm_cli.workspace import find_face_model, resolve_workspace, stage_output
+from reflectmm_cli.workspace import default_input, find_face_model, resolve_workspace
 
 _FILE = click.Path(dir_okay=False, path_type=Path)
 _DIR = click.Path(file_okay=False, path_type=Path)
-
-
-def _default(path: Path, option: str) -> Path:
-    if not path.is_file():
-        raise ReflectmmError(f"{option}: not given and {path} does not exist")
-    return path
 
 
 @click.command(VERB)
@@ -50,10 +44,10 @@ def reconstruct_cmd(encoder, model, light_model, data, images, landmarks, masks,
     ws = resolve_workspace(workspace)
     if bool(data) == (images is not None):
         raise click.UsageError("give either --data SHARD... or --images DIR")
-    inputs = {"encoder": [encoder or _default(stage_output(ws, "finetune", "finetune_encoder", ".safetensors"),
-                                              "--encoder")],
-              "model": [model or _default(stage_output(ws, "finetune"), "--model")],
-              "light_model": [light_model or _default(stage_output(ws, "build-light-pca"), "--light-model")]}
+    inputs = {"encoder": [encoder or default_input(ws, "finetune", "--encoder", "finetune_encoder",
+                                                   ".safetensors")],
+              "model": [model or default_input(ws, "finetune", "--model")],
+              "light_model": [light_model or default_input(ws, "build-light-pca", "--light-model")]}
     if images is not None:
         inputs["images"] = [images]
         fm = face_model or find_face_model(ws)
