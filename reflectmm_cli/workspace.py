@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["default_workspace", "resolve_workspace", "stage_dir", "stage_output", "capture_root",
+__all__ = ["default_workspace", "resolve_workspace", "stage_dir", "stage_output", "default_input", "capture_root",
            "face_model_from_geometry", "find_face_model", "find_rig", "find_truth_dir", "find_truth",
            "list_artifacts", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
@@ -52,6 +52,17 @@ def stage_dir(workspace: Path, stage: str) -> Path:
 def stage_output(workspace: Path, stage: str, name: str | None = None, suffix: str = ".npz") -> Path:
     """``<workspace>/<stage>/<name><suffix>`` (name = the identity, or the stage name for an aggregate)."""
     return stage_dir(workspace, stage) / f"{name if name is not None else stage}{suffix}"
+
+
+def default_input(workspace: Path, stage: str, option: str, name: str | None = None, suffix: str = ".npz") -> Path:
+    """:func:`stage_output` of an upstream stage used as a verb's default input; a one-line error naming the
+    option when that file does not exist."""
+    from reflectmm_cli.errors import ReflectmmError
+
+    path = stage_output(workspace, stage, name, suffix)
+    if not path.is_file():
+        raise ReflectmmError(f"{option}: not given and {path} does not exist")
+    return path
 
 
 def list_artifacts(workspace: Path, stage: str) -> list[Path]:

@@ -1,54 +1,66 @@
-"""``reflectmm reconstruct``: β, γ, z and renders per image with a trained encoder (thin layer over
-:func:`reflectmm_cli.finetune.stage.run_reconstruct`)."""
+"""``reflectmm reconstruct``: click wrapper of the ``reconstruct`` stage (reflectmm_cli/stages/reconstruct.py)."""
+
 from __future__ import annotations
 
 from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import device_option, emit, json_option, output_option, run_stage_cli, \
-    workspace_option
-from reflectmm_cli.stages import StageContext, register_stage
+from reflectmm_cli.commands._common import (device_option, emit, given_params, json_option, output_option,
+                                            param_options, run_stage_cli, workspace_option)
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages.reconstruct import PARAMS, VERB
+from reflectmm_cli.workspace import default_input, find_face_model, resolve_workspace
+
+_FILE = click.Path(dir_okay=False, path_type=Path)
+_DIR = click.Path(file_okay=False, path_type=Path)
 
 
-def _outputs(ctx: StageContext) -> list[Path]:
-    out = ctx.output_path()
-    return [out.with_suffix(".png"), out]
-
-
-@register_stage("reconstruct", version=1, per_identity=False, outputs=_outputs, cache_params=("split", "batch_size"),
-                help="reconstruct images with a trained encoder (coefficients, layers, lobe-weight maps)")
-def run_reconstruct_stage(ctx: StageContext) -> list[Path]:
-    from reflectmm_cli.finetune.stage import run_reconstruct
-
-    out = ctx.output_path()
-    return run_reconstruct(ctx.input("encoder"), ctx.input("model"), ctx.input("light_model"), ctx.input_list("data"),
-                           out, split=ctx.param("split"), device=ctx.device,
-                           batch_size=int(ctx.param("batch_size", 8)), inputs=ctx.input_refs(out.parent),
-                           params={"split": ctx.param("split")}, producer=ctx.producer(), cache_key=ctx.cache_key)
-
-
-@click.command("reconstruct")
-@click.option("--encoder", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="Encoder safetensors written by finetune.")
-@click.option("--model", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="reflectance-model artifact (e.g. the finetuned one).")
-@click.option("--light-model", required=True, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--data", multiple=True, required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="wild-shard artifact (repeatable).")
-@click.option("--split", type=click.Choice(["train", "val", "test"]), default=None,
-              help="Only the images of this split (default: all).")
-@click.option("--batch-size", type=int, default=8, show_default=True)
+@click.command(VERB)
+@click.option("--encoder", type=_FILE, default=None,
+              help="Encoder safetensors written by finetune (default: <ws>/finetune/finetune_encoder.safetensors).")
+@click.option("--model", type=_FILE, default=None,
+              help="reflectance-model artifact (default: the finetuned one, <ws>/finetune/finetune.npz).")
+@click.option("--light-model", type=_FILE, default=None,
+              help="light-model artifact (default: <ws>/build-light-pca/build-light-pca.npz).")
+@click.option("--data", multiple=True, type=click.Path(path_type=Path),
+              help="wild-shard artifact or folder of them (repeatable).")
+@click.option("--images", type=_DIR, default=None,
+              help="A folder of photos instead of shards: aligned, fitted and G-buffered in memory (prepare-wild).")
+@click.option("--landmarks", type=_DIR, default=None,
+              help="--images: folder of <stem>.pts/.txt/.npy (default: the images folder, then ../landmarks).")
+@click.option("--masks", type=_DIR, default=None, help="--images: CelebAMask-HQ label images <stem>.png.")
+@click.option("--face-model", type=_FILE, default=None,
+              help="--images: the face model of the reflectance model's vertices (default: the workspace's).")
+@param_options(PARAMS)
 @device_option
 @workspace_option
 @output_option
 @json_option
-def reconstruct_cmd(encoder, model, light_model, data, split, batch_size, device, workspace, output, as_json):
+def reconstruct_cmd(encoder, model, light_model, data, images, landmarks, masks, face_model, device, workspace,
+                    output, as_json, **kw):
     """Reconstruct images: writes a `reconstruction` artifact (<ws>/reconstruct/reconstruct.npz or --output) with
     β, γ, z, SH lighting and full/diffuse/specular/albedo/lobe-weight layers, plus a PNG (one row per image)."""
-    inputs = {"encoder": [encoder], "model": [model], "light_model": [light_model], "data": list(data)}
-    out = run_stage_cli("reconstruct", workspace=workspace, params={"split": split, "batch_size": batch_size},
-                        inputs=inputs, output=output, device=device)
+    ws = resolve_workspace(workspace)
+    if bool(data) == (images is not None):
+        raise click.UsageError("give either --data SHARD... or --images DIR")
+    inputs = {"encoder": [encoder or default_input(ws, "finetune", "--encoder", "finetune_encoder",
+                                                   ".safetensors")],
+              "model": [model or default_input(ws, "finetune", "--model")],
+              "light_model": [light_model or default_input(ws, "build-light-pca", "--light-model")]}
+    if images is not None:
+        inputs["images"] = [images]
+        fm = face_model or find_face_model(ws)
+        if fm is None:
+            raise ReflectmmError("--images needs --face-model (no face model found in the workspace)")
+        inputs["face_model"] = [fm]
+        for role, p in (("landmarks", landmarks), ("masks", masks)):
+            if p is not None:
+                inputs[role] = [p]
+    else:
+        inputs["data"] = list(data)
+    out = run_stage_cli(VERB, workspace=ws, params=given_params(kw, PARAMS), inputs=inputs, output=output,
+                        device=device)
     emit(out, as_json)
 
 

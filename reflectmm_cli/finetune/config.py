@@ -11,12 +11,24 @@ from typing import Any, Mapping
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["FinetuneConfig", "ARCHS", "PHOTOMETRIC", "MODEL_REG", "TRAINABLE"]
+__all__ = ["FinetuneConfig", "ARCHS", "PHOTOMETRIC", "MODEL_REG", "TRAINABLE", "VARIANTS", "RELEASED"]
 
 ARCHS = ("resnet18", "resnet34", "resnet50")
 PHOTOMETRIC = ("l1", "l2norm")  # L1 over RGB (paper) | per-pixel Euclidean norm over RGB (released code)
 MODEL_REG = ("l1", "norm_ortho")  # L1 to the initial model (paper) | basis norm + orthogonality (released code)
 TRAINABLE = ("all", "albedo")  # mean + bases of diffuse and lobe weights | see docs (released code)
+VARIANTS = ("paper", "released")
+
+
+#: The released training code's values where they differ from the paper's (:meth:`FinetuneConfig.released`).
+RELEASED = dict(photometric="l2norm", w_photo=1.92, trainable="albedo", epochs2=5, lr2=1e-4, model_lr=1e-5,
+                model_reg="norm_ortho", w_upd=10.0, w_ortho=10.0, variant="released")
+
+
+def _f(default, help: str, *, range=None, choices=None, option=None):
+    """A config field with its declaration in the metadata (help, range, choices, command-line option).  The
+    stage's parameter declaration (reflectmm_cli/stages/finetune.py) is generated from these fields."""
+    return field(default=default, metadata={"help": help, "range": range, "choices": choices, "option": option})
 
 
 @dataclass(frozen=True)
@@ -31,32 +43,39 @@ class FinetuneConfig:
     """
 
     # architecture
-    arch: str = "resnet50"
-    width: int = 64  # channels of the first ResNet stage (64 = the standard networks)
+    arch: str = _f("resnet50", "Encoder architecture.", choices=ARCHS)
+    width: int = _f(64, "Channels of the first ResNet stage (64 = the standard networks).", range=(1, 1024))
     # losses
-    photometric: str = "l1"
-    w_photo: float = 2.0
-    w_per: float = 0.1
-    w_coef: float = 0.001
-    w_upd: float = 10.0
-    w_light: float = 10.0
-    w_ortho: float = 10.0
-    model_reg: str = "l1"
-    trainable: str = "all"
+    photometric: str = _f("l1", "Photometric term: L1 over RGB (paper) or the per-pixel RGB norm (released code).",
+                          choices=PHOTOMETRIC)
+    w_photo: float = _f(2.0, "Photometric weight.")
+    w_per: float = _f(0.1, "Perceptual (identity-feature) weight; the term is off without --identity-weights.")
+    w_coef: float = _f(0.001, "Coefficient-prior weight.")
+    w_upd: float = _f(10.0, "Model-update weight (phase 2).")
+    w_light: float = _f(10.0, "Monochrome-light weight.")
+    w_ortho: float = _f(10.0, "Diffuse-orthogonality weight (model_reg norm_ortho only).")
+    model_reg: str = _f("l1", "Model regulariser: L1 to the initial model (paper) or basis norm + orthogonality "
+                        "(released code).", choices=MODEL_REG)
+    trainable: str = _f("all", "Trainable model parts in phase 2: all means and bases, or the diffuse parts and "
+                        "the specular albedo only (released code).", choices=TRAINABLE)
     # schedule
-    epochs1: int = 20
-    lr1: float = 1e-4
-    epochs2: int = 2
-    lr2: float = 1e-5
-    model_lr: float = 1e-5
-    batch_size: int = 8
-    betas: tuple[float, float] = (0.9, 0.999)
-    seed: int = 0
+    epochs1: int = _f(20, "Phase-1 epochs (encoder only, the model frozen).", range=(0, None))
+    lr1: float = _f(1e-4, "Phase-1 learning rate.")
+    epochs2: int = _f(2, "Phase-2 epochs (encoder + model); 0 = phase 1 only, the model is not updated.",
+                      range=(0, None))
+    lr2: float = _f(1e-5, "Phase-2 encoder learning rate.")
+    model_lr: float = _f(1e-5, "Phase-2 model learning rate.")
+    batch_size: int = _f(8, "Images per step.", range=(1, None))
+    betas: tuple[float, float] = _f((0.9, 0.999), "Adam betas (two numbers).", range=(0.0, 1.0))
+    seed: int = _f(0, "Seed (encoder initialisation and batch order).", range=(0, None))
     # bookkeeping
-    checkpoint_every: int = 500  # steps between checkpoints (also one at each epoch end)
-    n_reflectance: int | None = None  # N_R (None: all components of the model)
-    n_light: int | None = None  # N_L (None: all components of the light model)
-    variant: str = "paper"
+    checkpoint_every: int = _f(500, "Steps between checkpoints (also one at each epoch end).", range=(1, None))
+    n_reflectance: int | None = _f(None, "N_R, reflectance coefficients predicted (default: all of the model).",
+                                   range=(1, None), option="--components")
+    n_light: int | None = _f(None, "N_L, light coefficients predicted (default: all of the light model).",
+                             range=(1, None), option="--light-components")
+    variant: str = _f("paper", "Defaults of the paper or of the released training code (docs/finetune.md).",
+                      choices=VARIANTS)
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
@@ -85,8 +104,7 @@ class FinetuneConfig:
         term at 1.92, only the diffuse and specular-albedo parts trainable, 5 joint epochs with the encoder at
         lr 1e-4 and the model at 1e-5, basis-norm + diffuse-orthogonality terms (10 each) instead of the L1 to the
         initial model, batch 16 in phase 1 and 8 in phase 2 (one batch size here: 8)."""
-        base = dict(photometric="l2norm", w_photo=1.92, trainable="albedo", epochs2=5, lr2=1e-4, model_lr=1e-5,
-                    model_reg="norm_ortho", w_upd=10.0, w_ortho=10.0, variant="released")
+        base = dict(RELEASED)
         base.update(overrides)
         return cls(**base)
 

@@ -165,11 +165,13 @@ class Shard:
             raise ArtifactError("shard file not found", self.path)
         if not zipfile.is_zipfile(self.path):
             raise ArtifactError("not an NPZ artifact (not a zip archive)", self.path)
-        self._offsets = _member_offsets(self.path)
-        if META_KEY not in self._offsets:
-            raise ArtifactError("not a reflectmm artifact (no __meta__ entry)", self.path)
-        self.meta = json.loads(str(np.asarray(_npy_memmap(self.path, self._offsets[META_KEY][0])).reshape(-1)[0]))
+        with zipfile.ZipFile(self.path) as zf:  # the kind first: another artifact is named as such
+            if META_KEY + ".npy" not in zf.namelist():
+                raise ArtifactError("not a reflectmm artifact (no __meta__ entry)", self.path)
+            with zf.open(META_KEY + ".npy") as f:
+                self.meta = json.loads(str(np.lib.format.read_array(f, allow_pickle=False).reshape(-1)[0]))
         check_schema(self.meta, SHARD_KIND, self.path)
+        self._offsets = _member_offsets(self.path)
         self._cache: dict[str, np.ndarray] = {}
 
     @property

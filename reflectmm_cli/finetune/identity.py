@@ -9,8 +9,9 @@ insightface's ``backbone.pth`` with ``safetensors.torch.save_file(torch.load(p),
 (reported as such in the log and the model's meta), never replaced by something else.
 
 Crop: the shards' aligned 224² crops (Deep3DFaceRecon alignment) are warped to ArcFace's 112² five-point template
-by the similarity that maps the five points taken from the 68 landmarks (eye centres, nose tip, mouth corners)
-onto the template (least squares), then resampled bilinearly (differentiable w.r.t. the image).
+by the similarity that maps the five points of the 68 landmarks (eye centres, nose tip, mouth corners: the one
+:func:`reflectmm_cli.finetune.align.five_points` that prepare-wild's alignment uses) onto the template (least
+squares), then resampled bilinearly (differentiable w.r.t. the image).
 """
 from __future__ import annotations
 
@@ -21,20 +22,15 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["IdentityNet", "build_iresnet", "load_identity_net", "five_points", "ARCFACE_TEMPLATE"]
+from .align import five_points
+
+__all__ = ["IdentityNet", "build_iresnet", "load_identity_net", "ARCFACE_TEMPLATE"]
 
 #: ArcFace's 112×112 five-point template (left eye, right eye, nose tip, left / right mouth corner), pixels.
 ARCFACE_TEMPLATE = np.array([[38.2946, 51.6963], [73.5318, 51.5014], [56.0252, 71.7366], [41.5493, 92.3655],
                              [70.7299, 92.2041]])
 _DEPTHS = {(2, 2, 2, 2): "iresnet18", (3, 4, 6, 3): "iresnet34", (3, 4, 14, 3): "iresnet50",
            (3, 13, 30, 3): "iresnet100"}
-
-
-def five_points(landmarks68: np.ndarray) -> np.ndarray:
-    """(…, 68, 2) → (…, 5, 2): eye centres (mean of 36–41, 42–47), nose tip (30), mouth corners (48, 54)."""
-    lm = np.asarray(landmarks68, np.float64)
-    return np.stack([lm[..., 36:42, :].mean(-2), lm[..., 42:48, :].mean(-2), lm[..., 30, :], lm[..., 48, :],
-                     lm[..., 54, :]], -2)
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -10,7 +10,8 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Reconstruction", "reconstruct", "write_reconstruction", "RECONSTRUCTION_KIND", "reconstruction_png"]
+__all__ = ["Reconstruction", "reconstruct", "write_reconstruction", "RECONSTRUCTION_KIND", "reconstruction_png",
+           "shards_from_images"]
 
 RECONSTRUCTION_KIND = "reconstruction"
 
@@ -83,15 +84,41 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
                           encoding=shards.encoding[idx], **cat)
 
 
+def shards_from_images(images_dir, face_model, config=None, *, landmarks_dir=None, masks_dir=None,
+                       progress_fn=None):
+    """In-memory G-buffers of raw photos, for :func:`reconstruct`: prepare-wild's library (alignment to the
+    Deep3DFaceRecon crop, single-image geometry fit, G-buffer, skin mask —
+    :func:`reflectmm_cli.finetune.data.prepare_wild_images`) without writing a shard.
+
+    Args:
+        images_dir: folder of images; landmarks ``<stem>.pts|.txt|.npy`` in ``landmarks_dir`` (default: the images
+            folder, then a sibling ``landmarks/``); optional CelebAMask-HQ label images in ``masks_dir``.
+        face_model: the :class:`~reflectmm_cli.geometry.face_model.FaceModel` the reflectance model's vertices
+            belong to; config: :class:`~reflectmm_cli.finetune.data.PrepareConfig` (crop size, ``aligned``,
+            ``encoding``, fit iterations).
+    Returns:
+        ``(ShardSet, errors)``: the images that could be prepared, and one line per skipped image (naming its file).
+    """
+    from .data import PrepareConfig, list_wild_inputs, prepare_wild_images
+    from .shards import shardset_from_arrays
+
+    cfg = config or PrepareConfig()
+    inputs = list_wild_inputs(images_dir, landmarks_dir, masks_dir)
+    arrays, _, errors = prepare_wild_images(inputs, face_model, cfg, progress_fn=progress_fn)
+    if not arrays:
+        raise ReflectmmError(f"reconstruct: no image of {images_dir} could be prepared ({errors[0]})")
+    return shardset_from_arrays(arrays, encoding=cfg.encoding), errors
+
+
 def reconstruction_png(rec: Reconstruction, i: int) -> np.ndarray:
     """One row for image i (paper Fig. 4 style): input | reconstruction | diffuse | specular | albedo |
     lobe weights ×3 (RGB = lobes 1, 2, 3) — sRGB display, grey background outside the face."""
     from reflectmm_cli.model.preview import BG, linear_to_srgb
 
-    from .shards import linearise
+    from .data import linearize
 
     m = rec.face_mask[i][..., None]
-    inp = linear_to_srgb(linearise(rec.image[i], str(rec.encoding[i])))
+    inp = linear_to_srgb(linearize(rec.image[i], str(rec.encoding[i])))
     w = rec.weights[i]
     wv = w[..., :3] if w.shape[-1] >= 3 else np.repeat(w.sum(-1, keepdims=True), 3, -1)
     cells = [inp, np.where(m, linear_to_srgb(rec.full[i]), inp)]
@@ -101,7 +128,7 @@ def reconstruction_png(rec: Reconstruction, i: int) -> np.ndarray:
 
 
 def write_reconstruction(rec: Reconstruction, out: Path, *, png_rows: int = 16, inputs=None, params=None,
-                         producer=None, cache_key=None) -> list[Path]:
+                         producer=None, cache_key=None, extra_meta=None) -> list[Path]:
     """The ``reconstruction`` artifact (all arrays, float16 images) and a PNG of the first ``png_rows`` images."""
     from reflectmm_cli.artifacts import write_artifact, write_png
 
@@ -114,5 +141,5 @@ def write_reconstruction(rec: Reconstruction, out: Path, *, png_rows: int = 16, 
     write_png(png, np.concatenate([reconstruction_png(rec, i) for i in range(n)], 0))
     write_artifact(out, RECONSTRUCTION_KIND, arrays, params=params or {}, inputs=inputs or [], producer=producer,
                    cache_key=cache_key, extra_meta={"columns_png": ["input", "reconstruction", "diffuse", "specular",
-                                                                    "albedo", "lobe weights x3"]})
+                                                                    "albedo", "lobe weights x3"], **(extra_meta or {})})
     return [png, out]

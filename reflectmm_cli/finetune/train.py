@@ -21,7 +21,7 @@ from reflectmm_cli.errors import ReflectmmError
 from .config import FinetuneConfig
 from .shards import ShardSet
 
-__all__ = ["FinetuneResult", "finetune", "check_inputs", "Trainer", "CHECKPOINT_NAME", "LOG_NAME"]
+__all__ = ["FinetuneResult", "finetune", "check_inputs", "load_models", "Trainer", "CHECKPOINT_NAME", "LOG_NAME"]
 
 CHECKPOINT_NAME = "checkpoint.safetensors"
 LOG_NAME = "log.jsonl"
@@ -53,6 +53,18 @@ class FinetuneResult:
     n_train: int = 0
     n_val: int = 0
     stats: dict = field(default_factory=dict)
+
+
+def load_models(model_path, light_path):
+    """(ReflectanceModel, LightModel) from a ``reflectance-model`` and a ``light-model`` artifact."""
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.model.light import LIGHT_MODEL_KIND, light_model_from_arrays
+    from reflectmm_cli.model.pca import MODEL_KIND, model_from_arrays
+
+    art = read_artifact(model_path, MODEL_KIND)
+    model = model_from_arrays(art.arrays, art.meta.get("stats"))
+    light = light_model_from_arrays(read_artifact(light_path, LIGHT_MODEL_KIND).arrays)
+    return model, light
 
 
 def check_inputs(shards: ShardSet, model, light) -> None:

@@ -142,6 +142,8 @@ class Stage:
         open_params: undeclared params are accepted as given (and key the cache) instead of refused.
         cache_params: for a stage without a declaration, the names of the params that key the cache (None: all
             but :data:`NON_INVALIDATING`); a declared stage says it per param (``invalidates_cache``).
+        complete: ``complete(resolved) -> resolved`` fills the defaults that depend on another param (e.g. a
+            preset such as finetune's ``variant``) after the declaration's own; its result keys the cache.
         help: one-line description.
     """
 
@@ -155,6 +157,7 @@ class Stage:
     params: tuple[Param, ...] | None = None
     open_params: bool = False
     cache_params: tuple[str, ...] | None = None
+    complete: Callable[[dict[str, Any]], dict[str, Any]] | None = None
     help: str = ""
 
     def resolve(self, given: Mapping[str, Any] | None, strict: bool = True) -> dict[str, Any]:
@@ -170,6 +173,8 @@ class Stage:
         out = resolve_params(self.params, {k: v for k, v in given.items() if k not in extra}, strict=strict,
                              ignore=NON_INVALIDATING)
         out.update({k: v for k, v in extra.items() if v is not None})
+        if self.complete is not None:
+            out = self.complete(out)
         return dict(sorted(out.items()))
 
     def expected_outputs(self, ctx: StageContext) -> list[Path]:

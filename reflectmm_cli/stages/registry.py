@@ -30,6 +30,8 @@ STAGE_MODULES: dict[str, str] = {
     "build-pca": "build_pca",
     "build-light-pca": "build_light_pca",
     "render": "render",
+    "finetune": "finetune",
+    "reconstruct": "reconstruct",
     "evaluate-truth": "evaluate_truth",
     "evaluate-representation": "evaluate_representation",
     "evaluate-report": "evaluate_report",

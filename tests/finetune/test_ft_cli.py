@@ -125,3 +125,19 @@ def test_reconstruct_with_known_coefficients_matches_truth_layers(data):
     np.testing.assert_allclose(rec.diffuse[0], ss.truth["truth_diffuse"][0].astype(np.float32), atol=2e-3)
     np.testing.assert_allclose(rec.specular[0], ss.truth["truth_specular"][0].astype(np.float32), atol=2e-3)
     assert rec.albedo[0][~ss.face_mask[0]].max() == 0
+
+
+def test_phase1_only_leaves_the_written_model_unchanged(cli, data, tmp_path):
+    """--epochs2 0 (a baseline encoder on the initial model): every array of the written model, per-vertex and UV,
+    equals the initial model's."""
+    out = tmp_path / "p1.npz"
+    args = [a for a in TINY]
+    args[args.index("--epochs2") + 1] = "0"
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *args)
+    assert r.exit_code == 0, r.stderr
+    got, init = read_artifact(out, "reflectance-model"), read_artifact(data["init_path"], "reflectance-model")
+    assert got.meta["params"]["epochs2"] == 0 and got.meta["finetune"]["steps"] == 2
+    assert set(got.arrays) == set(init.arrays)
+    for k in init.arrays:
+        assert np.array_equal(got[k], init[k]), k

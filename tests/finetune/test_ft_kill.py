@@ -30,7 +30,7 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path):
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from reflectmm_cli.finetune.config import FinetuneConfig
         from reflectmm_cli.finetune.shards import load_shards
-        from reflectmm_cli.finetune.stage import load_models
+        from reflectmm_cli.finetune.train import load_models
         from reflectmm_cli.finetune.train import finetune
         m, l = load_models({str(d['truth_path'])!r}, {str(d['light_path'])!r})
         finetune(load_shards([{str(d['shards'][0])!r}]), m, l, FinetuneConfig(**{CFG!r}), {str(tmp_path / 'b')!r},
@@ -57,7 +57,7 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path):
     assert proc.poll() is None, "training finished before it could be killed"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    from reflectmm_cli.finetune.stage import load_models
+    from reflectmm_cli.finetune.train import load_models
 
     m, l = load_models(d["truth_path"], d["light_path"])
     ss = load_shards(d["shards"])

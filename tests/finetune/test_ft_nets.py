@@ -6,7 +6,8 @@ from safetensors.torch import save_file
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.encoder import build_encoder, load_encoder, load_trunk, save_encoder
-from reflectmm_cli.finetune.identity import ARCFACE_TEMPLATE, _similarity, build_iresnet, five_points, \
+from reflectmm_cli.finetune.align import five_points
+from reflectmm_cli.finetune.identity import ARCFACE_TEMPLATE, _similarity, build_iresnet, \
     load_identity_net
 
 

@@ -1,0 +1,155 @@
+"""Stage ``finetune``: update-by-reconstruction of the reflectance model on in-the-wild shards (DESIGN.md §7,
+docs/finetune.md).
+
+Inputs (roles): ``model`` the initial ``reflectance-model`` (build-pca, with its per-vertex part), ``light_model``
+(build-light-pca), ``data`` the ``wild-shard`` files (or folders of them), optional ``face_model`` (previews and
+the UV-map update; default: the one the shards record, :func:`reflectmm_cli.workspace.find_face_model`),
+optional ``identity_weights`` (ArcFace safetensors; L_per is off without it) and ``init_weights`` (an ImageNet
+trunk for the encoder).
+
+Reads → :func:`reflectmm_cli.finetune.train.finetune` → :func:`reflectmm_cli.finetune.outputs.
+write_finetune_outputs`.  The parameters are generated from the fields of
+:class:`reflectmm_cli.finetune.config.FinetuneConfig` (name, type, default, range, choices and help from the field
+metadata): every weight, epoch count and learning rate is declared there once.  The fields whose default the
+released-code variant changes (:data:`~reflectmm_cli.finetune.config.RELEASED`) are declared without a default
+here and completed from ``variant`` (:func:`complete_params`) before the cache key is computed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.finetune.config import RELEASED, FinetuneConfig
+from reflectmm_cli.params import Param
+from reflectmm_cli.progress import log
+from reflectmm_cli.stages.base import Stage, StageContext
+
+VERB = "finetune"
+
+#: FinetuneConfig annotation → Param kind.
+_KINDS = {"int": "int", "float": "float", "str": "str", "int | None": "int", "tuple[float, float]": "floats"}
+
+
+def _two(v: list) -> None:
+    if len(v) != 2:
+        raise ValueError(f"expected two numbers, got {len(v)}")
+
+
+def config_params() -> tuple[Param, ...]:
+    """One :class:`Param` per :class:`FinetuneConfig` field (``extra`` excepted), from the field metadata."""
+    out = []
+    for f in dataclasses.fields(FinetuneConfig):
+        if f.name == "extra":
+            continue
+        md = f.metadata
+        kind = _KINDS[str(f.type)]
+        rng = md.get("range")
+        if rng is None and kind == "float":
+            rng = (0.0, None)
+        default = list(f.default) if isinstance(f.default, tuple) else f.default
+        help_ = md["help"]
+        if f.name in RELEASED and f.name != "variant":
+            fmt = lambda v: f"{v:g}" if isinstance(v, float) else str(v)  # noqa: E731
+            help_ += f"  [default: {fmt(default)}; --variant released: {fmt(RELEASED[f.name])}]"
+            default = None
+        out.append(Param(f.name, kind, default, range=rng, choices=md.get("choices"), help=help_,
+                         option=md.get("option"), check=_two if f.name == "betas" else None))
+    return tuple(out)
+
+
+CONFIG_KEYS = tuple(f.name for f in dataclasses.fields(FinetuneConfig) if f.name != "extra")
+
+PARAMS = config_params() + (
+    Param("samples", "int", 60, range=(0, 1000), help="Model samples in the before/after PNGs."),
+    Param("resume", "bool", False, invalidates_cache=False,
+          help="Continue from the checkpoint in <output stem>_work/ (refused if made with other settings)."),
+    Param("threads", "int", None, range=(1, 256), invalidates_cache=False,
+          help="torch CPU threads (default: torch's; 1 is fastest for tiny problems on a busy machine)."),
+)
+
+
+def config_from_params(params: dict[str, Any]) -> FinetuneConfig:
+    """The :class:`FinetuneConfig` of resolved params: ``variant`` chooses the preset, given values override it."""
+    given = {k: params[k] for k in CONFIG_KEYS if params.get(k) is not None and k != "variant"}
+    if "betas" in given:
+        given["betas"] = tuple(given["betas"])
+    if params.get("variant", "paper") == "released":
+        return FinetuneConfig.released(**given)
+    return FinetuneConfig(**given)
+
+
+def complete_params(params: dict[str, Any]) -> dict[str, Any]:
+    """Resolved params with every config field filled from the variant (what keys the cache and goes to meta)."""
+    full = config_from_params(params).to_dict()
+    full.pop("extra", None)
+    out = dict(params)
+    out.update({k: v for k, v in full.items() if v is not None})
+    return out
+
+
+def data_paths(paths: list[Path]) -> list[Path]:
+    """Shard files: the files given, and the ``*.npz`` of the folders given (sorted)."""
+    out: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        if p.is_dir():
+            found = sorted(q for q in p.glob("*.npz") if not q.name.startswith("."))
+            if not found:
+                raise ReflectmmError("no wild-shard .npz files in folder", p)
+            out += found
+        else:
+            out.append(p)
+    return out
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.finetune.outputs import output_paths
+
+    p = output_paths(ctx.output_path())
+    return [p["model"], p["encoder"], p["loss_png"]]
+
+
+def _one(ctx: StageContext, role: str) -> Path | None:
+    paths = ctx.input_list(role, required=False)
+    if len(paths) > 1:
+        raise ReflectmmError(f"stage '{ctx.stage_name}': input '{role}' given {len(paths)} times, expected once")
+    return paths[0] if paths else None
+
+
+def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.finetune.identity import load_identity_net
+    from reflectmm_cli.finetune.outputs import output_paths, write_finetune_outputs
+    from reflectmm_cli.finetune.shards import load_shards
+    from reflectmm_cli.finetune.train import finetune, load_models
+    from reflectmm_cli.geometry.face_model import load_face_model
+    from reflectmm_cli.workspace import find_face_model
+
+    p = ctx.params
+    cfg = config_from_params(p)
+    out = ctx.output_path()
+    model, light = load_models(ctx.input("model"), ctx.input("light_model"))
+    data = data_paths(ctx.input_list("data"))
+    shards = load_shards(data)
+    identity = None
+    weights = _one(ctx, "identity_weights")
+    if weights is not None:
+        identity = load_identity_net(weights, ctx.device)
+        log.info(f"finetune: perceptual loss on ({identity.name} from {weights.name})")
+    else:
+        log.info("finetune: perceptual loss off (no --identity-weights given)")
+    fm_path = _one(ctx, "face_model") or find_face_model(ctx.workspace, geometry=data[0])
+    face_model = load_face_model(fm_path) if fm_path is not None else None
+    res = finetune(shards, model, light, cfg, output_paths(out)["workdir"], device=ctx.device, identity=identity,
+                   init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")), log=log.info,
+                   threads=p.get("threads"))
+    return write_finetune_outputs(res, model, out, face_model=face_model, inputs=ctx.input_refs(out.parent),
+                                  params=ctx.resolved_params(), producer=ctx.producer(), cache_key=ctx.cache_key,
+                                  samples=p["samples"], seed=cfg.seed, log=log.info)
+
+
+STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
+              complete=complete_params,
+              help="finetune the reflectance model on in-the-wild shards (update-by-reconstruction)")
