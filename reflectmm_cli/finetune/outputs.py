@@ -155,6 +155,7 @@ def output_paths(out: Path) -> dict:
     out = Path(out)
     s = out.stem
     return {"model": out, "encoder": out.with_name(s + "_encoder.safetensors"),
+            "encoder_phase1": out.with_name(s + "_encoder_phase1.safetensors"),
             "log": out.with_name(s + "_work") / "log.jsonl", "workdir": out.with_name(s + "_work"),
             "loss_png": out.with_name(s + "_loss.png"), "samples_before": out.with_name(s + "_samples_before.png"),
             "samples_after": out.with_name(s + "_samples_after.png"),
@@ -184,6 +185,11 @@ def write_finetune_outputs(result, initial, out: Path, *, face_model=None, input
     enc_meta = {"config": result.config.to_dict(), "perceptual": result.perceptual, "steps": result.steps,
                 "inputs": inputs or [], "producer": producer or {}}
     written.append(save_encoder(result.encoder, paths["encoder"], enc_meta))
+    if result.phase1_encoder is not None and result.config.epochs2 > 0:
+        # the encoder of the "without finetuning" method: phase 1 only, on the initial (frozen) model
+        from reflectmm_cli.artifacts import atomic_write_bytes
+
+        written.append(atomic_write_bytes(paths["encoder_phase1"], Path(result.phase1_encoder).read_bytes()))
     write_png(paths["loss_png"], loss_curves_png(result.history))
     written.append(paths["loss_png"])
     if face_model is not None:

@@ -53,6 +53,7 @@ class FinetuneResult:
     n_train: int = 0
     n_val: int = 0
     stats: dict = field(default_factory=dict)
+    phase1_encoder: Path | None = None
 
 
 def load_models(model_path, light_path):
@@ -231,6 +232,19 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     @property
+    def phase1_encoder_path(self) -> Path:
+        return self.workdir / "encoder_phase1.safetensors"
+
+    def save_phase1_encoder(self) -> Path:
+        """The encoder as phase 1 left it (model frozen): the "without finetuning" method of Table 2 is the initial
+        model with exactly this encoder, so it needs no second phase-1 training. Written atomically before phase 2
+        starts; a resumed phase 2 finds it in the work folder."""
+        from .encoder import save_encoder
+
+        return save_encoder(self.encoder, self.phase1_encoder_path,
+                            {"config": self.cfg.to_dict(), "phase": 1, "steps": self.global_step})
+
+    @property
     def ckpt_path(self) -> Path:
         return self.workdir / CHECKPOINT_NAME
 
@@ -381,6 +395,8 @@ class Trainer:
                                                f"{val['photo']:.4g})"))
             self.pos = (pi + 1, 0)
             self.save_checkpoint()
+            if phase == 1 and self.pos[0] < len(self.plan) and self.plan[self.pos[0]][0] == 2:
+                self.save_phase1_encoder()
             if stop_after is not None and self.global_step >= stop_after:
                 return True
         return False
@@ -421,4 +437,5 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
     return FinetuneResult(params=tr.params, encoder=tr.encoder, initial=tr.initial_np, history=tr.history,
                           config=config, perceptual="off" if identity is None or config.w_per == 0 else
                           f"{identity.name} ({identity.path.name})", z0=tr.z0, steps=tr.global_step,
-                          stopped_early=stopped, n_train=int(len(tr.train_idx)), n_val=int(len(tr.val_idx)))
+                          stopped_early=stopped, n_train=int(len(tr.train_idx)), n_val=int(len(tr.val_idx)),
+                          phase1_encoder=tr.phase1_encoder_path if tr.phase1_encoder_path.is_file() else None)

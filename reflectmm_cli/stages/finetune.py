@@ -109,7 +109,8 @@ def _outputs(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.finetune.outputs import output_paths
 
     p = output_paths(ctx.output_path())
-    return [p["model"], p["encoder"], p["loss_png"]]
+    phase1 = [p["encoder_phase1"]] if ctx.params.get("epochs2", 0) > 0 else []
+    return [p["model"], p["encoder"]] + phase1 + [p["loss_png"]]
 
 
 def _one(ctx: StageContext, role: str) -> Path | None:

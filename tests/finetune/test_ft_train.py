@@ -132,3 +132,24 @@ def test_released_variant_updates_lobe_weights_only_along_the_mean_ratio(data, t
         ds = dW.sum(-1, keepdims=True)  # the specular-albedo change
         np.testing.assert_allclose(dW, ds * rho, atol=1e-6)  # ... distributed by the fixed mean ratio
     assert np.abs(after["vertex_albedo_mean"] - init.vertex_albedo_mean).max() > 0
+
+
+def test_phase1_encoder_snapshot_equals_a_phase1_only_run(data, tmp_path):
+    # Table 2's "without finetuning" method reuses the phase-1 encoder of the finetuning run: it must be exactly
+    # the encoder a phase-1-only run (epochs2 = 0, same seed) trains, also after an interruption in phase 2
+    from reflectmm_cli.finetune.encoder import load_encoder
+
+    ss = load_shards(data["shards"])
+    only = finetune(ss, data["truth"], data["light"], FinetuneConfig(epochs1=2, epochs2=0, **TINY), tmp_path / "a",
+                    threads=1, progress=False)
+    assert only.phase1_encoder is None  # nothing follows phase 1: the final encoder is the phase-1 encoder
+    cfg = FinetuneConfig(epochs1=2, epochs2=1, checkpoint_every=2, **TINY)
+    finetune(ss, data["truth"], data["light"], cfg, tmp_path / "b", threads=1, progress=False, stop_after=7)
+    both = finetune(ss, data["truth"], data["light"], cfg, tmp_path / "b", threads=1, progress=False, resume=True)
+    assert both.phase1_encoder is not None and both.phase1_encoder.is_file()
+    snap, _ = load_encoder(both.phase1_encoder)
+    ref = only.encoder.state_dict()
+    for k, v in snap.state_dict().items():
+        assert torch.equal(v, ref[k]), k
+    fin = both.encoder.state_dict()
+    assert any(not torch.equal(v, fin[k]) for k, v in snap.state_dict().items())  # phase 2 moved the encoder
