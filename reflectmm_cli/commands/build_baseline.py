@@ -1,4 +1,5 @@
-"""``reflectmm build-baseline``: click wrapper of the ``build-baseline`` stage (reflectmm_cli/stages/build_baseline.py)."""
+"""``reflectmm build-baseline``: click wrapper of the ``build-baseline`` stage
+(reflectmm_cli/stages/build_baseline.py)."""
 
 from __future__ import annotations
 

@@ -218,8 +218,8 @@ def evaluate_albedo_cmd(ids, obs, truth, method_specs, workspace, output, as_jso
 @json_option
 def evaluate_relighting_cmd(identity, capture, geometry, face_model, light_model, observations, method_specs, device,
                             workspace, output, as_json, **kw):
-    """Relighting (the paper's Figure 7): reconstruct one image of a held-out identity (room light or one flash) with each method,
-    re-render under held-out flashes, PSNR / SSIM against the captured OLAT images.
+    """Relighting (the paper's Figure 7): reconstruct one image of a held-out identity (room light or one flash)
+    with each method, re-render under held-out flashes, PSNR / SSIM against the captured OLAT images.
 
     Writes an `evaluation` artifact (<ws>/evaluate-relighting/<id>.npz or --output), the table (.md) and the figure
     (.png) beside it.

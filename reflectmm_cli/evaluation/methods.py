@@ -13,7 +13,7 @@ inputs = { data = "@prepare-wild.output", light_model = "@build-light-pca.output
 params = { methods = ["diffuse-only", "albedomm", "initial", "finetuned"] }
 ```
 
-On the command line the same pairs are given as ``--method NAME MODEL [ENCODER]``.
+On the command line the same pairs are given as ``--method NAME MODEL ENCODER`` (ENCODER ``-``: none).
 
 Also here: :func:`command_line`, the ``reflectmm ...`` command that reproduces a stage's run (stored in each
 evaluation artifact so the report can print every number with the command that made it).
@@ -103,8 +103,8 @@ def methods_from_inputs(inputs: Mapping[str, Sequence[Path]], names: Sequence[st
 
 
 def method_inputs(specs: Sequence[Sequence[Any]]) -> tuple[dict[str, list[Path]], list[str]]:
-    """``--method NAME MODEL [ENCODER]`` values (tuples of 2 or 3 strings; an ENCODER of ``-`` or ``none``
-    means no encoder) → (inputs by role, method names in order)."""
+    """``--method NAME MODEL ENCODER`` values (tuples of 2 or 3 strings; an ENCODER of ``-`` or ``none`` means
+    no encoder) → (inputs by role, method names in order)."""
     inputs: dict[str, list[Path]] = {}
     names: list[str] = []
     for spec in specs:
@@ -138,7 +138,8 @@ def command_line(words: Sequence[str], params: Mapping[str, Any], inputs: Mappin
     ``["evaluate", "reconstruction"]``), every param as ``--name value``, the methods as ``--method NAME MODEL
     [ENCODER]`` and the other roles as their options (``role_options``: role → option; roles absent from it are
     left out), paths relative to the workspace. With the stage's ``declared`` params, values equal to the default
-    and recipe-only params are left out and each param uses its declared flag. Deterministic (sorted), no absolute paths of the workspace."""
+    and recipe-only params are left out and each param uses its declared flag. Deterministic (sorted), no
+    absolute paths of the workspace."""
     parts = ["reflectmm", *words]
     if identity is not None:
         parts += ["--id", identity]
@@ -147,15 +148,15 @@ def command_line(words: Sequence[str], params: Mapping[str, Any], inputs: Mappin
         if role in role_options:
             for p in inputs[role]:
                 parts += [role_options[role], _rel(p, workspace)]
-    names = list(params.get("methods") or sorted(r[len(MODEL_PREFIX):] for r in inputs if r.startswith(MODEL_PREFIX)))
+    names = list(params.get("methods")
+                 or sorted(r[len(MODEL_PREFIX):] for r in inputs if r.startswith(MODEL_PREFIX)))
     for n in names:
         m = inputs.get(MODEL_PREFIX + n)
         if not m:
             continue
         parts += ["--method", n, _rel(m[0], workspace)]
         e = inputs.get(ENCODER_PREFIX + n)
-        if e:
-            parts.append(_rel(e[0], workspace))
+        parts.append(_rel(e[0], workspace) if e else "-")
     decl = {d.name: d for d in (declared or ())}
     for k in sorted(params):
         if k in ("methods", *skip_params):

@@ -19,9 +19,9 @@ from reflectmm_cli.errors import ReflectmmError
 
 from .methods import Method
 
-__all__ = ["load_model", "identity_of", "truth_by_identity", "albedo_evaluation", "reconstruction_evaluation",
-           "input_crop", "relighting_evaluation", "ALBEDO_PROTOCOL", "RECONSTRUCTION_PROTOCOL",
-           "RELIGHTING_PROTOCOL"]
+__all__ = ["load_model", "identity_of", "truth_by_identity", "albedo_evaluation",
+           "reconstruction_evaluation", "input_crop", "relighting_evaluation", "ALBEDO_PROTOCOL",
+           "RECONSTRUCTION_PROTOCOL", "RELIGHTING_PROTOCOL"]
 
 ALBEDO_PROTOCOL = ("Each model's coefficients β fitted to the held-out identity's OLAT observations (all pairs; prior "
                    "λ·ȳ²·Σβ²); diffuse albedo PSNR (linear, peak 1) over model domain ∧ truth mask ∧ observed "

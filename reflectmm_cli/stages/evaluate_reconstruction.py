@@ -67,7 +67,8 @@ def run(ctx: StageContext) -> list[Path]:
     lp = load_lpips_safetensors(lw[0] if lw else None, p["lpips_net"])
     res = reconstruction_evaluation(methods, ctx.input_list("data"), ctx.input("light_model"), split=p["split"],
                                     region=p["region"], lpips=lp,
-                                    lpips_name=f"on ({p['lpips_net']})" if lp is not None else "off (no weights given)",
+                                    lpips_name=(f"on ({p['lpips_net']})" if lp is not None
+                                                else "off (no weights given)"),
                                     batch_size=int(p["batch_size"]), released_batch=int(p["released_batch"]),
                                     ci=p["ci"], figure_images=int(p["figure_images"]),
                                     max_images=int(p["max_images"]), gain=p["gain"], device=ctx.device,
