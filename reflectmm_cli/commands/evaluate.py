@@ -252,14 +252,16 @@ def evaluate_relighting_cmd(identity, capture, geometry, face_model, light_model
 @json_option
 def evaluate_report_cmd(truth_dir, out, workspace, as_json):
     """Closing report of a workspace: per-identity and mean errors against ground truth for every stage that has
-    outputs (geometry, reflectance, PCA, representation comparison), with the PNG previews linked."""
+    outputs (geometry, reflectance, PCA, Tables 1-3, relighting, finetuning samples), with the PNG previews linked,
+    each table with the command that made it, and the paper's numbers beside ours."""
     from reflectmm_cli.evaluation.report import discover_inputs
 
     ws = resolve_workspace(workspace)
     inputs = discover_inputs(ws, truth_dir)
     if not any(inputs.values()):
         raise ReflectmmError(f"evaluate report: nothing to report in {ws} (no fit-geometry/, fit-reflectance/, "
-                             "build-pca/ or evaluate-representation/ outputs)")
+                             "build-pca/, evaluate-representation/, evaluate-reconstruction/, evaluate-albedo/, "
+                             "evaluate-relighting/ or finetune/ outputs)")
     paths = run_stage_cli(evaluate_report.VERB, workspace=workspace, inputs={k: v for k, v in inputs.items() if v},
                           output=out)
     emit(paths, as_json)

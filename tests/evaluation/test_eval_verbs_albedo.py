@@ -127,6 +127,14 @@ def test_evaluate_albedo_cli(world, cli):
     md = out.with_suffix(".md").read_text()
     assert "| finetuned |" in md and "Command: `reflectmm evaluate albedo" in md
     assert "--method finetuned ours.npz -" in art.meta["command"] and "--input unwrap-uv/h0.npz" in art.meta["command"]
+    # the report's Table 3 section and the paper-vs-reflectmm row with the command that made it
+    r = cli("-q", "evaluate", "report", "-w", ws)
+    assert r.exit_code == 0, r.stderr
+    rep = (ws / "evaluate-report" / "evaluate-report.md").read_text()
+    assert "## Table 3: albedo of held-out identities" in rep and "Identities: h0, h1." in rep
+    d = art.meta["paper_numbers"]["table3.diffuse_psnr"]
+    assert f"| Table 3 | diffuse albedo PSNR (ours) | 20.13 dB | {d:.2f} dB | `reflectmm evaluate albedo" in rep
+    assert "| Table 2 | PSNR gain of ours over ours w/o finetuning | +0.95 dB | not run |" in rep
 
 
 def test_evaluate_albedo_bad_inputs(world, cli, tmp_path):

@@ -109,3 +109,36 @@ def test_evaluate_reconstruction_bad_inputs(data, cli, tmp_path):
     r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--gain", "a,a")
     assert r.exit_code == 1 and "--gain" in r.stderr
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_report_gains_table2_samples_and_paper_sections(data, cli, tmp_path):
+    """evaluate report shows Table 2 (with its command), the finetune samples and the paper-vs-ours row; the
+    sections are absent when their inputs are."""
+    import shutil
+
+    from reflectmm_cli.artifacts import write_png
+
+    ws = tmp_path / "ws"
+    r = cli("-q", "evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_oracle"], "-w", ws, "--figure-images", "1")
+    assert r.exit_code == 0, r.stderr
+    (ws / "finetune").mkdir()
+    shutil.copy(data["truth_path"], ws / "finetune" / "finetune.npz")
+    for w in ("before", "after"):
+        write_png(ws / "finetune" / f"finetune_samples_{w}.png", np.full((8, 8, 3), 0.5))
+    r = cli("-q", "evaluate", "report", "-w", ws)
+    assert r.exit_code == 0, r.stderr
+    md = (ws / "evaluate-report" / "evaluate-report.md").read_text()
+    assert "## Table 2: reconstruction" in md and "| finetuned |" in md
+    assert "![Table 2 figure](../evaluate-reconstruction/evaluate-reconstruction.png)" in md
+    assert "Made by (from the workspace root): `reflectmm evaluate reconstruction" in md
+    assert "../finetune/finetune_samples_before.png" in md and "../finetune/finetune_samples_after.png" in md
+    art = read_artifact(ws / "evaluate-reconstruction" / "evaluate-reconstruction.npz", "evaluation")
+    gain = art.meta["paper_numbers"]["table2.psnr_gain_finetune"]
+    assert f"| Table 2 | PSNR gain of ours over ours w/o finetuning | +0.95 dB | {gain:+.2f} dB |" in md
+    assert "| Table 3 | diffuse albedo PSNR (ours) | 20.13 dB | not run |" in md
+    assert "## Table 3" not in md and "## Relighting" not in md
+    rep = read_artifact(ws / "evaluate-report" / "evaluate-report.npz", "evaluation")
+    names = list(rep["names"])
+    assert rep["values"][names.index("paper_vs_reflectmm.table2.psnr_gain_finetune")] == pytest.approx(gain)

@@ -110,6 +110,12 @@ def test_evaluate_relighting_cli(world, cli):
     assert r.exit_code == 0, r.stderr
     a = read_artifact(t / "room.npz", "evaluation")
     assert a.meta["holdout"] == FLASHES and a.meta["summary"]["truth"]["psnr"] == 100.0
+    # the report's relighting section (one per identity); no paper table without Tables 2/3
+    r = cli("-q", "evaluate", "report", "-w", t)
+    assert r.exit_code == 0, r.stderr
+    rep = (t / "evaluate-report" / "evaluate-report.md").read_text()
+    assert "## Relighting (Fig. 7)" in rep and "### Identity 900: view 05_1, input 07" in rep
+    assert "![relighting 900](../evaluate-relighting/900.png)" in rep and "## Paper vs reflectmm" not in rep
 
 
 def test_input_crop_gbuffer_lines_up_with_the_aligned_image(world):
