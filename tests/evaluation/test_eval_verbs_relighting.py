@@ -40,20 +40,12 @@ def _model(albedo, weights, exponents, m=2, seed=0):
         vertex_weights_mean=weights.astype(np.float32), vertex_weights_basis=np.zeros((m, nv, K), np.float32))
 
 
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    import torch
-
-    from reflectmm_cli.finetune.encoder import build_encoder, save_encoder
+def _write_world(tmp, fm, albedo, weights):
+    """Capture (room + 3 OLAT of one view, cropped window), geometry and face model of one identity."""
     from reflectmm_cli.geometry.camera import project
 
-    tmp = tmp_path_factory.mktemp("relight")
-    fm = procedural_face_model(n_vertices=3000)
     v = fm.mean_shape.astype(np.float64)
     cam = look_at((60.0, 20.0, 650.0), (0.0, 10.0, 0.0), focal_px=260.0, width=150, height=160)
-    x = (v - v.min(0)) / np.ptp(v, 0)
-    albedo = np.stack([0.5 + 0.2 * x[:, 0], 0.35 + 0.1 * x[:, 1], 0.25 + 0.05 * x[:, 2]], 1)
-    weights = np.stack([0.02 + 0.01 * x[:, 1], 0.03 + 0.02 * x[:, 0], 0.01 * x[:, 2]], 1)
     scene = RayScene(v, fm.triangles)
     win = (slice(Y0, Y0 + H), slice(X0, X0 + W))
     olat = np.stack([render_point_light(scene, cam, albedo, weights, [1.0, 8.0, 64.0], p, i, shadows=True).image[win]
@@ -68,9 +60,26 @@ def world(tmp_path_factory):
     write_artifact(tmp / "capture.npz", "capture", capture, extra_meta={"identity": "900"})
     geometry = {"vertices": v.astype(np.float32), "view_names": np.array(["05_1"]), "K": cam.K[None],
                 "R": cam.R[None], "t": cam.t[None], "flash_ids": np.array(FLASHES), "flash_pos": POS,
-                "flash_intensity": INTENSITY, "image_size": np.array([150, 160], np.int32)}
+                "flash_intensity": INTENSITY, "image_size": np.array([150, 160], np.int32),
+                "cam_centers": cam.center[None]}
     write_artifact(tmp / "geometry.npz", "geometry", geometry, extra_meta={"identity": "900"})
     save_face_model(fm, tmp / "face_model.npz")
+    return cam, room, capture, geometry
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    import torch
+
+    from reflectmm_cli.finetune.encoder import build_encoder, save_encoder
+
+    tmp = tmp_path_factory.mktemp("relight")
+    fm = procedural_face_model(n_vertices=3000)
+    v = fm.mean_shape.astype(np.float64)
+    x = (v - v.min(0)) / np.ptp(v, 0)
+    albedo = np.stack([0.5 + 0.2 * x[:, 0], 0.35 + 0.1 * x[:, 1], 0.25 + 0.05 * x[:, 2]], 1)
+    weights = np.stack([0.02 + 0.01 * x[:, 1], 0.03 + 0.02 * x[:, 0], 0.01 * x[:, 2]], 1)
+    cam, room, capture, geometry = _write_world(tmp, fm, albedo, weights)
     light = small_light_model(order=2)
     write_artifact(tmp / "light.npz", LIGHT_MODEL_KIND, light_model_arrays(light))
     write_artifact(tmp / "truth_model.npz", MODEL_KIND, model_arrays(_model(albedo, weights, [1.0, 8.0, 64.0])))
@@ -152,3 +161,39 @@ def test_evaluate_relighting_bad_inputs(world, cli, tmp_path):
     r = cli(*_args(world, "--exposure", "0", *enc))
     assert r.exit_code == 1 and "--exposure" in r.stderr
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_encoder_free_fit_path_recovers_a_constant_albedo(tmp_path, cli):
+    """Without an encoder, β is fitted to the input flash's UV observations: a model whose mean albedo is 30 %
+    too dark along its one basis recovers the identity's constant albedo, so the relit held-out flashes match the
+    captures without any scale (--scale none)."""
+    from reflectmm_cli.observations.unwrap import unwrap_observations
+
+    fm = procedural_face_model(n_vertices=3000)
+    nv = fm.mean_shape.shape[0]
+    c, w = np.array([0.55, 0.4, 0.3]), np.array([0.02, 0.03, 0.01])
+    _, _, capture, geometry = _write_world(tmp_path, fm, np.tile(c, (nv, 1)), np.tile(w, (nv, 1)))
+    S = 32
+    obs, _ = unwrap_observations(capture, geometry, fm.triangles, fm.uv, uv_size=S)
+    write_artifact(tmp_path / "obs.npz", "uv-observations", obs, extra_meta={"identity": "900"})
+    b = np.ones((3, S, S)) * c[:, None, None]
+    sigma = 0.1 * np.linalg.norm(b)
+    model = ReflectanceModel(
+        albedo_mean=(0.7 * b).astype(np.float32), albedo_basis=(b / np.linalg.norm(b))[None].astype(np.float32),
+        weights_mean=(np.ones((3, S, S)) * w[:, None, None]).astype(np.float32),
+        weights_basis=np.zeros((1, 3, S, S), np.float32), sigma=np.array([sigma], np.float32),
+        explained_variance=np.array([sigma ** 2], np.float32), explained_variance_ratio=np.ones(1, np.float32),
+        exponents=np.array([1.0, 8.0, 64.0], np.float32), mask=np.ones((S, S), bool),
+        train_coeffs=np.zeros((2, 1), np.float32), ids=["a", "b"])
+    write_artifact(tmp_path / "uvmodel.npz", MODEL_KIND, model_arrays(model))
+    r = cli("-q", "evaluate", "relighting", "--id", "900", "--capture", tmp_path / "capture.npz", "--geometry",
+            tmp_path / "geometry.npz", "--face-model", tmp_path / "face_model.npz", "--observations",
+            tmp_path / "obs.npz", "--input", "07", "--scale", "none", "--prior", "0",
+            "--method", "model-fit", tmp_path / "uvmodel.npz", "-", "-w", tmp_path)
+    assert r.exit_code == 0, r.stderr
+    art = read_artifact(tmp_path / "evaluate-relighting" / "900.npz", "evaluation")
+    beta = art["values"][list(art["names"]).index("model-fit.beta[0]")]
+    # 0.3·‖b‖ = β·σ → β = 3 exactly for a perfect fit
+    assert beta == pytest.approx(3.0, rel=5e-3), beta
+    assert art.meta["coefficients_from"]["model-fit"] == "fit (no encoder)"
+    assert art.meta["summary"]["model-fit"]["psnr"] > 60
