@@ -92,6 +92,13 @@ def test_evaluate_reconstruction_cli(data, cli, tmp_path):
     assert read_image(out.with_suffix(".png")).shape[:2] == (4 * 34 + 2, 5 * 34 + 2)
     assert "--method initial" in art.meta["command"] and "--figure-images 2" in art.meta["command"]
     assert str(tmp_path) not in art.meta["command"]
+    # a rerun with nothing changed writes the same bytes
+    before = out.read_bytes()
+    r = cli("-q", "evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_oracle"], "--lpips-weights", lw,
+            "--figure-images", "2", "-w", tmp_path, "-o", out)
+    assert r.exit_code == 0 and out.read_bytes() == before
 
 
 def test_evaluate_reconstruction_bad_inputs(data, cli, tmp_path):

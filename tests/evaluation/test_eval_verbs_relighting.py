@@ -129,12 +129,13 @@ def test_evaluate_relighting_cli(world, cli):
 
 def test_input_crop_gbuffer_lines_up_with_the_aligned_image(world):
     """The crop's G-buffer (fitted geometry seen by the composed crop camera) covers the pixels where the warped
-    image shows the face."""
+    image shows the face — also with noisy landmarks (they move the crop, and the G-buffer moves with it)."""
     from reflectmm_cli.evaluation.tables import input_crop
 
     cap, geo = world["capture"], world["geometry"]
-    for size in (64, 96):
-        crop = input_crop(world["room"], cap["crop_origin"][0], cap["landmarks"][0], geo["K"][0], geo["R"][0],
+    noisy = cap["landmarks"][0] + np.random.default_rng(1).normal(0, 1.5, (68, 2))  # a detector's landmarks
+    for size, lm in ((64, cap["landmarks"][0]), (96, cap["landmarks"][0]), (64, noisy)):
+        crop = input_crop(world["room"], cap["crop_origin"][0], lm, geo["K"][0], geo["R"][0],
                           geo["t"][0], geo["vertices"], world["fm"], size=size, encoding="linear")
         face = crop["image"].max(-1) > 3
         gb = crop["gbuffer"]["face_mask"]
