@@ -20,6 +20,7 @@ from reflectmm_cli.progress import configure_logging
 
 #: The verbs: command name → module of reflectmm_cli.commands (the only place that imports them).
 COMMAND_MODULES: dict[str, str] = {
+    "build-baseline": "build_baseline",
     "build-light-pca": "build_light_pca",
     "build-pca": "build_pca",
     "checksum": "checksum",

@@ -9,11 +9,12 @@ from pathlib import Path
 import click
 
 from reflectmm_cli.artifacts import read_artifact
-from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options, parse_ids,
-                                            run_stage_cli, workspace_option)
+from reflectmm_cli.commands._common import (device_option, emit, given_params, json_option, output_option,
+                                            param_options, parse_ids, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
-from reflectmm_cli.stages import evaluate_report, evaluate_representation, evaluate_truth
+from reflectmm_cli.stages import (evaluate_albedo, evaluate_reconstruction, evaluate_relighting, evaluate_report,
+                                  evaluate_representation, evaluate_truth)
 from reflectmm_cli.workspace import (WORKSPACE_TRUTH_DIRS, find_face_model, find_truth_dir, resolve_workspace,
                                      stage_output)
 
@@ -103,6 +104,145 @@ def evaluate_representation_cmd(ids, inputs, lpips_weights, face_model, workspac
         emit(paths)
 
 
+def method_option(f):
+    return click.option("--method", "method_specs", multiple=True, type=str, nargs=3,
+                        metavar="NAME MODEL ENCODER",
+                        help="A method: its name, reflectance-model artifact and encoder safetensors ('-' = no "
+                             "encoder). Repeatable; table rows in this order.")(f)
+
+
+def _methods(specs) -> tuple[dict, list[str]]:
+    from reflectmm_cli.evaluation.methods import method_inputs
+
+    if not specs:
+        raise click.UsageError("give at least one --method NAME MODEL ENCODER")
+    return method_inputs(specs)
+
+
+def _emit_table(paths, as_json):
+    art = read_artifact(paths[0], EVAL_KIND)
+    if as_json:
+        emit(paths, True, {"summary": art.meta.get("summary"), "paper_numbers": art.meta.get("paper_numbers"),
+                           "command": art.meta.get("command")})
+    else:
+        click.echo(art.meta.get("table", ""))
+        emit(paths)
+
+
+@evaluate_group.command("reconstruction")
+@click.option("--data", multiple=True, required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="wild-shard artifact (repeatable).")
+@click.option("--light-model", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="light-model artifact the encoders were trained with.")
+@method_option
+@click.option("--lpips-weights", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="LPIPS weights (safetensors, docs/evaluation.md). Without them LPIPS is 'off'.")
+@param_options(evaluate_reconstruction.PARAMS)
+@device_option
+@workspace_option
+@output_option
+@json_option
+def evaluate_reconstruction_cmd(data, light_model, method_specs, lpips_weights, device, workspace, output, as_json,
+                                **kw):
+    """The paper's Table 2: each method's encoder reconstructs the test images of wild shards; face-region PSNR /
+    SSIM / LPIPS (mean ± 95 % CI and the released protocol) and per-vertex albedo / Σw errors against the truth.
+
+    Writes an `evaluation` artifact (<ws>/evaluate-reconstruction/evaluate-reconstruction.npz or --output), the
+    table (.md) and a side-by-side figure (.png) beside it; the table on stdout.
+    """
+    inputs, names = _methods(method_specs)
+    inputs.update(data=list(data), light_model=[light_model])
+    if lpips_weights is not None:
+        inputs["lpips_weights"] = [lpips_weights]
+    params = given_params(kw, evaluate_reconstruction.PARAMS)
+    params["methods"] = names
+    paths = run_stage_cli(evaluate_reconstruction.VERB, workspace=workspace, params=params, inputs=inputs,
+                          output=output, device=device)
+    _emit_table(paths, as_json)
+
+
+@evaluate_group.command("albedo")
+@click.option("--ids", default=None, help="Held-out identities: reads <ws>/unwrap-uv/<id>.npz (uv-observations).")
+@click.option("--input", "-i", "obs", multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="A held-out identity's uv-observations artifact (repeatable).")
+@click.option("--truth", "truth", multiple=True, type=click.Path(exists=True, path_type=Path),
+              help="synth-truth <id>.npz files or their folder (default: the workspace's truth folder).")
+@method_option
+@param_options(evaluate_albedo.PARAMS)
+@workspace_option
+@output_option
+@json_option
+def evaluate_albedo_cmd(ids, obs, truth, method_specs, workspace, output, as_json, **kw):
+    """The paper's Table 3: each model's coefficients fitted to held-out identities' OLAT observations; diffuse and
+    specular albedo PSNR / relative errors against the truth. Encoders are not used (give '-').
+
+    Writes an `evaluation` artifact (<ws>/evaluate-albedo/evaluate-albedo.npz or --output) and the table (.md).
+    """
+    ws = resolve_workspace(workspace)
+    files = [stage_output(ws, "unwrap-uv", i) for i in parse_ids(ids)] + list(obs)
+    if not files:
+        raise click.UsageError("give --ids or --input")
+    truths = list(truth)
+    if not truths:
+        td = find_truth_dir(ws)
+        if td is None:
+            raise ReflectmmError(f"no --truth given and no truth folder in {ws} (looked for "
+                                 f"{', '.join(d + '/' for d in WORKSPACE_TRUTH_DIRS)})")
+        truths = [td]
+    inputs, names = _methods(method_specs)
+    inputs = {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
+    inputs.update(observations=files, truth=truths)
+    params = given_params(kw, evaluate_albedo.PARAMS)
+    params["methods"] = names
+    paths = run_stage_cli(evaluate_albedo.VERB, workspace=workspace, params=params, inputs=inputs, output=output)
+    _emit_table(paths, as_json)
+
+
+@evaluate_group.command("relighting")
+@click.option("--id", "identity", required=True, help="The held-out identity (names the output).")
+@click.option("--capture", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="capture artifact (default <ws>/preprocess-multipie/<id>.npz).")
+@click.option("--geometry", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="geometry artifact (default <ws>/fit-geometry/<id>.npz).")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Face model (default: the workspace's).")
+@click.option("--light-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="light-model artifact the encoders were trained with (needed by methods with an encoder).")
+@click.option("--observations", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="The identity's uv-observations, for methods without an encoder (encoder-free fit).")
+@method_option
+@param_options(evaluate_relighting.PARAMS)
+@device_option
+@workspace_option
+@output_option
+@json_option
+def evaluate_relighting_cmd(identity, capture, geometry, face_model, light_model, observations, method_specs, device,
+                            workspace, output, as_json, **kw):
+    """Relighting (the paper's Figure 7): reconstruct one image of a held-out identity (room light or one flash)
+    with each method, re-render under held-out flashes, PSNR / SSIM against the captured OLAT images.
+
+    Writes an `evaluation` artifact (<ws>/evaluate-relighting/<id>.npz or --output), the table (.md) and the figure
+    (.png) beside it.
+    """
+    ws = resolve_workspace(workspace)
+    capture = capture or stage_output(ws, "preprocess-multipie", identity)
+    geometry = geometry or stage_output(ws, "fit-geometry", identity)
+    fm = face_model or find_face_model(ws, geometry=geometry if Path(geometry).is_file() else None)
+    if fm is None:
+        raise ReflectmmError(f"evaluate relighting: no --face-model given and none found in {ws}")
+    inputs, names = _methods(method_specs)
+    inputs.update(capture=[capture], geometry=[geometry], face_model=[fm])
+    if light_model is not None:
+        inputs["light_model"] = [light_model]
+    if observations is not None:
+        inputs["observations"] = [observations]
+    params = given_params(kw, evaluate_relighting.PARAMS)
+    params["methods"] = names
+    paths = run_stage_cli(evaluate_relighting.VERB, workspace=workspace, identity=identity, params=params,
+                          inputs=inputs, output=output, device=device)
+    _emit_table(paths, as_json)
+
+
 @evaluate_group.command("report")
 @click.option("--truth-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder of synth-truth <id>.npz (default <ws>/truth or <ws>/synth/truth).")
@@ -112,14 +252,16 @@ def evaluate_representation_cmd(ids, inputs, lpips_weights, face_model, workspac
 @json_option
 def evaluate_report_cmd(truth_dir, out, workspace, as_json):
     """Closing report of a workspace: per-identity and mean errors against ground truth for every stage that has
-    outputs (geometry, reflectance, PCA, representation comparison), with the PNG previews linked."""
+    outputs (geometry, reflectance, PCA, Tables 1-3, relighting, finetuning samples), with the PNG previews linked,
+    each table with the command that made it, and the paper's numbers beside ours."""
     from reflectmm_cli.evaluation.report import discover_inputs
 
     ws = resolve_workspace(workspace)
     inputs = discover_inputs(ws, truth_dir)
     if not any(inputs.values()):
         raise ReflectmmError(f"evaluate report: nothing to report in {ws} (no fit-geometry/, fit-reflectance/, "
-                             "build-pca/ or evaluate-representation/ outputs)")
+                             "build-pca/, evaluate-representation/, evaluate-reconstruction/, evaluate-albedo/, "
+                             "evaluate-relighting/ or finetune/ outputs)")
     paths = run_stage_cli(evaluate_report.VERB, workspace=workspace, inputs={k: v for k, v in inputs.items() if v},
                           output=out)
     emit(paths, as_json)

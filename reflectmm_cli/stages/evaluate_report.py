@@ -36,6 +36,10 @@ def run(ctx: StageContext) -> list[Path]:
                              models=ctx.input_list("model", required=False),
                              truth=ctx.input_list("truth", required=False),
                              representation=ctx.input_list("representation", required=False),
+                             reconstruction=ctx.input_list("reconstruction", required=False),
+                             albedo=ctx.input_list("albedo", required=False),
+                             relighting=ctx.input_list("relighting", required=False),
+                             finetune=ctx.input_list("finetune", required=False),
                              progress=lambda it, **k: progress(it, **k))
     flat = flatten("", doc, {})
     names = sorted(flat)
@@ -47,5 +51,6 @@ def run(ctx: StageContext) -> list[Path]:
     return [out_md, out_npz]
 
 
-STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
+# version 3: Tables 2 and 3, relighting, model samples, paper vs reflectmm
+STAGE = Stage(VERB, version=3, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
               help="closing report of a run: errors of every stage against ground truth")

@@ -34,6 +34,10 @@ STAGE_MODULES: dict[str, str] = {
     "reconstruct": "reconstruct",
     "evaluate-truth": "evaluate_truth",
     "evaluate-representation": "evaluate_representation",
+    "build-baseline": "build_baseline",
+    "evaluate-albedo": "evaluate_albedo",
+    "evaluate-reconstruction": "evaluate_reconstruction",
+    "evaluate-relighting": "evaluate_relighting",
     "evaluate-report": "evaluate_report",
     "checksum": "checksum",
 }

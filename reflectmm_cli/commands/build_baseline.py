@@ -1,0 +1,49 @@
+"""``reflectmm build-baseline``: click wrapper of the ``build-baseline`` stage
+(reflectmm_cli/stages/build_baseline.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from reflectmm_cli.commands._common import emit, given_params, json_option, output_option, param_options, \
+    run_stage_cli, workspace_option
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages.build_baseline import PARAMS, VERB
+from reflectmm_cli.workspace import WORKSPACE_TRUTH_DIRS, find_face_model, find_truth_dir, resolve_workspace
+
+
+@click.command(VERB)
+@click.option("--truth", "truth", multiple=True, type=click.Path(exists=True, path_type=Path),
+              help="synth-truth <id>.npz files or the folder holding them (repeatable; default: the workspace's "
+                   "truth folder).")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Face model for the per-vertex model (default: the workspace's).")
+@param_options(PARAMS)
+@workspace_option
+@output_option
+@json_option
+def build_baseline_cmd(truth, face_model, workspace, output, as_json, **kw):
+    """Baseline reflectance model from ground-truth maps: BFM09's role (--kind diffuse-only) or AlbedoMM's role
+    (--kind albedomm), models (a) and (b) of the paper's Tables 2 and 3.
+
+    Writes a `reflectance-model` artifact (<ws>/build-baseline/<kind>.npz or --output) and a component preview.
+    """
+    ws = resolve_workspace(workspace)
+    truths = list(truth)
+    if not truths:
+        td = find_truth_dir(ws)
+        if td is None:
+            raise ReflectmmError(f"no --truth given and no truth folder in {ws} (looked for "
+                                 f"{', '.join(d + '/' for d in WORKSPACE_TRUTH_DIRS)})")
+        truths = [td]
+    fm = face_model or find_face_model(ws)
+    if fm is None:
+        raise ReflectmmError(f"build-baseline: no --face-model given and none found in {ws}")
+    paths = run_stage_cli(VERB, workspace=workspace, params=given_params(kw, PARAMS),
+                          inputs={"truth": truths, "face_model": [fm]}, output=output)
+    emit(paths, as_json)
+
+
+COMMANDS = [build_baseline_cmd]

@@ -1,0 +1,151 @@
+"""evaluate reconstruction (Table 2) through the CLI on tiny wild shards with tiny encoders built by the library."""
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "finetune"))
+
+from _shards import make_dataset, render_truth  # noqa: E402
+
+from reflectmm_cli.artifacts import read_artifact, read_image, write_artifact  # noqa: E402
+from reflectmm_cli.model.pca import sample_model  # noqa: E402
+
+SPLIT = ["train", "train", "train", "test", "test", "test"]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    import torch
+
+    from reflectmm_cli.finetune.encoder import build_encoder, save_encoder
+
+    tmp = tmp_path_factory.mktemp("recon")
+    d = make_dataset(tmp, n_images=6, size=32, seed=3, split=SPLIT)
+    # add the per-vertex truth (what synth wild stores) to the shard
+    art = read_artifact(d["shards"][0], "wild-shard")
+    arrays = dict(art.arrays)
+    va, vw = sample_model(d["truth"], d["betas"], "vertex")
+    arrays["truth_vertex_albedo"] = va.astype(np.float16)
+    arrays["truth_vertex_weights"] = vw.astype(np.float16)
+    write_artifact(d["shards"][0], "wild-shard", arrays, compress=False,
+                   extra_meta={"image_size": 32, "encoding": "gamma1.2", "sh_order": 2})
+    k = d["light"].n_components
+    # "initial": the untrained head (β = 0, γ = 0, z = z0); "finetuned": a head whose bias is test image 3's truth
+    torch.manual_seed(0)
+    e0 = build_encoder("resnet18", 3, k, width=8, z0=2.0)
+    d["enc_initial"] = save_encoder(e0, tmp / "initial_encoder.safetensors", {})
+    e1 = build_encoder("resnet18", 3, k, width=8, z0=2.0)
+    i = 3
+    with torch.no_grad():
+        e1.fc.bias.copy_(torch.tensor(np.concatenate([d["betas"][i], d["gammas"][i],
+                                                      [math.log(math.expm1(v)) - e1.z_offset for v in d["zs"][i]]])))
+    d["enc_oracle"] = save_encoder(e1, tmp / "oracle_encoder.safetensors", {})
+    return d
+
+
+def _value(art, name):
+    names = list(art["names"])
+    return float(art["values"][names.index(name)])
+
+
+def test_evaluate_reconstruction_cli(data, cli, tmp_path):
+    from reflectmm_cli.evaluation import LPIPS
+    from reflectmm_cli.evaluation.lpips import save_lpips_safetensors
+
+    lw = save_lpips_safetensors(LPIPS("alex").random_state_dict(seed=0), tmp_path / "lpips.safetensors")
+    out = tmp_path / "t2" / "table2.npz"
+    r = cli("-q", "evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_oracle"], "--lpips-weights", lw,
+            "--figure-images", "2", "-w", tmp_path, "-o", out)
+    assert r.exit_code == 0, r.stderr
+    assert "| finetuned |" in r.stdout and "| initial |" in r.stdout
+    art = read_artifact(out, "evaluation")
+    assert art.meta["methods"] == ["initial", "finetuned"] and art.meta["images"] == ["img003", "img004", "img005"]
+    assert art.meta["lpips"] == "on (alex)"
+    # the oracle head reproduces test image 3 up to the uint8 quantisation, and its per-vertex albedo exactly
+    assert _value(art, "finetuned.image.per_image.per_image.psnr[0]") > 45
+    assert _value(art, "finetuned.reflectance.per_image.raw.albedo_rel[0]") < 3e-3
+    # independent: the untrained head predicts β = γ = 0, z = 2: render it with the numpy SH path, encode
+    # (clip, ^(1/1.2)) and compare with the stored image over the face mask by hand
+    ss = read_artifact(data["shards"][0], "wild-shard")
+    light = data["light"]
+    full, _, _ = render_truth(data["truth"], light, data["gb"], np.zeros(3), np.zeros(light.n_components),
+                              np.full(3, 2.0))
+    for j, i in enumerate((3, 4, 5)):
+        m = np.asarray(ss["face_mask"][i], bool)
+        pred = np.clip(full, 0, 1) ** (1 / 1.2)
+        tgt = ss["image"][i].astype(np.float64) / 255
+        ref = 10 * np.log10(1 / np.mean((pred[m] - tgt[m]) ** 2))
+        assert _value(art, f"initial.image.per_image.per_image.psnr[{j}]") == pytest.approx(ref, abs=0.02)
+    # the finetuning-gain cell (finetuned − initial mean PSNR)
+    gain = art.meta["paper_numbers"]["table2.psnr_gain_finetune"]
+    s = art.meta["summary"]
+    assert gain == pytest.approx(s["finetuned"]["image"]["psnr"]["mean"] - s["initial"]["image"]["psnr"]["mean"])
+    assert gain > 0
+    # outputs: table, figure (2 images × 2 methods rows, 5 panels of 32 px), the command
+    md = out.with_suffix(".md").read_text()
+    assert "img003 — finetuned" in md and "Command: `reflectmm evaluate reconstruction" in md
+    assert read_image(out.with_suffix(".png")).shape[:2] == (4 * 34 + 2, 5 * 34 + 2)
+    assert "--method initial" in art.meta["command"] and "--figure-images 2" in art.meta["command"]
+    assert str(tmp_path) not in art.meta["command"]
+    # a rerun with nothing changed writes the same bytes
+    before = out.read_bytes()
+    r = cli("-q", "evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_oracle"], "--lpips-weights", lw,
+            "--figure-images", "2", "-w", tmp_path, "-o", out)
+    assert r.exit_code == 0 and out.read_bytes() == before
+
+
+def test_evaluate_reconstruction_bad_inputs(data, cli, tmp_path):
+    base = ["evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "-o", tmp_path / "x.npz"]
+    r = cli(*base, "--method", "initial", data["truth_path"], "-")
+    assert r.exit_code == 1 and "method 'initial' has no input 'encoder_initial'" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--split", "val")
+    assert r.exit_code == 1 and "no images of split 'val'" in r.stderr
+    r = cli(*base, "--method", "initial", data["light_path"], data["enc_initial"])
+    assert r.exit_code == 1 and "reflectance-model" in r.stderr
+    r = cli(*base, "--method", "initial", data["truth_path"], data["truth_path"])
+    assert r.exit_code == 1 and "encoder" in r.stderr
+    r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--gain", "a,a")
+    assert r.exit_code == 1 and "--gain" in r.stderr
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_report_gains_table2_samples_and_paper_sections(data, cli, tmp_path):
+    """evaluate report shows Table 2 (with its command), the finetune samples and the paper-vs-ours row; the
+    sections are absent when their inputs are."""
+    import shutil
+
+    from reflectmm_cli.artifacts import write_png
+
+    ws = tmp_path / "ws"
+    r = cli("-q", "evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_oracle"], "-w", ws, "--figure-images", "1")
+    assert r.exit_code == 0, r.stderr
+    (ws / "finetune").mkdir()
+    shutil.copy(data["truth_path"], ws / "finetune" / "finetune.npz")
+    for w in ("before", "after"):
+        write_png(ws / "finetune" / f"finetune_samples_{w}.png", np.full((8, 8, 3), 0.5))
+    r = cli("-q", "evaluate", "report", "-w", ws)
+    assert r.exit_code == 0, r.stderr
+    md = (ws / "evaluate-report" / "evaluate-report.md").read_text()
+    assert "## Table 2: reconstruction" in md and "| finetuned |" in md
+    assert "![Table 2 figure](../evaluate-reconstruction/evaluate-reconstruction.png)" in md
+    assert "Made by (from the workspace root): `reflectmm evaluate reconstruction" in md
+    assert "../finetune/finetune_samples_before.png" in md and "../finetune/finetune_samples_after.png" in md
+    art = read_artifact(ws / "evaluate-reconstruction" / "evaluate-reconstruction.npz", "evaluation")
+    gain = art.meta["paper_numbers"]["table2.psnr_gain_finetune"]
+    assert f"| Table 2 | PSNR gain of ours over ours w/o finetuning | +0.95 dB | {gain:+.2f} dB |" in md
+    assert "| Table 3 | diffuse albedo PSNR (ours) | 20.13 dB | not run |" in md
+    assert "## Table 3" not in md and "## Relighting" not in md
+    rep = read_artifact(ws / "evaluate-report" / "evaluate-report.npz", "evaluation")
+    names = list(rep["names"])
+    assert rep["values"][names.index("paper_vs_reflectmm.table2.psnr_gain_finetune")] == pytest.approx(gain)
