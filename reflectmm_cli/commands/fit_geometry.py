@@ -95,7 +95,13 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
 
 def view_cameras(rig, view_names: list[str], image_size: tuple[int, int], focal: float | None,
                  rig_path: Path | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """K, R, t and positions of the rig cameras of the views (rig resized to the capture frame, --focal applied)."""
+    """K, R, t and positions of the rig cameras of the views (--focal applied).
+
+    A rig camera whose image size differs from the capture frame is refused unless ``focal`` is given: its focal
+    length in pixels belongs to its own image size, and rescaling it to another frame would be a guess (a wrong
+    focal biases distance, face size and flash irradiance; docs/fit-geometry.md)."""
+    from reflectmm_cli.rig import RigCamera
+
     missing = [n for n in view_names if n not in rig.camera_names]
     if missing:
         raise ReflectmmError(f"view(s) {', '.join(missing)} of the capture are not cameras of the rig "
@@ -105,7 +111,14 @@ def view_cameras(rig, view_names: list[str], image_size: tuple[int, int], focal:
     for n in view_names:
         c = rig.camera(n)
         if (c.width, c.height) != (W, H):
-            c = c.resized(W, H)
+            if focal is None:
+                raise ReflectmmError(
+                    f"rig camera {n} is {c.width}x{c.height} (focal {c.focal_px:g} px) but the capture frame is "
+                    f"{W}x{H}: pass --focal PX for these images or a rig table of this size (calibrate-rig writes "
+                    "one)", rig_path or rig.source)
+            log.warning("fit-geometry: rig camera %s is %dx%d, the capture frame %dx%d: using --focal %g px and the "
+                        "image centre", n, c.width, c.height, W, H, focal)
+            c = RigCamera(c.name, c.position, c.look_at, c.up, float(focal), W, H)
         K = c.K.copy()
         if focal is not None:
             K[0, 0] = K[1, 1] = float(focal)

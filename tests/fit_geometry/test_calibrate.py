@@ -138,3 +138,19 @@ def test_artifact_and_toml_round_trip(calibrated, tmp_path):
     first = npz.read_bytes(), toml.read_bytes()
     write_rig_calibration(calibrated, tmp_path / "rig.npz")
     assert (npz.read_bytes(), toml.read_bytes()) == first
+
+
+def test_fit_geometry_refuses_a_rig_of_another_image_size(caplog):
+    """No silent resize: the packaged 640x480 rig and 800x600 images need --focal or a rig of that size."""
+    from reflectmm_cli.commands.fit_geometry import view_cameras
+
+    rig = load_rig()
+    with pytest.raises(ReflectmmError, match=r"rig camera 05_1 is 640x480 \(focal 1000 px\) but the capture frame "
+                                             r"is 800x600: pass --focal"):
+        view_cameras(rig, ["05_1", "05_0"], (800, 600), None, None)
+    K, R, t, pos = view_cameras(rig, ["05_1", "05_0"], (800, 600), 1900.0, None)
+    assert np.allclose(K[:, 0, 0], 1900.0) and np.allclose(K[:, :2, 2], [399.5, 299.5])
+    assert np.allclose(pos[0], rig.camera("05_1").center)
+    assert "using --focal 1900 px" in caplog.text
+    K, *_ = view_cameras(rig, ["05_1"], (640, 480), None, None)  # matching size: the table's focal as is
+    assert K[0, 0, 0] == 1000.0
