@@ -117,7 +117,7 @@ def evaluate_truth_cmd(identity, maps, truth, geometry, workspace, output):
 # --------------------------------------------------------------------------- evaluate representation
 
 REP_DEFAULTS = {"exponents_sets": "8;16;32;64;1,8,64", "holdout": "05,09", "baselines": True, "solver": "fast",
-                "symmetry": 1.0, "symmetry_mode": "ill-posed", "loss": "l1", "prior": 1e-4, "prior_tail": 100.0,
+                "symmetry": 1.0, "symmetry_mode": "adaptive", "loss": "l1", "prior": 1e-4, "prior_tail": 100.0,
                 "lpips_net": "alex",
                 "space": "auto",
                 "max_identities": 0}
@@ -176,8 +176,8 @@ def _rep_outputs(ctx: StageContext) -> list[Path]:
     return [out, out.with_suffix(".md"), out.with_suffix(".png")]
 
 
-# version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail
-@register_stage("evaluate-representation", version=3, per_identity=False, outputs=_rep_outputs,
+# version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail. version 4: adaptive
+@register_stage("evaluate-representation", version=4, per_identity=False, outputs=_rep_outputs,
                 help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes")
 def run_evaluate_representation(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.metrics import load_lpips
@@ -253,8 +253,9 @@ def run_evaluate_representation(ctx: StageContext) -> list[Path]:
 @click.option("--no-baselines", is_flag=True, help="Skip 'diffuse only' and 'spec albedo + shininess 20'.")
 @click.option("--solver", type=click.Choice(["fast", "adam"]), default="fast", show_default=True)
 @click.option("--symmetry", type=click.FloatRange(0, 1), default=1.0, show_default=True)
-@click.option("--symmetry-mode", type=click.Choice(["ill-posed", "all"]), default="ill-posed", show_default=True,
-              help="Mirror pooling only where a texel's own data are ill-posed, or everywhere (the paper's flip).")
+@click.option("--symmetry-mode", type=click.Choice(["adaptive", "ill-posed", "all"]), default="adaptive", show_default=True,
+              help="Mirror pooling: adaptive (ill-posed texels, and well-posed ones as far as the measured "
+                   "asymmetry allows), only where a texel's own data are ill-posed, or everywhere (the paper's flip).")
 @click.option("--loss", type=click.Choice(["l1", "l2"]), default="l1", show_default=True)
 @click.option("--prior", type=click.FloatRange(0, None), default=1e-4, show_default=True)
 @click.option("--prior-tail", type=click.FloatRange(0, None), default=100.0, show_default=True,

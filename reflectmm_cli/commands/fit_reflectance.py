@@ -17,7 +17,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.stages import StageContext, register_stage
 
-DEFAULTS = {"solver": "fast", "exponents": [1.0, 8.0, 64.0], "symmetry": 1.0, "symmetry_mode": "ill-posed",
+DEFAULTS = {"solver": "fast", "exponents": [1.0, 8.0, 64.0], "symmetry": 1.0, "symmetry_mode": "adaptive",
             "loss": "l1", "prior": 1e-4, "prior_tail": 100.0,
             "steps": 1000, "flash_intensity": None, "seed": 0, "cond_min": 1e-4}
 PREVIEWS = ("albedo", "weights", "residual", "flagged")
@@ -68,7 +68,8 @@ def _channel_name(p: float) -> str:
 
 # version 2: mirror pooling only where a texel's own data are ill-posed by default (symmetry_mode)
 # version 3: tail prior on lobe weights seen only in their lobe's tail (prior_tail)
-@register_stage("fit-reflectance", version=3, per_identity=True, outputs=_outputs, input_files=_input_files,
+# version 4: adaptive mirror pooling by default (issue 13)
+@register_stage("fit-reflectance", version=4, per_identity=True, outputs=_outputs, input_files=_input_files,
                 help="fit diffuse albedo and lobe-weight maps to one identity's UV observations")
 def run_fit_reflectance(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.reflectance import fit_maps
@@ -126,9 +127,10 @@ def run_fit_reflectance(ctx: StageContext) -> list[Path]:
 @click.option("--exponents", default="1,8,64", show_default=True, help="Lobe exponents, comma separated.")
 @click.option("--symmetry", type=click.FloatRange(0.0, 1.0), default=1.0, show_default=True,
               help="Mirror pooling weight (fast) / random flips on (adam, when > 0).")
-@click.option("--symmetry-mode", type=click.Choice(["ill-posed", "all"]), default="ill-posed", show_default=True,
-              help="Fast solver: pool a texel with its mirror only where its own data are ill-posed (few "
-                   "observations or conditioning < --cond-min), or every texel (all: the paper's random flip).")
+@click.option("--symmetry-mode", type=click.Choice(["adaptive", "ill-posed", "all"]), default="adaptive", show_default=True,
+              help="Fast solver: adaptive = pool ill-posed texels with their mirror and well-posed ones only as far "
+                   "as the measured local asymmetry allows; ill-posed = only where a texel's own data are ill-posed "
+                   "(few observations or conditioning < --cond-min); all = every texel (the paper's random flip).")
 @click.option("--loss", type=click.Choice(["l1", "l2"]), default="l1", show_default=True,
               help="cos-weighted L1 (the paper's, IRLS) or cos-weighted least squares (fast solver).")
 @click.option("--prior", type=click.FloatRange(0.0, None), default=1e-4, show_default=True,

@@ -795,3 +795,66 @@ def simulate_landmarks(model: ShapeModel, rig: Rig, camera_names: Sequence[str],
 def align_to(cal_centers: np.ndarray, true_centers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rigid (no scale) alignment of fitted camera centres to true ones: returns (R, t, residual mm (C,))."""
     return rigid_align(cal_centers, true_centers)
+
+
+# --------------------------------------------------------------------------- from capture artifacts
+
+def landmarks_from_captures(capture_paths: Sequence[str | Path], views: Sequence[str] | None = None
+                            ) -> tuple[np.ndarray, list[str], list[str], np.ndarray]:
+    """Stack the landmarks of ``capture`` artifacts (preprocess-multipie outputs) of several identities.
+
+    Returns (landmarks (N, C, 68, 2) full-frame px with NaN where an identity lacks a view, identities (N,),
+    camera names (C,) — the union of the captures' views in first-seen order, or ``views`` —, image size (C, 2)).
+    Captures whose frame sizes differ for the same camera are refused.
+    """
+    from reflectmm_cli.artifacts import read_artifact
+
+    per: list[tuple[str, list[str], np.ndarray]] = []
+    names: list[str] = [] if views is None else list(views)
+    size: dict[str, tuple[int, int]] = {}
+    for p in capture_paths:
+        art = read_artifact(p, "capture")
+        vn = [str(v) for v in np.asarray(art["view_names"]).reshape(-1)]
+        if "landmarks" not in art.arrays:
+            raise ReflectmmError("capture has no landmarks (preprocess-multipie needs the landmark files)", p)
+        lm = np.asarray(art["landmarks"], np.float64)
+        if lm.shape != (len(vn), 68, 2):
+            raise ReflectmmError(f"capture landmarks have shape {lm.shape}, expected ({len(vn)}, 68, 2)", p)
+        W, H = (int(x) for x in np.asarray(art["image_size"]).reshape(-1)[:2])
+        for v in vn:
+            if v in size and size[v] != (W, H):
+                raise ReflectmmError(f"camera {v} is {W}x{H} here but {size[v][0]}x{size[v][1]} in another capture", p)
+            size[v] = (W, H)
+            if views is None and v not in names:
+                names.append(v)
+        rep = art.meta.get("report", {}) if isinstance(art.meta.get("report"), dict) else {}
+        ident = str(rep.get("identity") or art.meta.get("params", {}).get("id") or Path(p).stem)
+        per.append((ident, vn, lm))
+    if not per:
+        raise ReflectmmError("calibrate-rig: no capture artifacts given")
+    out = np.full((len(per), len(names), 68, 2), np.nan)
+    for i, (_, vn, lm) in enumerate(per):
+        for k, v in enumerate(vn):
+            if v in names:
+                out[i, names.index(v)] = lm[k]
+    missing = [v for v in names if v not in size]
+    if missing:
+        raise ReflectmmError(f"calibrate-rig: no capture has view(s) {', '.join(missing)}")
+    return out, [p[0] for p in per], names, np.array([size[v] for v in names], np.int64)
+
+
+def calibrate_from_captures(capture_paths: Sequence[str | Path], face_model_path: str | Path,
+                            nominal_rig: str | Path | Rig | None = None, config: CalibrationConfig | None = None,
+                            views: Sequence[str] | None = None, progress_fn=None) -> RigCalibration:
+    """:func:`calibrate_rig` on the landmarks of capture artifacts (one per identity) with a face model file and a
+    nominal rig table (None: the packaged Multi-PIE table, whose image size must then match the captures)."""
+    from reflectmm_cli.geometry import load_face_model
+    from reflectmm_cli.rig import load_rig
+
+    lm, ids, names, size = landmarks_from_captures(capture_paths, views)
+    model = ShapeModel.from_face_model(load_face_model(face_model_path))
+    nominal = nominal_rig if isinstance(nominal_rig, Rig) else load_rig(nominal_rig)
+    cal = calibrate_rig(model, lm, names, size, nominal, config, identities=ids, progress_fn=progress_fn)
+    if nominal_rig is None:
+        cal.assumptions.insert(0, "nominal rig: the packaged Multi-PIE table (no rig table given)")
+    return cal
