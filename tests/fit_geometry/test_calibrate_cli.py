@@ -1,0 +1,66 @@
+"""calibrate-rig end to end on tiny synthetic data (synth multipie → preprocess-multipie → calibrate-rig →
+fit-geometry with the calibrated rig)."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from reflectmm_cli.artifacts import read_artifact
+from reflectmm_cli.cli import main
+from reflectmm_cli.fitting.init import rigid_align
+from reflectmm_cli.rig import load_rig, save_rig
+
+VIEWS = "13_0,14_0,05_1,05_0,04_1,19_1"
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    ws = tmp_path_factory.mktemp("calrig")
+    run = CliRunner()
+    steps = [["synth", "multipie", "--out", ws / "syn", "--identities", "4", "--cameras", VIEWS, "--flashes",
+              "07,18", "--image-size", "240x180", "--face-vertices", "2000", "--landmark-noise", "0.5"]]
+    steps += [["preprocess-multipie", "--root", ws / "syn", "--id", f"{i:03d}", "--views", VIEWS,
+               "--flashes", "07,18"] for i in range(1, 5)]
+    for args in steps:
+        r = run.invoke(main, ["-q", *map(str, args), "-w", str(ws)], catch_exceptions=False)
+        assert r.exit_code == 0, r.output
+    return ws
+
+
+def test_calibrate_rig_cli(world, cli, tmp_path):
+    from reflectmm_cli.fitting.calibrate import perturb_rig
+
+    true = load_rig(world / "syn" / "rig.toml")
+    nominal = perturb_rig(true, distance_scale=1.1, angle_deg=2.0, raised_offset_mm=200.0, seed=5)
+    save_rig(nominal, tmp_path / "nominal.toml")
+    r = cli("calibrate-rig", "--ids", "001-004", "-w", world, "--rig", tmp_path / "nominal.toml", "--focal",
+            true.camera("05_1").focal_px, "--json")
+    assert r.exit_code == 0, r.output
+    out = world / "calibrate-rig" / "calibrate-rig.npz"
+    art = read_artifact(out, "rig")
+    assert list(art["camera_names"]) == VIEWS.split(",")
+    assert list(art["identities"]) == ["001", "002", "003", "004"]
+    assert any("focal" in a and "given" in a for a in art.meta["assumptions"])
+    names = VIEWS.split(",")
+    tc = np.array([true.camera(n).center for n in names])
+    _, _, err = rigid_align(np.asarray(art["centers"]), tc)
+    _, _, nom_err = rigid_align(np.array([nominal.camera(n).center for n in names]), tc)
+    assert nom_err.max() > 100 and err.max() < 0.5 * nom_err.max()
+    rig = load_rig(world / "calibrate-rig" / "rig.toml")
+    assert rig.camera_names == names and rig.flash("18").camera == "19_1"
+    # fit-geometry takes the calibrated table as its rig
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--rig", world / "calibrate-rig" / "rig.toml", "--iters",
+            "100", "--photo-rounds", "0", "--rig-sigma", "3", "--no-overlay")
+    assert r.exit_code == 0, r.output
+    g = read_artifact(world / "fit-geometry" / "001.npz", "geometry")
+    assert np.allclose(g["K"][:, 0, 0], np.asarray(art["focal_px"]))
+
+
+def test_calibrate_rig_refuses_a_rig_of_another_size(world, cli, tmp_path):
+    """No silent resize: the dataset is 240x180, the packaged table 640x480."""
+    from reflectmm_cli.rig import default_rig_path
+
+    r = CliRunner().invoke(main, ["calibrate-rig", "--ids", "001-002", "-w", str(world), "--rig",
+                                  str(default_rig_path())])
+    assert r.exit_code != 0
+    assert "is 640x480 but its images are 240x180" in r.output
