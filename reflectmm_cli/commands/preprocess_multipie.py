@@ -9,7 +9,8 @@ from pathlib import Path
 import click
 
 from reflectmm_cli.artifacts import atomic_write_bytes, write_artifact
-from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, discover_identities, plan_identity
+from reflectmm_cli.capture.layout import (DEFAULT_FLASHES, DEFAULT_VIEWS, default_views, discover_identities,
+                                          plan_identity)
 from reflectmm_cli.capture.preprocess import (CROP_MODES, CaptureOptions, contact_sheet, encode_png, parse_rotate,
                                               preprocess_identity, source_refs)
 from reflectmm_cli.commands._common import emit, json_option, output_option, parse_ids, run_stage_cli, workspace_option
@@ -29,10 +30,24 @@ def _list_param(value, default) -> tuple[str, ...]:
     return tuple(str(v).strip() for v in value if str(v).strip())
 
 
+def _views(ctx: StageContext, flashes: tuple[str, ...], landmarks_dir: Path | None) -> tuple[str, ...]:
+    """--views, or the default: the paper's 9 + 08_1 / 19_1 when flashes 14 / 18 are used (capture.layout)."""
+    if ctx.param("views") is not None:
+        return _list_param(ctx.param("views"), DEFAULT_VIEWS)
+    if not ctx.identity or not ctx.inputs.get("root"):
+        return DEFAULT_VIEWS
+    views, notes = default_views(ctx.input("root"), ctx.identity, flashes, session=str(ctx.param("session", "auto")),
+                                 recording=str(ctx.param("recording", "01")), landmarks_dir=landmarks_dir)
+    for n in notes:
+        log.warning("preprocess-multipie: %s", n)
+    return views
+
+
 def options_from_ctx(ctx: StageContext) -> CaptureOptions:
     lm = ctx.inputs.get("landmarks") or []
+    flashes = _list_param(ctx.param("flashes"), DEFAULT_FLASHES)
     return CaptureOptions(session=str(ctx.param("session", "auto")), recording=str(ctx.param("recording", "01")),
-                          views=_list_param(ctx.param("views"), DEFAULT_VIEWS),
+                          views=_views(ctx, flashes, Path(lm[0]) if lm else None),
                           flashes=_list_param(ctx.param("flashes"), DEFAULT_FLASHES),
                           transfer=str(ctx.param("transfer", "gamma1.2")),
                           rotate=parse_rotate(ctx.param("rotate") or {}),
@@ -67,7 +82,8 @@ def _discover(ctx: StageContext) -> list[str]:
     return discover_identities(ctx.input("root"))
 
 
-@register_stage(VERB, version=1, per_identity=True, outputs=_outputs, input_files=_input_files,
+# version 2: default views add 08_1 / 19_1 when flashes 14 / 18 are used (issue 13)
+@register_stage(VERB, version=2, per_identity=True, outputs=_outputs, input_files=_input_files,
                 discover_ids=_discover, help="Multi-PIE shots -> linear OLAT stack per identity")
 def run_preprocess(ctx: StageContext) -> list[Path]:
     identity = _require_identity(ctx)
@@ -100,7 +116,9 @@ def run_preprocess(ctx: StageContext) -> list[Path]:
 @click.option("--session", default="auto", show_default=True,
               help="Session 01..04, or auto = first session holding the recording.")
 @click.option("--recording", default="01", show_default=True, help="Recording number (01 = neutral).")
-@click.option("--views", default=",".join(DEFAULT_VIEWS), show_default=True, help="Cameras, comma separated.")
+@click.option("--views", default=None,
+              help="Cameras, comma separated (default: the paper's 9 views, plus 08_1 / 19_1 when flashes 14 / 18 "
+                   "are used and their shots exist: they place those flashes; unwrap-uv leaves them out).")
 @click.option("--flashes", default=",".join(DEFAULT_FLASHES), show_default=True, help="Flash shots, comma separated.")
 @click.option("--transfer", default="gamma1.2", show_default=True,
               help="Pixel value -> linear: gamma1.2 (x**1.2), srgb, linear, or gamma:G.")
@@ -131,10 +149,10 @@ def preprocess_multipie_cmd(root, identity, ids, id_file, all_ids, session, reco
     if output is not None and len(idents) > 1:
         raise click.UsageError("--output needs exactly one identity")
     rot = parse_rotate(rotate)
-    params = {"session": session, "recording": recording, "views": _list_param(views, DEFAULT_VIEWS),
-              "flashes": _list_param(flashes, DEFAULT_FLASHES), "transfer": transfer,
-              "rotate": rot, "crop": crop, "crop_margin": crop_margin}
-    params["views"], params["flashes"] = list(params["views"]), list(params["flashes"])
+    params = {"session": session, "recording": recording, "flashes": list(_list_param(flashes, DEFAULT_FLASHES)),
+              "transfer": transfer, "rotate": rot, "crop": crop, "crop_margin": crop_margin}
+    if views is not None:
+        params["views"] = list(_list_param(views, DEFAULT_VIEWS))
     inputs = {"root": [root]}
     if landmarks_dir is not None:
         inputs["landmarks"] = [landmarks_dir]

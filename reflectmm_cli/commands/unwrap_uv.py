@@ -63,7 +63,24 @@ def _resolved_inputs(ctx: StageContext) -> dict[str, list[Path]]:
     return files
 
 
-@register_stage(VERB, version=1, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
+def reflectance_views(capture, views=None) -> list[str]:
+    """The capture views whose images enter the reflectance fit: ``views`` if given ("all" = every view), else
+    every view but the raised cameras 08_1 / 19_1 (the paper uses them only to place flashes 14 / 18)."""
+    from reflectmm_cli.rig import RAISED_CAMERAS
+
+    have = [str(v) for v in capture["view_names"]]
+    if views is not None:
+        vs = [str(v) for v in (views.split(",") if isinstance(views, str) else views) if str(v).strip()]
+        return have if vs == ["all"] else vs
+    keep = [v for v in have if v not in RAISED_CAMERAS]
+    if len(keep) < len(have):
+        log.info("unwrap-uv: leaving out the raised camera(s) %s (geometry / flash placement only; --views all "
+                 "keeps them)", ", ".join(v for v in have if v in RAISED_CAMERAS))
+    return keep or have
+
+
+# version 2: the raised cameras 08_1 / 19_1 are left out by default (issue 13)
+@register_stage(VERB, version=2, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
                 help="capture + geometry -> per-texel OLAT observations in UV space")
 def run_unwrap(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.geometry.face_model import load_face_model
@@ -83,6 +100,7 @@ def run_unwrap(ctx: StageContext) -> list[Path]:
     model = load_face_model(fm_path)
     exps = tuple(float(e) for e in ctx.param("exponents", (1.0, 8.0, 64.0)))
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
+                                         select_views=reflectance_views(cap, ctx.param("views")),
                                          uv_size=int(ctx.param("uv_size", 256)),
                                          grazing_deg=float(ctx.param("grazing_deg", 80.0)), exponents=exps,
                                          geometry_path=geo_path, capture_path=cap_path)
@@ -113,10 +131,13 @@ def run_unwrap(ctx: StageContext) -> list[Path]:
               help="A view sees a texel only if the angle between normal and view direction is below this.")
 @click.option("--exponents", default="1,8,64", show_default=True,
               help="Lobe exponents used for the conditioning map.")
+@click.option("--views", default=None,
+              help="Capture views to unwrap, comma separated, or 'all' (default: every view but the raised 08_1 / "
+                   "19_1, which only place flashes 14 / 18).")
 @workspace_option
 @output_option
 @json_option
-def unwrap_uv_cmd(identity, uv_size, capture, geometry, face_model, grazing_deg, exponents, workspace, output,
+def unwrap_uv_cmd(identity, uv_size, capture, geometry, face_model, grazing_deg, exponents, views, workspace, output,
                   as_json):
     """Unwrap one identity's OLAT images into UV space with visibility, shadow and saturation masks."""
     ws = (workspace or default_workspace()).resolve()
@@ -137,6 +158,8 @@ def unwrap_uv_cmd(identity, uv_size, capture, geometry, face_model, grazing_deg,
     if not exps or min(exps) <= 0:
         raise click.BadParameter("exponents must be > 0", param_hint="--exponents")
     params = {"uv_size": uv_size, "grazing_deg": grazing_deg, "exponents": exps}
+    if views is not None:
+        params["views"] = views
     paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=params,
                           inputs={"capture": [capture], "geometry": [geometry], "face_model": [face_model]},
                           output=output)

@@ -64,3 +64,38 @@ def test_calibrate_rig_refuses_a_rig_of_another_size(world, cli, tmp_path):
                                   str(default_rig_path())])
     assert r.exit_code != 0
     assert "is 640x480 but its images are 240x180" in r.output
+
+
+RECIPE = """
+schema = "reflectmm.recipe/1"
+name = "calib"
+
+[stages.synth-multipie]
+params = { identities = 3, seed = 3, brdf = "model", image_size = "160x120", uv_size = 32, face_vertices = 1500, cameras = ["13_0", "14_0", "05_1", "04_1", "19_1"], flashes = ["07", "18"], landmark_noise = 0.5 }
+
+[stages.preprocess-multipie]
+foreach = "all found"
+inputs = { root = "@synth-multipie.dir" }
+params = { views = ["13_0", "14_0", "05_1", "04_1", "19_1"], flashes = ["07", "18"] }
+
+[stages.calibrate-rig]
+inputs = { capture = "@preprocess-multipie.output", face_model = "@synth-multipie.outputs.face_model", rig = "@synth-multipie.outputs.rig" }
+
+[stages.fit-geometry]
+foreach = "all found"
+inputs = { capture = "@preprocess-multipie.output", face_model = "@synth-multipie.outputs.face_model", rig = "@calibrate-rig.outputs.rig" }
+params = { rig_sigma_mm = 3.0, photo_rounds = 0, landmark_iters = 50, no_overlay = true }
+"""
+
+
+@pytest.mark.slow
+def test_recipe_runs_calibrate_rig(tmp_path, cli):
+    (tmp_path / "calib.toml").write_text(RECIPE)
+    res = cli("run", tmp_path / "calib.toml", "--workspace", tmp_path, "--executor", "serial")
+    assert res.exit_code == 0, res.stderr + res.stdout
+    art = read_artifact(tmp_path / "calibrate-rig" / "calibrate-rig.npz", "rig")
+    assert list(art["identities"]) == ["001", "002", "003"]
+    g = read_artifact(tmp_path / "fit-geometry" / "002.npz", "geometry")
+    roles = {r["role"]: r["path"] for r in g.meta["inputs"]}
+    assert roles["rig"].endswith("calibrate-rig/rig.toml")
+    assert np.allclose(g["K"][:, 0, 0], np.asarray(art["focal_px"]))
