@@ -73,10 +73,13 @@ def reflectance_views(capture, views=None) -> list[str]:
         vs = [str(v) for v in (views.split(",") if isinstance(views, str) else views) if str(v).strip()]
         return have if vs == ["all"] else vs
     keep = [v for v in have if v not in RAISED_CAMERAS]
+    if not keep:
+        log.warning("unwrap-uv: the capture has only raised cameras (%s): unwrapping them", ", ".join(have))
+        return have
     if len(keep) < len(have):
         log.info("unwrap-uv: leaving out the raised camera(s) %s (geometry / flash placement only; --views all "
                  "keeps them)", ", ".join(v for v in have if v in RAISED_CAMERAS))
-    return keep or have
+    return keep
 
 
 # version 2: the raised cameras 08_1 / 19_1 are left out by default (issue 13)
