@@ -30,14 +30,41 @@ def _flatten(prefix: str, obj, out: dict) -> dict:
     return out
 
 
-def evaluate_truth(maps_path: Path | None, truth_path: Path, geometry_path: Path | None = None) -> dict:
-    """Library entry: the error document of fitted maps (and geometry) against a synth-truth file."""
+def _is_vertex_reflectance(path: Path) -> bool:
+    """A plain NPZ (no artifact meta) with per-vertex ``albedo (V, 3)`` (reflectmm_cli.evaluation.external)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return "__meta__" not in z.files and "albedo" in z.files and z["albedo"].ndim == 2
+    except (OSError, ValueError):
+        return False
+
+
+def evaluate_truth(maps_path: Path | None, truth_path: Path, geometry_path: Path | None = None,
+                   face_model_path: Path | None = None) -> dict:
+    """Library entry: the error document of fitted maps (and geometry) against a synth-truth file, or against
+    per-vertex reflectance (plain NPZ, docs/artifacts.md) laid out in UV with the face model ``face_model_path``."""
     from reflectmm_cli.evaluation.truth import geometry_errors, reflectance_errors
 
+    doc: dict = {}
+    if _is_vertex_reflectance(Path(truth_path)):
+        from reflectmm_cli.evaluation.external import read_vertex_reflectance, vertex_reflectance_to_uv
+        from reflectmm_cli.geometry import load_face_model
+
+        if maps_path is None:
+            raise ReflectmmError("per-vertex reflectance truth: give --maps", truth_path)
+        if face_model_path is None:
+            raise ReflectmmError("per-vertex reflectance truth needs the face model of its vertices: pass "
+                                 "--face-model", truth_path)
+        fm = load_face_model(face_model_path)
+        maps = read_artifact(maps_path, "reflectance-maps")
+        S = int(np.asarray(maps["albedo"]).shape[-1])
+        t_uv = vertex_reflectance_to_uv(read_vertex_reflectance(truth_path, fm.n_vertices), fm.uv, fm.triangles, S)
+        doc["reflectance"] = reflectance_errors(maps.arrays, t_uv)
+        doc["truth_format"] = "per-vertex reflectance"
+        return doc
     truth = read_artifact(truth_path)
     if truth.kind not in ("synth-truth", "reflectance-maps"):
         raise ReflectmmError(f"is a '{truth.kind}' artifact, expected a 'synth-truth' artifact", truth_path)
-    doc: dict = {}
     if maps_path is not None:
         maps = read_artifact(maps_path, "reflectance-maps")
         doc["reflectance"] = reflectance_errors(maps.arrays, truth.arrays)
@@ -59,7 +86,9 @@ def _truth_outputs(ctx: StageContext) -> list[Path]:
 def run_evaluate_truth(ctx: StageContext) -> list[Path]:
     maps = ctx.input_list("maps", required=False)
     geo = ctx.input_list("geometry", required=False)
-    doc = evaluate_truth(maps[0] if maps else None, ctx.input("truth"), geo[0] if geo else None)
+    fms = ctx.input_list("face_model", required=False)
+    doc = evaluate_truth(maps[0] if maps else None, ctx.input("truth"), geo[0] if geo else None,
+                         fms[0] if fms else None)
     flat = _flatten("", doc, {})
     names = sorted(flat)
     out = ctx.output_path()
@@ -84,9 +113,11 @@ def evaluate_group():
               help="synth-truth artifact (default <ws>/truth/<id>.npz or <ws>/synth/truth/<id>.npz).")
 @click.option("--geometry", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="geometry artifact to evaluate too.")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="face model whose vertices a per-vertex reflectance truth (plain NPZ) refers to.")
 @workspace_option
 @output_option
-def evaluate_truth_cmd(identity, maps, truth, geometry, workspace, output):
+def evaluate_truth_cmd(identity, maps, truth, geometry, face_model, workspace, output):
     """Errors of one identity's fitted maps (and geometry) against the ground truth; JSON on stdout.
 
     Diffuse albedo RMSE / relative error in linear RGB, specular albedo Σw against spec_albedo, separately for
@@ -108,6 +139,8 @@ def evaluate_truth_cmd(identity, maps, truth, geometry, workspace, output):
         inputs["maps"] = [maps]
     if geometry is not None:
         inputs["geometry"] = [geometry]
+    if face_model is not None:
+        inputs["face_model"] = [face_model]
     paths = run_stage_cli("evaluate-truth", workspace=workspace, identity=identity, inputs=inputs, output=output)
     art = read_artifact(paths[0], EVAL_KIND)
     click.echo(json.dumps({"outputs": [str(p) for p in paths], "identity": identity,

@@ -244,14 +244,27 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
 
 def geometry_from_truth(truth_path: Path, *, view_names: list[str] | None = None, flash_ids: list[str] | None = None,
                         image_size: tuple[int, int] | None = None, landmarks: np.ndarray | None = None,
-                        landmark_ids: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], dict]:
+                        landmark_ids: np.ndarray | None = None, rig_path: Path | None = None
+                        ) -> tuple[dict[str, np.ndarray], dict]:
     """The ground-truth geometry of a synthetic identity as ``geometry`` arrays (same keys as a fit).
 
     Views / flashes default to the ones rendered (truth meta); ``image_size`` (the capture frame) must equal the
     rendered size; ``landmarks`` (V, 68, 2) gives ``landmark_rmse_px`` of the
-    true geometry against them (NaN otherwise).
+    true geometry against them (NaN otherwise).  ``truth_path`` may also be a registered scan (``.ply``/``.obj``
+    …, the face model's topology, mm) with the cameras and flashes of the rig table ``rig_path``
+    (:mod:`reflectmm_cli.evaluation.external`).
     """
-    truth = read_artifact(truth_path, "synth-truth")
+    from reflectmm_cli.evaluation.external import MESH_SUFFIXES, geometry_truth_arrays
+
+    if Path(truth_path).suffix.lower() in MESH_SUFFIXES:
+        if rig_path is None:
+            raise ReflectmmError("a mesh as ground truth needs its cameras: pass --rig CAMERAS.toml", truth_path)
+        from reflectmm_cli.rig import load_rig
+
+        t_arrays, t_meta = geometry_truth_arrays(truth_path, load_rig(rig_path))
+        truth = Artifact("synth-truth", t_arrays, t_meta, Path(truth_path))
+    else:
+        truth = read_artifact(truth_path, "synth-truth")
     names = view_names or [str(x) for x in truth.meta.get("views", _str_list(truth["camera_names"]))]
     fl_all = _str_list(truth["flash_ids"])
     fls = flash_ids or [str(x) for x in truth.meta.get("flashes", fl_all)]
@@ -366,7 +379,8 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
             from reflectmm_cli.geometry import load_face_model
 
             kw["landmark_ids"] = load_face_model(fm_list[0]).landmarks
-        arrays, report = geometry_from_truth(truth_path, **kw)
+        rig_in = ctx.input_list("rig", required=False)
+        arrays, report = geometry_from_truth(truth_path, rig_path=rig_in[0] if rig_in else None, **kw)
         write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                        producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
         log.info("fit-geometry %s: ground-truth geometry from %s (%d views)", identity, truth_path, report["views"])
@@ -428,7 +442,8 @@ def run_fit_geometry(ctx: StageContext) -> list[Path]:
 @click.option("--truth", "truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="synth-truth artifact to report errors against (default: <dataset>/truth/<id>.npz if present).")
 @click.option("--from-truth", "from_truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="write the ground-truth geometry of this synth-truth artifact instead of fitting.")
+              help="write the ground-truth geometry of this synth-truth artifact (or of a registered scan .ply/.obj "
+                   "with --rig CAMERAS.toml) instead of fitting.")
 @click.option("--flash-intensity", type=click.FloatRange(min=0, min_open=True), default=None,
               help="radiant intensity of every flash (default: the rig table's values). On real data use 1: "
                    "intensity and reflectance share one global scale.")
@@ -460,6 +475,8 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, focal, i
             face_model = face_model or default_face_model_for(read_artifact(capture, "capture"), ws)
         if face_model is not None:
             inputs["face_model"] = [face_model]
+        if rig is not None:
+            inputs["rig"] = [rig]
         params["from_truth"] = True
         paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=params, inputs=inputs, output=output,
                               device=device)

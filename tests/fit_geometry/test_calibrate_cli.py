@@ -99,3 +99,64 @@ def test_recipe_runs_calibrate_rig(tmp_path, cli):
     roles = {r["role"]: r["path"] for r in g.meta["inputs"]}
     assert roles["rig"].endswith("calibrate-rig/rig.toml")
     assert np.allclose(g["K"][:, 0, 0], np.asarray(art["focal_px"]))
+
+
+def test_external_geometry_truth_mesh_and_cameras(world, cli, tmp_path):
+    """fit-geometry --from-truth takes a registered scan (.ply) + a rig table of cameras, and gives the same
+    geometry as the synth-truth artifact it was written from."""
+    import trimesh
+
+    from reflectmm_cli.errors import ReflectmmError
+
+    truth = read_artifact(world / "syn" / "truth" / "001.npz", "synth-truth")
+    fm = read_artifact(world / "syn" / "face_model.npz", "face-model")
+    trimesh.Trimesh(np.asarray(truth["vertices"], np.float64), np.asarray(fm["triangles"]),
+                    process=False).export(tmp_path / "scan.ply")
+    a = tmp_path / "a.npz"
+    b = tmp_path / "b.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", tmp_path / "scan.ply", "--rig",
+            world / "syn" / "rig.toml", "-o", a)
+    assert r.exit_code == 0, r.output
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", world / "syn" / "truth" / "001.npz", "-o", b)
+    assert r.exit_code == 0, r.output
+    ga, gb = read_artifact(a, "geometry"), read_artifact(b, "geometry")
+    assert list(ga["view_names"]) == list(gb["view_names"])
+    for k in ("vertices", "K", "R", "t", "cam_centers", "flash_pos"):
+        np.testing.assert_allclose(ga[k], gb[k], atol=1e-3, err_msg=k)
+    with pytest.raises(ReflectmmError, match="needs its cameras"):
+        from reflectmm_cli.commands.fit_geometry import geometry_from_truth
+
+        geometry_from_truth(tmp_path / "scan.ply")
+
+
+def test_external_vertex_reflectance_truth(world, cli, tmp_path):
+    """evaluate truth with per-vertex reflectance: a linear function of the vertex position interpolates to the
+    same function of the interpolated texel position (uv_geometry), so maps made from that have zero error."""
+    from reflectmm_cli.artifacts import write_artifact
+    from reflectmm_cli.geometry import load_face_model
+    from reflectmm_cli.observations.unwrap import uv_geometry
+
+    fm = load_face_model(world / "syn" / "face_model.npz")
+    X = fm.mean_shape.astype(np.float64)
+    A = np.array([[1e-3, 2e-4, 0.0], [0.0, 1e-3, 1e-4], [2e-4, 0.0, 1e-3]])
+    alb = X @ A.T + 0.5
+    spec = 0.05 + 1e-4 * X[:, 1]
+    np.savez(tmp_path / "refl.npz", albedo=alb, spec_albedo=spec)
+    S = 32
+    g = uv_geometry(X, fm.triangles, fm.uv, S)
+    pos = g.position.astype(np.float64)
+    C = np.moveaxis(pos @ A.T + 0.5, -1, 0) * g.mask
+    W = (0.05 + 1e-4 * pos[..., 1])[None] * g.mask
+    maps = {"albedo": C.astype(np.float32), "weights": W.astype(np.float32), "exponents": np.array([16.0]),
+            "mask": g.mask, "flagged": np.zeros((S, S), bool)}
+    write_artifact(tmp_path / "maps.npz", "reflectance-maps", maps)
+    r = cli("evaluate", "truth", "--id", "001", "-w", world, "--maps", tmp_path / "maps.npz", "--truth",
+            tmp_path / "refl.npz", "--face-model", world / "syn" / "face_model.npz", "-o", tmp_path / "ev.npz")
+    assert r.exit_code == 0, r.output
+    e = read_artifact(tmp_path / "ev.npz").meta["errors"]
+    assert e["truth_format"] == "per-vertex reflectance"
+    assert e["reflectance"]["raw"]["observable"]["albedo_rel"] < 1e-4
+    assert abs(e["reflectance"]["raw"]["observable"]["spec_ratio_median"] - 1) < 1e-3
+    r = cli("evaluate", "truth", "--id", "001", "-w", world, "--maps", tmp_path / "maps.npz", "--truth",
+            tmp_path / "refl.npz", "-o", tmp_path / "ev2.npz")
+    assert r.exit_code != 0 and "--face-model" in r.output
