@@ -1,4 +1,6 @@
-"""Ground truth from outside the synthetic world: a registered scan + cameras, per-vertex reflectance (docs/artifacts.md).
+"""Ground truth from outside the synthetic world: a registered scan + cameras, per-vertex reflectance.
+
+Formats: docs/artifacts.md, "External ground truth".
 
 Two documented formats, so that users with their own scans can measure the pipeline:
 

@@ -14,16 +14,20 @@ jointly from the 68 landmarks of every (identity, view):
   carried from the nominal table by the rigid transform that best aligns the nominal camera centres to the
   fitted ones.  Raised flashes 14/18 follow the raised cameras 08_1/19_1 when their landmarks are given.
 
-Cost: ``Σ ρ(‖π − u‖ / σ_lm) · w_l + ½‖z_s‖² + ½‖z_e‖² + weak camera prior`` with a robust ρ (Cauchy or Huber)
-minimised by iteratively reweighted sparse least squares (``scipy.optimize.least_squares`` with the block
-sparsity of the Jacobian).  The global rigid motion of the whole scene (every head and every camera) is a gauge
+Cost: ``Σ ρ(‖π − u‖ / σ_lm) · w_l + ½‖z_s‖² + ½‖z_e‖² + weak camera prior`` with a robust ρ (Cauchy or
+Huber), minimised by Levenberg–Marquardt with analytic Jacobians, the per-identity blocks eliminated by a Schur
+complement (a (6C + focal)-sized camera system whatever the number of identities) and the robust (IRLS) weights
+refreshed every iteration.  The global rigid motion of the whole scene (every head and every camera) is a gauge
 freedom of the landmarks; the weak camera prior towards the nominal table fixes it, and the reported camera
-uncertainties have that gauge projected out.  The overall scale is *not* a gauge: it is fixed by the face
-model's mean size through the shape prior of every identity, so it averages over the identities (a per-identity
-fit has its own face size ↔ distance ambiguity; a shared rig has one).
+uncertainties have that gauge projected out.  The overall scale is fixed by the face model's size: the MAP
+optimum shrinks every face a little (a few per cent), so the scene is finally scaled so that the identities'
+mean landmark size equals the model's expected size (exact: a similarity of the whole scene leaves every
+projection unchanged).  It averages over the identities (a per-identity fit has its own face size ↔ distance
+ambiguity; a shared rig has one).
 
-Library entry points: :func:`calibrate_rig` (landmarks → :class:`RigCalibration`), :func:`write_rig_calibration`
-(NPZ ``rig`` artifact + the rig TOML :func:`reflectmm_cli.rig.load_rig` reads), :func:`simulate_landmarks` and
+Library entry points: :func:`calibrate_rig` (landmarks → :class:`RigCalibration`), :func:`calibrate_from_captures`
+(capture artifacts → the same), :func:`write_rig_calibration` (NPZ ``rig`` artifact + the rig TOML
+:func:`reflectmm_cli.rig.load_rig` reads), :func:`simulate_landmarks` and
 :func:`perturb_rig` (synthetic landmarks and a deliberately wrong nominal rig for tests and benchmarks).
 """
 
@@ -46,7 +50,8 @@ from reflectmm_cli.rig import RAISED_CAMERAS, Rig, RigCamera, RigFlash
 
 log = logging.getLogger("reflectmm")
 
-__all__ = ["CalibrationConfig", "RigCalibration", "calibrate_rig", "write_rig_calibration", "read_rig_calibration",
+__all__ = ["CalibrationConfig", "RigCalibration", "calibrate_rig", "calibrate_from_captures", "landmarks_from_captures",
+           "write_rig_calibration", "read_rig_calibration", "rig_calibration_arrays", "expected_face_size",
            "simulate_landmarks", "perturb_rig", "rodrigues", "RIG_KIND"]
 
 RIG_KIND = "rig"
@@ -656,7 +661,8 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
                         zip(*np.unravel_index(np.argsort(-np.nan_to_num(rmse, nan=-1.0), axis=None)[:10],
                                               rmse.shape))],
         "noise_scale": math.sqrt(s2), "iterations": len(history), "converged": converged,
-        "cost_final": history[-1]["cost"] if history else None, "history": history, "seconds": round(time.perf_counter() - t_start, 3),
+        "cost_final": history[-1]["cost"] if history else None, "history": history,
+        "seconds": round(time.perf_counter() - t_start, 3),
         "camera_shift_mm": {n: round(float(np.linalg.norm(c[k] - c0[k])), 3) for k, n in enumerate(names)},
         "camera_turn_deg": {n: round(float(_rot_angle_deg(R[k], R0[k])), 4) for k, n in enumerate(names)},
         "focal_px": [round(float(v), 3) for v in f],
