@@ -583,6 +583,20 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
         assumptions.append(f"scale anchored: the identities' mean landmark-face size is set to the model's expected "
                            f"size {target:.2f} mm (x{anchor:.4f} on the bundle-adjustment optimum)")
 
+    # ---- frame: the landmarks fix the scene up to a rigid motion (the weak prior only picked one near the nominal
+    # table); express the rig in the table's convention instead — the head at the origin, i.e. the identities'
+    # mean head position and mean head orientation (x' = R̄ᵀ (x − t̄))
+    Mh = st.Rh.mean(0)
+    U, _, Vt = np.linalg.svd(Mh)
+    Rbar = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    tbar = st.th.mean(0)
+    st.R = np.einsum("cij,jk->cik", st.R, Rbar)
+    st.c = (st.c - tbar) @ Rbar
+    st.Rh = np.einsum("ji,njk->nik", Rbar, st.Rh)
+    st.th = (st.th - tbar) @ Rbar
+    assumptions.append("rig frame: origin at the identities' mean head position, axes along their mean head "
+                       "orientation (the rig table convention: the head at the origin)")
+
     # ---- results
     R, c, f = st.R, st.c, prob.focal(st)
     Rh, th = st.Rh, st.th
