@@ -477,7 +477,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         own_cond = gram_conditioning(prob.G) if n else np.zeros(0)
         ill = (prob.count < min_obs) | (own_cond < cond_min)
         if symmetry_mode == "adaptive" and n:
-            wt, sym_info = _mirror_trust(prob, ~ill, has_m, mp, idx=idx, S=S, m=3 + K, sigma=max(S / 16.0, 1.0))
+            wt, sym_info = _mirror_trust(prob, ~ill, has_m, mp, idx=idx, S=S, m=3 + K, sigma=max(S / 16.0, 1.0),
+                                         threads=threads)
             symv = np.where(ill, sym, sym * wt)
         else:
             symv = np.where(ill, sym, 0.0)
@@ -559,7 +560,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = (1.0, 8
         observability=obsv_map, prior=prior_map, stats=stats)
 
 
-def _mirror_trust(prob, own_ok, has_m, mp, idx, S, m, sigma):
+def _mirror_trust(prob, own_ok, has_m, mp, idx, S, m, sigma, threads=1):
     """Weight in [0, 1] of the mirror texel's data for each texel whose own data are well-posed.
 
     Each well-posed texel's own weighted least-squares solution x_t and its noise variance
@@ -573,7 +574,14 @@ def _mirror_trust(prob, own_ok, has_m, mp, idx, S, m, sigma):
     asymmetric lobe weight vetoes pooling as much as an asymmetric albedo).
     """
     n = own_ok.size
-    H, g = prob.normal_equations(None, "l2", np.zeros(n))[:2]
+    H = np.zeros((n, m, m))
+    g = np.zeros((n, m))
+
+    def ls_band(ab):  # weights ⟨l,n⟩ (x = None: the loss and δ do not enter)
+        H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, "l2", np.zeros(n), ab[0], ab[1])[:2]
+
+    _parallel_map(ls_band, prob.bands(S), threads)
+    prob.ls_system = (H, g)  # reused by the first pass of the fast solver
     ok = own_ok & (prob.count > m)
     x = np.zeros((n, m))
     Hinv_d = np.zeros((n, m))  # (only texels with their own solution enter the statistics below)
@@ -640,10 +648,14 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
     H = np.zeros((n, m, m))
     g = np.zeros((n, m))
 
-    def ls_band(ab):
-        H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, loss, delta, ab[0], ab[1])[:2]
+    cached = getattr(prob, "ls_system", None)  # the ⟨l,n⟩-weighted system, if the mirror trust built it already
+    if cached is not None:
+        H[:], g[:] = cached
+    else:
+        def ls_band(ab):
+            H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, loss, delta, ab[0], ab[1])[:2]
 
-    _parallel_map(ls_band, bands, threads)
+        _parallel_map(ls_band, bands, threads)
     Hp, gp = pool(H), pool(g)
     tr = np.einsum("nii->n", Hp)
     lam = PASS1_RIDGE * tr
