@@ -19,7 +19,7 @@ from reflectmm_cli.stages import StageContext, default_workspace, register_stage
 
 VERB = "calibrate-rig"
 DEFAULTS = {"focal": None, "focal_mode": "auto", "loss": "cauchy", "loss_scale_px": 3.0, "landmark_sigma_px": 1.0,
-            "outlier_px": 6.0, "max_iters": 60, "views": None}
+            "outlier_px": 6.0, "max_iters": 60, "views": None, "distance_sigma_rel": 0.1}
 
 
 def _outputs(ctx: StageContext) -> list[Path]:
@@ -35,7 +35,8 @@ def _config(p: dict):
         mode = "fixed" if p["focal"] is not None else "shared"
     return CalibrationConfig(focal=mode, focal_px=None if p["focal"] is None else float(p["focal"]), loss=p["loss"],
                              loss_scale_px=float(p["loss_scale_px"]), landmark_sigma_px=float(p["landmark_sigma_px"]),
-                             outlier_px=float(p["outlier_px"]), max_iters=int(p["max_iters"]))
+                             outlier_px=float(p["outlier_px"]), max_iters=int(p["max_iters"]),
+                             distance_sigma_rel=float(p["distance_sigma_rel"]))
 
 
 @register_stage(VERB, version=1, per_identity=False, outputs=_outputs,
@@ -82,12 +83,15 @@ def run_calibrate_rig(ctx: StageContext) -> list[Path]:
               help="scale of the robust loss in px.")
 @click.option("--outlier-px", type=click.FloatRange(min=1e-3), default=6.0, show_default=True,
               help="landmarks further than this from the fit are reported as outliers.")
+@click.option("--distance-sigma", type=click.FloatRange(min=0), default=0.1, show_default=True,
+              help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "
+                   "size by these weights (0 = the faces only; 0.01 for a measured rig).")
 @click.option("--views", default=None, help="cameras to calibrate, comma separated (default: every capture view).")
 @workspace_option
 @output_option
 @json_option
-def calibrate_rig_cmd(ids, captures, face_model, rig, focal, focal_mode, loss, loss_scale, outlier_px, views,
-                      workspace, output, as_json):
+def calibrate_rig_cmd(ids, captures, face_model, rig, focal, focal_mode, loss, loss_scale, outlier_px, distance_sigma,
+                      views, workspace, output, as_json):
     """Estimate one rig (camera poses, focal, flash positions) from the landmarks of all identities.
 
     Writes the `rig` artifact (<ws>/calibrate-rig/calibrate-rig.npz) and rig.toml beside it; pass that to
@@ -112,7 +116,7 @@ def calibrate_rig_cmd(ids, captures, face_model, rig, focal, focal_mode, loss, l
     if rig is not None:
         inputs["rig"] = [rig]
     params = {"focal": focal, "focal_mode": focal_mode, "loss": loss, "loss_scale_px": loss_scale,
-              "outlier_px": outlier_px, "views": [v.strip() for v in views.split(",") if v.strip()] if views else None}
+              "outlier_px": outlier_px, "distance_sigma_rel": distance_sigma, "views": [v.strip() for v in views.split(",") if v.strip()] if views else None}
     out = run_stage_cli(VERB, workspace=ws, params={k: v for k, v in params.items() if v is not None}, inputs=inputs,
                         output=output)
     emit(out, as_json)

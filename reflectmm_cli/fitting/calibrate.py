@@ -73,6 +73,8 @@ class CalibrationConfig:
     max_iters / tol: Levenberg–Marquardt iterations (each with refreshed robust weights) and the relative cost
         decrease below which it stops.
     n_shape / n_exp: number of model components used (None: all).
+    anchor_scale / distance_sigma_rel: fix the scene's scale by the model's mean face size, fused with the nominal
+        table's size (its camera spread) of relative uncertainty ``distance_sigma_rel`` (0: the faces only).
     """
 
     focal: str = "shared"
@@ -90,6 +92,7 @@ class CalibrationConfig:
     max_iters: int = 60
     anchor_scale: bool = True
     tol: float = 1e-6
+    distance_sigma_rel: float = 0.1
     n_shape: int | None = None
     n_exp: int | None = None
     group_weights: dict[str, float] | None = None
@@ -453,15 +456,18 @@ def _face_size(L: np.ndarray) -> np.ndarray:
     return np.sqrt(((L - L.mean(-2, keepdims=True)) ** 2).sum(-1).mean(-1))
 
 
-def expected_face_size(model: ShapeModel, n_shape: int | None = None, samples: int = 4096, seed: int = 0) -> float:
-    """Monte-Carlo mean of :func:`_face_size` of the landmarks over the shape prior (expression neutral)."""
+def expected_face_size(model: ShapeModel, n_shape: int | None = None, samples: int = 4096, seed: int = 0,
+                       return_std: bool = False):
+    """Monte-Carlo mean (and with ``return_std`` the standard deviation) of :func:`_face_size` of the landmarks
+    over the shape prior (expression neutral), mm."""
     k = model.n_shape if n_shape is None else n_shape
     rng = np.random.default_rng(seed)
     z = rng.normal(size=(samples, k))
     lm = model.landmarks
     B = (model.shape_basis[:k, lm] * model.shape_sigma[:k, None, None]).reshape(k, -1)
     L = (model.mean[lm].reshape(1, -1) + z @ B).reshape(samples, 68, 3)
-    return float(_face_size(L).mean())
+    sz = _face_size(L)
+    return (float(sz.mean()), float(sz.std())) if return_std else float(sz.mean())
 
 
 def _gauge_free_cov(cov_c: np.ndarray, centers: np.ndarray) -> np.ndarray:
@@ -575,13 +581,27 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
     # the whole scene (centres, head positions, faces) leaves every projection unchanged.
     anchor = 1.0
     if cfg.anchor_scale and Ks > 0:
-        target = expected_face_size(model, Ks)
+        target, spread = expected_face_size(model, Ks, return_std=True)
         fitted = float(np.mean(_face_size(prob.mean[None] + np.einsum("nk,klj->nlj", st.z[:, :Ks], prob.B[:Ks]))))
-        anchor = target / fitted
+        # two estimates of the scene's scale, fused by their variances (in log scale): the faces' mean size (σ =
+        # the size spread of the prior / √N) and the nominal table's camera spread (σ = distance_sigma_rel)
+        s_face = target / fitted
+        sig_f = spread / target / math.sqrt(N)
+        logs = math.log(s_face)
+        note = (f"scale: the identities' mean landmark-face size set to the model's expected {target:.2f} mm "
+                f"(x{s_face:.4f}, ±{100 * sig_f:.1f} %)")
+        if cfg.distance_sigma_rel and cfg.distance_sigma_rel > 0 and C >= 2:
+            spread_fit = math.sqrt(((st.c - st.c.mean(0)) ** 2).sum())
+            spread_nom = math.sqrt(((c0 - c0.mean(0)) ** 2).sum())
+            s_nom = spread_nom / max(spread_fit, 1e-12)
+            wf, wn = 1.0 / sig_f ** 2, 1.0 / cfg.distance_sigma_rel ** 2
+            logs = (wf * math.log(s_face) + wn * math.log(s_nom)) / (wf + wn)
+            note += (f", fused with the nominal table's size (x{s_nom:.4f}, ±{100 * cfg.distance_sigma_rel:.1f} %) "
+                     f"at weight {wn / (wf + wn):.2f}")
+        anchor = math.exp(logs)
         st.c = st.c * anchor
         st.th = st.th * anchor
-        assumptions.append(f"scale anchored: the identities' mean landmark-face size is set to the model's expected "
-                           f"size {target:.2f} mm (x{anchor:.4f} on the bundle-adjustment optimum)")
+        assumptions.append(note + f": x{anchor:.4f} on the bundle-adjustment optimum")
 
     # ---- frame: the landmarks fix the scene up to a rigid motion (the weak prior only picked one near the nominal
     # table); express the rig in the table's convention instead — the head at the origin, i.e. the identities'
