@@ -41,6 +41,8 @@ def main(argv=None):
     ap.add_argument("--cases", default="shared,given")
     ap.add_argument("--pipeline", type=int, default=0, help="run the rendered pipeline on this many identities")
     ap.add_argument("--workspace", default=None, help="workspace of --pipeline (default: a temporary folder)")
+    ap.add_argument("--pipeline-cases", default="true,nominal,calibrate",
+                    help="cases of --pipeline (true, nominal, calibrate); existing captures are reused")
     args = ap.parse_args(argv)
     if args.pipeline:
         return pipeline(args, argv)
@@ -134,13 +136,17 @@ def pipeline(args, argv):
             ws / "true_rig.toml", "--cameras", ",".join(geo_views), "--flashes", ",".join(DEFAULT_FLASHES),
             "--landmark-noise", "1.0", "--noise", "0.002", "--brdf", "ggx", "--uv-size", "256")
     for i in ids:
-        cli("preprocess", "preprocess-multipie", "--root", ws / "syn", "--id", i, "--views", ",".join(geo_views))
-        cli("preprocess", "preprocess-multipie", "--root", ws / "syn", "--id", i, "--views",
-            ",".join(DEFAULT_VIEWS), "--output", ws / "cap9" / f"{i}.npz")
+        if not (ws / "preprocess-multipie" / f"{i}.npz").is_file():
+            cli("preprocess", "preprocess-multipie", "--root", ws / "syn", "--id", i, "--views", ",".join(geo_views))
+        if not (ws / "cap9" / f"{i}.npz").is_file():
+            cli("preprocess", "preprocess-multipie", "--root", ws / "syn", "--id", i, "--views",
+                ",".join(DEFAULT_VIEWS), "--output", ws / "cap9" / f"{i}.npz")
     cli("calibrate-rig", "calibrate-rig", "--ids", ",".join(ids), "--rig", ws / "nominal_rig.toml", "--focal",
         true.camera("05_1").focal_px)
     cases = {"true rig": (ws / "true_rig.toml", []), "nominal rig, per identity": (ws / "nominal_rig.toml", []),
              "calibrate-rig (shared)": (ws / "calibrate-rig" / "rig.toml", ["--rig-sigma", "3"])}
+    keep = {"true": "true rig", "nominal": "nominal rig, per identity", "calibrate": "calibrate-rig (shared)"}
+    cases = {k: v for k, v in cases.items() if k in {keep[c] for c in args.pipeline_cases.split(",") if c in keep}}
     truth_fl = {f: true.flash(f).position for f in ("14", "18")}
     rows = []
     for case, (rig, extra) in cases.items():
