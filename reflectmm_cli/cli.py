@@ -22,6 +22,7 @@ from reflectmm_cli.progress import configure_logging
 COMMAND_MODULES: dict[str, str] = {
     "build-light-pca": "build_light_pca",
     "build-pca": "build_pca",
+    "calibrate-rig": "calibrate_rig",
     "checksum": "checksum",
     "detect-landmarks": "detect_landmarks",
     "evaluate": "evaluate",
