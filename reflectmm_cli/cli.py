@@ -23,6 +23,7 @@ COMMAND_MODULES: dict[str, str] = {
     "build-baseline": "build_baseline",
     "build-light-pca": "build_light_pca",
     "build-pca": "build_pca",
+    "calibrate-rig": "calibrate_rig",
     "checksum": "checksum",
     "detect-landmarks": "detect_landmarks",
     "evaluate": "evaluate",

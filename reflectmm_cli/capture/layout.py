@@ -215,3 +215,37 @@ def plan_identity(root: str | Path, identity: str, *, session: str = "auto", rec
         expected.append(tuple(folder / (shot_stem(identity, s, recording, v, sh) + ".png") for sh in shots))
         lms.append(landmark_path(root, identity, s, recording, v, landmarks_dir))
     return ShotPlan(identity, s, recording, views, flashes, tuple(images), tuple(expected), tuple(lms))
+
+
+#: The raised camera each raised flash sits on (paper supp. A.1: flashes 14 / 18 are solved from 08_1 / 19_1).
+RAISED_FLASH_CAMERA = {"14": "08_1", "18": "19_1"}
+
+
+def default_views(root: str | Path, identity: str, flashes=DEFAULT_FLASHES, *, session: str = "auto",
+                  recording: str = "01", landmarks_dir: str | Path | None = None) -> tuple[tuple[str, ...], list[str]]:
+    """The default views of a capture: the paper's 9 plus the raised camera of every raised flash used (08_1 for
+    flash 14, 19_1 for 18), so that fit-geometry places those flashes from the cameras' own landmarks; their
+    images are not used for reflectance (unwrap-uv leaves them out by default).  A raised camera whose room shot
+    or landmark file is missing is left out with a note (its flash then comes from the rig table).
+
+    Returns (views, notes).
+    """
+    views = list(DEFAULT_VIEWS)
+    notes: list[str] = []
+    try:
+        s = resolve_session(root, identity, session, str(recording).zfill(2))
+    except ReflectmmError:
+        return tuple(views), notes
+    for fl in flashes:
+        cam = RAISED_FLASH_CAMERA.get(str(fl))
+        if cam is None or cam in views:
+            continue
+        img = shot_path(root, identity, s, str(recording).zfill(2), cam, ROOM_SHOT)
+        lm = landmark_path(root, identity, s, str(recording).zfill(2), cam, landmarks_dir)
+        if img is not None and lm is not None:
+            views.append(cam)
+        else:
+            notes.append(f"flash {fl} is used but camera {cam} has no {'room shot' if img is None else 'landmarks'} "
+                         f"for identity {identity}: fit-geometry will take flash {fl}'s position from the rig table "
+                         "(hundreds of mm off on a nominal table; see docs/capture.md)")
+    return tuple(views), notes

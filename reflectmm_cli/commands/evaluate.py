@@ -33,9 +33,11 @@ def evaluate_group():
                    "synth-multipie/truth/).")
 @click.option("--geometry", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="geometry artifact to evaluate too.")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="face model whose vertices a per-vertex reflectance truth (plain NPZ) refers to.")
 @workspace_option
 @output_option
-def evaluate_truth_cmd(identity, maps, truth, geometry, workspace, output):
+def evaluate_truth_cmd(identity, maps, truth, geometry, face_model, workspace, output):
     """Errors of one identity's fitted maps (and geometry) against the ground truth; JSON on stdout.
 
     Diffuse albedo RMSE / relative error in linear RGB, specular albedo Σw against spec_albedo, separately for
@@ -56,6 +58,8 @@ def evaluate_truth_cmd(identity, maps, truth, geometry, workspace, output):
         inputs["maps"] = [maps]
     if geometry is not None:
         inputs["geometry"] = [geometry]
+    if face_model is not None:
+        inputs["face_model"] = [face_model]
     paths = run_stage_cli(evaluate_truth.VERB, workspace=workspace, identity=identity, inputs=inputs, output=output)
     art = read_artifact(paths[0], EVAL_KIND)
     click.echo(json.dumps({"outputs": [str(p) for p in paths], "identity": identity,

@@ -36,7 +36,8 @@ from reflectmm_cli.workspace import find_face_model, find_rig, find_truth, resol
 @click.option("--truth", "truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="synth-truth artifact to report errors against (default: <dataset>/truth/<id>.npz if present).")
 @click.option("--from-truth", "from_truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="write the ground-truth geometry of this synth-truth artifact instead of fitting.")
+              help="write the ground-truth geometry of this synth-truth artifact (or of a registered scan .ply/.obj "
+                   "with --rig CAMERAS.toml) instead of fitting.")
 @param_options(PARAMS)
 @device_option
 @workspace_option
@@ -59,6 +60,8 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
             face_model = face_model or find_face_model(ws, capture=read_artifact(capture, "capture"))
         if face_model is not None:
             inputs["face_model"] = [face_model]
+        if rig is not None:
+            inputs["rig"] = [rig]
         params["from_truth"] = True
         paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=params, inputs=inputs, output=output,
                               device=device)

@@ -151,7 +151,8 @@ def fit_diffuse_only(obs: Mapping[str, np.ndarray], pair_mask: np.ndarray | None
     least-squares ``Σ ⟨l,n⟩ d I / Σ ⟨l,n⟩ d²``) over the training pairs, the mirror texel's
     observations pooled with weight ``symmetry`` (as fit-reflectance's mirror pooling: in ``symmetry_mode``
     ``ill-posed`` only for texels without an observation of their own — C alone needs one —, ``all``: every
-    texel). Returns (3,S,S)."""
+    texel; ``adaptive`` is treated as ``ill-posed`` by this baseline: it has no per-texel noise estimate to
+    measure asymmetry with). Returns (3,S,S)."""
     from reflectmm_cli.reflectance.design import design_columns, mirror_index
 
     S = np.asarray(obs["position"]).shape[0]
@@ -167,13 +168,13 @@ def fit_diffuse_only(obs: Mapping[str, np.ndarray], pair_mask: np.ndarray | None
     cw = des.cos_l  # the paper's per-observation weight ⟨l, n⟩ (as fit_maps)
     rad = np.asarray(obs["radiance"], np.float64).reshape(P, S * S, 3)[sel].transpose(1, 0, 2)  # (S², P', 3)
     mir = mirror_index(S)
-    if symmetry_mode not in ("ill-posed", "all"):
-        raise ReflectmmError(f"symmetry_mode must be 'ill-posed' or 'all', got {symmetry_mode!r}")
+    if symmetry_mode not in ("adaptive", "ill-posed", "all"):
+        raise ReflectmmError(f"symmetry_mode must be 'adaptive', 'ill-posed' or 'all', got {symmetry_mode!r}")
     if symmetry:
         d2 = np.concatenate([d, d[mir]], 1)
         r2 = np.concatenate([rad, rad[mir]], 1)
         sv = np.full((S * S, 1), float(symmetry))
-        if symmetry_mode == "ill-posed":
+        if symmetry_mode in ("ill-posed", "adaptive"):
             sv[(d > 0).sum(1) > 0] = 0.0
         wt = np.concatenate([cw, sv * cw[mir]], 1)
     else:

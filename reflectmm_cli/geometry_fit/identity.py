@@ -75,7 +75,13 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
 
 def view_cameras(rig, view_names: list[str], image_size: tuple[int, int], focal: float | None,
                  rig_path: Path | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """K, R, t and positions of the rig cameras of the views (rig resized to the capture frame, --focal applied)."""
+    """K, R, t and positions of the rig cameras of the views (--focal applied).
+
+    A rig camera whose image size differs from the capture frame is refused unless ``focal`` is given: its focal
+    length in pixels belongs to its own image size, and rescaling it to another frame would be a guess (a wrong
+    focal biases distance, face size and flash irradiance; docs/fit-geometry.md)."""
+    from reflectmm_cli.rig import RigCamera
+
     missing = [n for n in view_names if n not in rig.camera_names]
     if missing:
         raise ReflectmmError(f"view(s) {', '.join(missing)} of the capture are not cameras of the rig "
@@ -85,7 +91,14 @@ def view_cameras(rig, view_names: list[str], image_size: tuple[int, int], focal:
     for n in view_names:
         c = rig.camera(n)
         if (c.width, c.height) != (W, H):
-            c = c.resized(W, H)
+            if focal is None:
+                raise ReflectmmError(
+                    f"rig camera {n} is {c.width}x{c.height} (focal {c.focal_px:g} px) but the capture frame is "
+                    f"{W}x{H}: pass --focal PX for these images or a rig table of this size (calibrate-rig writes "
+                    "one)", rig_path or rig.source)
+            log.warning("fit-geometry: rig camera %s is %dx%d, the capture frame %dx%d: using --focal %g px and the "
+                        "image centre", n, c.width, c.height, W, H, focal)
+            c = RigCamera(c.name, c.position, c.look_at, c.up, float(focal), W, H)
         K = c.K.copy()
         if focal is not None:
             K[0, 0] = K[1, 1] = float(focal)
@@ -189,14 +202,27 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
 
 def geometry_from_truth(truth_path: Path, *, view_names: list[str] | None = None, flash_ids: list[str] | None = None,
                         image_size: tuple[int, int] | None = None, landmarks: np.ndarray | None = None,
-                        landmark_ids: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], dict]:
+                        landmark_ids: np.ndarray | None = None, rig_path: Path | None = None
+                        ) -> tuple[dict[str, np.ndarray], dict]:
     """The ground-truth geometry of a synthetic identity as ``geometry`` arrays (same keys as a fit).
 
     Views / flashes default to the ones rendered (truth meta); ``image_size`` (the capture frame) must equal the
     rendered size; ``landmarks`` (V, 68, 2) gives ``landmark_rmse_px`` of the
-    true geometry against them (NaN otherwise).
+    true geometry against them (NaN otherwise).  ``truth_path`` may also be a registered scan (``.ply``/``.obj``
+    …, the face model's topology, mm) with the cameras and flashes of the rig table ``rig_path``
+    (:mod:`reflectmm_cli.evaluation.external`).
     """
-    truth = read_artifact(truth_path, "synth-truth")
+    from reflectmm_cli.evaluation.external import MESH_SUFFIXES, geometry_truth_arrays
+
+    if Path(truth_path).suffix.lower() in MESH_SUFFIXES:
+        if rig_path is None:
+            raise ReflectmmError("a mesh as ground truth needs its cameras: pass --rig CAMERAS.toml", truth_path)
+        from reflectmm_cli.rig import load_rig
+
+        t_arrays, t_meta = geometry_truth_arrays(truth_path, load_rig(rig_path))
+        truth = Artifact("synth-truth", t_arrays, t_meta, Path(truth_path))
+    else:
+        truth = read_artifact(truth_path, "synth-truth")
     names = view_names or [str(x) for x in truth.meta.get("views", _str_list(truth["camera_names"]))]
     fl_all = _str_list(truth["flash_ids"])
     fls = flash_ids or [str(x) for x in truth.meta.get("flashes", fl_all)]

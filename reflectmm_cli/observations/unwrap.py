@@ -143,10 +143,33 @@ def _index_of(names: Sequence[str], wanted: Sequence[str], what: str, where) -> 
     return np.array(idx, dtype=np.int64)
 
 
+def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[str] | None = None) -> list[str]:
+    """The capture views whose images enter the reflectance fit.
+
+    ``views`` if given (a comma string or a list; ``"all"`` = every view of the capture), else every view of
+    ``capture["view_names"]`` but the raised cameras 08_1 / 19_1 (the paper uses them only to place flashes 14 / 18).
+    A capture holding only raised cameras keeps them (with a warning)."""
+    from reflectmm_cli.rig import RAISED_CAMERAS
+
+    have = [str(v) for v in np.asarray(capture["view_names"]).reshape(-1)]
+    if views is not None:
+        vs = [str(v).strip() for v in (views.split(",") if isinstance(views, str) else views) if str(v).strip()]
+        return have if vs == ["all"] else vs
+    keep = [v for v in have if v not in RAISED_CAMERAS]
+    if not keep:
+        log.warning("unwrap-uv: the capture has only raised cameras (%s): unwrapping them", ", ".join(have))
+        return have
+    if len(keep) < len(have):
+        log.info("unwrap-uv: leaving out the raised camera(s) %s (geometry / flash placement only; --views all "
+                 "keeps them)", ", ".join(v for v in have if v in RAISED_CAMERAS))
+    return keep
+
+
 def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
                         triangles: np.ndarray, uv: np.ndarray, *, uv_size: int = 256, grazing_deg: float = 80.0,
                         exponents: Sequence[float] = DEFAULT_EXPONENTS, geometry_path=None, capture_path=None,
-                        with_conditioning: bool = True) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+                        with_conditioning: bool = True, select_views: Sequence[str] | None = None
+                        ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Build the ``uv-observations`` arrays of docs/pipeline.md.
 
     Args:
@@ -156,6 +179,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
             ``cam_centers``, ``flash_ids``, ``flash_pos``, ``flash_intensity``, ``image_size``).
         triangles, uv: the face model's topology and texture coordinates.
         grazing_deg: views with ``n·v ≤ cos(grazing_deg)`` do not see the texel.
+        select_views: the capture views to unwrap (default all; the stage leaves out 08_1 / 19_1).
     Returns:
         ``(arrays, report)``.
     """
@@ -168,6 +192,16 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         raise ReflectmmError(f"geometry has {verts.shape[0]} vertices but the face model has "
                              f"{np.asarray(uv).shape[0]}", geometry_path)
     views = [str(v) for v in capture["view_names"]]
+    if select_views is not None:
+        missing = [v for v in select_views if v not in views]
+        if missing:
+            raise ReflectmmError(f"view(s) {', '.join(missing)} are not in the capture (it has {', '.join(views)})",
+                                 capture_path)
+        keep = [views.index(v) for v in select_views]
+        V0 = len(views)
+        capture = {k: (np.asarray(capture[k])[keep] if k in ("olat", "saturated", "crop_origin", "view_names")
+                       and np.asarray(capture[k]).shape[:1] == (V0,) else capture[k]) for k in capture}
+        views = [str(v) for v in capture["view_names"]]
     flashes = [str(f) for f in capture["flash_ids"]]
     gv = _index_of(geometry["view_names"], views, "view", geometry_path)
     gf = _index_of(geometry["flash_ids"], flashes, "flash", geometry_path)

@@ -8,7 +8,9 @@ Fast solver (``solver="fast"``), per texel, exact and batched over texels:
 * loss ``l2``: ``Σ_jc ⟨l_j,n⟩ r_jc²``; loss ``l1``: the paper's ``Σ_jc ⟨l_j,n⟩ |r_jc|`` by IRLS with weights
   ``⟨l_j,n⟩ / max(|r_jc|, δ)``, δ = ``irls_delta`` × RMS of the texel's observed radiance.
 * symmetry: the normal equations of texel t are pooled with its mirror's,
-  ``H_t + s · H_mirror(t)`` (s = ``symmetry``); s = 1 gives mirror texels one shared solution.
+  ``H_t + s_t · H_mirror(t)``; s_t = ``symmetry`` where the texel's own data are ill-posed and
+  ``symmetry`` × the mirror trust elsewhere (``symmetry_mode="adaptive"``: the trust fades to 0 where the face
+  measurably differs from its mirror, so pooling adds no bias where the texel's own data decide).
 * tail prior: lobe weight W_i additionally gets ``λ_t · prior_tail · (1 − o_i/prior_tail_obs)₊²`` where
   its lobe's observability o_i is low (seen only in its tail).
 * prior (Tikhonov): ``+ λ_t ‖x − x0_t‖²`` with ``λ_t = prior · trace(H_t)`` (the pooled data term), so
@@ -44,8 +46,10 @@ from .nnls import kkt_violation, nnls_batched
 
 log = logging.getLogger("reflectmm")
 
-#: Where mirror pooling applies: every texel (the paper's random flip) or only texels whose own data are ill-posed.
-SYMMETRY_MODES = ("ill-posed", "all")
+#: Where mirror pooling applies: ``adaptive`` (every ill-posed texel fully; a well-posed texel with the weight its
+#: mirror deserves given the measured local asymmetry), only texels whose own data are ill-posed, or every texel
+#: (the paper's random flip).
+SYMMETRY_MODES = ("adaptive", "ill-posed", "all")
 
 #: Ridge of the first pass relative to the trace of each texel's data term (numerical safety only).
 PASS1_RIDGE = 1e-9
@@ -385,7 +389,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
              steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
              device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK, threads: int | None = None,
              progress: Callable | None = None, path=None,
-             symmetry_mode: str = "ill-posed", prior_tail: float = 100.0,
+             symmetry_mode: str = "adaptive", prior_tail: float = 100.0,
              prior_tail_obs: float = 0.5) -> ReflectanceMaps:
     """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
 
@@ -394,9 +398,11 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
         exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
         solver: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
         symmetry: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
-        symmetry_mode: ``ill-posed`` (default): pool a texel with its mirror (weight s) only when its own data
-            cannot determine its unknowns (fewer than ``min_obs`` observations or conditioning < ``cond_min``);
-            ``all``: pool every texel (the minimiser of the paper's random-flip objective). Fast solver only;
+        symmetry_mode: ``adaptive`` (default): pool a texel whose own data are ill-posed with its mirror at
+            weight s, and a well-posed one at weight s · (mirror trust), the trust being 1 where the face is as
+            symmetric as the noise can tell and → 0 where it measurably is not (:func:`_mirror_trust`);
+            ``ill-posed``: pool only texels whose own data cannot determine their unknowns (fewer than
+            ``min_obs`` observations or conditioning < ``cond_min``); ``all``: pool every texel (the minimiser of the paper's random-flip objective). Fast solver only;
             the Adam solver always flips whole maps (the paper).
         loss: ``l1`` (cos-weighted L1, IRLS) or ``l2`` (cos-weighted least squares); Adam always uses L1.
         prior: Tikhonov strength relative to the trace of each texel's data term (fast solver; 0 = off).
@@ -470,9 +476,16 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     # per-texel mirror weight: s everywhere ("all", the paper's flip), or s only where the texel's own data
     # cannot determine its unknowns ("ill-posed": fewer than min_obs observations or conditioning < cond_min)
     symv = np.full(n, sym)
-    if sym > 0 and symmetry_mode == "ill-posed" and solver == "fast":
+    sym_info: dict[str, Any] = {}
+    if sym > 0 and symmetry_mode in ("ill-posed", "adaptive") and solver == "fast":
         own_cond = gram_conditioning(prob.G) if n else np.zeros(0)
-        symv = np.where((prob.count < min_obs) | (own_cond < cond_min), sym, 0.0)
+        ill = (prob.count < min_obs) | (own_cond < cond_min)
+        if symmetry_mode == "adaptive" and n:
+            wt, sym_info = _mirror_trust(prob, ~ill, has_m, mp, idx=idx, S=S, m=3 + K, sigma=max(S / 16.0, 1.0),
+                                         threads=threads)
+            symv = np.where(ill, sym, sym * wt)
+        else:
+            symv = np.where(ill, sym, 0.0)
     symv = np.where(has_m, symv, 0.0)
 
     def pool(a: np.ndarray) -> np.ndarray:
@@ -498,7 +511,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     solve = ~flag
     stats: dict[str, Any] = {"solver": solver, "loss": loss if solver == "fast" else "l1", "symmetry": sym,
                              "symmetry_mode": symmetry_mode if solver == "fast" else "all",
-                             "n_pooled": int((symv > 0).sum()),
+                             "n_pooled": int((symv > 0).sum()), **sym_info,
                              "prior": float(prior), "prior_tail": float(prior_tail),
                              "prior_tail_obs": float(prior_tail_obs), "n_texels": int(n),
                              "n_pairs_used": int(pm.sum()),
@@ -551,6 +564,72 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
         observability=obsv_map, prior=prior_map, stats=stats)
 
 
+def _mirror_trust(prob, own_ok, has_m, mp, idx, S, m, sigma, threads=1):
+    """Weight in [0, 1] of the mirror texel's data for each texel whose own data are well-posed.
+
+    Each well-posed texel's own weighted least-squares solution x_t and its noise variance
+    ``v_t = σ_t² · diag(H_t⁻¹) · mean(⟨l,n⟩)`` (σ_t² from its residuals) give, for the diffuse unknowns, the
+    mirror difference ``D = x_t − x_mirror``.  Its local excess ``τ² = ⟨D²⟩ − ⟨v_t + v_mirror⟩`` (normalised
+    convolution over well-posed pairs, σ = ``sigma`` texels, clipped at 0) is the variance of the face's own
+    asymmetry; the mirror's data then deserve the weight ``v_mirror / (v_mirror + τ²)`` (its estimate is worth as
+    much as a measurement of variance ``v_mirror + τ²``): 1 on a symmetric face (pooling halves the noise), → 0
+    where the face differs from its mirror by more than the noise (no bias from pooling).  The same is done for
+    every unknown the texel's data measure (noise below its value) and the texel takes the smallest weight (an
+    asymmetric lobe weight vetoes pooling as much as an asymmetric albedo).
+    """
+    n = own_ok.size
+    H = np.zeros((n, m, m))
+    g = np.zeros((n, m))
+
+    def ls_band(ab):  # weights ⟨l,n⟩ (x = None: the loss and δ do not enter)
+        H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, "l2", np.zeros(n), ab[0], ab[1])[:2]
+
+    _parallel_map(ls_band, prob.bands(S), threads)
+    prob.ls_system = (H, g)  # reused by the first pass of the fast solver
+    ok = own_ok & (prob.count > m)
+    x = np.zeros((n, m))
+    Hinv_d = np.zeros((n, m))  # (only texels with their own solution enter the statistics below)
+    if ok.any():
+        Hk = H[ok] + PASS1_RIDGE * np.einsum("nii->n", H[ok])[:, None, None] * np.eye(m)
+        Hi = np.linalg.inv(Hk)
+        x[ok] = np.einsum("nij,nj->ni", Hi, g[ok])
+        Hinv_d[ok] = np.einsum("nii->ni", Hi)
+    rss = prob.rss(x)
+    sig2 = rss / np.maximum(3 * prob.count - m, 1)
+    cbar = np.bincount(prob.tex, weights=prob.cos, minlength=n) / np.maximum(prob.count, 1)
+    var = sig2[:, None] * Hinv_d * cbar[:, None]                               # (n, m)
+    pair = ok & has_m & ok[mp]
+    D2 = np.where(pair[:, None], (x - x[mp]) ** 2, 0.0)
+    V2 = np.where(pair[:, None], var + var[mp], 0.0)
+    vm = np.where(pair[:, None], var[mp], 0.0)
+
+    def smooth(a):
+        full = np.zeros((a.shape[1], S * S))
+        full[:, idx] = a.T
+        wfull = np.zeros(S * S)
+        wfull[idx] = pair.astype(float)
+        out, den = normalized_convolution(full.reshape(-1, S, S), wfull.reshape(S, S), sigma)
+        return np.moveaxis(out.reshape(a.shape[1], -1), 0, 1)[idx], den[0].reshape(-1)[idx]
+
+    sD2, den = smooth(D2)
+    sV2, _ = smooth(V2)
+    svm, _ = smooth(vm)
+    tau2 = np.clip(sD2 - sV2, 0.0, None)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wj = svm / np.maximum(svm + tau2, 1e-300)
+        # an unknown its data barely measure (noise above its value, e.g. a lobe seen only in its tail) can show
+        # no asymmetry; it leans on the mirror anyway and does not vote
+        sx2, _ = smooth(np.where(pair[:, None], x * x, 0.0))
+        wj = np.where(svm < sx2, wj, 1.0)
+        w = np.where(den > 1e-3, np.min(wj, axis=1), 0.0)
+    w = np.where(ok, np.clip(np.nan_to_num(w), 0.0, 1.0), 0.0)
+    info = {"mirror_trust_median": float(np.median(w[ok])) if ok.any() else 0.0,
+            "asymmetry_rel_median": float(np.median(np.sqrt(tau2[pair, :3].mean(1)) /
+                                                    np.maximum(np.abs(x[pair, :3]).mean(1), 1e-30)))
+            if pair.any() else 0.0}
+    return w, info
+
+
 def _solve_system(H, g, lam, x0):
     """NNLS of (H + Λ) x = g + Λ x0 with Λ = diag(lam): lam (n,) isotropic or (n, m) per unknown."""
     m = H.shape[-1]
@@ -573,10 +652,14 @@ def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p,
     H = np.zeros((n, m, m))
     g = np.zeros((n, m))
 
-    def ls_band(ab):
-        H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, loss, delta, ab[0], ab[1])[:2]
+    cached = getattr(prob, "ls_system", None)  # the ⟨l,n⟩-weighted system, if the mirror trust built it already
+    if cached is not None:
+        H[:], g[:] = cached
+    else:
+        def ls_band(ab):
+            H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, loss, delta, ab[0], ab[1])[:2]
 
-    _parallel_map(ls_band, bands, threads)
+        _parallel_map(ls_band, bands, threads)
     Hp, gp = pool(H), pool(g)
     tr = np.einsum("nii->n", Hp)
     lam = PASS1_RIDGE * tr

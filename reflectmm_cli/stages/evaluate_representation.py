@@ -162,6 +162,6 @@ def run(ctx: StageContext) -> list[Path]:
     return [out, out.with_suffix(".md"), out.with_suffix(".png")]
 
 
-# version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail
-STAGE = Stage(VERB, version=3, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
+# version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail version 4: adaptive
+STAGE = Stage(VERB, version=4, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
               help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes")

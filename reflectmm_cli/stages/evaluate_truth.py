@@ -16,14 +16,41 @@ VERB = "evaluate-truth"
 PARAMS = ()
 
 
-def evaluate_truth(maps_path: Path | None, truth_path: Path, geometry_path: Path | None = None) -> dict:
-    """Library entry: the error document of fitted maps (and geometry) against a synth-truth file."""
+def _is_vertex_reflectance(path: Path) -> bool:
+    """A plain NPZ (no artifact meta) with per-vertex ``albedo (V, 3)`` (reflectmm_cli.evaluation.external)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return "__meta__" not in z.files and "albedo" in z.files and z["albedo"].ndim == 2
+    except (OSError, ValueError):
+        return False
+
+
+def evaluate_truth(maps_path: Path | None, truth_path: Path, geometry_path: Path | None = None,
+                   face_model_path: Path | None = None) -> dict:
+    """Library entry: the error document of fitted maps (and geometry) against a synth-truth file, or against
+    per-vertex reflectance (plain NPZ, docs/artifacts.md) laid out in UV with the face model ``face_model_path``."""
     from reflectmm_cli.evaluation.truth import geometry_errors, reflectance_errors
 
+    doc: dict = {}
+    if _is_vertex_reflectance(Path(truth_path)):
+        from reflectmm_cli.evaluation.external import read_vertex_reflectance, vertex_reflectance_to_uv
+        from reflectmm_cli.geometry import load_face_model
+
+        if maps_path is None:
+            raise ReflectmmError("per-vertex reflectance truth: give --maps", truth_path)
+        if face_model_path is None:
+            raise ReflectmmError("per-vertex reflectance truth needs the face model of its vertices: pass "
+                                 "--face-model", truth_path)
+        fm = load_face_model(face_model_path)
+        maps = read_artifact(maps_path, "reflectance-maps")
+        S = int(np.asarray(maps["albedo"]).shape[-1])
+        t_uv = vertex_reflectance_to_uv(read_vertex_reflectance(truth_path, fm.n_vertices), fm.uv, fm.triangles, S)
+        doc["reflectance"] = reflectance_errors(maps.arrays, t_uv)
+        doc["truth_format"] = "per-vertex reflectance"
+        return doc
     truth = read_artifact(truth_path)
     if truth.kind not in ("synth-truth", "reflectance-maps"):
         raise ReflectmmError(f"is a '{truth.kind}' artifact, expected a 'synth-truth' artifact", truth_path)
-    doc: dict = {}
     if maps_path is not None:
         maps = read_artifact(maps_path, "reflectance-maps")
         doc["reflectance"] = reflectance_errors(maps.arrays, truth.arrays)
@@ -42,7 +69,9 @@ def _truth_outputs(ctx: StageContext) -> list[Path]:
 def run(ctx: StageContext) -> list[Path]:
     maps = ctx.input_list("maps", required=False)
     geo = ctx.input_list("geometry", required=False)
-    doc = evaluate_truth(maps[0] if maps else None, ctx.input("truth"), geo[0] if geo else None)
+    fms = ctx.input_list("face_model", required=False)
+    doc = evaluate_truth(maps[0] if maps else None, ctx.input("truth"), geo[0] if geo else None,
+                         fms[0] if fms else None)
     flat = flatten("", doc, {})
     names = sorted(flat)
     out = ctx.output_path()

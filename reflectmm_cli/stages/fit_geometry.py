@@ -125,7 +125,8 @@ def run(ctx: StageContext) -> list[Path]:
             from reflectmm_cli.geometry import load_face_model
 
             kw["landmark_ids"] = load_face_model(fm_list[0]).landmarks
-        arrays, report = geometry_from_truth(truth_path, **kw)
+        rig_in = ctx.input_list("rig", required=False)
+        arrays, report = geometry_from_truth(truth_path, rig_path=rig_in[0] if rig_in else None, **kw)
         report["truth_file"] = path_for_meta(truth_path, out)
         write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                        producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})

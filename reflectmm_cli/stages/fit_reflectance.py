@@ -28,9 +28,10 @@ SOLVER_PARAMS = (
           help="fast: exact batched IRLS/NNLS per texel; adam: the paper's Adam reference."),
     Param("symmetry", "float", 1.0, range=(0.0, 1.0),
           help="Mirror pooling weight (fast) / random flips on (adam, when > 0)."),
-    Param("symmetry_mode", "str", "ill-posed", choices=("ill-posed", "all"),
-          help="Fast solver: pool a texel with its mirror only where its own data are ill-posed (few "
-               "observations or conditioning < --cond-min), or every texel (all: the paper's random flip)."),
+    Param("symmetry_mode", "str", "adaptive", choices=("adaptive", "ill-posed", "all"),
+          help="Fast solver: adaptive = pool ill-posed texels with their mirror and well-posed ones only as far "
+               "as the measured local asymmetry allows; ill-posed = only where a texel's own data are ill-posed "
+               "(few observations or conditioning < --cond-min); all = every texel (the paper's random flip)."),
     Param("loss", "str", "l1", choices=("l1", "l2"),
           help="cos-weighted L1 (the paper's, IRLS) or cos-weighted least squares (fast solver)."),
     Param("prior", "float", 1e-4, range=(0.0, None),
@@ -121,5 +122,6 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 2: mirror pooling only where a texel's own data are ill-posed by default (symmetry_mode)
 # version 3: tail prior on lobe weights seen only in their lobe's tail (prior_tail)
-STAGE = Stage(VERB, version=3, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
+# version 4: adaptive mirror pooling by default (issue 13)
+STAGE = Stage(VERB, version=4, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
               params=PARAMS, help="fit diffuse albedo and lobe-weight maps to one identity's UV observations")

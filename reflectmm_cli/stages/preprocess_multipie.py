@@ -7,7 +7,8 @@ import time
 from pathlib import Path
 
 from reflectmm_cli.artifacts import atomic_write_bytes, write_artifact
-from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, discover_identities, plan_identity
+from reflectmm_cli.capture.layout import (DEFAULT_FLASHES, DEFAULT_VIEWS, default_views, discover_identities,
+                                          plan_identity)
 from reflectmm_cli.capture.preprocess import (CROP_MODES, CaptureOptions, contact_sheet, encode_png, parse_rotate,
                                               preprocess_identity, source_refs)
 from reflectmm_cli.errors import ReflectmmError
@@ -21,7 +22,9 @@ VERB = "preprocess-multipie"
 PARAMS = (
     Param("session", "str", "auto", help="Session 01..04, or auto = first session holding the recording."),
     Param("recording", "str", "01", help="Recording number (01 = neutral)."),
-    Param("views", "strs", list(DEFAULT_VIEWS), help="Cameras, comma separated."),
+    Param("views", "strs", None,
+          help="Cameras, comma separated (default: the paper's 9 views, plus 08_1 / 19_1 when flashes 14 / 18 are "
+               "used and their shots exist: they place those flashes; unwrap-uv leaves them out)."),
     Param("flashes", "strs", list(DEFAULT_FLASHES), help="Flash shots, comma separated."),
     Param("transfer", "str", "gamma1.2", help="Pixel value -> linear: gamma1.2 (x**1.2), srgb, linear, or gamma:G."),
     Param("rotate", "custom", {}, convert=parse_rotate, multiple=True, metavar="CAM=DEG",
@@ -33,13 +36,29 @@ PARAMS = (
 )
 
 
+def _views(ctx: StageContext, landmarks_dir: Path | None) -> tuple[str, ...]:
+    """The views param, or the default: the paper's 9 + 08_1 / 19_1 when flashes 14 / 18 are used
+    (:func:`reflectmm_cli.capture.layout.default_views`)."""
+    p = ctx.params
+    if p.get("views") is not None:
+        return tuple(p.get("views"))
+    if not ctx.identity or not ctx.inputs.get("root"):
+        return DEFAULT_VIEWS
+    views, notes = default_views(ctx.input("root"), ctx.identity, tuple(p["flashes"]), session=p["session"],
+                                 recording=p["recording"], landmarks_dir=landmarks_dir)
+    for n in notes:
+        log.warning("preprocess-multipie: %s", n)
+    return views
+
+
 def options_from_ctx(ctx: StageContext) -> CaptureOptions:
     """The library's CaptureOptions from the resolved params and the optional landmarks input."""
     p = ctx.params
     lm = ctx.inputs.get("landmarks") or []
-    return CaptureOptions(session=p["session"], recording=p["recording"], views=tuple(p["views"]),
+    lm_dir = Path(lm[0]) if lm else None
+    return CaptureOptions(session=p["session"], recording=p["recording"], views=_views(ctx, lm_dir),
                           flashes=tuple(p["flashes"]), transfer=p["transfer"], rotate=dict(p["rotate"]),
-                          landmarks_dir=Path(lm[0]) if lm else None, crop=p["crop"], crop_margin=p["crop_margin"])
+                          landmarks_dir=lm_dir, crop=p["crop"], crop_margin=p["crop_margin"])
 
 
 def _require_identity(ctx: StageContext) -> str:
@@ -89,5 +108,6 @@ def run(ctx: StageContext) -> list[Path]:
     return [out, sheet]
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
+# version 2: default views add 08_1 / 19_1 when flashes 14 / 18 are used (issue 13)
+STAGE = Stage(VERB, version=2, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
               discover_ids=_discover, params=PARAMS, help="Multi-PIE shots -> linear OLAT stack per identity")

@@ -24,6 +24,7 @@ STAGE_MODULES: dict[str, str] = {
     "face-model-create": "face_model_create",
     "face-model-import": "face_model_import",
     "preprocess-multipie": "preprocess_multipie",
+    "calibrate-rig": "calibrate_rig",
     "fit-geometry": "fit_geometry",
     "unwrap-uv": "unwrap_uv",
     "fit-reflectance": "fit_reflectance",

@@ -26,6 +26,9 @@ PARAMS = (
     Param("grazing_deg", "float", 80.0, range=(0.0, 90.0), low_open=True, unit="degrees",
           help="A view sees a texel only if the angle between normal and view direction is below this."),
     replace(EXPONENTS, help="Lobe exponents used for the conditioning map."),
+    Param("views", "strs", None,
+          help="Capture views to unwrap, comma separated, or 'all' (default: every view but the raised 08_1 / "
+               "19_1, which only place flashes 14 / 18)."),
 )
 
 
@@ -52,7 +55,7 @@ def _resolved_inputs(ctx: StageContext) -> dict[str, list[Path]]:
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.capture.preprocess import encode_png
     from reflectmm_cli.geometry.face_model import load_face_model
-    from reflectmm_cli.observations.unwrap import previews, unwrap_observations
+    from reflectmm_cli.observations.unwrap import previews, reflectance_views, unwrap_observations
 
     t0 = time.perf_counter()
     cap_path = ctx.input("capture")
@@ -67,6 +70,7 @@ def run(ctx: StageContext) -> list[Path]:
     model = load_face_model(fm_path)
     p = ctx.params
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
+                                         select_views=reflectance_views(cap.arrays, p.get("views")),
                                          uv_size=p["uv_size"], grazing_deg=p["grazing_deg"],
                                          exponents=tuple(p["exponents"]),
                                          geometry_path=geo_path, capture_path=cap_path)
@@ -83,5 +87,6 @@ def run(ctx: StageContext) -> list[Path]:
     return [out, prev]
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
+# version 2: the raised cameras 08_1 / 19_1 are left out by default (issue 13)
+STAGE = Stage(VERB, version=2, run=run, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
               params=PARAMS, help="capture + geometry -> per-texel OLAT observations in UV space")

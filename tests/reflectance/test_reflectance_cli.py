@@ -67,8 +67,8 @@ def test_cli_symmetry_mode(cli, tmp_path):
     r = cli("fit-reflectance", "--input", src, "--output", tmp_path / "d.npz")
     assert r.exit_code == 0, r.output
     d = read_artifact(tmp_path / "d.npz", "reflectance-maps")
-    assert d.params["symmetry_mode"] == "ill-posed" and d.meta["stats"]["symmetry_mode"] == "ill-posed"
-    assert d.meta["producer"]["stage_version"] == 3
+    assert d.params["symmetry_mode"] == "adaptive" and d.meta["stats"]["symmetry_mode"] == "adaptive"
+    assert d.meta["producer"]["stage_version"] == 4
     assert d.params["prior_tail"] == 100.0 and d.meta["stats"]["prior_tail"] == 100.0
     r = cli("fit-reflectance", "--input", src, "--output", tmp_path / "a.npz", "--symmetry-mode", "all")
     assert r.exit_code == 0, r.output

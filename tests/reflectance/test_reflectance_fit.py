@@ -277,7 +277,7 @@ def test_non_finite_radiance_rejected_only_where_observed(value, k, ch, observed
 
 
 def test_symmetry_ill_posed_pools_only_texels_without_own_solution():
-    """Default ``symmetry_mode="ill-posed"``: an asymmetric face keeps its asymmetry wherever a texel's own data
+    """``symmetry_mode="ill-posed"``: an asymmetric face keeps its asymmetry wherever a texel's own data
     determine it (no bias towards the mirror), while texels with no usable data of their own are solved from their
     mirror's observations (not flagged, not filled with noise). ``all`` (the paper's flip) averages the two sides."""
     S = 16
@@ -285,7 +285,7 @@ def test_symmetry_ill_posed_pools_only_texels_without_own_solution():
     hole = np.zeros((S, S), bool)
     hole[5:9, 2:5] = True  # no observation at all on one side
     obs["observed"] = obs["observed"] & ~hole[None]
-    m = fit_maps(obs, prior=1e-6)
+    m = fit_maps(obs, prior=1e-6, symmetry_mode="ill-posed")
     a = fit_maps(obs, prior=1e-6, symmetry_mode="all")
     z = fit_maps(obs, prior=1e-6, symmetry=0.0)
     lone = hole & obs["mask"]
@@ -342,3 +342,24 @@ def test_tail_prior_only_touches_lobes_seen_in_their_tail():
     assert held_rms(on) <= 1.005 * held_rms(off)  # measured 1.001: no gain on this mild case, no loss
     with pytest.raises(ReflectmmError, match="prior_tail"):
         fit_maps(obs, prior_tail=-1.0)
+
+
+@pytest.mark.parametrize("asymmetric", [False, True])
+def test_symmetry_adaptive_pools_only_as_far_as_the_face_is_symmetric(asymmetric):
+    """Default ``symmetry_mode="adaptive"``: on a symmetric face with noise it pools well-posed texels with their
+    mirror (less noise than not pooling, as the paper's flip); on an asymmetric face it measures the asymmetry
+    and does not pool them (no bias: as accurate as ``ill-posed``, far better than ``all``)."""
+    S = 32
+    obs, truth = simulate_observations(S, noise=0.02, seed=1, return_truth=True, asymmetric=asymmetric)
+    fits = {mode: fit_maps(obs, symmetry_mode=mode) for mode in ("adaptive", "ill-posed", "all")}
+    ok = fits["ill-posed"].observable() & ~fits["ill-posed"].flagged
+    assert ok.sum() > 100
+    err = {k: float(np.mean(_rel(f.albedo, truth["albedo"])[:, ok])) for k, f in fits.items()}
+    assert fits["adaptive"].stats["symmetry_mode"] == "adaptive"
+    trust = fits["adaptive"].stats["mirror_trust_median"]
+    if asymmetric:
+        assert trust < 0.1
+        assert err["adaptive"] < 1.1 * err["ill-posed"] and err["adaptive"] < 0.5 * err["all"]
+    else:
+        assert trust > 0.3
+        assert err["adaptive"] < 0.9 * err["ill-posed"] and err["adaptive"] < 1.1 * err["all"]

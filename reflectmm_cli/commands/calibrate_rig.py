@@ -1,0 +1,59 @@
+"""``reflectmm calibrate-rig``: click wrapper of the ``calibrate-rig`` stage (reflectmm_cli/stages/calibrate_rig.py).
+
+Python API: :func:`reflectmm_cli.geometry_fit.calibrate.calibrate_from_captures`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from reflectmm_cli.artifacts import read_artifact
+from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options, parse_ids,
+                                            run_stage_cli, workspace_option)
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages.calibrate_rig import PARAMS, VERB
+from reflectmm_cli.workspace import find_face_model, find_rig, resolve_workspace, stage_output
+
+
+@click.command(VERB)
+@click.option("--ids", default=None, help="Identities (001,002 or 001-128): reads <ws>/preprocess-multipie/<id>.npz.")
+@click.option("--capture", "-i", "captures", multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="A capture artifact (repeatable; instead of or in addition to --ids).")
+@click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="face model (default: face_model.npz of the first capture's dataset folder, else "
+                   "<ws>/face_model.npz).")
+@click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="nominal rig table TOML: camera angles, a rough distance and the focal (default: rig.toml of the "
+                   "dataset folder, else the packaged Multi-PIE table; its image size must match the images).")
+@param_options(PARAMS)
+@workspace_option
+@output_option
+@json_option
+def calibrate_rig_cmd(ids, captures, face_model, rig, workspace, output, as_json, **kw):
+    """Estimate one rig (camera poses, focal, flash positions) from the landmarks of all identities.
+
+    Writes the `rig` artifact (<ws>/calibrate-rig/calibrate-rig.npz) and rig.toml beside it; pass that to
+    `fit-geometry --rig` (with a tight --rig-sigma, e.g. 3 mm).
+    """
+    ws = resolve_workspace(workspace)
+    paths = [stage_output(ws, "preprocess-multipie", i) for i in parse_ids(ids)] + list(captures)
+    if not paths:
+        raise click.UsageError("give --ids or --capture files")
+    missing = [p for p in paths if not Path(p).is_file()]
+    if missing:
+        raise ReflectmmError("capture artifact not found (run preprocess-multipie first)", missing[0])
+    first = read_artifact(paths[0], "capture")
+    face_model = face_model or find_face_model(ws, capture=first)
+    if face_model is None:
+        raise ReflectmmError("no face model: pass --face-model", paths[0])
+    rig = rig or find_rig(first)
+    inputs = {"capture": paths, "face_model": [face_model]}
+    if rig is not None:
+        inputs["rig"] = [rig]
+    out = run_stage_cli(VERB, workspace=ws, params=given_params(kw, PARAMS), inputs=inputs, output=output)
+    emit(out, as_json)
+
+
+COMMANDS = [calibrate_rig_cmd]

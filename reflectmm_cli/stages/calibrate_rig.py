@@ -1,0 +1,92 @@
+"""Stage ``calibrate-rig``: the landmarks of every identity + face model + nominal rig → one calibrated rig.
+
+Library: :func:`reflectmm_cli.geometry_fit.calibrate.calibrate_from_captures` (docs/capture.md).  Inputs:
+``capture`` (the preprocess-multipie artifacts of all identities), ``face_model``, optional ``rig`` (the nominal
+table; default the packaged Multi-PIE table, whose image size must then match the images).  Outputs: the ``rig``
+artifact (``<ws>/calibrate-rig/calibrate-rig.npz``) and beside it ``rig.toml``, the calibrated table that
+``fit-geometry --rig`` reads (recipes: ``@calibrate-rig.outputs.rig``).  The fit's parameters are fields of
+:class:`~reflectmm_cli.geometry_fit.calibrate.CalibrationConfig` (their defaults are its defaults).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
+from reflectmm_cli.params import Param
+from reflectmm_cli.progress import progress
+from reflectmm_cli.stages.base import Stage, StageContext
+
+log = logging.getLogger("reflectmm")
+
+VERB = "calibrate-rig"
+
+_CFG = CalibrationConfig()
+
+
+def _cfg(name: str, kind: str, **kw: Any) -> Param:
+    """A Param for a CalibrationConfig field, its default taken from CalibrationConfig (declared once, there)."""
+    return Param(name, kind, getattr(_CFG, name), **kw)
+
+
+PARAMS = (
+    Param("focal", "float", _CFG.focal_px, range=(1e-3, None), unit="px",
+          help="focal length of the images, if known (then kept fixed unless --focal-mode says otherwise)."),
+    Param("focal_mode", "str", "auto", choices=("auto",) + FOCAL_MODES,
+          help="auto: fixed if --focal is given, else one shared focal estimated."),
+    _cfg("loss", "str", choices=LOSSES, help="robust loss of the landmark distances."),
+    _cfg("loss_scale_px", "float", range=(0.0, None), low_open=True, option="--loss-scale", unit="px",
+         help="scale of the robust loss."),
+    _cfg("landmark_sigma_px", "float", range=(0.0, None), low_open=True, option="--landmark-sigma", unit="px",
+         help="assumed landmark noise: balances landmarks against the shape/expression prior."),
+    _cfg("outlier_px", "float", range=(0.0, None), low_open=True, unit="px",
+         help="landmarks further than this from the fit are reported as outliers."),
+    _cfg("max_iters", "int", range=(1, 100000), option="", help="Levenberg-Marquardt iterations."),
+    _cfg("distance_sigma_rel", "float", range=(0.0, None), option="--distance-sigma",
+         help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "
+              "size by these weights (0 = the faces only; 0.01 for a measured rig)."),
+    Param("views", "strs", None, help="cameras to calibrate, comma separated (default: every capture view)."),
+)
+
+
+def _outputs(ctx: StageContext) -> list[Path]:
+    out = ctx.output_path()
+    return [out, out.with_name("rig.toml")]
+
+
+def config_from_params(p: dict) -> CalibrationConfig:
+    """The CalibrationConfig of resolved stage params (``focal_mode`` auto: fixed with a focal, else shared)."""
+    mode = p["focal_mode"]
+    if mode == "auto":  # a focal the user knows is kept; otherwise one shared focal is estimated
+        mode = "fixed" if p.get("focal") is not None else "shared"
+    return CalibrationConfig(focal=mode, focal_px=p.get("focal"), loss=p["loss"], loss_scale_px=p["loss_scale_px"],
+                             landmark_sigma_px=p["landmark_sigma_px"], outlier_px=p["outlier_px"],
+                             max_iters=p["max_iters"], distance_sigma_rel=p["distance_sigma_rel"])
+
+
+def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.geometry_fit.calibrate import calibrate_from_captures, write_rig_calibration
+
+    p = ctx.params
+    caps = ctx.input_list("capture")
+    fm = ctx.input("face_model")
+    rigs = ctx.input_list("rig", required=False)
+    cal = calibrate_from_captures(caps, fm, rigs[0] if rigs else None, config_from_params(p), views=p.get("views"),
+                                  progress_fn=progress)
+    out = ctx.output_path()
+    written = write_rig_calibration(cal, out, toml_path=out.with_name("rig.toml"), params=ctx.resolved_params(),
+                                    inputs=ctx.input_refs(out.parent), producer=ctx.producer(),
+                                    cache_key=ctx.cache_key)
+    for a in cal.assumptions:
+        log.info("calibrate-rig: assumed: %s", a)
+    if cal.report["outliers"]:
+        log.warning("calibrate-rig: %d landmark(s) further than %.1f px from the fit (outliers; first: %s)",
+                    cal.report["outliers"], p["outlier_px"], ", ".join(cal.report["outliers_first"][:5]))
+    return written
+
+
+STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
+              help="landmarks of every identity + face model + nominal rig -> one calibrated rig (rig artifact + "
+                   "rig.toml)")

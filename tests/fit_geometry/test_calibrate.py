@@ -1,0 +1,174 @@
+"""calibrate-rig: bundle adjustment of one rig over the landmarks of every identity (issue 13)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry_fit.calibrate import (CalibrationConfig, _Problem, _State, calibrate_rig, perturb_rig,
+                                             rodrigues, simulate_landmarks, write_rig_calibration)
+from reflectmm_cli.geometry_fit.init import rigid_align
+from reflectmm_cli.geometry_fit.model import ShapeModel
+from reflectmm_cli.rig import DEFAULT_VIEWS, RAISED_CAMERAS, load_rig
+
+VIEWS = list(DEFAULT_VIEWS) + list(RAISED_CAMERAS)
+
+
+@pytest.fixture(scope="module")
+def model():
+    from reflectmm_cli.geometry.procedural import procedural_face_model
+
+    return ShapeModel.from_face_model(procedural_face_model(2000))
+
+
+@pytest.fixture(scope="module")
+def world(model):
+    true = load_rig()
+    sim = simulate_landmarks(model, true, VIEWS, 24, seed=3, noise_px=1.0, outlier_fraction=0.02)
+    nominal = perturb_rig(true, distance_scale=1.1, angle_deg=3.0, raised_offset_mm=300.0, focal_scale=1.08, seed=4)
+    return true, sim, nominal
+
+
+@pytest.fixture(scope="module")
+def calibrated(model, world):
+    true, sim, nominal = world
+    cfg = CalibrationConfig(focal="fixed", focal_px=true.camera("05_1").focal_px)
+    return calibrate_rig(model, sim["landmarks"], VIEWS, (640, 480), nominal, cfg)
+
+
+def test_rodrigues_matches_scipy():
+    from scipy.spatial.transform import Rotation
+
+    w = np.random.default_rng(0).normal(size=(20, 3))
+    w[0] = 0.0
+    w[1] = 1e-9
+    assert np.allclose(rodrigues(w), Rotation.from_rotvec(w).as_matrix(), atol=1e-12)
+
+
+def test_gradient_matches_finite_differences(model, world):
+    true, sim, _ = world
+    names = VIEWS[:4]
+    lm = sim["landmarks"][:2, :4]
+    R0 = np.array([true.camera(n).R for n in names])
+    c0 = np.array([true.camera(n).center for n in names])
+    cfg = CalibrationConfig(focal="per-camera", loss="cauchy")
+    prob = _Problem(model, lm, R0, c0, np.full(4, 1000.0), np.tile([319.5, 239.5], (4, 1)), cfg, model.n_shape,
+                    model.n_exp)
+    rng = np.random.default_rng(1)
+    st = _State(R0.copy(), c0 + rng.normal(size=(4, 3)) * 5, rng.normal(size=4) * 2,
+                rodrigues(rng.normal(size=(2, 3)) * 0.05), rng.normal(size=(2, 3)) * 5,
+                rng.normal(size=(2, prob.K)) * 0.3)
+    scale = 2.0
+    _, gc, _, _, gi = prob.normal_equations(st, scale)
+    eps = 1e-5
+    for _ in range(8):
+        dc = np.zeros(prob.Pc)
+        di = np.zeros((2, prob.n_id))
+        if rng.uniform() < 0.5:
+            dc[rng.integers(prob.Pc)] = 1.0
+        else:
+            di[rng.integers(2), rng.integers(prob.n_id)] = 1.0
+        fd = (prob.cost(prob.apply(st, eps * dc, eps * di), scale)
+              - prob.cost(prob.apply(st, -eps * dc, -eps * di), scale)) / (2 * eps)
+        an = -(gc @ dc + (gi * di).sum())
+        assert fd == pytest.approx(an, rel=1e-4, abs=1e-6)
+
+
+def test_recovers_a_perturbed_rig(calibrated, world):
+    true, sim, nominal = world
+    tc = np.array([true.camera(n).center for n in VIEWS])
+    _, _, nom_err = rigid_align(np.array([nominal.camera(n).center for n in VIEWS]), tc)
+    assert np.median(nom_err) > 80 and nom_err.max() > 150          # the nominal table is far off ...
+    Ra, ta, err = rigid_align(calibrated.centers, tc)
+    assert err.max() < 12.0                                          # ... the calibrated one is not
+    # the raised flashes follow the raised cameras
+    for fid in ("14", "18"):
+        p = calibrated.flash_pos[calibrated.flash_ids.index(fid)] @ Ra.T + ta
+        assert np.linalg.norm(p - true.flash(fid).position) < 15.0
+    assert np.all(np.isfinite(calibrated.center_sigma_mm)) and np.all(calibrated.center_sigma_mm < 30)
+    assert any("focal" in a for a in calibrated.assumptions)
+
+
+def test_estimates_a_shared_focal(model, world):
+    true, sim, nominal = world
+    cal = calibrate_rig(model, sim["landmarks"], VIEWS, (640, 480), nominal, CalibrationConfig(focal="shared"))
+    assert nominal.camera("05_1").focal_px == pytest.approx(1080.0)
+    assert cal.focal[0] == pytest.approx(1000.0, rel=0.03)
+    assert np.all(cal.focal == cal.focal[0])
+
+
+def test_outliers_flagged(calibrated, world):
+    _, sim, _ = world
+    out, truth = calibrated.outliers, sim["outlier"]
+    assert truth.sum() > 50
+    assert (out & truth).sum() / truth.sum() > 0.95
+    assert (out & truth).sum() / out.sum() > 0.95
+    assert calibrated.report["outliers"] == int(out.sum())
+
+
+def test_image_size_mismatch_is_refused(model, world):
+    _, sim, nominal = world
+    with pytest.raises(ReflectmmError, match="640x480 but its images are 800x600"):
+        calibrate_rig(model, sim["landmarks"], VIEWS, (800, 600), nominal)
+
+
+def test_unknown_view_is_refused(model, world):
+    _, sim, nominal = world
+    with pytest.raises(ReflectmmError, match="not cameras of the nominal rig"):
+        calibrate_rig(model, sim["landmarks"], VIEWS[:-1] + ["99_9"], (640, 480), nominal)
+
+
+def test_artifact_and_toml_round_trip(calibrated, tmp_path):
+    from reflectmm_cli.artifacts import read_artifact
+
+    npz, toml = write_rig_calibration(calibrated, tmp_path / "rig.npz")
+    art = read_artifact(npz, "rig")
+    assert list(art["camera_names"]) == VIEWS
+    assert np.allclose(art["centers"], calibrated.centers)
+    rig = load_rig(toml)
+    for k, n in enumerate(VIEWS):
+        cam = rig.camera(n)
+        assert np.allclose(cam.center, calibrated.centers[k], atol=1e-5)
+        assert np.allclose(cam.R, calibrated.R[k], atol=1e-6)
+        assert cam.focal_px == pytest.approx(calibrated.focal[k], abs=1e-5)
+        assert (cam.width, cam.height) == (640, 480)
+    assert rig.flash("14").camera == "08_1"
+    # deterministic rerun
+    first = npz.read_bytes(), toml.read_bytes()
+    write_rig_calibration(calibrated, tmp_path / "rig.npz")
+    assert (npz.read_bytes(), toml.read_bytes()) == first
+
+
+def test_fit_geometry_refuses_a_rig_of_another_image_size():
+    """No silent resize: the packaged 640x480 rig and 800x600 images need --focal or a rig of that size."""
+    import logging
+
+    from reflectmm_cli.geometry_fit.identity import view_cameras
+
+    records = []
+
+    class Grab(logging.Handler):
+        def emit(self, record):
+            records.append(record.getMessage())
+
+    logger = logging.getLogger("reflectmm")
+    handler = Grab(logging.WARNING)
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING)  # earlier CLI tests may have run with -q (errors only)
+
+    rig = load_rig()
+    with pytest.raises(ReflectmmError, match=r"rig camera 05_1 is 640x480 \(focal 1000 px\) but the capture frame "
+                                             r"is 800x600: pass --focal"):
+        view_cameras(rig, ["05_1", "05_0"], (800, 600), None, None)
+    try:
+        K, R, t, pos = view_cameras(rig, ["05_1", "05_0"], (800, 600), 1900.0, None)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    assert np.allclose(K[:, 0, 0], 1900.0) and np.allclose(K[:, :2, 2], [399.5, 299.5])
+    assert np.allclose(pos[0], rig.camera("05_1").center)
+    assert any("using --focal 1900 px" in m for m in records)
+    K, *_ = view_cameras(rig, ["05_1"], (640, 480), None, None)  # matching size: the table's focal as is
+    assert K[0, 0, 0] == 1000.0

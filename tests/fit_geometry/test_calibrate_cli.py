@@ -1,0 +1,162 @@
+"""calibrate-rig end to end on tiny synthetic data (synth multipie → preprocess-multipie → calibrate-rig →
+fit-geometry with the calibrated rig)."""
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from reflectmm_cli.artifacts import read_artifact
+from reflectmm_cli.cli import main
+from reflectmm_cli.geometry_fit.init import rigid_align
+from reflectmm_cli.rig import load_rig, save_rig
+
+VIEWS = "13_0,14_0,05_1,05_0,04_1,19_1"
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    ws = tmp_path_factory.mktemp("calrig")
+    run = CliRunner()
+    steps = [["synth", "multipie", "--out", ws / "syn", "--identities", "4", "--cameras", VIEWS, "--flashes",
+              "07,18", "--image-size", "240x180", "--face-vertices", "2000", "--landmark-noise", "0.5"]]
+    steps += [["preprocess-multipie", "--root", ws / "syn", "--id", f"{i:03d}", "--views", VIEWS,
+               "--flashes", "07,18"] for i in range(1, 5)]
+    for args in steps:
+        r = run.invoke(main, ["-q", *map(str, args), "-w", str(ws)], catch_exceptions=False)
+        assert r.exit_code == 0, r.output
+    return ws
+
+
+def test_calibrate_rig_cli(world, cli, tmp_path):
+    from reflectmm_cli.geometry_fit.calibrate import perturb_rig
+
+    true = load_rig(world / "syn" / "rig.toml")
+    nominal = perturb_rig(true, distance_scale=1.1, angle_deg=2.0, raised_offset_mm=200.0, seed=5)
+    save_rig(nominal, tmp_path / "nominal.toml")
+    r = cli("calibrate-rig", "--ids", "001-004", "-w", world, "--rig", tmp_path / "nominal.toml", "--focal",
+            true.camera("05_1").focal_px, "--json")
+    assert r.exit_code == 0, r.output
+    out = world / "calibrate-rig" / "calibrate-rig.npz"
+    art = read_artifact(out, "rig")
+    assert list(art["camera_names"]) == VIEWS.split(",")
+    assert list(art["identities"]) == ["001", "002", "003", "004"]
+    assert any("focal" in a and "given" in a for a in art.meta["assumptions"])
+    names = VIEWS.split(",")
+    tc = np.array([true.camera(n).center for n in names])
+    _, _, err = rigid_align(np.asarray(art["centers"]), tc)
+    _, _, nom_err = rigid_align(np.array([nominal.camera(n).center for n in names]), tc)
+    assert nom_err.max() > 100 and err.max() < 0.5 * nom_err.max()
+    rig = load_rig(world / "calibrate-rig" / "rig.toml")
+    assert rig.camera_names == names and rig.flash("18").camera == "19_1"
+    # fit-geometry takes the calibrated table as its rig
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--rig", world / "calibrate-rig" / "rig.toml", "--iters",
+            "100", "--photo-rounds", "0", "--rig-sigma", "3", "--no-overlay")
+    assert r.exit_code == 0, r.output
+    g = read_artifact(world / "fit-geometry" / "001.npz", "geometry")
+    assert np.allclose(g["K"][:, 0, 0], np.asarray(art["focal_px"]))
+
+
+def test_calibrate_rig_refuses_a_rig_of_another_size(world, cli, tmp_path):
+    """No silent resize: the dataset is 240x180, the packaged table 640x480."""
+    from reflectmm_cli.rig import default_rig_path
+
+    r = CliRunner().invoke(main, ["calibrate-rig", "--ids", "001-002", "-w", str(world), "--rig",
+                                  str(default_rig_path())])
+    assert r.exit_code != 0
+    assert "is 640x480 but its images are 240x180" in r.output
+
+
+RECIPE = """
+schema = "reflectmm.recipe/1"
+name = "calib"
+
+[stages.synth-multipie]
+params = { identities = 3, seed = 3, brdf = "model", image_size = "160x120", uv_size = 32, face_vertices = 1500, cameras = ["13_0", "14_0", "05_1", "04_1", "19_1"], flashes = ["07", "18"], landmark_noise = 0.5 }
+
+[stages.preprocess-multipie]
+foreach = "all found"
+inputs = { root = "@synth-multipie.dir" }
+params = { views = ["13_0", "14_0", "05_1", "04_1", "19_1"], flashes = ["07", "18"] }
+
+[stages.calibrate-rig]
+inputs = { capture = "@preprocess-multipie.output", face_model = "@synth-multipie.outputs.face_model", rig = "@synth-multipie.outputs.rig" }
+
+[stages.fit-geometry]
+foreach = "all found"
+inputs = { capture = "@preprocess-multipie.output", face_model = "@synth-multipie.outputs.face_model", rig = "@calibrate-rig.outputs.rig" }
+params = { rig_sigma_mm = 3.0, photo_rounds = 0, landmark_iters = 50, no_overlay = true }
+"""
+
+
+@pytest.mark.slow
+def test_recipe_runs_calibrate_rig(tmp_path, cli):
+    (tmp_path / "calib.toml").write_text(RECIPE)
+    res = cli("run", tmp_path / "calib.toml", "--workspace", tmp_path, "--executor", "serial")
+    assert res.exit_code == 0, res.stderr + res.stdout
+    art = read_artifact(tmp_path / "calibrate-rig" / "calibrate-rig.npz", "rig")
+    assert list(art["identities"]) == ["001", "002", "003"]
+    g = read_artifact(tmp_path / "fit-geometry" / "002.npz", "geometry")
+    roles = {r["role"]: r["path"] for r in g.meta["inputs"]}
+    assert roles["rig"].endswith("calibrate-rig/rig.toml")
+    assert np.allclose(g["K"][:, 0, 0], np.asarray(art["focal_px"]))
+
+
+def test_external_geometry_truth_mesh_and_cameras(world, cli, tmp_path):
+    """fit-geometry --from-truth takes a registered scan (.ply) + a rig table of cameras, and gives the same
+    geometry as the synth-truth artifact it was written from."""
+    import trimesh
+
+    from reflectmm_cli.errors import ReflectmmError
+
+    truth = read_artifact(world / "syn" / "truth" / "001.npz", "synth-truth")
+    fm = read_artifact(world / "syn" / "face_model.npz", "face-model")
+    trimesh.Trimesh(np.asarray(truth["vertices"], np.float64), np.asarray(fm["triangles"]),
+                    process=False).export(tmp_path / "scan.ply")
+    a = tmp_path / "a.npz"
+    b = tmp_path / "b.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", tmp_path / "scan.ply", "--rig",
+            world / "syn" / "rig.toml", "-o", a)
+    assert r.exit_code == 0, r.output
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", world / "syn" / "truth" / "001.npz", "-o", b)
+    assert r.exit_code == 0, r.output
+    ga, gb = read_artifact(a, "geometry"), read_artifact(b, "geometry")
+    assert list(ga["view_names"]) == list(gb["view_names"])
+    for k in ("vertices", "K", "R", "t", "cam_centers", "flash_pos"):
+        np.testing.assert_allclose(ga[k], gb[k], atol=1e-3, err_msg=k)
+    with pytest.raises(ReflectmmError, match="needs its cameras"):
+        from reflectmm_cli.geometry_fit.identity import geometry_from_truth
+
+        geometry_from_truth(tmp_path / "scan.ply")
+
+
+def test_external_vertex_reflectance_truth(world, cli, tmp_path):
+    """evaluate truth with per-vertex reflectance: a linear function of the vertex position interpolates to the
+    same function of the interpolated texel position (uv_geometry), so maps made from that have zero error."""
+    from reflectmm_cli.artifacts import write_artifact
+    from reflectmm_cli.geometry import load_face_model
+    from reflectmm_cli.observations.unwrap import uv_geometry
+
+    fm = load_face_model(world / "syn" / "face_model.npz")
+    X = fm.mean_shape.astype(np.float64)
+    A = np.array([[1e-3, 2e-4, 0.0], [0.0, 1e-3, 1e-4], [2e-4, 0.0, 1e-3]])
+    alb = X @ A.T + 0.5
+    spec = 0.05 + 1e-4 * X[:, 1]
+    np.savez(tmp_path / "refl.npz", albedo=alb, spec_albedo=spec)
+    S = 32
+    g = uv_geometry(X, fm.triangles, fm.uv, S)
+    pos = g.position.astype(np.float64)
+    C = np.moveaxis(pos @ A.T + 0.5, -1, 0) * g.mask
+    W = (0.05 + 1e-4 * pos[..., 1])[None] * g.mask
+    maps = {"albedo": C.astype(np.float32), "weights": W.astype(np.float32), "exponents": np.array([16.0]),
+            "mask": g.mask, "flagged": np.zeros((S, S), bool)}
+    write_artifact(tmp_path / "maps.npz", "reflectance-maps", maps)
+    r = cli("evaluate", "truth", "--id", "001", "-w", world, "--maps", tmp_path / "maps.npz", "--truth",
+            tmp_path / "refl.npz", "--face-model", world / "syn" / "face_model.npz", "-o", tmp_path / "ev.npz")
+    assert r.exit_code == 0, r.output
+    e = read_artifact(tmp_path / "ev.npz").meta["errors"]
+    assert e["truth_format"] == "per-vertex reflectance"
+    assert e["reflectance"]["raw"]["observable"]["albedo_rel"] < 1e-4
+    assert abs(e["reflectance"]["raw"]["observable"]["spec_ratio_median"] - 1) < 1e-3
+    r = cli("evaluate", "truth", "--id", "001", "-w", world, "--maps", tmp_path / "maps.npz", "--truth",
+            tmp_path / "refl.npz", "-o", tmp_path / "ev2.npz")
+    assert r.exit_code != 0 and "--face-model" in r.output
