@@ -139,6 +139,18 @@ def find_truth_dir(workspace: Path | None, capture: Any = None) -> Path | None:
     return next((p for p in candidates if p.is_dir()), None)
 
 
+def require_truth_dir(workspace: Path) -> Path:
+    """:func:`find_truth_dir` for a verb that cannot run without ground truth: a one-line error naming the
+    workspace and the folders looked for when there is none."""
+    from reflectmm_cli.errors import ReflectmmError
+
+    td = find_truth_dir(workspace)
+    if td is None:
+        raise ReflectmmError(f"no --truth given and no truth folder in {workspace} (looked for "
+                             f"{', '.join(d + '/' for d in WORKSPACE_TRUTH_DIRS)})")
+    return td
+
+
 def find_truth(workspace: Path | None, identity: str, capture: Any = None) -> Path | None:
     """``<truth dir>/<identity>.npz`` if it exists."""
     d = find_truth_dir(workspace, capture)

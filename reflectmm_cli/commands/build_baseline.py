@@ -11,7 +11,7 @@ from reflectmm_cli.commands._common import emit, given_params, json_option, outp
     run_stage_cli, workspace_option
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.build_baseline import PARAMS, VERB
-from reflectmm_cli.workspace import WORKSPACE_TRUTH_DIRS, find_face_model, find_truth_dir, resolve_workspace
+from reflectmm_cli.workspace import find_face_model, require_truth_dir, resolve_workspace
 
 
 @click.command(VERB)
@@ -33,11 +33,7 @@ def build_baseline_cmd(truth, face_model, workspace, output, as_json, **kw):
     ws = resolve_workspace(workspace)
     truths = list(truth)
     if not truths:
-        td = find_truth_dir(ws)
-        if td is None:
-            raise ReflectmmError(f"no --truth given and no truth folder in {ws} (looked for "
-                                 f"{', '.join(d + '/' for d in WORKSPACE_TRUTH_DIRS)})")
-        truths = [td]
+        truths = [require_truth_dir(ws)]
     fm = face_model or find_face_model(ws)
     if fm is None:
         raise ReflectmmError(f"build-baseline: no --face-model given and none found in {ws}")

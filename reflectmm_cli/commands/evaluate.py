@@ -15,8 +15,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.stages import (evaluate_albedo, evaluate_reconstruction, evaluate_relighting, evaluate_report,
                                   evaluate_representation, evaluate_truth)
-from reflectmm_cli.workspace import (WORKSPACE_TRUTH_DIRS, find_face_model, find_truth_dir, resolve_workspace,
-                                     stage_output)
+from reflectmm_cli.workspace import find_face_model, require_truth_dir, resolve_workspace, stage_output
 
 
 @click.group("evaluate")
@@ -48,11 +47,7 @@ def evaluate_truth_cmd(identity, maps, truth, geometry, face_model, workspace, o
     if maps is None and stage_output(ws, "fit-reflectance", identity).is_file():
         maps = stage_output(ws, "fit-reflectance", identity)
     if truth is None:
-        td = find_truth_dir(ws)
-        if td is None:
-            raise ReflectmmError(f"no --truth given and no truth folder in {ws} (looked for "
-                                 f"{', '.join(d + '/' for d in WORKSPACE_TRUTH_DIRS)})")
-        truth = td / f"{identity}.npz"
+        truth = require_truth_dir(ws) / f"{identity}.npz"
     inputs = {"truth": [truth]}
     if maps is not None:
         inputs["maps"] = [maps]
@@ -188,11 +183,7 @@ def evaluate_albedo_cmd(ids, obs, truth, method_specs, workspace, output, as_jso
         raise click.UsageError("give --ids or --input")
     truths = list(truth)
     if not truths:
-        td = find_truth_dir(ws)
-        if td is None:
-            raise ReflectmmError(f"no --truth given and no truth folder in {ws} (looked for "
-                                 f"{', '.join(d + '/' for d in WORKSPACE_TRUTH_DIRS)})")
-        truths = [td]
+        truths = [require_truth_dir(ws)]
     inputs, names = _methods(method_specs)
     inputs = {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
     inputs.update(observations=files, truth=truths)
