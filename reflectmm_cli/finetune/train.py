@@ -27,6 +27,10 @@ CHECKPOINT_NAME = "checkpoint.safetensors"
 LOG_NAME = "log.jsonl"
 CHECKPOINT_SCHEMA = "reflectmm.finetune-checkpoint/1"
 
+#: Memory (MiB) for the per-image SH bases of the G-buffer pixels kept across steps (648 B per pixel at order 8,
+#: float32: ≈ 15 MiB per 224² image); an execution detail, never part of a result.
+BASIS_CACHE_MB = 2048.0
+
 
 @dataclass
 class FinetuneResult:
@@ -92,7 +96,8 @@ class Trainer:
     """State of one finetuning run (encoder, model parameters, optimiser, schedule position)."""
 
     def __init__(self, shards: ShardSet, model, light, config: FinetuneConfig, workdir: Path, *, device="cpu",
-                 identity=None, init_weights=None, log: Callable[[str], None] | None = None, progress=True):
+                 identity=None, init_weights=None, log: Callable[[str], None] | None = None, progress=True,
+                 basis_cache_mb: float = BASIS_CACHE_MB):
         import torch
 
         from .encoder import build_encoder, load_trunk
@@ -136,6 +141,11 @@ class Trainer:
         self.global_step = 0
         self.history: list[dict] = []
         self.feat_cache: dict[str, object] = {}
+        # the G-buffer never changes, so each image's SH basis of n and r (2·81 floats per pixel at order 8) is
+        # evaluated once and kept while the budget allows; images beyond it are evaluated per batch
+        self.basis_cache: dict[int, object] = {}
+        self.basis_budget = float(basis_cache_mb) * 2 ** 20
+        self.basis_bytes = 0.0
 
     # ------------------------------------------------------------------ optimiser / phases
     def _optimizer(self, phase):
@@ -158,6 +168,24 @@ class Trainer:
         self.opt = self._optimizer(2)
 
     # ------------------------------------------------------------------ one batch
+    def _bases(self, idx, gb, order: int) -> list:
+        """One :class:`~reflectmm_cli.shading.EnvBasis` per image of the batch, from the cache when it has it."""
+        from reflectmm_cli.shading import EnvBasis
+
+        out = []
+        for b, i in enumerate(int(j) for j in idx):
+            basis = self.basis_cache.get(i)
+            if basis is None:
+                s0, s1 = int(gb.offsets[b]), int(gb.offsets[b + 1])
+                basis = EnvBasis(gb.normal[s0:s1], gb.view[s0:s1], order, dtype=gb.normal.dtype,
+                                 device=gb.normal.device)
+                size = float(s1 - s0) * 2 * (order + 1) ** 2 * gb.normal.element_size()
+                if self.basis_bytes + size <= self.basis_budget:
+                    self.basis_cache[i] = basis
+                    self.basis_bytes += size
+            out.append(basis)
+        return out
+
     def _forward(self, idx, train: bool):
         torch = self.torch
         from . import losses as L
@@ -170,7 +198,8 @@ class Trainer:
         t1 = time.perf_counter()
         beta, gamma, z = self.encoder(x)
         sh = lighting(self.light, gamma[:, :self.NL] if self.NL else gamma, z)
-        d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb)
+        order = int(round(np.sqrt(sh.shape[-1]))) - 1
+        d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb, bases=self._bases(idx, gb, order))
         pred = d + s
         cfg = self.cfg
         terms = {"photo": L.photometric(pred, gb.target, gb.skin, cfg.photometric),
@@ -405,7 +434,7 @@ class Trainer:
 def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: str | Path, *, device="cpu",
              identity=None, init_weights=None, resume: bool = False, stop_after: int | None = None,
              log: Callable[[str], None] | None = None, progress: bool = True,
-             threads: int | None = None) -> FinetuneResult:
+             threads: int | None = None, basis_cache_mb: float = BASIS_CACHE_MB) -> FinetuneResult:
     """Library entry of ``finetune``.
 
     Args:
@@ -419,6 +448,8 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
         resume: continue from ``workdir``'s checkpoint (an error if it was made with other settings);
             without it an existing checkpoint is ignored and overwritten.
         stop_after: stop after this many global steps (tests; simulates an interruption).
+        basis_cache_mb: memory for the per-image SH bases kept across steps (0: evaluate them every step; the
+            result is the same either way).
         threads: torch CPU threads for the run (None: unchanged). Small images on a busy machine run fastest
             with 1 (thread spin-waiting in tiny BatchNorm/conv calls costs more than it gains).
     Returns:
@@ -428,7 +459,7 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
 
     with torch_threads(threads):
         tr = Trainer(shards, model, light, config, workdir, device=device, identity=identity,
-                     init_weights=init_weights, log=log, progress=progress)
+                     init_weights=init_weights, log=log, progress=progress, basis_cache_mb=basis_cache_mb)
         if resume:
             if tr.load_checkpoint():
                 (log or (lambda s: None))(f"finetune: resumed at global step {tr.global_step}")
@@ -438,4 +469,6 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
                           config=config, perceptual="off" if identity is None or config.w_per == 0 else
                           f"{identity.name} ({identity.path.name})", z0=tr.z0, steps=tr.global_step,
                           stopped_early=stopped, n_train=int(len(tr.train_idx)), n_val=int(len(tr.val_idx)),
-                          phase1_encoder=tr.phase1_encoder_path if tr.phase1_encoder_path.is_file() else None)
+                          phase1_encoder=tr.phase1_encoder_path if tr.phase1_encoder_path.is_file() else None,
+                          stats={"basis_cache_images": len(tr.basis_cache),
+                                 "basis_cache_mib": round(tr.basis_bytes / 2 ** 20, 3)})

@@ -153,3 +153,20 @@ def test_phase1_encoder_snapshot_equals_a_phase1_only_run(data, tmp_path):
         assert torch.equal(v, ref[k]), k
     fin = both.encoder.state_dict()
     assert any(not torch.equal(v, fin[k]) for k, v in snap.state_dict().items())  # phase 2 moved the encoder
+
+
+def test_cached_sh_bases_give_the_same_training(data, tmp_path):
+    # each image's SH basis of n and r is evaluated once and reused: bit for bit the run that evaluates it per step
+    ss = load_shards(data["shards"])
+    cfg = FinetuneConfig(epochs1=2, epochs2=1, **TINY)
+    a = finetune(ss, data["truth"], data["light"], cfg, tmp_path / "a", threads=1, progress=False)
+    b = finetune(ss, data["truth"], data["light"], cfg, tmp_path / "b", threads=1, progress=False,
+                 basis_cache_mb=0)
+    assert a.stats["basis_cache_images"] == a.n_train + a.n_val and b.stats["basis_cache_images"] == 0
+    ea, ma = _state(a)
+    eb, mb = _state(b)
+    for k in ea:
+        assert torch.equal(ea[k], eb[k]), k
+    for k in ma:
+        assert ma[k].tobytes() == mb[k].tobytes(), k
+    assert (tmp_path / "a" / "log.jsonl").read_text() == (tmp_path / "b" / "log.jsonl").read_text()
