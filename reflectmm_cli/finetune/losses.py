@@ -39,12 +39,54 @@ def coefficient_prior(beta, gamma):
 
 def model_update_l1(current, initial):
     """``Σ_parts mean|x − x₀|`` over the model parts (dict name → tensor) — the L1 distance of the means and bases
-    to the initial model, each part averaged over its elements (so the weight does not scale with V·M)."""
+    to the initial model, each part averaged over its elements (so the weight does not scale with V·M).
+
+    Same value and (sub)gradient as ``(x − x₀).abs().mean()`` (``sign(0) = 0``, as torch's ``abs``), computed by
+    :class:`_MeanAbsDiff` in four passes over the part instead of about ten: phase 2 evaluates it on all ~17 M
+    model parameters every step."""
     tot = None
     for k, x in current.items():
-        t = (x - initial[k]).abs().mean()
+        t = _MeanAbsDiff.apply(x, initial[k]) if x.requires_grad else (x - initial[k]).abs().mean()
         tot = t if tot is None else tot + t
     return tot
+
+
+def _mean_abs_diff_class():
+    import torch
+
+    class MeanAbsDiff(torch.autograd.Function):
+        """``mean|x − x₀|`` with x₀ constant; the backward is ``sign(x − x₀) / N`` (saved as the sign)."""
+
+        @staticmethod
+        def forward(ctx, x, x0):
+            d = torch.sub(x, x0)
+            n = max(d.numel(), 1)
+            val = torch.linalg.vector_norm(d, 1) / n
+            ctx.save_for_backward(d.sign_())
+            ctx.n = n
+            return val
+
+        @staticmethod
+        def backward(ctx, g):
+            (s,) = ctx.saved_tensors
+            return s * (g / ctx.n), None
+
+    return MeanAbsDiff
+
+
+class _Lazy:
+    """Builds the autograd Function on first use (torch is imported lazily in this package)."""
+
+    def __init__(self, make):
+        self._make, self._cls = make, None
+
+    def apply(self, *a):
+        if self._cls is None:
+            self._cls = self._make()
+        return self._cls.apply(*a)
+
+
+_MeanAbsDiff = _Lazy(_mean_abs_diff_class)
 
 
 def basis_norm_ortho(albedo_basis, albedo_basis0, weights_basis, weights_basis0, sigma):

@@ -185,20 +185,32 @@ def pixel_reflectance(params: ModelParams, beta, gb: GBufferBatch):
     if beta.ndim != 2 or beta.shape[0] != B or beta.shape[1] > params.n_components:
         raise ReflectmmError(f"finetune: beta must have shape ({B}, ≤{params.n_components}), got {tuple(beta.shape)}")
     m = beta.shape[1]
+    M = params.n_components
     flat = gb.vert_ids.reshape(-1)
-    if flat.numel() and (int(flat.max()) >= params.n_vertices or int(flat.min()) < 0):
+    V = params.n_vertices
+    if flat.numel() and (int(flat.max()) >= V or int(flat.min()) < 0):
         raise ReflectmmError(f"finetune: the G-buffer references vertex {int(flat.max())} but the reflectance model "
-                             f"has {params.n_vertices} vertices (wrong face model?)")
-    uniq, inv = torch.unique(flat, return_inverse=True)
-    U = int(uniq.numel())
-    if U > params.n_vertices // 2:
+                             f"has {V} vertices (wrong face model?)")
+    # the touched vertices by a mask (a sort-free torch.unique: ascending ids, inverse by a prefix sum)
+    touched = torch.zeros(V, dtype=torch.bool, device=flat.device)
+    touched[flat] = True
+    U = int(touched.sum())
+    if U > V // 2:
         # most of the face is touched: a gather of the model costs more than it saves (and its backward
         # scatters into a zero V-sized copy); use the whole tables with the vertex ids as they are
-        uniq, inv, U = None, flat, params.n_vertices
+        uniq, inv, U = None, flat, V
+    else:
+        uniq = torch.nonzero(touched).reshape(-1)
+        inv = (torch.cumsum(touched, 0) - 1)[flat]
     am, ab, wm, wb = params.effective(uniq)
     coef = beta * params.sigma[:m]  # (B, m)
-    alb = am + torch.einsum("bm,muc->buc", coef, ab[:m])  # (B, U, 3)
-    wts = wm + torch.einsum("bm,muk->buk", coef, wb[:m])  # (B, U, K)
+    if m < M:
+        # zero coefficients instead of slicing the bases: a slice's backward builds a zero copy of the whole
+        # bases for the gradient; a zero coefficient gives the unused components the same zero gradient
+        coef = torch.cat([coef, coef.new_zeros((B, M - m))], 1)
+    # one (B, M) @ (M, U·C) product per table
+    alb = am + (coef @ ab.reshape(M, -1)).reshape(B, U, -1)  # (B, U, 3)
+    wts = wm + (coef @ wb.reshape(M, -1)).reshape(B, U, -1)  # (B, U, K)
     img = gb.image_of_pixel  # (P,)
     rows = (img[:, None] * U + inv.reshape(-1, 3))  # (P, 3) rows of the (B·U) tables
     a3 = alb.reshape(B * U, -1)[rows]  # (P, 3, 3)

@@ -407,7 +407,10 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
 
     Kn = w.shape[-1]
     wz = w.detach() if tm else w
-    active = [i for i in range(Kn) if bool((wz[..., i] != 0).any())]
+    # an all-zero lobe costs nothing — unless its weights need a gradient (the derivative of the radiance w.r.t.
+    # a zero weight is that lobe's shading, not 0)
+    active = (list(range(Kn)) if tm and w.requires_grad else
+              [i for i in range(Kn) if bool((wz[..., i] != 0).any())])
     order = len(A) - 1
     lvl = np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
     nd = (Ld + 1) ** 2
@@ -442,6 +445,27 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
     if active:
         Lsmax = max(Ls[i] for i in active)
         Yr = basis(r, Lsmax) if pre is None else basis("r", Lsmax)
+        if glob and len(active) > 1 and vc_exponents is None:
+            # one lighting, several lobes: stack the lobes' (3, n) coefficient rows into one (3·A, n) matrix, so
+            # the basis of r is read once (and once more in the backward) instead of once per lobe; bands beyond
+            # a lobe's limit get exact zeros
+            nmax = (Lsmax + 1) ** 2
+            rows = []
+            for i in active:
+                ni = (Ls[i] + 1) ** 2
+                Ki = K[..., :ni] * Bs[i][lvl[:ni]]
+                if ni < nmax:
+                    pad = (torch.zeros if tm else np.zeros)((Ki.shape[0], nmax - ni), dtype=Ki.dtype,
+                                                            **({"device": Ki.device} if tm else {}))
+                    Ki = torch.cat([Ki, pad], 1) if tm else np.concatenate([Ki, pad], 1)
+                rows.append(Ki)
+            Kst = torch.cat(rows, 0) if tm else np.concatenate(rows, 0)
+            S_all = apply(Kst, Yr[..., :nmax])  # (*lead, 3·A), lobe-major
+            A_ = len(active)
+            S_all = S_all.reshape(S_all.shape[:-1] + (A_, 3))
+            wa = w if A_ == Kn else w[..., active]
+            spec = (S_all * wa[..., None]).sum(-2)
+            active = []
         for i in active:
             ni = (Ls[i] + 1) ** 2
             Si = apply(K[..., :ni] * Bs[i][lvl[:ni]], Yr[..., :ni]) * w[..., i:i + 1]
