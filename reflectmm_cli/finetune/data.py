@@ -506,10 +506,13 @@ def shard_names(n_images: int, shard_size: int) -> list[str]:
 
 def prepare_wild_shard(images_dir, out_dir, face_model, face_model_path, cfg: PrepareConfig, shard_index: int, *,
                        landmarks_dir=None, masks_dir=None, truth_dir=None, producer=None, cache_key=None,
-                       progress_fn=None) -> tuple[Path | None, dict, list[str]]:
+                       progress_fn=None, key_when_skipped: bool = True) -> tuple[Path | None, dict, list[str]]:
     """One shard of ``prepare-wild``: images ``[i·M, (i+1)·M)`` of the sorted folder → ``out_dir/shard_NNNNN.npz``
     plus ``shard_NNNNN_overlay.png`` (skin masks over the first 16 crops).  Returns (path or None, report,
-    errors).  ``truth_dir`` (a synth-wild folder) supplies the split, truth arrays and vertex errors."""
+    errors).  ``truth_dir`` (a synth-wild folder) supplies the split, truth arrays and vertex errors.
+
+    ``key_when_skipped=False``: a shard with skipped images is written without ``cache_key``, so a recipe does not
+    call it up to date and the next run tries (and reports) the skipped images again."""
     from reflectmm_cli.artifacts import input_ref, read_artifact, sha256_file, write_png
     from reflectmm_cli.finetune.align import mask_overlay
 
@@ -532,7 +535,7 @@ def prepare_wild_shard(images_dir, out_dir, face_model, face_model_path, cfg: Pr
     rel = os.path.relpath(fm.resolve(), out_dir.resolve())
     write_shard(path, arrays, encoding=str(_encoding_of(cfg, truth_dir)), face_model_sha256=sha256_file(fm),
                 face_model_path=rel, params=cfg.to_params(), inputs=[input_ref("face_model", fm, out_dir)],
-                producer=producer, cache_key=cache_key,
+                producer=producer, cache_key=cache_key if (key_when_skipped or not errors) else None,
                 extra_meta={"shard_index": shard_index, "skipped": errors,
                             "geometry_sha256": geometry_hash(arrays, sha256_file(fm)),
                             "landmark_rmse_px_median": float(np.median(rep["landmark_rmse_px"])),

@@ -125,7 +125,8 @@ def run(ctx: StageContext) -> list[Path]:
     path, rep, errors = prepare_wild_shard(
         ctx.input("images"), out_dir(ctx), load_face_model(fm_path), fm_path, cfg, _shard_index(ctx),
         landmarks_dir=_one(ctx, "landmarks"), masks_dir=_one(ctx, "masks"), truth_dir=tr, producer=ctx.producer(),
-        cache_key=ctx.cache_key, progress_fn=lambda it: progress(it, desc=str(ctx.identity), unit="img"))
+        cache_key=ctx.cache_key, progress_fn=lambda it: progress(it, desc=str(ctx.identity), unit="img"),
+        key_when_skipped=bool(ctx.params["allow_skipped"]))
     for e in errors:
         log.error(f"{VERB}: skipped {e}")
     if rep["names"]:

@@ -279,3 +279,29 @@ params = { shard_size = 3, from_truth = true, aligned = true, size = 96 }
     plan = run_recipe(ws / "recipe.toml", ws, dry_run=True)
     assert {t.tid: t.status for t in plan.tasks} == {"prepare-wild/shard_00000": "skip",
                                                      "prepare-wild/shard_00001": "run"}
+
+
+@pytest.mark.parametrize("allow", [False, True])
+def test_a_shard_with_skipped_images_is_not_up_to_date_unless_skips_are_allowed(wild_small, tmp_path, allow):
+    from reflectmm_cli.recipes import run_recipe
+
+    out, fm = wild_small
+    ws = tmp_path / "ws"
+    shutil.copytree(out, ws / "wild")
+    bad = sorted((ws / "wild" / "images").iterdir())[1]
+    bad.write_bytes(b"not a png")
+    (ws / "recipe.toml").write_text(f"""
+schema = "reflectmm.recipe/1"
+[stages.prepare-wild]
+foreach = "all found"
+inputs = {{ images = "wild/images", truth = "wild", face_model = "wild/face_model.npz" }}
+params = {{ shard_size = 4, from_truth = true, aligned = true, size = 96, allow_skipped = {str(allow).lower()} }}
+""")
+    rep = run_recipe(ws / "recipe.toml", ws)
+    assert rep.ok == allow, [t.error for t in rep.tasks]
+    shard = ws / "prepare-wild" / "shard_00000.npz"
+    sh = open_shard(shard)
+    assert len(sh) == 3 and len(sh.meta["skipped"]) == 1  # the others were written either way
+    again = run_recipe(ws / "recipe.toml", ws, dry_run=True)
+    # without allow_skipped the failed shard is tried (and reported) again instead of being called up to date
+    assert {t.status for t in again.tasks} == ({"skip"} if allow else {"run"}), [t.reason for t in again.tasks]
