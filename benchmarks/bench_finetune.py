@@ -8,7 +8,8 @@ face pixels of an aligned crop), a per-vertex model with M = 80 components and 3
 N_L = 80, batch 8, phase 2 (encoder and model both trained: the more expensive phase). Each arch runs in its own
 process so its peak memory (max RSS) is its own. Times are medians of repeated steps after one warm-up step:
 loading (batch assembly from the in-memory shard + tensors), encoder forward+backward (surrogate gradient on its
-outputs), shading + losses forward+backward (encoder outputs as leaves; includes the G-buffer SH basis evaluation),
+outputs), shading + photometric loss forward+backward (encoder outputs as leaves; the G-buffer SH bases cached as in
+training), the other losses (L_upd over the whole model, L_coef, L_light) forward+backward,
 optimiser (Adam on encoder and model), and a real full step for comparison.
 """
 from __future__ import annotations
@@ -83,7 +84,7 @@ def run_arch(arch: str, reps: int, batch: int) -> dict:
     tr = Trainer(ss, model, light, cfg, "/tmp/bench_finetune_work", progress=False)
     tr._enter_phase2()
     idx = np.arange(batch)
-    T = {k: [] for k in ("loading", "encoder", "shading_losses", "optimiser", "full_step")}
+    T = {k: [] for k in ("loading", "encoder", "shading", "losses", "optimiser", "full_step")}
     b = ss.batch(idx)
     x = torch.as_tensor(b["images"]).permute(0, 3, 1, 2).float() / 255.0
 
@@ -104,14 +105,17 @@ def run_arch(arch: str, reps: int, batch: int) -> dict:
         sh = lighting(light, gl, zl)
         # as in training: each image's SH basis is evaluated on first use and cached (the warm-up pass fills it)
         d, s, _, _ = shade_gbuffer(tr.params, bl, sh, gb, bases=tr._bases(idx, gb, 8))
-        cur = dict(zip(("albedo_mean", "albedo_basis", "weights_mean", "weights_basis"), tr.params.effective()))
-        loss = (2 * L.photometric(d + s, gb.target, gb.skin) + 1e-3 * L.coefficient_prior(bl, gl)
-                + 10 * L.light_monochrome(sh) + 10 * L.model_update_l1(cur, tr.initial))
-        loss.backward()
+        (2 * L.photometric(d + s, gb.target, gb.skin)).backward()
         t3 = time.perf_counter()
+        # the other losses in their own backward pass (gradients add up as in one pass), timed separately
+        cur = dict(zip(("albedo_mean", "albedo_basis", "weights_mean", "weights_basis"), tr.params.effective()))
+        loss = (1e-3 * L.coefficient_prior(bl, gl) + 10 * L.light_monochrome(lighting(light, gl, zl))
+                + 10 * L.model_update_l1(cur, tr.initial))
+        loss.backward()
+        t4 = time.perf_counter()
         tr.opt.step()
         tr.opt.zero_grad(set_to_none=True)
-        return t2 - t0, t3 - t2, time.perf_counter() - t3
+        return t2 - t0, t3 - t2, t4 - t3, time.perf_counter() - t4
 
     # encoder and shading passes alternate, so both see the same machine load (the ratio is what matters)
     for r in range(reps + 1):
@@ -120,7 +124,7 @@ def run_arch(arch: str, reps: int, batch: int) -> dict:
         if r:
             T["encoder"].append(te)
             for p_ in parts:
-                for k, v in zip(("loading", "shading_losses", "optimiser"), p_):
+                for k, v in zip(("loading", "shading", "losses", "optimiser"), p_):
                     T[k].append(v)
     for r in range(max(2, reps - 1)):  # real steps
         t4 = time.perf_counter()
@@ -130,7 +134,8 @@ def run_arch(arch: str, reps: int, batch: int) -> dict:
         tr.opt.zero_grad(set_to_none=True)
         T["full_step"].append(time.perf_counter() - t4)
     med = {k: statistics.median(v) for k, v in T.items()}
-    parts = sum(med[k] for k in ("loading", "encoder", "shading_losses", "optimiser"))
+    med["shading_losses"] = statistics.median([a + b for a, b in zip(T["shading"], T["losses"])])
+    parts = sum(med[k] for k in ("loading", "encoder", "shading", "losses", "optimiser"))
     enc_params = sum(p.numel() for p in tr.encoder.parameters())
     model_params = sum(p.numel() for p in tr.params.parameters())
     return {"arch": arch, "batch": batch, **info, "median_s": med, "sum_of_parts_s": parts,
@@ -145,6 +150,8 @@ def main():
     ap.add_argument("--arch", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--compare-thp", action="store_true",
+                    help="also run each arch with THP_MEM_ALLOC_ENABLE=0 (4 KiB pages for torch's large buffers)")
     a = ap.parse_args()
     if a.arch:
         print(json.dumps(run_arch(a.arch, a.reps, a.batch)))
@@ -153,9 +160,11 @@ def main():
     reps = 2 if a.quick else a.reps
     rows = []
     for arch in archs:
-        out = subprocess.run([sys.executable, __file__, "--arch", arch, "--reps", str(reps), "--batch", str(a.batch)],
-                             check=True, capture_output=True, text=True).stdout
-        rows.append(json.loads(out.strip().splitlines()[-1]))
+        for thp in (("1", "0") if a.compare_thp else (os.environ.get("THP_MEM_ALLOC_ENABLE", "1"),)):
+            env = {**os.environ, "THP_MEM_ALLOC_ENABLE": thp}
+            out = subprocess.run([sys.executable, __file__, "--arch", arch, "--reps", str(reps), "--batch",
+                                  str(a.batch)], check=True, capture_output=True, text=True, env=env).stdout
+            rows.append({**json.loads(out.strip().splitlines()[-1]), "thp": thp})
     r0 = rows[0]
     print(f"Finetuning step, phase 2, batch {r0['batch']}, 224², {r0['vertices']} vertices, "
           f"{r0['face_pixels_per_image']} face pixels/image, M = {r0['components']}, N_L = {r0['light_components']}, "
@@ -163,16 +172,17 @@ def main():
           f"(interleaved), {max(2, reps - 1)} real steps; "
           f"load average during the runs "
           + ", ".join("%.1f" % r["load_average"][0] for r in rows) + ".\n")
-    print("| arch | loading | encoder fwd+bwd | shading+losses fwd+bwd | optimiser | full step | shading+losses "
-          "share | images/s | peak RSS |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| arch | huge pages | loading | encoder fwd+bwd | shading + L_photo fwd+bwd | "
+          "L_upd + L_coef + L_light fwd+bwd | optimiser | full step | shading+losses share | images/s | peak RSS |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         m = r["median_s"]
-        print(f"| {r['arch']} | {m['loading'] * 1e3:.0f} ms | {m['encoder'] * 1e3:.0f} ms | "
-              f"{m['shading_losses'] * 1e3:.0f} ms | {m['optimiser'] * 1e3:.0f} ms | {m['full_step'] * 1e3:.0f} ms | "
+        print(f"| {r['arch']} | {'on' if r['thp'] != '0' else 'off'} | {m['loading'] * 1e3:.0f} ms | "
+              f"{m['encoder'] * 1e3:.0f} ms | {m['shading'] * 1e3:.0f} ms | {m['losses'] * 1e3:.0f} ms | "
+              f"{m['optimiser'] * 1e3:.0f} ms | {m['full_step'] * 1e3:.0f} ms | "
               f"{100 * r['shading_losses_share']:.1f} % | {r['images_per_s']:.2f} | {r['peak_rss_mb']:.0f} MB |")
     print()
-    for r in rows:
+    for r in rows[::2 if a.compare_thp else 1]:
         print(f"- {r['arch']}: {r['encoder_params'] / 1e6:.1f} M encoder parameters, "
               f"{r['model_params'] / 1e6:.1f} M model parameters (phase 2)")
 
