@@ -109,18 +109,20 @@ def _prepare(out: Path, fm, cfg, tmp: Path, n_fit: int):
 
 
 def _read_all(paths, epochs):
-    from reflectmm_cli.finetune.data import iter_batches
+    from reflectmm_cli.finetune.shards import iter_batches, load_shards
 
     n = 0
+    ss = load_shards(paths)  # opened (and checked) once per run, as training does
     for e in range(epochs):
-        for b in iter_batches(paths, 16, split=None, seed=1, epoch=e):
+        # ShardSet.batch with the linear targets: exactly what a training step reads
+        for b in iter_batches(ss, 16, split=None, seed=1, epoch=e, with_target=True):
             n += len(b["names"])
-            _ = float(b["image"][:, ::7, ::7].mean()) + float(b["normal"][::97].astype("float32").sum())
+            _ = float(b["images"][:, ::7, ::7].mean()) + float(b["normal"][::97].sum())
     return n
 
 
 def _loader(path: Path, copies: int, tmp: Path, epochs: int = 5):
-    """images/s of iter_batches over ``copies`` copies of a shard, in 1 process and in 2 processes (2 cores)."""
+    """images/s of ShardSet.batch (the training reader) over ``copies`` copies of a shard, in 1 process and in 2 processes (2 cores)."""
     import shutil
     from concurrent.futures import ProcessPoolExecutor
 
@@ -207,7 +209,7 @@ def main() -> None:
         print(f"| G-buffer bytes per image | {pr['gb_bytes'] / 1024:.0f} KiB |")
         print(f"| shard bytes per image (incl. image, masks, truth) | {pr['shard_bytes'] / 1024:.0f} KiB |")
         ld = _loader(path, 8, tmp)
-        print("\n### shard loader (iter_batches, batch 16, page cache warm, process start included)\n")
+        print("\n### shard loader (ShardSet.batch with targets via iter_batches, batch 16, page cache warm, process start included)\n")
         print("| reader processes | images/s |\n|---|---|")
         for k, v in ld.items():
             print(f"| {k} | {v:.0f} |")

@@ -9,7 +9,8 @@ One uncompressed NPZ per shard of N aligned S×S images; its arrays (all documen
 * :func:`write_shard` — checks shapes/dtypes and writes with ``write_artifact(..., compress=False)``;
 * :class:`Shard` / :func:`open_shard` — memory-maps every member through its zip offset (no copy, no
   decompression: pages are read on demand);
-* :func:`iter_batches` — a torch-free batch iterator over one or more shards returning numpy arrays.
+* batches for training, reconstruction and inspection are read by one reader,
+  :class:`reflectmm_cli.finetune.shards.ShardSet` (``batch``, ``iter_batches``).
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from reflectmm_cli.errors import ArtifactError, ReflectmmError
 from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
 
 __all__ = ["SHARD_KIND", "ENCODINGS", "SPLITS", "PER_IMAGE_KEYS", "write_shard", "Shard", "open_shard",
-           "iter_batches", "linearize", "PrepareConfig", "WildInput", "list_wild_inputs", "name_split",
+           "linearize", "PrepareConfig", "WildInput", "list_wild_inputs", "name_split",
            "prepare_wild_images", "prepare_wild_shard", "shard_names", "geometry_hash"]
 
 SHARD_KIND = "wild-shard"
@@ -210,60 +211,6 @@ class Shard:
 def open_shard(path: str | Path) -> Shard:
     """Open a ``wild-shard`` NPZ for memory-mapped reading."""
     return Shard(path)
-
-
-def iter_batches(shards: Sequence[str | Path | Shard], batch_size: int, *, split: str | None = "train",
-                 shuffle: bool = True, seed: int = 0, epoch: int = 0, drop_last: bool = False,
-                 keys: Sequence[str] | None = None) -> Iterator[dict[str, np.ndarray]]:
-    """Batches of images (numpy, no torch) over the images of ``split`` (None: all) in the given shards.
-
-    Each batch dict has the per-image arrays (B, ...) — ``image`` uint8 as stored, ``skin_mask``, ``face_mask``,
-    ``landmarks``, geometry, ``truth_*`` when present — plus the batch's G-buffer rows concatenated:
-    ``pix_offset`` (B+1,) int64 (relative to the batch), ``pix_yx`` … ``visible`` (P_batch, ...), and
-    ``shard_index``/``image_index`` (B,) int64.  ``keys`` restricts the per-image arrays read.
-    Order: a permutation of (shard, image) pairs from ``seed`` and ``epoch`` when ``shuffle``; deterministic.
-    Images in a batch are read shard by shard in increasing index order (sequential disk access).
-    """
-    if batch_size < 1:
-        raise ReflectmmError(f"batch size must be ≥ 1, got {batch_size}")
-    sh = [s if isinstance(s, Shard) else open_shard(s) for s in shards]
-    items = []
-    for si, s in enumerate(sh):
-        sel = np.arange(len(s)) if split is None else np.flatnonzero(np.asarray(s["split"]) == split)
-        items.extend((si, int(i)) for i in sel)
-    order = np.arange(len(items))
-    if shuffle:
-        order = np.random.default_rng([int(seed), int(epoch)]).permutation(len(items))
-    for b0 in range(0, len(order), batch_size):
-        idx = order[b0:b0 + batch_size]
-        if drop_last and len(idx) < batch_size:
-            break
-        pairs = sorted(items[k] for k in idx)
-        yield _gather(sh, pairs, keys)
-
-
-def _gather(sh: list[Shard], pairs: list[tuple[int, int]], keys) -> dict[str, np.ndarray]:
-    out: dict[str, list] = {}
-    gb: dict[str, list] = {k: [] for k in GBUFFER_KEYS}
-    counts = []
-    for si, i in pairs:
-        s = sh[si]
-        names = [k for k in s.names if k not in GBUFFER_KEYS and k != "pix_offset"
-                 and (keys is None or k in keys or k in ("names", "split"))]
-        for k in names:
-            out.setdefault(k, []).append(np.asarray(s[k][i]))
-        off = s["pix_offset"]
-        a, b = int(off[i]), int(off[i + 1])
-        for k in GBUFFER_KEYS:
-            gb[k].append(np.asarray(s[k][a:b]))
-        counts.append(b - a)
-    batch = {k: np.stack(v) for k, v in out.items()}
-    for k, v in gb.items():
-        batch[k] = np.concatenate(v, 0)
-    batch["pix_offset"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    batch["shard_index"] = np.array([p[0] for p in pairs], np.int64)
-    batch["image_index"] = np.array([p[1] for p in pairs], np.int64)
-    return batch
 
 
 # --------------------------------------------------------------------------- prepare-wild

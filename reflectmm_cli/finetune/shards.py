@@ -18,7 +18,7 @@ from reflectmm_cli.errors import ReflectmmError
 
 from .data import ENCODINGS, SHARD_KIND, Shard, linearize, open_shard
 
-__all__ = ["SHARD_KIND", "ShardSet", "Stacked", "load_shards", "shardset_from_arrays"]
+__all__ = ["SHARD_KIND", "ShardSet", "Stacked", "load_shards", "shardset_from_arrays", "iter_batches"]
 
 _PER_IMAGE = ("names", "split", "image", "face_mask", "skin_mask")
 _PER_PIXEL = ("pix_yx", "vert_ids", "bary", "normal", "view", "visible")
@@ -196,6 +196,31 @@ def _check(path, a: Mapping[str, np.ndarray], meta) -> tuple[int, int, str]:
     if enc not in ENCODINGS:
         raise ReflectmmError(f"wild-shard: unknown encoding {enc!r} (expected one of {', '.join(ENCODINGS)})", path)
     return n, S, enc
+
+
+def iter_batches(shards, batch_size: int, *, split: str | None = "train", shuffle: bool = True, seed: int = 0,
+                 epoch: int = 0, drop_last: bool = False, with_target: bool = False):
+    """Epoch iterator over the images of ``split`` (None: all) through :meth:`ShardSet.batch` — the reader training
+    and ``reconstruct`` use (torch-free, numpy out).
+
+    ``shards``: a :class:`ShardSet` or shard paths (opened with :func:`load_shards`). Each batch is
+    :meth:`ShardSet.batch`'s dict plus ``index`` (B,) — the images' indices in the set, ascending within a batch
+    (sequential reads) — and their ``names`` and ``split``. Order: a permutation from ``seed`` and ``epoch`` when
+    ``shuffle``; deterministic.
+    """
+    if batch_size < 1:
+        raise ReflectmmError(f"batch size must be ≥ 1, got {batch_size}")
+    ss = shards if isinstance(shards, ShardSet) else load_shards(shards)
+    sel = np.arange(len(ss)) if split is None else ss.indices(split)
+    if shuffle:
+        sel = sel[np.random.default_rng([int(seed), int(epoch)]).permutation(len(sel))]
+    for b0 in range(0, len(sel), batch_size):
+        idx = np.sort(sel[b0:b0 + batch_size])
+        if drop_last and len(idx) < batch_size:
+            break
+        out = ss.batch(idx, with_target=with_target)
+        out.update(index=idx, names=ss.names[idx], split=ss.split[idx])
+        yield out
 
 
 def load_shards(paths: Sequence[str | Path]) -> ShardSet:

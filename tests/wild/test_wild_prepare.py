@@ -10,7 +10,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.align import (CELEBAMASK_SKIN_LABELS, align_image, crop_transform, five_points,
                                           model_five_points, similarity_from_five_points, skin_mask_from_labels,
                                           transform_points)
-from reflectmm_cli.finetune.data import (PrepareConfig, iter_batches, list_wild_inputs, open_shard,
+from reflectmm_cli.finetune.data import (PrepareConfig, list_wild_inputs, open_shard,
                                          prepare_wild_shard)
 from reflectmm_cli.landmarks import write_pts
 
@@ -108,6 +108,8 @@ def test_prepare_from_truth_shard_and_loader(wild_small, tmp_path):
     vis = g["visible"] & sh["skin_mask"][0][yx[:, 0], yx[:, 1]]
     rel = np.median(np.abs((d + s)[vis] - truth[vis]) / np.maximum(truth[vis], 1e-3))
     assert rel < 0.5
+    from reflectmm_cli.finetune.shards import iter_batches
+
     seen = sum(len(b["names"]) for b in iter_batches([p0, p1], 2, split=None))
     assert seen == 4
     assert open_shard(p0).meta["face_model"]["path"].endswith("face_model.npz")

@@ -4,7 +4,8 @@ import pytest
 
 from wild_testutil import head_rotation
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.finetune.data import iter_batches, linearize, open_shard, write_shard
+from reflectmm_cli.finetune.data import linearize, open_shard, write_shard
+from reflectmm_cli.finetune.shards import iter_batches
 from reflectmm_cli.geometry import Camera, deep3d_camera
 from reflectmm_cli.geometry.gbuffer import gbuffer_for_image, pack_gbuffers
 
@@ -60,16 +61,16 @@ def test_iter_batches_covers_split_once(small_face, tmp_path):
     seen = []
     for batch in iter_batches(paths, 2, split="train", seed=3):
         B = len(batch["names"])
-        assert batch["image"].shape == (B, 48, 48, 3) and batch["pix_offset"].shape == (B + 1,)
+        assert batch["images"].shape == (B, 48, 48, 3) and batch["offsets"].shape == (B + 1,)
         for j in range(B):
-            src = (a, b)[batch["shard_index"][j]]
-            i = batch["image_index"][j]
-            lo, hi = batch["pix_offset"][j], batch["pix_offset"][j + 1]
+            src = (a, b)[batch["index"][j] // 5]  # 5 images per shard
+            i = batch["index"][j] % 5
+            lo, hi = batch["offsets"][j], batch["offsets"][j + 1]
             so = src["pix_offset"]
-            assert np.array_equal(batch["bary"][lo:hi], src["bary"][so[i]:so[i + 1]])
-            assert np.array_equal(batch["image"][j], src["image"][i])
-            assert batch["split"][j] == "train"
-            seen.append((int(batch["shard_index"][j]), int(i)))
+            assert np.array_equal(batch["bary"][lo:hi], src["bary"][so[i]:so[i + 1]].astype(np.float32))
+            assert np.array_equal(batch["images"][j], src["image"][i])
+            assert batch["split"][j] == "train" and batch["names"][j] == src["names"][i]
+            seen.append((int(batch["index"][j] // 5), int(i)))
     assert sorted(seen) == [(s, i) for s in (0, 1) for i in (0, 1, 4)]
     order1 = [tuple(x["names"]) for x in iter_batches(paths, 2, seed=3)]
     order2 = [tuple(x["names"]) for x in iter_batches(paths, 2, seed=3)]

@@ -135,7 +135,8 @@ def test_synth_wild_is_deterministic(wild_dir, tmp_path):
 @pytest.mark.slow
 def test_synth_wild_command_with_shards(tmp_path, cli):
     """The CLI end to end: synth wild + prepare-wild --from-truth shards, read back with the loader."""
-    from reflectmm_cli.finetune.data import iter_batches, open_shard
+    from reflectmm_cli.finetune.data import open_shard
+    from reflectmm_cli.finetune.shards import iter_batches
 
     res = cli("synth", "wild", "--count", 3, "--size", 64, "--envmaps", 1, "--face-vertices", 2000,
               "--images-per-identity", 1, "--shard-size", 2, "--out", tmp_path / "w", "--encoding", "srgb")
