@@ -1,5 +1,8 @@
 """LPIPS (Zhang et al. 2018) weights from a safetensors file, and the distance reductions the evaluation uses.
 
+Every verb loads the weights with :func:`reflectmm_cli.evaluation.metrics.load_lpips` (re-exported here), which
+reads this safetensors layout and, recognised by content, a torch state dict of the same keys.
+
 The network itself (AlexNet / VGG16 trunk + the five learned 1×1 "lin" layers, plain torch) is
 :class:`reflectmm_cli.evaluation.metrics.LPIPS`. **No weights ship and none are downloaded**: the user gives a
 safetensors file whose tensor names are those of ``lpips.LPIPS(net=...).state_dict()``:
@@ -35,28 +38,10 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.threads import torch_threads
 
-from .metrics import LPIPS
+from .metrics import LPIPS, load_lpips  # noqa: F401 - the one loader, re-exported
 
-__all__ = ["load_lpips_safetensors", "save_lpips_safetensors", "lpips_status", "lpips_image_mean",
+__all__ = ["load_lpips", "save_lpips_safetensors", "lpips_status", "lpips_image_mean",
            "layer_distances"]
-
-
-def load_lpips_safetensors(path: str | Path | None, net: str = "alex") -> LPIPS | None:
-    """An :class:`LPIPS` with weights from the safetensors file ``path`` (layout in the module docstring), or
-    None when no path is given (LPIPS is then reported as off, never estimated)."""
-    if path is None:
-        return None
-    p = Path(path)
-    if not p.is_file():
-        raise ReflectmmError("LPIPS weights file not found", p)
-    try:
-        from safetensors.torch import load_file
-
-        state = load_file(str(p), device="cpu")
-    except Exception as exc:  # safetensors raises several types for a bad header
-        raise ReflectmmError(f"cannot read LPIPS weights as safetensors ({type(exc).__name__}: "
-                             f"{' '.join(str(exc).split())[:160]})", p) from None
-    return LPIPS(net).load_state_dict(state, source=p)
 
 
 def save_lpips_safetensors(state: dict, path: str | Path) -> Path:

@@ -298,9 +298,18 @@ class LPIPS:
         return float(dmap[m].mean())
 
 
+def _is_safetensors(p: Path) -> bool:
+    """A safetensors file starts with the little-endian u64 length of its JSON header, then ``{``."""
+    with open(p, "rb") as f:
+        head = f.read(9)
+    return len(head) == 9 and head[8:9] == b"{" and 2 <= int.from_bytes(head[:8], "little") <= p.stat().st_size
+
+
 def load_lpips(path: str | Path | None, net: str = "alex") -> LPIPS | None:
-    """An :class:`LPIPS` with weights from ``path`` (a torch state dict, or a dict holding one under
-    ``state_dict``), or None when no path is given (LPIPS is then reported as off, never estimated)."""
+    """An :class:`LPIPS` with weights from ``path``, or None when no path is given (LPIPS is then reported as off,
+    never estimated). The one loader of every verb: a safetensors file (the documented layout,
+    :mod:`reflectmm_cli.evaluation.lpips`), or — recognised by its content — a torch state dict (or a dict holding
+    one under ``state_dict``) read with ``weights_only=True`` (no code runs from the file)."""
     if path is None:
         return None
     import torch
@@ -308,11 +317,20 @@ def load_lpips(path: str | Path | None, net: str = "alex") -> LPIPS | None:
     p = Path(path)
     if not p.is_file():
         raise ReflectmmError("LPIPS weights file not found", p)
+    if _is_safetensors(p):
+        try:
+            from safetensors.torch import load_file
+
+            state = load_file(str(p), device="cpu")
+        except Exception as exc:  # safetensors raises several types for a bad header
+            raise ReflectmmError(f"cannot read LPIPS weights as safetensors ({type(exc).__name__}: "
+                                 f"{' '.join(str(exc).split())[:160]})", p) from None
+        return LPIPS(net).load_state_dict(state, source=p)
     try:
         state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a bad file
-        raise ReflectmmError(f"cannot read LPIPS weights as a torch state dict ({type(exc).__name__}: "
-                             f"{' '.join(str(exc).split())[:200]})", p) from None
+        raise ReflectmmError(f"cannot read LPIPS weights as safetensors or a torch state dict "
+                             f"({type(exc).__name__}: {' '.join(str(exc).split())[:200]})", p) from None
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict):

@@ -57,14 +57,14 @@ def _outputs(ctx: StageContext) -> list[Path]:
 
 
 def run(ctx: StageContext) -> list[Path]:
-    from reflectmm_cli.evaluation.lpips import load_lpips_safetensors
+    from reflectmm_cli.evaluation.metrics import load_lpips
     from reflectmm_cli.evaluation.methods import command_line, methods_from_inputs
     from reflectmm_cli.evaluation.tables import reconstruction_evaluation
 
     p = ctx.params
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), need_encoder=True, stage=VERB)
     lw = ctx.input_list("lpips_weights", required=False)
-    lp = load_lpips_safetensors(lw[0] if lw else None, p["lpips_net"])
+    lp = load_lpips(lw[0] if lw else None, p["lpips_net"])
     res = reconstruction_evaluation(methods, ctx.input_list("data"), ctx.input("light_model"), split=p["split"],
                                     region=p["region"], lpips=lp,
                                     lpips_name=(f"on ({p['lpips_net']})" if lp is not None

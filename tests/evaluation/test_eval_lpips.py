@@ -4,7 +4,7 @@ import pytest
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.face_metrics import face_region_metrics, released_protocol
-from reflectmm_cli.evaluation.lpips import (layer_distances, load_lpips_safetensors, lpips_image_mean, lpips_status,
+from reflectmm_cli.evaluation.lpips import (layer_distances, load_lpips, lpips_image_mean, lpips_status,
                                             save_lpips_safetensors)
 from reflectmm_cli.evaluation.metrics import LPIPS
 
@@ -58,7 +58,7 @@ def test_safetensors_roundtrip_and_formula_against_numpy(tmp_path):
     net = LPIPS("alex")
     sd = net.random_state_dict(seed=3)
     path = save_lpips_safetensors(sd, tmp_path / "lpips_alex.safetensors")
-    model = load_lpips_safetensors(path, "alex")
+    model = load_lpips(path, "alex")
     assert lpips_status(model) == "on (alex)" and lpips_status(None).startswith("off")
     for k, v in sd.items():
         assert np.array_equal(model.params[k].numpy(), v.numpy())
@@ -71,27 +71,27 @@ def test_safetensors_roundtrip_and_formula_against_numpy(tmp_path):
 
 
 def test_loading_errors_are_one_line(tmp_path):
-    assert load_lpips_safetensors(None) is None
+    assert load_lpips(None) is None
     with pytest.raises(ReflectmmError, match="not found"):
-        load_lpips_safetensors(tmp_path / "missing.safetensors")
+        load_lpips(tmp_path / "missing.safetensors")
     bad = tmp_path / "bad.safetensors"
     bad.write_bytes(b"not a safetensors file")
     with pytest.raises(ReflectmmError, match="cannot read LPIPS weights as safetensors"):
-        load_lpips_safetensors(bad)
+        load_lpips(bad)
     sd = LPIPS("alex").random_state_dict()
     sd.pop("lin2.model.1.weight")
     p = save_lpips_safetensors(sd, tmp_path / "partial.safetensors")
     with pytest.raises(ReflectmmError, match="lin2.model.1.weight"):
-        load_lpips_safetensors(p)
+        load_lpips(p)
     sd = LPIPS("alex").random_state_dict()
     sd["scaling_layer.shift"] = np.array([0.0, 0.0, 0.0]).reshape(1, 3, 1, 1)
     p = save_lpips_safetensors(sd, tmp_path / "shift.safetensors")
     with pytest.raises(ReflectmmError, match="scaling_layer.shift"):
-        load_lpips_safetensors(p)
+        load_lpips(p)
 
 
 def test_lpips_enters_both_protocols(tmp_path):
-    model = load_lpips_safetensors(save_lpips_safetensors(LPIPS("alex").random_state_dict(1),
+    model = load_lpips(save_lpips_safetensors(LPIPS("alex").random_state_dict(1),
                                                           tmp_path / "w.safetensors"))
     rng = np.random.default_rng(1)
     t = rng.uniform(0.2, 0.8, (2, 40, 40, 3))
@@ -106,3 +106,22 @@ def test_lpips_enters_both_protocols(tmp_path):
     expect = np.mean([lpips_image_mean(model, np.maximum(p[i] ** 1.2, 1e-6) ** (1 / 1.2) * mm[i], t[i] * mm[i])
                       for i in range(2)])
     assert rel["lpips"] == pytest.approx(expect, rel=1e-6)
+
+
+def test_one_loader_reads_safetensors_and_torch_state_dicts_alike(tmp_path):
+    import torch
+
+    sd = LPIPS("alex").random_state_dict(5)
+    st = save_lpips_safetensors(sd, tmp_path / "w.safetensors")
+    pt = tmp_path / "w.pth"
+    torch.save({"state_dict": sd}, pt)
+    rng = np.random.default_rng(1)
+    a = rng.uniform(size=(48, 48, 3))
+    b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+    d1, d2 = load_lpips(st)(a, b), load_lpips(pt)(a, b)
+    assert d1 > 0 and d1 == pytest.approx(d2, rel=1e-6)
+    # a safetensors header whose data is cut off is an error naming the file, not a torch fallback
+    cut = tmp_path / "cut.safetensors"
+    cut.write_bytes(st.read_bytes()[:-1000])
+    with pytest.raises(ReflectmmError, match="cut.safetensors.*safetensors|safetensors.*cut.safetensors"):
+        load_lpips(cut)
