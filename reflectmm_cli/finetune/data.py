@@ -57,9 +57,7 @@ _PER_PIXEL = {
 PER_IMAGE_KEYS = ("names", "split") + tuple(_PER_IMAGE)
 
 
-def linearize(image_u8: np.ndarray, encoding: str) -> np.ndarray:
-    """uint8 codes → linear float32 in [0, 1]: gamma1.2 ``x^1.2``, srgb the sRGB EOTF, linear ``x``."""
-    x = np.asarray(image_u8, np.float32) / 255.0
+def _linearize_codes(x: np.ndarray, encoding: str) -> np.ndarray:
     if encoding == "gamma1.2":
         return x ** np.float32(1.2)
     if encoding == "srgb":
@@ -67,6 +65,23 @@ def linearize(image_u8: np.ndarray, encoding: str) -> np.ndarray:
     if encoding == "linear":
         return x
     raise ReflectmmError(f"unknown image encoding {encoding!r} (one of {', '.join(ENCODINGS)})")
+
+
+_LUT: dict[str, np.ndarray] = {}
+
+
+def linearize(image_u8: np.ndarray, encoding: str) -> np.ndarray:
+    """uint8 codes → linear float32 in [0, 1]: gamma1.2 ``x^1.2``, srgb the sRGB EOTF, linear ``x``.
+
+    uint8 input goes through a 256-entry table of the same formula (one gather instead of a ``pow`` per
+    value: the training reader linearises every batch's images); other dtypes are taken as codes 0–255."""
+    a = np.asarray(image_u8)
+    if a.dtype == np.uint8:
+        lut = _LUT.get(encoding)
+        if lut is None:
+            lut = _LUT[encoding] = _linearize_codes(np.arange(256, dtype=np.float32) / 255.0, encoding)
+        return lut[a]
+    return _linearize_codes(np.asarray(a, np.float32) / 255.0, encoding)
 
 
 def _check(path, name, arr, dtype, shape, n, S):

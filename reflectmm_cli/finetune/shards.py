@@ -66,6 +66,15 @@ class Stacked:
             out[sel] = self.parts[k][idx[sel] - self.starts[k]]
         return out
 
+    def span(self, lo: int, hi: int) -> np.ndarray:
+        """Rows ``lo:hi`` as a view of one part (memory map slice, no copy); the span must not cross two parts
+        (an image's G-buffer rows never do: they lie in its own shard)."""
+        part = int(np.searchsorted(self.starts, lo, side="right") - 1)
+        a = int(lo - self.starts[part])
+        if hi - lo > len(self.parts[part]) - a:
+            raise IndexError(f"rows {lo}:{hi} cross two parts")
+        return self.parts[part][a:a + (hi - lo)]
+
     def __getitem__(self, key):
         if isinstance(key, tuple):
             raise TypeError("Stacked arrays are indexed along the first axis only (a[i], a[idx], a[i:j])")
@@ -129,10 +138,14 @@ class ShardSet:
         """Packed G-buffer of the images ``idx`` (numpy; see :func:`reflectmm_cli.finetune.render.batch_gbuffer`)
         plus ``images`` (B,S,S,3) uint8 as stored, ``linear`` (B,S,S,3) float32 and ``target`` (P,3)."""
         idx = [int(i) for i in idx]
-        rows = [np.arange(self.pix_offset[i], self.pix_offset[i + 1]) for i in idx]
-        counts = [len(r) for r in rows]
-        r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
-        take = lambda a: a.rows(r) if isinstance(a, Stacked) else np.asarray(a[r])  # noqa: E731
+        spans = [(int(self.pix_offset[i]), int(self.pix_offset[i + 1])) for i in idx]
+        counts = [b - a for a, b in spans]
+        n_pix = sum(counts)
+
+        def take(a):  # each image's rows are one contiguous span: slices, not a fancy index per row
+            parts = [a.span(lo, hi) if isinstance(a, Stacked) else a[lo:hi] for lo, hi in spans]
+            return np.concatenate(parts) if parts else np.asarray(a[:0])
+
         yx = take(self.pix_yx).astype(np.int64)
         images = np.stack([np.asarray(self.image[i]) for i in idx]) if idx else \
             np.zeros((0, self.size, self.size, 3), np.uint8)
@@ -142,11 +155,11 @@ class ShardSet:
                "size": self.size, "images": images}
         img_of = np.repeat(np.arange(len(idx)), counts)
         skin = np.stack([np.asarray(self.skin_mask[i], bool) for i in idx]) if idx else np.zeros((0, 1, 1), bool)
-        out["skin"] = skin[img_of, yx[:, 0], yx[:, 1]] if len(r) else np.zeros(0, bool)
+        out["skin"] = skin[img_of, yx[:, 0], yx[:, 1]] if n_pix else np.zeros(0, bool)
         if with_target:
             lin = np.stack([self.linear_image(i) for i in idx]) if idx else np.zeros((0, self.size, self.size, 3))
             out["linear"] = lin.astype(np.float32)
-            out["target"] = lin[img_of, yx[:, 0], yx[:, 1]] if len(r) else np.zeros((0, 3), np.float32)
+            out["target"] = lin[img_of, yx[:, 0], yx[:, 1]] if n_pix else np.zeros((0, 3), np.float32)
         return out
 
 
