@@ -841,6 +841,9 @@ def render_uv(maps: ReflectanceMaps | Mapping[str, np.ndarray], obs: Mapping[str
         flash_intensity: as in :func:`fit_maps` (use the same value as the fit).
         only_observed: zero where the pair is not observed (as the ``radiance`` array); else zero only
             where n·l ≤ 0 or n·v ≤ 0 (shadows are not modelled).
+
+    Maps fitted with normal refinement carry their refined normals (``normal``): those are used instead of the
+    observations' (the fit's model of the texel).
     """
     obs = _as_arrays(obs)
     if not isinstance(maps, ReflectanceMaps):
@@ -861,9 +864,11 @@ def render_uv(maps: ReflectanceMaps | Mapping[str, np.ndarray], obs: Mapping[str
     C = maps.albedo.reshape(3, -1).T
     W = maps.weights.reshape(maps.weights.shape[0], -1).T
     out = np.zeros((sel.size, S * S, 3), np.float32)
+    nrm = (np.moveaxis(np.asarray(maps.normal, np.float64), 0, -1) if maps.normal is not None
+           else np.asarray(obs["normal"], np.float64)).reshape(-1, 3)
     for sl in iter_chunks(idx.size, chunk):
         t = idx[sl]
-        des = design_columns(pos.reshape(-1, 3)[t], np.asarray(obs["normal"]).reshape(-1, 3)[t], obs["cam_centers"],
+        des = design_columns(pos.reshape(-1, 3)[t], nrm[t], obs["cam_centers"],
                              obs["flash_pos"], I, pv, pf, maps.exponents,
                              None if observed is None else observed[:, t].T)
         pred = des.diffuse[..., None] * C[t][:, None, :] + np.einsum("npk,nk->np", des.lobes, W[t])[..., None]
