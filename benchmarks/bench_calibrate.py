@@ -19,8 +19,12 @@ rig that is not the packaged one (1.5 m, focal 1500 px at 640×480), a nominal t
 (10 % too close, positions and aims off by 3°, raised cameras off by another 300 mm; the focal is given, as from
 EXIF), GGX faces rendered by ``synth multipie`` on the 9 views + 08_1/19_1 with the 11 default flashes, then
 ``preprocess-multipie`` (geometry capture: 11 views; reflectance capture: the paper's 9), and per case
-``fit-geometry`` → ``unwrap-uv`` → ``fit-reflectance`` → ``evaluate truth``.  Cases: the true rig; the nominal
-table per identity; ``calibrate-rig`` from the nominal table, then ``fit-geometry --rig-sigma 3`` on it.
+``fit-geometry`` → ``unwrap-uv`` → ``fit-reflectance`` → ``evaluate truth``.  Cases: ``truth`` (the ground-truth
+geometry, ``fit-geometry --from-truth``: the ceiling of the reflectance fit); ``true`` (the true rig); ``nominal``
+(the nominal table per identity); ``calibrate`` (``calibrate-rig`` from the nominal table, then
+``fit-geometry --rig-sigma 3`` on it).  Also reported per case: the angle between the unwrapped per-texel normals
+and the ground truth's (same UV texel), and with ``--refine-normals`` one row per value (photometric normal
+refinement of fit-reflectance, issue 13 cause 4).
 """
 
 from __future__ import annotations
@@ -42,7 +46,12 @@ def main(argv=None):
     ap.add_argument("--pipeline", type=int, default=0, help="run the rendered pipeline on this many identities")
     ap.add_argument("--workspace", default=None, help="workspace of --pipeline (default: a temporary folder)")
     ap.add_argument("--pipeline-cases", default="true,nominal,calibrate",
-                    help="cases of --pipeline (true, nominal, calibrate); existing captures are reused")
+                    help="cases of --pipeline (truth, true, nominal, calibrate); existing captures are reused")
+    ap.add_argument("--refine-normals", default=None,
+                    help="comma list of fit-reflectance --refine-normals values, one table row each (default: the "
+                         "stage's default only)")
+    ap.add_argument("--reuse-geometry", action="store_true",
+                    help="reuse existing geometry / uv-observations of a case (only re-fit the reflectance)")
     args = ap.parse_args(argv)
     if args.pipeline:
         return pipeline(args, argv)
@@ -141,52 +150,127 @@ def pipeline(args, argv):
         if not (ws / "cap9" / f"{i}.npz").is_file():
             cli("preprocess", "preprocess-multipie", "--root", ws / "syn", "--id", i, "--views",
                 ",".join(DEFAULT_VIEWS), "--output", ws / "cap9" / f"{i}.npz")
-    cli("calibrate-rig", "calibrate-rig", "--ids", ",".join(ids), "--rig", ws / "nominal_rig.toml", "--focal",
-        true.camera("05_1").focal_px)
-    cases = {"true rig": (ws / "true_rig.toml", []), "nominal rig, per identity": (ws / "nominal_rig.toml", []),
-             "calibrate-rig (shared)": (ws / "calibrate-rig" / "rig.toml", ["--rig-sigma", "3"])}
-    keep = {"true": "true rig", "nominal": "nominal rig, per identity", "calibrate": "calibrate-rig (shared)"}
-    cases = {k: v for k, v in cases.items() if k in {keep[c] for c in args.pipeline_cases.split(",") if c in keep}}
+    keep = [c for c in args.pipeline_cases.split(",") if c]
+    if "calibrate" in keep:
+        cli("calibrate-rig", "calibrate-rig", "--ids", ",".join(ids), "--rig", ws / "nominal_rig.toml", "--focal",
+            true.camera("05_1").focal_px)
+    # key: (label, folder, rig, extra fit-geometry args)
+    all_cases = {"truth": ("true geometry", "truth", ws / "true_rig.toml", ["--from-truth"]),
+                 "true": ("true rig", "true", ws / "true_rig.toml", []),
+                 "nominal": ("nominal rig, per identity", "nominal", ws / "nominal_rig.toml", []),
+                 "calibrate": ("calibrate-rig (shared)", "calibrate-rig", ws / "calibrate-rig" / "rig.toml",
+                               ["--rig-sigma", "3"])}
+    cases = [all_cases[k] for k in keep if k in all_cases]
+    refine = [None] if args.refine_normals is None else [int(v) for v in args.refine_normals.split(",")]
     truth_fl = {f: true.flash(f).position for f in ("14", "18")}
     rows = []
-    for case, (rig, extra) in cases.items():
-        tag = case.split()[0]
-        res = []
+    normal_rows = []
+    refined_ang: dict = {}
+    truth_normals: dict[str, np.ndarray] = {}
+
+    def true_normals(i):
+        # the ground-truth geometry unwrapped once (the same UV layout: texels correspond one to one)
+        if i not in truth_normals:
+            to = ws / "truth" / "obs" / f"{i}.npz"
+            if not to.is_file():
+                g = ws / "truth" / "geo" / f"{i}.npz"
+                cli("fit-geometry truth", "fit-geometry", "--id", i, "--rig", ws / "true_rig.toml", "--from-truth",
+                    ws / "syn" / "truth" / f"{i}.npz", "--output", g, "--no-overlay")
+                cli("unwrap truth", "unwrap-uv", "--id", i, "--capture", ws / "cap9" / f"{i}.npz", "--geometry", g,
+                    "--face-model", ws / "syn" / "face_model.npz", "--output", to)
+            a = read_artifact(to, "uv-observations")
+            truth_normals[i] = (np.asarray(a["normal"], np.float64), np.asarray(a["mask"], bool))
+        return truth_normals[i]
+
+    for label, tag, rig, extra in cases:
+        res: dict = {rn: [] for rn in refine}
+        ang = []
         for i in ids:
             g = ws / tag / "geo" / f"{i}.npz"
-            cli(f"fit-geometry {tag}", "fit-geometry", "--id", i, "--rig", rig, "--output", g, "--no-overlay",
-                *extra)
             o = ws / tag / "obs" / f"{i}.npz"
-            cli(f"unwrap {tag}", "unwrap-uv", "--id", i, "--capture", ws / "cap9" / f"{i}.npz", "--geometry", g,
-                "--face-model", ws / "syn" / "face_model.npz", "--output", o)
-            mp = ws / tag / "maps" / f"{i}.npz"
-            cli(f"fit-reflectance {tag}", "fit-reflectance", "--id", i, "--input", o, "--output", mp)
-            ev = ws / tag / "eval" / f"{i}.npz"
-            cli(f"evaluate {tag}", "evaluate", "truth", "--id", i, "--maps", mp, "--truth",
-                ws / "syn" / "truth" / f"{i}.npz", "--output", ev)
+            if not (args.reuse_geometry and g.is_file() and o.is_file()):
+                targs = [ws / "syn" / "truth" / f"{i}.npz"] if extra == ["--from-truth"] else []
+                cli(f"fit-geometry {tag}", "fit-geometry", "--id", i, "--rig", rig, "--output", g, "--no-overlay",
+                    *extra, *targs)
+                cli(f"unwrap {tag}", "unwrap-uv", "--id", i, "--capture", ws / "cap9" / f"{i}.npz", "--geometry",
+                    g, "--face-model", ws / "syn" / "face_model.npz", "--output", o)
             ga = read_artifact(g, "geometry")
+            if tag != "truth":
+                nt, mt = true_normals(i)
+                oa = read_artifact(o, "uv-observations")
+                nf, mf = np.asarray(oa["normal"], np.float64), np.asarray(oa["mask"], bool)
+                both = mt & mf
+                c = np.clip(np.sum(nt[both] * nf[both], axis=-1) /
+                            np.maximum(np.linalg.norm(nt[both], axis=-1) * np.linalg.norm(nf[both], axis=-1),
+                                       1e-30), -1.0, 1.0)
+                ang.append(np.degrees(np.arccos(c)))
             fl = [str(x) for x in ga["flash_ids"]]
             fe = [float(np.linalg.norm(ga["flash_pos"][fl.index(f)] - truth_fl[f])) for f in ("14", "18")]
-            e = read_artifact(ev).meta["errors"]
-            err = e["reflectance"] if "reflectance" in e else e
-            obs = err["raw"]["observable"]
-            res.append((float(ga["err_vertex_rmse_mm"]), float(np.median(ga["err_cam_center_mm"])),
-                        float(np.max(ga["err_cam_center_mm"])), max(fe), float(err["scale"]), obs["albedo_rel"],
-                        obs.get("spec_ratio_median", float("nan"))))
-        r = np.array(res)
-        rows.append((case, r))
+            gerr = (float(ga["err_vertex_rmse_mm"]), float(np.median(ga["err_cam_center_mm"])),
+                    float(np.max(ga["err_cam_center_mm"]))) if "err_vertex_rmse_mm" in ga.arrays else (0.0,) * 3
+            for rn in refine:
+                sub = "maps" if rn is None else f"maps_rn{rn}"
+                mp = ws / tag / sub / f"{i}.npz"
+                rargs = [] if rn is None else ["--refine-normals", rn]
+                ftag = f"fit-reflectance {tag}" + ("" if rn is None else f" rn{rn}")
+                t0 = time.perf_counter()
+                cli(ftag, "fit-reflectance", "--id", i, "--input", o, "--output", mp, *rargs)
+                t_fit = time.perf_counter() - t0
+                ev = ws / tag / ("eval" if rn is None else f"eval_rn{rn}") / f"{i}.npz"
+                cli(f"evaluate {tag}", "evaluate", "truth", "--id", i, "--maps", mp, "--truth",
+                    ws / "syn" / "truth" / f"{i}.npz", "--output", ev)
+                e = read_artifact(ev).meta["errors"]
+                err = e["reflectance"] if "reflectance" in e else e
+                obs = err["raw"]["observable"]
+                ma = read_artifact(mp)
+                st = ma.meta.get("stats", {})
+                if "normal" in ma.arrays:  # refined normals against the truth's
+                    nt, mt = true_normals(i)
+                    both = mt & np.asarray(ma["mask"], bool) & ~np.asarray(ma["flagged"], bool)
+                    nr = np.moveaxis(np.asarray(ma["normal"], np.float64), 0, -1)[both]
+                    c = np.clip(np.sum(nt[both] * nr, axis=-1) / np.maximum(
+                        np.linalg.norm(nt[both], axis=-1) * np.linalg.norm(nr, axis=-1), 1e-30), -1.0, 1.0)
+                    refined_ang.setdefault((label, rn), []).append(np.degrees(np.arccos(c)))
+                res[rn].append((*gerr, max(fe), float(err["scale"]), obs["albedo_rel"],
+                                obs.get("spec_ratio_median", float("nan")), t_fit,
+                                float(st.get("residual_rms_median", float("nan")))))
+        for rn in refine:
+            rows.append((label if rn is None else f"{label}, refine-normals {rn}", np.array(res[rn])))
+        if ang:
+            a = np.concatenate(ang)
+            normal_rows.append((label, [float(np.median(x)) for x in ang], np.percentile(a, [50, 90, 99])))
+        for rn in refine:
+            if (label, rn) in refined_ang:
+                ra = refined_ang[(label, rn)]
+                normal_rows.append((f"{label}, refined (refine-normals {rn})", [float(np.median(x)) for x in ra],
+                                    np.percentile(np.concatenate(ra), [50, 90, 99])))
     print(f"`python benchmarks/bench_calibrate.py {' '.join(argv if argv is not None else sys.argv[1:])}` — "
           f"{args.pipeline} GGX identities, 640x480, true rig 1.5 m / focal 1500 px, nominal table 10 % too "
           f"close, 3° off, raised cameras +300 mm (focal given); workspace {ws}; load average "
           f"{os.getloadavg()[0]:.1f}\n")
+    # Σw of the true-geometry fit (first row of that case) as the ceiling of the representation
+    ceiling = next((r[:, 6] for case, r in rows if case.startswith("true geometry")), None)
     print("| geometry from | vertex RMS mm (median / max) | camera centre err mm (median / max) | flash 14/18 err mm "
           "(max) | albedo scale spread (std / mean) | albedo rel. err raw (median / max) | Σw / true median "
-          "(min–max) |")
-    print("|---|---|---|---|---|---|---|")
+          "(min–max) | Σw / true-geometry fit's (median, min–max) | fit residual RMS (median) | fit-reflectance "
+          "s / identity (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for case, r in rows:
+        gap = "" if ceiling is None else (f"{np.median(r[:, 6] / ceiling):.2f} ({(r[:, 6] / ceiling).min():.2f}–"
+                                          f"{(r[:, 6] / ceiling).max():.2f})")
         print(f"| {case} | {np.median(r[:, 0]):.2f} / {r[:, 0].max():.2f} | {np.median(r[:, 1]):.1f} / "
               f"{r[:, 2].max():.1f} | {r[:, 3].max():.0f} | {r[:, 4].std() / r[:, 4].mean():.3f} | "
-              f"{np.median(r[:, 5]):.3f} / {r[:, 5].max():.3f} | {r[:, 6].min():.2f}–{r[:, 6].max():.2f} |")
+              f"{np.median(r[:, 5]):.3f} / {r[:, 5].max():.3f} | {r[:, 6].min():.2f}–{r[:, 6].max():.2f} | {gap} | "
+              f"{np.median(r[:, 8]):.4f} | {np.median(r[:, 7]):.1f} |")
+    print("\nΣw / true per identity (" + ", ".join(ids) + "):")
+    for case, r in rows:
+        print(f"- {case}: " + " ".join(f"{v:.2f}" for v in r[:, 6]))
+    if normal_rows:
+        print("\n| geometry from | unwrapped normal vs truth, ° (median per identity, min–max) | all texels: "
+              "median / p90 / p99 ° |")
+        print("|---|---|---|")
+        for label, med, pc in normal_rows:
+            print(f"| {label} | {min(med):.2f}–{max(med):.2f} | {pc[0]:.2f} / {pc[1]:.2f} / {pc[2]:.2f} |")
     print("\nstage times (s): " + ", ".join(f"{k} {v:.0f}" for k, v in times.items()))
 
 

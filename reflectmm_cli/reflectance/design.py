@@ -50,6 +50,7 @@ __all__ = [
     "design_columns",
     "design_rows",
     "columns_from_scalars",
+    "design_rows_grad",
     "iter_chunks",
     "mirror_index",
     "pair_irradiance",
@@ -206,6 +207,53 @@ def columns_from_scalars(nl: np.ndarray, nv: np.ndarray, lv: np.ndarray, d2: np.
     s = np.exp(logh[:, None] * p) * (E[:, None] * blinn_phong_norm(p))
     s = np.where((ndh > 0)[:, None], s, 0.0)
     return d, s, cos_l, ndh
+
+
+def design_rows_grad(x: np.ndarray, n: np.ndarray, flash: np.ndarray, cam: np.ndarray, intensity: np.ndarray,
+                     exponents: Sequence[float]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Design columns of R observations and their derivatives with respect to the normal n (analytic).
+
+    The columns of :func:`design_rows` as functions of the (unit) normal n, with l, v, h, E fixed:
+    ``d = E·(n·l)/π`` and ``s_i = E·f_i·(n·h)^p_i`` inside the valid set (n·l > 0, n·v > 0), so
+
+        ∂d/∂n   = E·l/π
+        ∂s_i/∂n = E·f_i·p_i·(n·h)^(p_i−1)·h
+
+    and both are 0 outside it (the valid set is held fixed: the derivative of the cut is not taken; the
+    columns are continuous at n·l = 0 for d but not for s, like the model).  For p_i < 1 the derivative is
+    unbounded as n·h → 0; it is set to 0 where n·h = 0.
+
+    Args / returns as :func:`design_rows`, plus ``dd (R, 3)`` and ``ds (R, K, 3)``.
+    """
+    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
+    dl = flash - x
+    dv = cam - x
+    d2 = np.einsum("rk,rk->r", dl, dl)
+    v2 = np.einsum("rk,rk->r", dv, dv)
+    il = 1.0 / np.sqrt(np.where(d2 > 0, d2, 1.0))
+    iv = 1.0 / np.sqrt(np.where(v2 > 0, v2, 1.0))
+    l = dl * il[:, None]
+    v = dv * iv[:, None]
+    h = l + v
+    hn = np.sqrt(np.einsum("rk,rk->r", h, h))
+    h /= np.where(hn > 0, hn, 1.0)[:, None]
+    ndl = np.einsum("rk,rk->r", n, l)
+    ndv = np.einsum("rk,rk->r", n, v)
+    ok = (ndl > 0) & (ndv > 0) & (d2 > 0) & (v2 > 0)
+    ndh = np.where(ok, np.clip(np.einsum("rk,rk->r", n, h), 0.0, 1.0), 0.0)
+    E = np.where(ok, intensity * (il * il), 0.0)
+    cos_l = np.where(ok, ndl, 0.0)
+    d = E * cos_l / np.pi
+    pos = ndh > 0
+    with np.errstate(divide="ignore"):
+        logh = np.log(np.where(pos, ndh, 1.0))
+    Ef = E[:, None] * blinn_phong_norm(p)
+    s = np.where(pos[:, None], np.exp(logh[:, None] * p) * Ef, 0.0)
+    dd = (E / np.pi)[:, None] * l
+    dsc = np.where(pos[:, None], np.exp(logh[:, None] * (p - 1.0)) * (Ef * p), 0.0)  # (R, K)
+    ds = dsc[:, :, None] * h[:, None, :]
+    return d, s, cos_l, ndh, dd, ds
 
 
 def gram_conditioning(G: np.ndarray) -> np.ndarray:

@@ -54,6 +54,11 @@ SYMMETRY_MODES = ("adaptive", "ill-posed", "all")
 #: Ridge of the first pass relative to the trace of each texel's data term (numerical safety only).
 PASS1_RIDGE = 1e-9
 
+#: Gauss–Newton steps of the normals per alternation of the normal refinement.
+NORMAL_STEPS = 2
+#: Default σ (degrees) of the normal refinement's prior towards the geometric normal.
+DEFAULT_NORMAL_SIGMA = 5.0
+
 __all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution"]
 
 
@@ -64,7 +69,9 @@ class ReflectanceMaps:
     albedo (3,S,S) linear diffuse C; weights (K,S,S) lobe weights W; exponents (K,); mask (S,S);
     residual (S,S) RMS radiance residual over the texel's fitted observations; conditioning (S,S) pooled
     rcond; observability (K,S,S) pooled lobe observability; flagged (S,S); obs_count (S,S) fitted observations
-    of the texel itself; prior (3+K,S,S) the prior target x0; stats: solver statistics.
+    of the texel itself; prior (3+K,S,S) the prior target x0; with normal refinement normal (3,S,S) the refined
+    unit normals and normal_correction (S,S) their angle to the geometric normals (degrees); stats: solver
+    statistics.
     """
 
     albedo: np.ndarray
@@ -77,6 +84,8 @@ class ReflectanceMaps:
     obs_count: np.ndarray
     observability: np.ndarray | None = None
     prior: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    normal_correction: np.ndarray | None = None
     stats: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -99,6 +108,10 @@ class ReflectanceMaps:
             out["observability"] = self.observability.astype(np.float32)
         if self.prior is not None:
             out["prior"] = self.prior.astype(np.float32)
+        if self.normal is not None:
+            out["normal"] = self.normal.astype(np.float32)
+        if self.normal_correction is not None:
+            out["normal_correction"] = self.normal_correction.astype(np.float32)
         return out
 
 
@@ -115,7 +128,10 @@ def maps_from_arrays(arrays: Mapping[str, np.ndarray], stats: dict | None = None
         flagged=np.asarray(a.get("flagged", np.zeros((S, S), bool)), bool),
         obs_count=np.asarray(a.get("obs_count", np.zeros((S, S), np.int32))),
         observability=np.asarray(a["observability"]) if "observability" in a else None,
-        prior=np.asarray(a["prior"]) if "prior" in a else None, stats=dict(stats or {}))
+        prior=np.asarray(a["prior"]) if "prior" in a else None,
+        normal=np.asarray(a["normal"]) if "normal" in a else None,
+        normal_correction=np.asarray(a["normal_correction"]) if "normal_correction" in a else None,
+        stats=dict(stats or {}))
 
 
 # --------------------------------------------------------------------------- helpers
@@ -226,6 +242,7 @@ class _Problem:
         self.A = np.empty((R, 1 + K + 3))
         self.cos = np.empty(R)
         self.tex = np.empty(R, np.int64)
+        self.pair = np.empty(R, np.int32)  # (view, flash) pair of each row (normal refinement rebuilds rows)
         ndh = np.empty(R)
         def fill(item):
             sl, v = item
@@ -239,15 +256,25 @@ class _Problem:
             self.A[r0:r1, 1 + K:] = rad[sl][v]  # boolean gather: same (texel, pair) order as np.nonzero
             self.cos[r0:r1] = c_
             self.tex[r0:r1] = ti + sl.start
+            self.pair[r0:r1] = pj
             ndh[r0:r1] = h_
 
         _parallel_map(fill, list(zip(iter_chunks(n, chunk), valid_chunks)), threads)  # disjoint slices
-        self.d = self.A[:, 0]
-        self.s = np.ascontiguousarray(self.A[:, 1:1 + K])
+        self.xm, self.nm0, self.nm = xm, nm, nm
+        self.fpos, self.cpos, self.Ip, self.p = fpos, cpos, Ip, p
+        self.threads = threads
         self.y = self.A[:, 1 + K:]
         self.rms = np.sqrt(np.bincount(self.tex, weights=_rowsum(self.y * self.y), minlength=n)
                            / (3 * np.maximum(self.count, 1)))
-        # Gram of the design columns and lobe observability, per texel
+        self._cols = np.arange(self.tex.size, dtype=np.int64)
+        self._iu = np.triu_indices(K)
+        self._derived(ndh)
+
+    def _derived(self, ndh: np.ndarray) -> None:
+        """Column views, the per-texel Gram of the design columns and the lobe observability."""
+        K, n, p = self.K, self.idx.size, self.p
+        self.d = self.A[:, 0]
+        self.s = np.ascontiguousarray(self.A[:, 1:1 + K])
         B = np.ascontiguousarray(self.A[:, :1 + K])
         self.G = (np.stack([self._segsum(B[:, a], B) for a in range(1 + K)], axis=1) if n
                   else np.zeros((0, 1 + K, 1 + K)))
@@ -256,8 +283,31 @@ class _Problem:
         if ndh.size:  # max_j ndh_j^p = (max_j ndh_j)^p for p > 0
             with np.errstate(under="ignore"):
                 self.obsv[has] = np.maximum.reduceat(ndh, self.start[:-1][has])[:, None] ** p
-        self._iu = np.triu_indices(K)
-        self._cols = np.arange(self.tex.size, dtype=np.int64)
+        self.ls_system = None
+
+    def set_normals(self, nm: np.ndarray) -> None:
+        """Re-evaluate the design columns of every row at new per-texel unit normals (n, 3).
+
+        The rows (texel, pair) stay those chosen with the geometric normal; a row whose pair is behind the new
+        normal (n·l ≤ 0 or n·v ≤ 0) gets zero columns and weight ⟨l,n⟩ = 0, like the model.
+        """
+        self.nm = np.asarray(nm, np.float64)
+        n = self.idx.size
+        ndh = np.empty(self.tex.size)
+
+        def fill(sl):
+            r0, r1 = self.start[sl.start], self.start[sl.stop]
+            pj = self.pair[r0:r1]
+            d, s_, c_, h_ = design_rows(np.repeat(self.xm[sl], self.count[sl], axis=0),
+                                        np.repeat(self.nm[sl], self.count[sl], axis=0), self.fpos[pj],
+                                        self.cpos[pj], self.Ip[pj], self.p)
+            self.A[r0:r1, 0] = d
+            self.A[r0:r1, 1:1 + self.K] = s_
+            self.cos[r0:r1] = c_
+            ndh[r0:r1] = h_
+
+        _parallel_map(fill, list(iter_chunks(n, self.chunk)), self.threads)
+        self._derived(ndh)
 
     def _segsum(self, w: np.ndarray, X: np.ndarray, a: int = 0, b: int | None = None) -> np.ndarray:
         """(b−a, q) per-texel sums Σ_rows w_r · X_r over texels a..b−1 (a CSR product; rows sorted by texel)."""
@@ -390,7 +440,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
              device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK, threads: int | None = None,
              progress: Callable | None = None, path=None,
              symmetry_mode: str = "adaptive", prior_tail: float = 100.0,
-             prior_tail_obs: float = 0.5) -> ReflectanceMaps:
+             prior_tail_obs: float = 0.5, refine_normals: int = 0,
+             normal_sigma: float = DEFAULT_NORMAL_SIGMA) -> ReflectanceMaps:
     """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
 
     Args:
@@ -425,6 +476,10 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
         chunk: texels per design block (memory).
         threads: worker threads of the fast solver (default min(cpu count, 4)); results do not depend on it.
         progress: optional wrapper ``progress(iterable, desc=..., total=...)`` for progress bars.
+        refine_normals: photometric normal refinement (fast solver): this many alternations of
+            ``NORMAL_STEPS`` damped Gauss–Newton steps of each solved texel's normal (reflectance fixed) and the
+            reflectance solve (normals fixed); 0 = off (:mod:`.normals`).
+        normal_sigma: σ (degrees) of the Gaussian prior of the refined normal towards the geometric one.
         path: file name used in error messages.
     Returns:
         :class:`ReflectanceMaps`.
@@ -450,6 +505,13 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
         raise ReflectmmError(f"prior_tail must be finite and >= 0, got {prior_tail}")
     if not (np.isfinite(prior_tail_obs) and 0 < prior_tail_obs <= 1):
         raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {prior_tail_obs}")
+    if int(refine_normals) != refine_normals or refine_normals < 0:
+        raise ReflectmmError(f"refine_normals must be an integer >= 0, got {refine_normals}")
+    if not (np.isfinite(normal_sigma) and normal_sigma > 0):
+        raise ReflectmmError(f"normal_sigma must be finite and > 0 (degrees), got {normal_sigma}")
+    if refine_normals > 0 and solver != "fast":
+        raise ReflectmmError("normal refinement (refine_normals > 0) needs the fast solver; use refine_normals=0 "
+                             "with solver='adam'")
     P = np.asarray(obs["pair_view"]).shape[0]
     pm = _parse_pair_mask(pair_mask, P)
     used = np.asarray(obs["observed"], bool) & pm[:, None, None]
@@ -530,10 +592,42 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     if prior_sigma is None:
         prior_sigma = max(S / 16.0, 1.0)
 
+    normal_map = correction_map = None
     if solver == "fast":
-        x, prior_map, info = _fast(prob, pool, pool_band, solve, n, m, loss, float(prior), delta, irls_iterations,
-                                   obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol,
-                                   irls_obj_tol, threads, float(prior_tail), float(prior_tail_obs))
+        def fast(obsv_p):
+            return _fast(prob, pool, pool_band, solve, n, m, loss, float(prior), delta, irls_iterations,
+                         obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol,
+                         irls_obj_tol, threads, float(prior_tail), float(prior_tail_obs))
+
+        x, prior_map, info = fast(obsv_p)
+        if refine_normals > 0:
+            # alternate: Gauss–Newton steps of the normals with (C, W) fixed, then the reflectance solve again
+            # with the design re-evaluated at the new normals (rows, flags and mirror weights stay those of the
+            # geometric normals)
+            from .normals import NormalRefinement, correction_angle_deg
+
+            ref = NormalRefinement(prob, normal_sigma, loss, delta, solve, chunk=chunk, threads=threads,
+                                   ridge=float(prior))
+            hist = []
+            for _ in range(int(refine_normals)):
+                xs = x
+                for _ in range(NORMAL_STEPS):
+                    st = ref.step(xs)
+                    xs = ref.x
+                prob.set_normals(ref.normals)
+                obsv_p = np.where(pooled[:, None], np.maximum(prob.obsv, prob.obsv[mp]), prob.obsv)
+                x, prior_map, info = fast(obsv_p)
+                hist.append(st)
+            obsv_map = to_map(obsv_p)
+            cond = gram_conditioning(pool(prob.G)) if n else np.zeros(0)
+            ang = correction_angle_deg(ref.delta)
+            normal_map = np.where(mask[None], to_map(prob.nm), 0.0)
+            correction_map = to_map(ang)
+            stats["normal_refinement"] = {"iterations": int(refine_normals), "gn_steps": NORMAL_STEPS,
+                                          "sigma_deg": float(normal_sigma), "history": hist,
+                                          "angle_median_deg": float(np.median(ang[solve])) if solve.any() else 0.0,
+                                          "angle_p90_deg": float(np.percentile(ang[solve], 90))
+                                          if solve.any() else 0.0}
         stats.update(info)
     else:
         from .adam import fit_adam
@@ -561,7 +655,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     return ReflectanceMaps(
         albedo=xfill[:3], weights=xfill[3:], exponents=p, mask=mask, residual=to_map(resid),
         conditioning=to_map(cond), flagged=flagged_map, obs_count=to_map(prob.count).astype(np.int32),
-        observability=obsv_map, prior=prior_map, stats=stats)
+        observability=obsv_map, prior=prior_map, normal=normal_map, normal_correction=correction_map, stats=stats)
 
 
 def _mirror_trust(prob, own_ok, has_m, mp, idx, S, m, sigma, threads=1):
@@ -747,6 +841,9 @@ def render_uv(maps: ReflectanceMaps | Mapping[str, np.ndarray], obs: Mapping[str
         flash_intensity: as in :func:`fit_maps` (use the same value as the fit).
         only_observed: zero where the pair is not observed (as the ``radiance`` array); else zero only
             where n·l ≤ 0 or n·v ≤ 0 (shadows are not modelled).
+
+    Maps fitted with normal refinement carry their refined normals (``normal``): those are used instead of the
+    observations' (the fit's model of the texel).
     """
     obs = _as_arrays(obs)
     if not isinstance(maps, ReflectanceMaps):
@@ -767,9 +864,11 @@ def render_uv(maps: ReflectanceMaps | Mapping[str, np.ndarray], obs: Mapping[str
     C = maps.albedo.reshape(3, -1).T
     W = maps.weights.reshape(maps.weights.shape[0], -1).T
     out = np.zeros((sel.size, S * S, 3), np.float32)
+    nrm = (np.moveaxis(np.asarray(maps.normal, np.float64), 0, -1) if maps.normal is not None
+           else np.asarray(obs["normal"], np.float64)).reshape(-1, 3)
     for sl in iter_chunks(idx.size, chunk):
         t = idx[sl]
-        des = design_columns(pos.reshape(-1, 3)[t], np.asarray(obs["normal"]).reshape(-1, 3)[t], obs["cam_centers"],
+        des = design_columns(pos.reshape(-1, 3)[t], nrm[t], obs["cam_centers"],
                              obs["flash_pos"], I, pv, pf, maps.exponents,
                              None if observed is None else observed[:, t].T)
         pred = des.diffuse[..., None] * C[t][:, None, :] + np.einsum("npk,nk->np", des.lobes, W[t])[..., None]

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["srgb_encode", "albedo_preview", "weights_preview", "residual_preview", "flagged_preview"]
+__all__ = ["srgb_encode", "albedo_preview", "weights_preview", "residual_preview", "flagged_preview",
+           "normal_correction_preview"]
 
 
 def srgb_encode(x: np.ndarray) -> np.ndarray:
@@ -61,3 +62,14 @@ def flagged_preview(mask: np.ndarray, flagged: np.ndarray, observability: np.nda
         img[weak] = (0.15, 0.35, 0.95)
     img[mask & flagged] = (0.95, 0.1, 0.1)
     return img
+
+
+def normal_correction_preview(angle_deg: np.ndarray, mask: np.ndarray | None = None, top_deg: float = 10.0
+                              ) -> np.ndarray:
+    """(S,S,3) turbo colour map of the normal refinement's correction angle, 0 → ``top_deg`` degrees (clipped)."""
+    import cv2
+
+    m = np.ones(angle_deg.shape, bool) if mask is None else mask
+    u8 = (np.clip(np.nan_to_num(angle_deg) / top_deg, 0, 1) * 255 + 0.5).astype(np.uint8)
+    rgb = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO)[..., ::-1].astype(np.float64) / 255.0
+    return rgb * m[..., None]

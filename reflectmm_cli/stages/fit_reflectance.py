@@ -48,14 +48,23 @@ PARAMS = (EXPONENTS,) + SOLVER_PARAMS + (
                "observations' values. Sets the global scale of C and W."),
     Param("cond_min", "float", 1e-4, range=(0.0, 1.0), help="Flag texels whose pooled conditioning is below this."),
     Param("seed", "int", 0, help="Seed of Adam's random flips."),
+    Param("refine_normals", "int", 0, range=(0, 100),
+          help="Photometric normal refinement: alternations of Gauss–Newton steps of each texel's normal and the "
+               "reflectance solve (fast solver; 0 = off)."),
+    Param("normal_sigma", "float", 5.0, range=(0.0, 90.0), low_open=True, unit="degrees",
+          help="σ of the refined normal's Gaussian prior towards the geometric normal."),
 )
 
 PREVIEWS = ("albedo", "weights", "residual", "flagged")
 
 
+def _previews(params) -> tuple[str, ...]:
+    return PREVIEWS + (("normal_correction",) if params.get("refine_normals") else ())
+
+
 def _outputs(ctx: StageContext) -> list[Path]:
     out = ctx.output_path()
-    return [out, out.with_suffix(".exr")] + [out.with_name(f"{out.stem}_{k}.png") for k in PREVIEWS]
+    return [out, out.with_suffix(".exr")] + [out.with_name(f"{out.stem}_{k}.png") for k in _previews(ctx.params)]
 
 
 def input_path(ctx: StageContext) -> Path:
@@ -77,8 +86,8 @@ def _channel_name(p: float) -> str:
 
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.reflectance import fit_maps
-    from reflectmm_cli.reflectance.previews import (albedo_preview, flagged_preview, residual_preview,
-                                                    weights_preview)
+    from reflectmm_cli.reflectance.previews import (albedo_preview, flagged_preview, normal_correction_preview,
+                                                    residual_preview, weights_preview)
 
     p = ctx.params
     src = input_path(ctx)
@@ -89,7 +98,8 @@ def run(ctx: StageContext) -> list[Path]:
     maps = fit_maps(obs.arrays, exponents=p["exponents"], solver=p["solver"], symmetry=p["symmetry"],
                     symmetry_mode=p["symmetry_mode"], loss=p["loss"], prior=p["prior"], prior_tail=p["prior_tail"],
                     flash_intensity=fi, steps=p["steps"], device=ctx.device, seed=p["seed"],
-                    cond_min=p["cond_min"], progress=progress, path=src)
+                    cond_min=p["cond_min"], refine_normals=p["refine_normals"], normal_sigma=p["normal_sigma"],
+                    progress=progress, path=src)
     stats = {k: v for k, v in maps.stats.items() if k != "time_s"}  # no timings in artifacts (byte-identical reruns)
     out = ctx.output_path()
     resolved = {q.name: p.get(q.name) for q in sorted(PARAMS, key=lambda q: q.name)}
@@ -113,6 +123,9 @@ def run(ctx: StageContext) -> list[Path]:
         write_png(out.with_name(f"{out.stem}_flagged.png"),
                   flagged_preview(maps.mask, maps.flagged, maps.observability)),
     ]
+    if maps.normal_correction is not None:
+        pngs.append(write_png(out.with_name(f"{out.stem}_normal_correction.png"),
+                              normal_correction_preview(maps.normal_correction, maps.mask)))
     s = maps.stats
     log.info(f"fit-reflectance {ctx.identity or out.stem}: {p['solver']} solver, {s['n_texels']} texels, "
              f"{s['n_flagged']} flagged, {s['n_observable']} fully observable, median RMS residual "

@@ -120,3 +120,35 @@ def test_collinear_exponents_refused_in_a_recipe(cli, tmp_path):
     r = cli("run", ws / "r.toml", "-w", ws)
     assert r.exit_code == 1 and "collinear" in r.stderr
     assert not (ws / "fit-reflectance" / "042.npz").exists()
+
+
+def test_refine_normals_on_the_cli_and_in_a_recipe_with_one_cache_key(cli, tmp_path):
+    """--refine-normals / --normal-sigma reach fit_maps, write the refined normals and their preview, enter the
+    cache key, and a recipe spelling the same values plans a skip."""
+    from reflectmm_cli.recipes import plan_recipe
+
+    ws = tmp_path / "ws"
+    _write_obs(ws, S=8)
+    r = cli("fit-reflectance", "--id", "042", "-w", ws, "--refine-normals", "2", "--normal-sigma", "4")
+    assert r.exit_code == 0, r.output
+    out = ws / "fit-reflectance" / "042.npz"
+    art = read_artifact(out, "reflectance-maps")
+    assert art.params["refine_normals"] == 2 and art.params["normal_sigma"] == 4.0
+    assert art["normal"].shape == (3, 8, 8) and art["normal_correction"].shape == (8, 8)
+    assert art.meta["stats"]["normal_refinement"]["iterations"] == 2
+    assert (ws / "fit-reflectance" / "042_normal_correction.png").is_file()
+    key = art.meta["cache_key"]
+    (ws / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.fit-reflectance]\nforeach = ["042"]\n'
+                               'inputs = { observations = "unwrap-uv/{id}.npz" }\n'
+                               'params = { refine_normals = 2.0, normal_sigma = 4 }\n')
+    plan = plan_recipe(ws / "r.toml", ws)
+    assert plan.tasks["fit-reflectance/042"].cache_key == key
+    assert plan.tasks["fit-reflectance/042"].action == "skip"
+    (ws / "r.toml").write_text((ws / "r.toml").read_text().replace("normal_sigma = 4", "normal_sigma = 3"))
+    assert plan_recipe(ws / "r.toml", ws).tasks["fit-reflectance/042"].cache_key != key
+    for bad in (["--refine-normals", "-1"], ["--normal-sigma", "0"], ["--refine-normals", "1.5"]):
+        r = cli("fit-reflectance", "--id", "042", "-w", ws, "--output", tmp_path / "x.npz", *bad)
+        assert r.exit_code != 0 and not (tmp_path / "x.npz").exists()
+    r = cli("fit-reflectance", "--id", "042", "-w", ws, "--output", tmp_path / "a.npz", "--solver", "adam",
+            "--steps", "5", "--refine-normals", "1")
+    assert r.exit_code == 1 and "fast solver" in r.stderr
