@@ -199,7 +199,8 @@ class Trainer:
         beta, gamma, z = self.encoder(x)
         sh = lighting(self.light, gamma[:, :self.NL] if self.NL else gamma, z)
         order = int(round(np.sqrt(sh.shape[-1]))) - 1
-        d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb, bases=self._bases(idx, gb, order))
+        # no NaN scans of the shading inputs: the step refuses a non-finite loss
+        d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb, bases=self._bases(idx, gb, order), check_finite=False)
         pred = d + s
         cfg = self.cfg
         terms = {"photo": L.photometric(pred, gb.target, gb.skin, cfg.photometric),

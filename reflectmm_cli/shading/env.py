@@ -101,16 +101,17 @@ def specular_view_albedo(p, cos_view):
         np.asarray(cos_view).dtype if np.asarray(cos_view).dtype.kind == "f" else np.float64, copy=False)
 
 
-def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask):
+def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask, check_finite=True, geometry_checked=False):
     tm = any_torch(albedo, weights, exponents, normal, view_dir, sh_coeffs)
     dt = compute_dtype(albedo, weights, exponents, normal, view_dir, sh_coeffs, torch_mode=tm)
     dev = device_of(albedo, weights, exponents, normal, view_dir, sh_coeffs)
-    c = as_array("albedo", albedo, torch_mode=tm, dtype=dt, device=dev)
-    w = as_array("weights", weights, torch_mode=tm, dtype=dt, device=dev)
+    fin, gfin = bool(check_finite), bool(check_finite) and not geometry_checked
+    c = as_array("albedo", albedo, torch_mode=tm, dtype=dt, device=dev, check_finite=fin)
+    w = as_array("weights", weights, torch_mode=tm, dtype=dt, device=dev, check_finite=fin)
     p = as_array("exponents", exponents, torch_mode=tm, dtype=dt, device=dev)
-    n = as_array("normal", normal, torch_mode=tm, dtype=dt, device=dev)
-    v = as_array("view_dir", view_dir, torch_mode=tm, dtype=dt, device=dev)
-    K = as_array("sh_coeffs", sh_coeffs, torch_mode=tm, dtype=dt, device=dev)
+    n = as_array("normal", normal, torch_mode=tm, dtype=dt, device=dev, check_finite=gfin)
+    v = as_array("view_dir", view_dir, torch_mode=tm, dtype=dt, device=dev, check_finite=gfin)
+    K = as_array("sh_coeffs", sh_coeffs, torch_mode=tm, dtype=dt, device=dev, check_finite=fin)
     for name, a in (("albedo", c), ("normal", n), ("view_dir", v)):
         check_last(name, a, 3)
     _check_exponents(p, tm)
@@ -131,7 +132,7 @@ def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask):
 
 def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=None, band_tol: float = 0.0,
               chunk: int = DEFAULT_CHUNK, threads: int | None = None, view_correction: bool = False,
-              basis: EnvBasis | None = None):
+              basis: EnvBasis | None = None, check_finite: bool = True):
     """Diffuse and specular shading of texels under SH environment lighting.
 
     Args:
@@ -145,7 +146,11 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         mask: optional boolean (...) texel mask; texels outside it are 0 and cost nothing.
         band_tol: drop bands whose Funk–Hecke coefficient is ≤ band_tol (see :func:`band_limits`). 0 = exact.
         basis: an :class:`EnvBasis` of fixed geometry precomputed for these texels (then ``normal`` and
-            ``view_dir`` may be None; the torch path is used). For repeated shading of the same texels.
+            ``view_dir`` may be None; the torch path is used). For repeated shading of the same texels; its
+            normals and views were checked when it was built and are not checked again.
+        check_finite: reject NaN/inf inputs naming the argument (default). ``False`` skips the scans (one pass
+            and, on a GPU, one host synchronisation per argument): for callers that check their result instead,
+            like the finetuning step, which refuses a non-finite loss.
         view_correction: multiply each lobe by the true lobe's directional albedo ρ_p(n·v)
             (:func:`specular_view_albedo`). Off by default (the paper's model); still exact at normal view.
         chunk: texels per block in the numpy fast path (cache blocking).
@@ -162,7 +167,7 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
 
             sh_coeffs = torch.as_tensor(np.asarray(sh_coeffs), dtype=basis.dtype, device=basis.normal.device)
     tm, dt, c, w, p, n, v, K, order, lead, mask = _validate(
-        albedo, weights, exponents, normal, view_dir, sh_coeffs, mask)
+        albedo, weights, exponents, normal, view_dir, sh_coeffs, mask, check_finite, basis is not None)
     if basis is not None and order > basis.order:
         raise ReflectmmError(f"shading: lighting of order {order} but the EnvBasis was built for order {basis.order}")
     if band_tol < 0 or not math.isfinite(band_tol):

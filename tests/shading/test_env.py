@@ -355,3 +355,22 @@ def test_precomputed_env_basis_matches_and_differentiates():
     np.testing.assert_allclose(d3.numpy(), shade_env(c, w, P, n, v, K[:, :16])[0], rtol=1e-5, atol=1e-6)
     with pytest.raises(ReflectmmError, match="order"):
         shade_env(c, w, P, None, None, _lighting(0, 8), basis=eb)
+
+
+def test_check_finite_names_the_argument_and_can_be_skipped():
+    from reflectmm_cli.errors import ReflectmmError
+    from reflectmm_cli.shading import EnvBasis
+
+    K = _lighting(2)
+    rng = np.random.default_rng(3)
+    c, w, n, v = rng.random((50, 3)), rng.random((50, 3)), rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    c[7, 1] = np.nan
+    eb = EnvBasis(torch.tensor(n), torch.tensor(v), 8, dtype=torch.float64)
+    with pytest.raises(ReflectmmError, match="'albedo' contains NaN"):
+        shade_env(torch.tensor(c), torch.tensor(w), P, None, None, torch.tensor(K), basis=eb)
+    d, s = shade_env(torch.tensor(c), torch.tensor(w), P, None, None, torch.tensor(K), basis=eb, check_finite=False)
+    assert torch.isnan(d[7]).any() and torch.isfinite(d[np.r_[0:7, 8:50]]).all()  # the NaN stays where it was
+    # the basis's own normals were checked when it was built
+    n[3] = np.inf
+    with pytest.raises(ReflectmmError, match="'normal' contains NaN or inf"):
+        EnvBasis(torch.tensor(n), torch.tensor(v), 8)
