@@ -49,11 +49,11 @@ class TaskSpec:
 
 
 def _result(spec: TaskSpec, status: str, *, outputs: list[str] | None = None, cache_key: str | None = None,
-            key_doc: dict[str, Any] | None = None, duration: float = 0.0, error: str | None = None
-            ) -> dict[str, Any]:
+            key_doc: dict[str, Any] | None = None, duration: float = 0.0, error: str | None = None,
+            hashes: dict[str, Any] | None = None) -> dict[str, Any]:
     return {"tid": spec.tid, "status": status, "outputs": outputs or [], "cache_key": cache_key,
             "key_doc": key_doc, "duration": duration, "error": error,
-            "worker": f"{socket.gethostname()}:{os.getpid()}"}
+            "worker": f"{socket.gethostname()}:{os.getpid()}", "hashes": hashes or {}}
 
 
 def _error_message(exc: BaseException) -> str:
@@ -84,13 +84,16 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
     doc = spec.key_doc
     key = None
+    hashes: dict[str, Any] = {}
     try:
         if spec.tool_version != __version__:
             raise ReflectmmError(f"worker runs reflectmm {__version__}, the run was planned with "
                                  f"{spec.tool_version}; install the same version on every worker")
         stage = get_stage(spec.verb)
         if doc is None:
-            doc = cache_key_doc(stage, spec.ctx)
+            # the inputs' digests go back with the result into the workspace's hash memo, so the next plan does
+            # not hash these files again (a worker process has no access to the planner's memo)
+            doc = cache_key_doc(stage, spec.ctx, hashes)
         key = key_of_doc(doc)
         ctx = spec.ctx.with_(cache_key=key)
         if ctx.device and ctx.device != "cpu":
@@ -102,7 +105,7 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
         if missing:
             raise ReflectmmError(f"stage '{spec.verb}' finished without writing {missing[0]}")
         return _result(spec, OK, outputs=written, cache_key=key, key_doc=doc,
-                       duration=time.perf_counter() - t0)
+                       duration=time.perf_counter() - t0, hashes=hashes)
     except FileNotFoundError as exc:
         return _result(spec, FAILED, cache_key=key, duration=time.perf_counter() - t0,
                        error=f"{exc.filename}: file not found" if exc.filename else _error_message(exc))

@@ -304,6 +304,8 @@ def _execute(plan: Plan, batch: list[TaskSpec], ex: Executor, memo: dict[str, An
         o = TaskOutcome(t.stage_name, t.identity, status, t.reason, res.get("cache_key"), res.get("duration", 0.0),
                         res.get("error"), list(res.get("outputs") or []), res.get("worker"))
         if status == OK:
+            for path, entry in (res.get("hashes") or {}).items():  # digests of the inputs the worker hashed
+                memo[path] = entry
             try:
                 write_record(plan.workspace, t.stage_name, t.identity, res["cache_key"], res.get("key_doc"),
                              [Path(p) for p in t.outputs], memo)

@@ -152,3 +152,36 @@ def test_dask_resources_are_honoured_or_refused(tmp_path):
     assert all(st[f"manifest/{i}"] == "ok" for i in IDS)  # cpus=1 fits, undeclared memory is ignored
     assert st["summary"] == "failed"
     assert "needs resources cpus=3 but the largest worker declares cpus=2" in rep.tasks[-1].error
+
+
+def test_a_worker_returns_the_digests_it_computed_and_the_run_keeps_them(tmp_path, monkeypatch):
+    # a task planned before its inputs existed computes its key in the worker; those digests come back with the
+    # result into the workspace's hash memo, so the next plan does not hash the files again
+    import os
+
+    from reflectmm_cli.recipes import TaskSpec, execute_task
+    from reflectmm_cli.recipes.plan import load_hash_memo
+    from reflectmm_cli.artifacts import sha256_file
+    from reflectmm_cli.stages import get_stage
+
+    f = tmp_path / "x.txt"
+    f.write_text("x")
+    ctx = get_stage("checksum").context(workspace=tmp_path, inputs={"files": [f]})
+    res = execute_task(TaskSpec("checksum", "checksum", ctx))
+    st = os.stat(f)
+    assert res["status"] == "ok"
+    assert res["hashes"] == {str(f.resolve()): [st.st_size, st.st_mtime_ns, sha256_file(f)]}
+    # through a run: files that only a worker hashed are in the memo afterwards, and a replan hashes nothing
+    from reflectmm_cli.recipes import run_recipe
+
+    ws = make_workspace(tmp_path / "ws")
+    assert run_recipe(ws / "recipe.toml", ws).ok
+    memo = load_hash_memo(ws)
+    calls = []
+    import reflectmm_cli.stages.base as base
+
+    real = base.sha256_file
+    monkeypatch.setattr(base, "sha256_file", lambda p: calls.append(p) or real(p))
+    plan = run_recipe(ws / "recipe.toml", ws, dry_run=True)
+    assert {t.status for t in plan.tasks} == {"skip"} and calls == [], calls
+    assert memo
