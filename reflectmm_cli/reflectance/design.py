@@ -227,6 +227,8 @@ def design_rows_grad(x: np.ndarray, n: np.ndarray, flash: np.ndarray, cam: np.nd
     Args / returns as :func:`design_rows`, plus ``dd (R, 3)`` and ``ds (R, K, 3)``.
     """
     p = np.asarray(exponents, dtype=np.float64).reshape(-1)
+    d, s, cos_l, ndh = design_rows(x, n, flash, cam, intensity, p)
+    ok = cos_l > 0  # design_rows' valid set: cos_l is n·l there and 0 elsewhere
     dl = flash - x
     dv = cam - x
     d2 = np.einsum("rk,rk->r", dl, dl)
@@ -234,25 +236,16 @@ def design_rows_grad(x: np.ndarray, n: np.ndarray, flash: np.ndarray, cam: np.nd
     il = 1.0 / np.sqrt(np.where(d2 > 0, d2, 1.0))
     iv = 1.0 / np.sqrt(np.where(v2 > 0, v2, 1.0))
     l = dl * il[:, None]
-    v = dv * iv[:, None]
-    h = l + v
+    h = l + dv * iv[:, None]
     hn = np.sqrt(np.einsum("rk,rk->r", h, h))
     h /= np.where(hn > 0, hn, 1.0)[:, None]
-    ndl = np.einsum("rk,rk->r", n, l)
-    ndv = np.einsum("rk,rk->r", n, v)
-    ok = (ndl > 0) & (ndv > 0) & (d2 > 0) & (v2 > 0)
-    ndh = np.where(ok, np.clip(np.einsum("rk,rk->r", n, h), 0.0, 1.0), 0.0)
     E = np.where(ok, intensity * (il * il), 0.0)
-    cos_l = np.where(ok, ndl, 0.0)
-    d = E * cos_l / np.pi
     pos = ndh > 0
     with np.errstate(divide="ignore"):
         logh = np.log(np.where(pos, ndh, 1.0))
-    Ef = E[:, None] * blinn_phong_norm(p)
-    s = np.where(pos[:, None], np.exp(logh[:, None] * p) * Ef, 0.0)
     dd = (E / np.pi)[:, None] * l
-    dsc = np.where(pos[:, None], np.exp(logh[:, None] * (p - 1.0)) * (Ef * p), 0.0)  # (R, K)
-    ds = dsc[:, :, None] * h[:, None, :]
+    dsc = np.where(pos[:, None], np.exp(logh[:, None] * (p - 1.0)) * (E[:, None] * blinn_phong_norm(p) * p), 0.0)
+    ds = dsc[:, :, None] * h[:, None, :]  # (R, K, 3)
     return d, s, cos_l, ndh, dd, ds
 
 
