@@ -455,18 +455,12 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
             # the basis of r is read once (and once more in the backward) instead of once per lobe; bands beyond
             # a lobe's limit get exact zeros
             nmax = (Lsmax + 1) ** 2
-            rows = []
-            for i in active:
-                ni = (Ls[i] + 1) ** 2
-                Ki = K[..., :ni] * Bs[i][lvl[:ni]]
-                if ni < nmax:
-                    pad = (torch.zeros if tm else np.zeros)((Ki.shape[0], nmax - ni), dtype=Ki.dtype,
-                                                            **({"device": Ki.device} if tm else {}))
-                    Ki = torch.cat([Ki, pad], 1) if tm else np.concatenate([Ki, pad], 1)
-                rows.append(Ki)
-            Kst = torch.cat(rows, 0) if tm else np.concatenate(rows, 0)
-            S_all = apply(Kst, Yr[..., :nmax])  # (*lead, 3·A), lobe-major
             A_ = len(active)
+            Kst = K.new_zeros((3 * A_, nmax)) if tm else np.zeros((3 * A_, nmax), K.dtype)
+            for j, i in enumerate(active):
+                ni = (Ls[i] + 1) ** 2
+                Kst[3 * j:3 * j + 3, :ni] = K[..., :ni] * Bs[i][lvl[:ni]]
+            S_all = apply(Kst, Yr[..., :nmax])  # (*lead, 3·A), lobe-major
             S_all = S_all.reshape(S_all.shape[:-1] + (A_, 3))
             wa = w if A_ == Kn else w[..., active]
             spec = (S_all * wa[..., None]).sum(-2)
