@@ -57,8 +57,8 @@ def main(argv=None):
     res: dict[str, list] = {k: [] for k in cases}
     for rep in range(args.repeats):
         for i in args.ids.split(","):
-            for k, extra in cases.items():
-                g = out / f"{abs(hash(k)) % 10 ** 6}" / f"{i}.npz"
+            for c, (k, extra) in enumerate(cases.items()):
+                g = out / f"case{c}" / f"{i}.npz"
                 cmd = [sys.executable, "-m", "reflectmm_cli", "-q", "fit-geometry", "--id", i, "--output", g,
                        "--no-overlay", "-w", ws, *extra(i)]
                 wall, cpu = _run([str(c) for c in cmd])

@@ -37,6 +37,17 @@ def _state(r):
     return enc, r.params.vertex_arrays()
 
 
+def _assert_same_run(a, b, dir_a, dir_b):
+    """Bit-identical encoder, model and training log of two runs."""
+    ea, ma = _state(a)
+    eb, mb = _state(b)
+    for k in ea:
+        assert torch.equal(ea[k], eb[k]), k
+    for k in ma:
+        assert ma[k].tobytes() == mb[k].tobytes(), k
+    assert (dir_a / "log.jsonl").read_text() == (dir_b / "log.jsonl").read_text()
+
+
 def test_resume_equals_uninterrupted(data, tmp_path):
     ss = load_shards(data["shards"])
     cfg = FinetuneConfig(epochs1=2, epochs2=1, checkpoint_every=2, **TINY)
@@ -49,13 +60,7 @@ def test_resume_equals_uninterrupted(data, tmp_path):
     assert ck["global_step"] == 6  # the epoch-end checkpoint; step 7 was not saved
     b2 = finetune(ss, data["truth"], data["light"], cfg, tmp_path / "b", threads=1, progress=False, resume=True)
     assert b2.steps == a.steps == 9
-    ea, ma = _state(a)
-    eb, mb = _state(b2)
-    for k in ea:
-        assert torch.equal(ea[k], eb[k]), k
-    for k in ma:
-        assert ma[k].tobytes() == mb[k].tobytes(), k
-    assert (tmp_path / "a" / "log.jsonl").read_text() == (tmp_path / "b" / "log.jsonl").read_text()
+    _assert_same_run(a, b2, tmp_path / "a", tmp_path / "b")
     # a changed setting refuses to resume
     from reflectmm_cli.errors import ReflectmmError
 
@@ -166,10 +171,4 @@ def test_cached_sh_bases_give_the_same_training(data, tmp_path):
     b = finetune(ss, data["truth"], data["light"], cfg, tmp_path / "b", threads=1, progress=False,
                  basis_cache_mb=0)
     assert a.stats["basis_cache_images"] == a.n_train + a.n_val and b.stats["basis_cache_images"] == 0
-    ea, ma = _state(a)
-    eb, mb = _state(b)
-    for k in ea:
-        assert torch.equal(ea[k], eb[k]), k
-    for k in ma:
-        assert ma[k].tobytes() == mb[k].tobytes(), k
-    assert (tmp_path / "a" / "log.jsonl").read_text() == (tmp_path / "b" / "log.jsonl").read_text()
+    _assert_same_run(a, b, tmp_path / "a", tmp_path / "b")
