@@ -69,6 +69,9 @@ class FitConfig:
     w_exp: float = 1.0              # weight of ½‖exp/σ‖²
     rig_sigma_mm: float = 10.0      # soft rig constraint: camera centres within ~σ of the rig moved rigidly
                                     # (0 disables; needs rig_centers in the ViewSet)
+    rig_rot_sigma_deg: float = 0.0  # soft rig constraint on the camera orientations: each view's rotation within
+                                    # ~σ of the rig's, moved by the same head rotation (0 disables; needs
+                                    # rig_R in the ViewSet and rig_sigma_mm > 0).  For a calibrated rig.
     head_sigma_mm: float = 25.0     # prior on where the head sits in the rig frame: the rig's look-at point
                                     # (its origin) within ~σ of the model origin.  Breaks the face-size /
                                     # distance ambiguity of a rig whose cameras all look from one side
@@ -98,6 +101,7 @@ class ViewSet:
     K, R0: (V, 3, 3); t0: (V, 3); landmarks: (V, 68, 2) pixels, NaN where missing;
     images: (V, h, w, 3) linear room-light images or None; image_size (W, H) of the full frame;
     rig_centers: (V, 3) nominal camera positions in the rig frame (soft rig constraint) or None;
+    rig_R: (V, 3, 3) the rig's world-to-camera rotations (soft orientation constraint) or None;
     image_origin: (V, 2) full-frame pixel (x0, y0) of each image's top-left pixel when the images are crops
     (capture ``crop_origin``); landmarks and K are always in full-frame pixels.
     """
@@ -111,11 +115,14 @@ class ViewSet:
     images: np.ndarray | None = None
     rig_centers: np.ndarray | None = None
     image_origin: np.ndarray | None = None
+    rig_R: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         V = len(self.names)
         if self.rig_centers is not None:
             self.rig_centers = np.asarray(self.rig_centers, dtype=np.float64).reshape(V, 3)
+        if self.rig_R is not None:
+            self.rig_R = np.asarray(self.rig_R, dtype=np.float64).reshape(V, 3, 3)
         self.K = np.asarray(self.K, dtype=np.float64).reshape(V, 3, 3)
         self.R0 = np.asarray(self.R0, dtype=np.float64).reshape(V, 3, 3)
         self.t0 = np.asarray(self.t0, dtype=np.float64).reshape(V, 3)
@@ -228,6 +235,9 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         Rh0, th0 = np.eye(3), np.zeros(3)
     Rh0_t, th0_t = tt(Rh0), tt(th0)
     rig_t = tt(views.rig_centers) if use_rig else None
+    use_rot = use_rig and views.rig_R is not None and cfg.rig_rot_sigma_deg > 0
+    rigR_t = tt(views.rig_R) if use_rot else None
+    rot_sigma = math.radians(cfg.rig_rot_sigma_deg) if use_rot else 1.0
     dwh = torch.zeros(3, dtype=dtype, device=device, requires_grad=use_rig)
     dth = torch.zeros(3, dtype=dtype, device=device, requires_grad=use_rig)
     pose_params = [dw, dtr] + ([dwh, dth] if use_rig else [])
@@ -254,6 +264,10 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             Rh = axis_angle_to_matrix(dwh * r_unit) @ Rh0_t
             ch = rig_t @ Rh.T + th0_t + dth * t_unit
             p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
+            if use_rot:
+                # model → camera of view v is R_rig,v · Rhᵀ when the head pose (rig → model) is (Rh, th);
+                # ‖ΔR‖²_F = 2·(2 − 2cos θ) ≈ 2θ² for a rotation error θ, so ¼‖ΔR‖²/σ² ≈ ½θ²/σ²
+                p = p + 0.25 * ((R - rigR_t @ Rh.T) ** 2).sum() / rot_sigma ** 2
             if cfg.head_sigma_mm > 0:
                 th = th0_t + dth * t_unit
                 p = p + 0.5 * (th * th).sum() / cfg.head_sigma_mm ** 2

@@ -157,7 +157,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     log.info("fit-geometry %s: %d views, %d vertices, initial landmark RMS %s px", identity, len(view_names),
              model.n_vertices, " ".join(f"{e:.1f}" for e in init_rms))
     views = ViewSet(names=view_names, K=K, R0=R0, t0=t0, landmarks=lm, image_size=(W, H), images=room,
-                    rig_centers=rig_pos, image_origin=origin)
+                    rig_centers=rig_pos, image_origin=origin, rig_R=R_rig)
     fit = fit_geometry(model, views, cfg, device=device)
     fpos, fint, fsrc, rig_res = flash_positions(rig, flash_ids, view_names, fit.R, fit.t)
     if flash_intensity is not None:

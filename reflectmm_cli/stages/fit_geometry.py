@@ -51,6 +51,8 @@ PARAMS = (
     _cfg("w_exp", "float", range=(0.0, None), option="", help="weight of the expression prior."),
     _cfg("rig_sigma_mm", "float", range=(0.0, None), option="--rig-sigma", unit="mm",
          help="soft rig constraint σ (0 = free pose per view)."),
+    _cfg("rig_rot_sigma_deg", "float", range=(0.0, None), option="--rig-rot-sigma", unit="deg",
+         help="soft rig constraint on the camera orientations (0 = free aim per view; for a calibrated rig)."),
     _cfg("head_sigma_mm", "float", range=(0.0, None), option="", unit="mm",
          help="prior on where the head sits in the rig frame (0 = off)."),
     _cfg("fit_expression", "bool", option="", help="fit expression coefficients."),
