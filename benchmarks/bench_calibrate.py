@@ -31,10 +31,29 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 
 import numpy as np
+
+
+def surface_relative_errors(geo, truth) -> tuple[float, float]:
+    """Camera centres and flashes relative to the fitted surface: the fitted mesh is aligned rigidly (Kabsch) to
+    the true one and its cameras and flashes moved with it, so that a shape offset in model coordinates (a gauge
+    that moves cameras and surface together) does not count.  Returns (median over cameras and flashes, max)."""
+    from reflectmm_cli.evaluation.truth import kabsch
+
+    R, t = kabsch(np.asarray(geo["vertices"], np.float64), np.asarray(truth["vertices"], np.float64))
+    tn = [str(x) for x in truth["camera_names"]]
+    vn = [str(x) for x in geo["view_names"]]
+    cam = np.asarray(geo["cam_centers"], np.float64) @ R.T + t
+    e = list(np.linalg.norm(cam - np.asarray(truth["cam_centers"], np.float64)[[tn.index(v) for v in vn]], axis=1))
+    tf = [str(x) for x in truth["flash_ids"]]
+    gf = [str(x) for x in geo["flash_ids"]]
+    fpos = np.asarray(geo["flash_pos"], np.float64) @ R.T + t
+    e += list(np.linalg.norm(fpos - np.asarray(truth["flash_pos"], np.float64)[[tf.index(f) for f in gf]], axis=1))
+    return float(np.median(e)), float(np.max(e))
 
 
 def main(argv=None):
@@ -50,6 +69,9 @@ def main(argv=None):
     ap.add_argument("--refine-normals", default=None,
                     help="comma list of fit-reflectance --refine-normals values, one table row each (default: the "
                          "stage's default only)")
+    ap.add_argument("--fit-args", default="",
+                    help="extra fit-geometry arguments for the fitted cases (e.g. '--rig-rot-sigma 0.1'); the "
+                         "cases then live in their own folders, <case>+<args>")
     ap.add_argument("--reuse-geometry", action="store_true",
                     help="reuse existing geometry / uv-observations of a case (only re-fit the reflectance)")
     args = ap.parse_args(argv)
@@ -160,6 +182,11 @@ def pipeline(args, argv):
                  "nominal": ("nominal rig, per identity", "nominal", ws / "nominal_rig.toml", []),
                  "calibrate": ("calibrate-rig (shared)", "calibrate-rig", ws / "calibrate-rig" / "rig.toml",
                                ["--rig-sigma", "3"])}
+    if args.fit_args:
+        fa = shlex.split(args.fit_args)
+        slug = "".join(ch if ch.isalnum() or ch in ".-" else "_" for ch in args.fit_args.replace("--", ""))
+        all_cases = {k: (v if k == "truth" else (f"{v[0]}, {args.fit_args}", f"{v[1]}+{slug}", v[2], v[3] + fa))
+                     for k, v in all_cases.items()}
     cases = [all_cases[k] for k in keep if k in all_cases]
     refine = [None] if args.refine_normals is None else [int(v) for v in args.refine_normals.split(",")]
     truth_fl = {f: true.flash(f).position for f in ("14", "18")}
@@ -206,6 +233,7 @@ def pipeline(args, argv):
                 ang.append(np.degrees(np.arccos(c)))
             fl = [str(x) for x in ga["flash_ids"]]
             fe = [float(np.linalg.norm(ga["flash_pos"][fl.index(f)] - truth_fl[f])) for f in ("14", "18")]
+            rel = surface_relative_errors(ga, read_artifact(ws / "syn" / "truth" / f"{i}.npz"))
             gerr = (float(ga["err_vertex_rmse_mm"]), float(np.median(ga["err_cam_center_mm"])),
                     float(np.max(ga["err_cam_center_mm"]))) if "err_vertex_rmse_mm" in ga.arrays else (0.0,) * 3
             for rn in refine:
@@ -233,7 +261,7 @@ def pipeline(args, argv):
                     refined_ang.setdefault((label, rn), []).append(np.degrees(np.arccos(c)))
                 res[rn].append((*gerr, max(fe), float(err["scale"]), obs["albedo_rel"],
                                 obs.get("spec_ratio_median", float("nan")), t_fit,
-                                float(st.get("residual_rms_median", float("nan")))))
+                                float(st.get("residual_rms_median", float("nan"))), *rel))
         for rn in refine:
             rows.append((label if rn is None else f"{label}, refine-normals {rn}", np.array(res[rn])))
         if ang:
@@ -253,15 +281,16 @@ def pipeline(args, argv):
     print("| geometry from | vertex RMS mm (median / max) | camera centre err mm (median / max) | flash 14/18 err mm "
           "(max) | albedo scale spread (std / mean) | albedo rel. err raw (median / max) | Σw / true median "
           "(min–max) | Σw / true-geometry fit's (median, min–max) | fit residual RMS (median) | fit-reflectance "
-          "s / identity (median) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "s / identity (median) | cameras / flashes relative to the surface, mm (median / max) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for case, r in rows:
         gap = "" if ceiling is None else (f"{np.median(r[:, 6] / ceiling):.2f} ({(r[:, 6] / ceiling).min():.2f}–"
                                           f"{(r[:, 6] / ceiling).max():.2f})")
         print(f"| {case} | {np.median(r[:, 0]):.2f} / {r[:, 0].max():.2f} | {np.median(r[:, 1]):.1f} / "
               f"{r[:, 2].max():.1f} | {r[:, 3].max():.0f} | {r[:, 4].std() / r[:, 4].mean():.3f} | "
               f"{np.median(r[:, 5]):.3f} / {r[:, 5].max():.3f} | {r[:, 6].min():.2f}–{r[:, 6].max():.2f} | {gap} | "
-              f"{np.median(r[:, 8]):.4f} | {np.median(r[:, 7]):.1f} |")
+              f"{np.median(r[:, 8]):.4f} | {np.median(r[:, 7]):.1f} | {np.median(r[:, 9]):.1f} / "
+              f"{r[:, 10].max():.1f} |")
     print("\nΣw / true per identity (" + ", ".join(ids) + "):")
     for case, r in rows:
         print(f"- {case}: " + " ".join(f"{v:.2f}" for v in r[:, 6]))
