@@ -72,14 +72,21 @@ def _mean_abs_diff():
             tot = torch.linalg.vector_norm(f[:m].view(-1, 1024), 1, dim=1).sum(dtype=torch.float64)
             tot = tot + torch.linalg.vector_norm(f[m:], 1).double()
             val = (tot / n).to(x.dtype)
-            ctx.save_for_backward(d.sign_())
+            # the sign is kept outside save_for_backward: the backward scales it in place and hands the buffer
+            # over as the gradient (a leaf's first gradient is then stored without a copy, and no second
+            # model-sized buffer is allocated per part and step)
+            ctx.sign = d.sign_()
             ctx.n = n
             return val
 
         @staticmethod
         def backward(ctx, g):
-            (s,) = ctx.saved_tensors
-            return s * (g / ctx.n), None
+            s = ctx.sign
+            if s is None:
+                raise RuntimeError("model_update_l1: backward through the same graph twice is not supported "
+                                   "(retain_graph); evaluate the loss again")
+            ctx.sign = None
+            return s.mul_(g / ctx.n), None
 
     return MeanAbsDiff
 

@@ -179,7 +179,7 @@ class Trainer:
                 s0, s1 = int(gb.offsets[b]), int(gb.offsets[b + 1])
                 basis = EnvBasis(gb.normal[s0:s1], gb.view[s0:s1], order, dtype=gb.normal.dtype,
                                  device=gb.normal.device)
-                size = float(s1 - s0) * 2 * (order + 1) ** 2 * gb.normal.element_size()
+                size = float(basis.Yn.numel() + basis.Yr.numel()) * basis.Yr.element_size()
                 if self.basis_bytes + size <= self.basis_budget:
                     self.basis_cache[i] = basis
                     self.basis_bytes += size

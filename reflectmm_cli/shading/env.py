@@ -179,8 +179,7 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         return _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads,
                                 p if view_correction else None)
     if basis is not None:
-        return _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt,
-                                  p if view_correction else None, pre=basis)
+        return _shade_env_pre(c, w, K, A, B, Ld, Ls, lead, mask, dt, basis, p if view_correction else None)
     if tm and mask is not None and K.ndim == 2:
         # gather the masked texels, shade only those, scatter back (differentiable)
         import torch
@@ -309,34 +308,22 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
     return diffuse.reshape(lead + (3,)), specular.reshape(lead + (3,))
 
 
-class _CoeffMajor:
-    """A basis stored coefficient-major, (n, N), for texels of leading shape ``lead``."""
-
-    def __init__(self, Y, lead):
-        self.Y, self.lead = Y, lead
-
-    def __getitem__(self, key):  # only [..., :k] is used
-        return _CoeffMajor(self.Y[: key[1].stop], self.lead)
-
-    def apply(self, Kx):  # Kx (3, k) → (*lead, 3) via one contiguous (3, k) @ (k, N) matmul
-        Y = self.Y if self.Y.dtype == Kx.dtype else self.Y.to(Kx.dtype)
-        return (Kx @ Y).T.reshape(*self.lead, Kx.shape[0])
-
-
-def _basis_numpy_to_torch(d, order):
-    """SH basis of a CPU tensor of unit vectors (no grad) via the blocked in-place numpy kernel."""
+def _basis_coeff_major(d, order):
+    """(n, N) SH basis, coefficient-major, of unit vectors ``d`` (..., 3) (no gradient): on the CPU by the blocked
+    in-place numpy kernel, elsewhere by :func:`sh_basis` and one transpose."""
     import torch
 
-    lead = tuple(d.shape[:-1])
-    a = d.detach().reshape(-1, 3).numpy()
+    a = d.detach().reshape(-1, 3)
+    if a.device.type != "cpu":
+        return sh_basis(a, order, normalize=False).T.contiguous()
+    a = a.numpy()
     N = a.shape[0]
-    n = (order + 1) ** 2
-    out = np.empty((n, N), a.dtype)  # coefficient-major; the transpose below is a free view
+    out = np.empty(((order + 1) ** 2, N), a.dtype)
     t = np.ascontiguousarray(a.T)
     for s0 in range(0, N, DEFAULT_CHUNK):
         s1 = min(N, s0 + DEFAULT_CHUNK)
         sh_basis_into(t[0, s0:s1], t[1, s0:s1], t[2, s0:s1], order, out[:, s0:s1])
-    return _CoeffMajor(torch.from_numpy(out), lead)
+    return torch.from_numpy(out)
 
 
 class EnvBasis:
@@ -344,7 +331,11 @@ class EnvBasis:
 
     Finetuning shades the same texels (fixed precomputed normals and views) under a new lighting, albedo and
     weights every step; with ``shade_env(..., basis=EnvBasis(normal, view_dir, order))`` each step costs only
-    the lighting products and their gradients. Memory: 2·(L+1)² values per texel (648 B at order 8, float32).
+    the lighting products and their gradients. Both bases are stored coefficient-major, ``(n, N)`` for the N
+    texels, so that each product is one ``(rows, n) @ (n, N)`` matrix product and the per-texel weighting runs
+    along contiguous rows. The basis of n keeps only the coefficients of the bands whose clamped-cosine
+    coefficient A_l is not zero (the odd l ≥ 3 are exact zeros: 48 of 81 at order 8); the basis of r keeps all.
+    Memory: (n_A + (L+1)²) values per texel (516 B at order 8, float32).
 
     Args:
         normal, view_dir: (..., 3) numpy or torch (normalised here; no gradients flow to them).
@@ -372,25 +363,94 @@ class EnvBasis:
         self.normal = n * torch.rsqrt((n * n).sum(-1, keepdim=True).clamp_min(1e-30))
         self.view_dir = v * torch.rsqrt((v * v).sum(-1, keepdim=True).clamp_min(1e-30))
         self.ndv = (self.normal * self.view_dir).sum(-1)
+        self.front = (self.ndv > 0).reshape(-1)
+        self.all_front = bool(self.front.all())  # one check here instead of a mask per shading
         r = (2.0 * self.ndv)[..., None] * self.normal - self.view_dir
-        if dev.type == "cpu":
-            self.Yn = _basis_numpy_to_torch(self.normal, self.order)
-            self.Yr = _basis_numpy_to_torch(r, self.order)
-        else:
-            self.Yn = sh_basis(self.normal, self.order, normalize=False)
-            self.Yr = sh_basis(r, self.order, normalize=False)
+        lvl = np.repeat(np.arange(self.order + 1), 2 * np.arange(self.order + 1) + 1)
+        #: indices of the stored coefficients of the basis of n (bands with A_l ≠ 0), ascending
+        self.n_cols = np.flatnonzero(lambert_sh_coeffs(self.order)[lvl] != 0)
+        Yn = _basis_coeff_major(self.normal, self.order)
+        self.Yn = Yn[torch.as_tensor(self.n_cols, device=Yn.device)].contiguous()
+        self.Yr = _basis_coeff_major(r, self.order)
 
     @property
     def dtype(self):
         return self.normal.dtype
 
-    def basis_for(self, which: str, order: int):
-        Y = self.Yn if which == "n" else self.Yr
-        k = (order + 1) ** 2
-        return Y[..., :k] if not isinstance(Y, _CoeffMajor) else Y[..., :k]
+    @property
+    def n_texels(self) -> int:
+        return int(self.Yr.shape[1])
 
 
-def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_exponents=None, pre=None):
+def _shade_env_pre(c, w, K, A, B, Ld, Ls, lead, mask, dt, pre, vc_exponents=None):
+    """``shade_env`` on an :class:`EnvBasis` (torch): the same sums as :func:`_shade_env_generic`, with texels
+    along the last axis of every product (``(3, n) @ (n, N)`` for the diffuse part, one ``(3·lobes, n) @ (n, N)``
+    for all lobes, the lobe weighting as a sum over the leading axis of ``(lobes, 3, N)``)."""
+    import torch
+
+    N = pre.n_texels
+    dev = pre.Yr.device
+    order = len(A) - 1
+    lvl = np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
+    nd = (Ld + 1) ** 2
+    cols = pre.n_cols[pre.n_cols < nd]
+    glob = K.ndim == 2
+    Kn = w.shape[-1]
+    active = (list(range(Kn)) if w.requires_grad else
+              [i for i in range(Kn) if bool((w.detach()[..., i] != 0).any())])
+    c2 = c.expand(lead + (3,)).reshape(N, 3)
+    w2 = w.expand(lead + (Kn,)).reshape(N, Kn)
+    Acols = torch.as_tensor(A[lvl[cols]] / math.pi, dtype=dt, device=dev)
+    cols_t = torch.as_tensor(cols, device=dev)
+    Yn = pre.Yn[:len(cols)]
+    Yn = Yn if Yn.dtype == dt else Yn.to(dt)
+    Yr = pre.Yr if pre.Yr.dtype == dt else pre.Yr.to(dt)
+    ndv = pre.ndv.reshape(-1).to(dt)
+    if not glob:
+        # per-texel lighting (..., 3, n) broadcasting against the texels: texel-major einsum
+        Kx = K.expand(lead + K.shape[-2:]).reshape(N, 3, K.shape[-1])
+        diffuse = c2 * torch.einsum("pcn,np->pc", Kx[..., cols_t] * Acols, Yn)
+        spec = None
+        for i in active:
+            ni = (Ls[i] + 1) ** 2
+            Bi = torch.as_tensor(B[i][lvl[:ni]], dtype=dt, device=dev)
+            Si = torch.einsum("pcn,np->pc", Kx[..., :ni] * Bi, Yr[:ni]) * w2[:, i:i + 1]
+            if vc_exponents is not None:
+                Si = Si * specular_view_albedo(vc_exponents[i], ndv)[:, None]
+            spec = Si if spec is None else spec + Si
+        spec = torch.zeros_like(diffuse) if spec is None else spec
+        if not pre.all_front:
+            spec = torch.where(pre.front[:, None], spec, torch.zeros_like(spec))
+    else:
+        diffuse = ((K[:, cols_t] * Acols) @ Yn) * c2.T  # (3, N)
+        spec = None
+        if active:
+            Lsmax = max(Ls[i] for i in active)
+            nmax = (Lsmax + 1) ** 2
+            Kst = K.new_zeros((3 * len(active), nmax))
+            for j, i in enumerate(active):
+                ni = (Ls[i] + 1) ** 2
+                Kst[3 * j:3 * j + 3, :ni] = K[:, :ni] * torch.as_tensor(B[i][lvl[:ni]], dtype=dt, device=dev)
+            S = (Kst @ Yr[:nmax]).view(len(active), 3, N)  # lobe-major rows
+            wa = w2 if len(active) == Kn else w2[:, active]
+            wT = wa.T.contiguous()  # (lobes, N): the weighting below then runs along contiguous rows
+            if vc_exponents is not None:
+                wT = torch.stack([wT[j] * specular_view_albedo(vc_exponents[i], ndv) for j, i in enumerate(active)])
+            spec = (S * wT[:, None, :]).sum(0)  # (3, N)
+            if not pre.all_front:
+                spec = torch.where(pre.front[None, :], spec, torch.zeros_like(spec))
+        diffuse = diffuse.T
+        spec = torch.zeros_like(diffuse) if spec is None else spec.T
+    diffuse = diffuse.reshape(lead + (3,))
+    spec = spec.reshape(lead + (3,))
+    if mask is not None:
+        mt = torch.as_tensor(np.broadcast_to(mask, lead).copy(), device=dev)[..., None]
+        diffuse = torch.where(mt, diffuse, torch.zeros_like(diffuse))
+        spec = torch.where(mt, spec, torch.zeros_like(spec))
+    return diffuse, spec
+
+
+def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_exponents=None):
     """Broadcasting path: torch (differentiable) or per-texel lighting in numpy."""
     if tm:
         import torch
@@ -419,37 +479,33 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
     order = len(A) - 1
     lvl = np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
     nd = (Ld + 1) ** 2
-    if pre is not None:
-        nn, vv = n, v  # already normalised by EnvBasis
-        basis = pre.basis_for
+    nn = norm(n)
+    vv = norm(v)
+    # Geometry without gradients: evaluate the basis with the blocked numpy kernel and keep only the cheap linear
+    # part in the autograd graph.
+    fixed_geom = tm and nn.device.type == "cpu" and not (nn.requires_grad or vv.requires_grad)
+    if fixed_geom:
+        def basis(d, L):
+            return _basis_coeff_major(d, L).T.reshape(d.shape[:-1] + ((L + 1) ** 2,))
     else:
-        nn = norm(n)
-        vv = norm(v)
-    # Geometry without gradients (finetuning uses fixed precomputed geometry): evaluate the basis with the
-    # blocked numpy kernel and keep only the cheap linear part in the autograd graph.
-    if pre is None:
-        fixed_geom = tm and nn.device.type == "cpu" and not (nn.requires_grad or vv.requires_grad)
-        basis = _basis_numpy_to_torch if fixed_geom else (lambda d, L: sh_basis(d, L, normalize=False))
-    Yn = basis(nn, Ld) if pre is None else basis("n", Ld)
+        def basis(d, L):
+            return sh_basis(d, L, normalize=False)
+    Yn = basis(nn, Ld)
     KA = K[..., :nd] * As[lvl[:nd]]
     glob = K.ndim == 2
 
     def apply(Kx, Y):  # Σ_n Kx[c, n] Y[..., n]
-        if isinstance(Y, _CoeffMajor):
-            if glob:
-                return Y.apply(Kx)
-            Y = Y.Y.T.reshape(*Y.lead, Y.Y.shape[0])
         if tm and Y.dtype != Kx.dtype:
             Y = Y.to(Kx.dtype)
         return Y @ Kx.T if glob else einsum("...cn,...n->...c", Kx, Y)
 
     diffuse = c * apply(KA, Yn) * (1.0 / math.pi)
-    ndv = (nn * vv).sum(-1) if pre is None else pre.ndv.to(dt)
-    r = (2.0 * ndv)[..., None] * nn - vv if pre is None else None
+    ndv = (nn * vv).sum(-1)
+    r = (2.0 * ndv)[..., None] * nn - vv
     spec = None
     if active:
         Lsmax = max(Ls[i] for i in active)
-        Yr = basis(r, Lsmax) if pre is None else basis("r", Lsmax)
+        Yr = basis(r, Lsmax)
         if glob and len(active) > 1 and vc_exponents is None:
             # one lighting, several lobes: stack the lobes' (3, n) coefficient rows into one (3·A, n) matrix, so
             # the basis of r is read once (and once more in the backward) instead of once per lobe; bands beyond

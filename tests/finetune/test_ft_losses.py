@@ -1,5 +1,6 @@
 """Loss functions against direct numpy computations."""
 import numpy as np
+import pytest
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
@@ -68,3 +69,17 @@ def test_model_update_l1_value_and_gradient_on_a_model_sized_part():
     (3.0 * v).backward()
     assert torch.equal(x.grad, 3.0 * torch.sign(x.detach() - x0) / x.numel())
     assert (x.grad[0, :100] == 0).all()
+
+
+def test_model_update_l1_gradient_adds_to_an_existing_one_and_refuses_a_second_backward():
+    # the backward hands its sign buffer over as the gradient: a leaf that already has a gradient (the shading's)
+    # gets the sum, and the same graph cannot be differentiated twice
+    torch.manual_seed(1)
+    x = torch.randn(5, 7, 3, requires_grad=True)
+    x0 = x.detach() + 0.1 * torch.randn(5, 7, 3)
+    (2.0 * x).sum().backward()
+    v = L.model_update_l1({"b": x}, {"b": x0})
+    v.backward(retain_graph=True)
+    assert torch.allclose(x.grad, 2.0 + torch.sign(x.detach() - x0) / x.numel())
+    with pytest.raises(RuntimeError, match="twice"):
+        v.backward()

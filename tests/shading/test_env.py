@@ -355,6 +355,14 @@ def test_precomputed_env_basis_matches_and_differentiates():
     np.testing.assert_allclose(d3.numpy(), shade_env(c, w, P, n, v, K[:, :16])[0], rtol=1e-5, atol=1e-6)
     with pytest.raises(ReflectmmError, match="order"):
         shade_env(c, w, P, None, None, _lighting(0, 8), basis=eb)
+    # the basis of n keeps only the bands with A_l ≠ 0 (the odd l ≥ 3 are exact zeros): 31 of 49 at order 6
+    assert tuple(eb.Yn.shape) == (1 + 3 + 5 + 9 + 13, N) and tuple(eb.Yr.shape) == ((ORDER + 1) ** 2, N)
+    # per-texel lighting (N, 3, n) through the basis equals the per-texel path without it
+    Kp = K[None] * (0.5 + rng.random((N, 1, 1)))
+    dp, sp = shade_env(torch.tensor(c), torch.tensor(w), P, None, None, torch.tensor(Kp), basis=eb)
+    dq, sq = shade_env(c, w, P, n, v, Kp)
+    np.testing.assert_allclose(dp.numpy(), dq, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sp.numpy(), sq, rtol=1e-10, atol=1e-12)
 
 
 def test_check_finite_names_the_argument_and_can_be_skipped():
