@@ -52,6 +52,33 @@ def band_limits(exponents, order: int, band_tol: float = 0.0):
     return last(A), [last(b) for b in B]
 
 
+def _band_of_coeff(order: int) -> np.ndarray:
+    """Band l of each of the (order+1)² SH coefficients (l repeated 2l+1 times)."""
+    return np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
+
+
+def _active_lobes(w, torch_mode: bool) -> list[int]:
+    """Lobes to shade: those with a non-zero weight somewhere — every lobe when the weights need a gradient (the
+    derivative of the radiance w.r.t. a zero weight is that lobe's shading, not 0)."""
+    Kn = w.shape[-1]
+    if torch_mode and w.requires_grad:
+        return list(range(Kn))
+    wz = w.detach() if torch_mode else w
+    return [i for i in range(Kn) if bool((wz[..., i] != 0).any())]
+
+
+def _stacked_lobe_coeffs(K, Bs, Ls, active, lvl, zeros):
+    """One lighting's coefficient rows of several lobes stacked lobe-major, ``(3·lobes, n_max)``: rows
+    ``3j..3j+2`` are ``K · B_l^i`` of lobe ``active[j]``, bands beyond its limit exact zeros; one product with the
+    basis of r then shades every lobe (the basis is read once, and once more in the backward)."""
+    nmax = (max(Ls[i] for i in active) + 1) ** 2
+    Kst = zeros((3 * len(active), nmax))
+    for j, i in enumerate(active):
+        ni = (Ls[i] + 1) ** 2
+        Kst[3 * j:3 * j + 3, :ni] = K[..., :ni] * Bs[i][lvl[:ni]]
+    return Kst
+
+
 _VIEW_NODES = 65
 
 
@@ -241,7 +268,7 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
     wsel = w2 if idx is None else w2[idx]
     active = [i for i in range(Kn) if np.any(wsel[:, i] != 0)] if Ntex else []
     nd = (Ld + 1) ** 2
-    lvl = np.repeat(np.arange(len(A)), 2 * np.arange(len(A)) + 1)
+    lvl = _band_of_coeff(len(A) - 1)
     KA = (K[:, :nd] * A[lvl[:nd]] / math.pi).astype(dt)  # (3, nd), 1/π folded in
     Lsmax = max([Ls[i] for i in active], default=-1)
     ns = (Lsmax + 1) ** 2
@@ -366,7 +393,7 @@ class EnvBasis:
         self.front = (self.ndv > 0).reshape(-1)
         self.all_front = bool(self.front.all())  # one check here instead of a mask per shading
         r = (2.0 * self.ndv)[..., None] * self.normal - self.view_dir
-        lvl = np.repeat(np.arange(self.order + 1), 2 * np.arange(self.order + 1) + 1)
+        lvl = _band_of_coeff(self.order)
         #: indices of the stored coefficients of the basis of n (bands with A_l ≠ 0), ascending
         self.n_cols = np.flatnonzero(lambert_sh_coeffs(self.order)[lvl] != 0)
         Yn = _basis_coeff_major(self.normal, self.order)
@@ -391,13 +418,12 @@ def _shade_env_pre(c, w, K, A, B, Ld, Ls, lead, mask, dt, pre, vc_exponents=None
     N = pre.n_texels
     dev = pre.Yr.device
     order = len(A) - 1
-    lvl = np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
+    lvl = _band_of_coeff(order)
     nd = (Ld + 1) ** 2
     cols = pre.n_cols[pre.n_cols < nd]
     glob = K.ndim == 2
     Kn = w.shape[-1]
-    active = (list(range(Kn)) if w.requires_grad else
-              [i for i in range(Kn) if bool((w.detach()[..., i] != 0).any())])
+    active = _active_lobes(w, True)
     c2 = c.expand(lead + (3,)).reshape(N, 3)
     w2 = w.expand(lead + (Kn,)).reshape(N, Kn)
     Acols = torch.as_tensor(A[lvl[cols]] / math.pi, dtype=dt, device=dev)
@@ -425,13 +451,8 @@ def _shade_env_pre(c, w, K, A, B, Ld, Ls, lead, mask, dt, pre, vc_exponents=None
         diffuse = ((K[:, cols_t] * Acols) @ Yn) * c2.T  # (3, N)
         spec = None
         if active:
-            Lsmax = max(Ls[i] for i in active)
-            nmax = (Lsmax + 1) ** 2
-            Kst = K.new_zeros((3 * len(active), nmax))
-            for j, i in enumerate(active):
-                ni = (Ls[i] + 1) ** 2
-                Kst[3 * j:3 * j + 3, :ni] = K[:, :ni] * torch.as_tensor(B[i][lvl[:ni]], dtype=dt, device=dev)
-            S = (Kst @ Yr[:nmax]).view(len(active), 3, N)  # lobe-major rows
+            Kst = _stacked_lobe_coeffs(K, torch.as_tensor(B, dtype=dt, device=dev), Ls, active, lvl, K.new_zeros)
+            S = (Kst @ Yr[:Kst.shape[1]]).view(len(active), 3, N)  # lobe-major rows
             wa = w2 if len(active) == Kn else w2[:, active]
             wT = wa.T.contiguous()  # (lobes, N): the weighting below then runs along contiguous rows
             if vc_exponents is not None:
@@ -471,13 +492,9 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
             return x / np.sqrt(np.maximum((x * x).sum(-1, keepdims=True), dt(1e-30)))
 
     Kn = w.shape[-1]
-    wz = w.detach() if tm else w
-    # an all-zero lobe costs nothing — unless its weights need a gradient (the derivative of the radiance w.r.t.
-    # a zero weight is that lobe's shading, not 0)
-    active = (list(range(Kn)) if tm and w.requires_grad else
-              [i for i in range(Kn) if bool((wz[..., i] != 0).any())])
+    active = _active_lobes(w, tm)  # an all-zero lobe costs nothing
     order = len(A) - 1
-    lvl = np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
+    lvl = _band_of_coeff(order)
     nd = (Ld + 1) ** 2
     nn = norm(n)
     vv = norm(v)
@@ -507,15 +524,11 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
         Lsmax = max(Ls[i] for i in active)
         Yr = basis(r, Lsmax)
         if glob and len(active) > 1 and vc_exponents is None:
-            # one lighting, several lobes: stack the lobes' (3, n) coefficient rows into one (3·A, n) matrix, so
-            # the basis of r is read once (and once more in the backward) instead of once per lobe; bands beyond
-            # a lobe's limit get exact zeros
-            nmax = (Lsmax + 1) ** 2
+            # one lighting, several lobes: one product of the stacked coefficient rows with the basis of r
             A_ = len(active)
-            Kst = K.new_zeros((3 * A_, nmax)) if tm else np.zeros((3 * A_, nmax), K.dtype)
-            for j, i in enumerate(active):
-                ni = (Ls[i] + 1) ** 2
-                Kst[3 * j:3 * j + 3, :ni] = K[..., :ni] * Bs[i][lvl[:ni]]
+            Kst = _stacked_lobe_coeffs(K, Bs, Ls, active, lvl,
+                                       K.new_zeros if tm else (lambda shape: np.zeros(shape, K.dtype)))
+            nmax = Kst.shape[1]
             S_all = apply(Kst, Yr[..., :nmax])  # (*lead, 3·A), lobe-major
             S_all = S_all.reshape(S_all.shape[:-1] + (A_, 3))
             wa = w if A_ == Kn else w[..., active]
