@@ -15,7 +15,8 @@ motion; the scale is *not* aligned away): camera centres, flashes 14/18 (on 08_1
     python benchmarks/bench_calibrate.py [--identities 128] [--vertices 35000]
 
 ``--pipeline N``: instead, the whole chain on N rendered identities (~1–2 min per identity on 2 cores): a true
-rig that is not the packaged one (1.5 m, focal 1500 px at 640×480), a nominal table as a user would have it
+rig that is not the packaged one (1.5 m, focal 1500 px at 640×480; ``--true-focal 1900 --size 800x600`` for the
+issue's own setup), a nominal table as a user would have it
 (10 % too close, positions and aims off by 3°, raised cameras off by another 300 mm; the focal is given, as from
 EXIF), GGX faces rendered by ``synth multipie`` on the 9 views + 08_1/19_1 with the 11 default flashes, then
 ``preprocess-multipie`` (geometry capture: 11 views; reflectance capture: the paper's 9), and per case
@@ -69,6 +70,8 @@ def main(argv=None):
     ap.add_argument("--refine-normals", default=None,
                     help="comma list of fit-reflectance --refine-normals values, one table row each (default: the "
                          "stage's default only)")
+    ap.add_argument("--true-focal", type=float, default=1500.0, help="--pipeline: focal of the true rig (px)")
+    ap.add_argument("--size", default="640x480", help="--pipeline: image size of the true rig, WxH")
     ap.add_argument("--fit-args", default="",
                     help="extra fit-geometry arguments for the fitted cases (e.g. '--rig-rot-sigma 0.1'); the "
                          "cases then live in their own folders, <case>+<args>")
@@ -156,7 +159,8 @@ def pipeline(args, argv):
         times[tag] = times.get(tag, 0.0) + time.perf_counter() - t0
         return r
 
-    true = build_default_rig(radius=1500.0, focal_px=1500.0)
+    W, H = (int(x) for x in args.size.lower().split("x"))
+    true = build_default_rig(radius=1500.0, focal_px=args.true_focal, width=W, height=H)
     save_rig(true, ws / "true_rig.toml", "true rig of the benchmark")
     nominal = perturb_rig(true, distance_scale=0.9, angle_deg=3.0, raised_offset_mm=300.0, seed=args.seed)
     save_rig(nominal, ws / "nominal_rig.toml", "nominal rig of the benchmark (deliberately wrong)")
@@ -273,7 +277,8 @@ def pipeline(args, argv):
                 normal_rows.append((f"{label}, refined (refine-normals {rn})", [float(np.median(x)) for x in ra],
                                     np.percentile(np.concatenate(ra), [50, 90, 99])))
     print(f"`python benchmarks/bench_calibrate.py {' '.join(argv if argv is not None else sys.argv[1:])}` — "
-          f"{args.pipeline} GGX identities, 640x480, true rig 1.5 m / focal 1500 px, nominal table 10 % too "
+          f"{args.pipeline} GGX identities, {W}x{H}, true rig 1.5 m / focal {args.true_focal:g} px, nominal table "
+          f"10 % too "
           f"close, 3° off, raised cameras +300 mm (focal given); workspace {ws}; load average "
           f"{os.getloadavg()[0]:.1f}\n")
     # Σw of the true-geometry fit (first row of that case) as the ceiling of the representation
