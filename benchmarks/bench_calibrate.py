@@ -169,7 +169,8 @@ def pipeline(args, argv):
     if not (ws / "syn" / "truth" / f"{ids[-1]}.npz").is_file():
         cli("synth", "synth", "multipie", "--out", ws / "syn", "--identities", args.pipeline, "--rig",
             ws / "true_rig.toml", "--cameras", ",".join(geo_views), "--flashes", ",".join(DEFAULT_FLASHES),
-            "--landmark-noise", "1.0", "--noise", "0.002", "--brdf", "ggx", "--uv-size", "256")
+            "--landmark-noise", "1.0", "--noise", "0.002", "--brdf", "ggx", "--uv-size", "256", "--image-size",
+            f"{W}x{H}")
     for i in ids:
         if not (ws / "preprocess-multipie" / f"{i}.npz").is_file():
             cli("preprocess", "preprocess-multipie", "--root", ws / "syn", "--id", i, "--views", ",".join(geo_views))
