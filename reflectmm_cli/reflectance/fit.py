@@ -32,7 +32,7 @@ import logging
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -431,21 +431,11 @@ def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, sym
 
 # --------------------------------------------------------------------------- public API
 
-def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT_EXPONENTS, solver: str = "fast",
-             symmetry: float = 1.0, loss: str = "l1", prior: float = 1e-4, pair_mask=None, flash_intensity=None,
-             *, irls_iterations: int = 10, irls_delta: float = 1e-3, irls_tol: float = 1e-3,
-             irls_obj_tol: float = 1e-3, cond_min: float = 1e-4,
-             min_obs: int | None = None, observable_min: float = 0.1, prior_sigma: float | None = None,
-             steps: int = 1000, lr: float = 5e-3, w_reg: float = 100.0, init: Sequence[float] | None = None,
-             device: str = "cpu", seed: int = 0, chunk: int = DEFAULT_CHUNK, threads: int | None = None,
-             progress: Callable | None = None, path=None,
-             symmetry_mode: str = "adaptive", prior_tail: float = 100.0,
-             prior_tail_obs: float = 0.5, refine_normals: int = 0,
-             normal_sigma: float = DEFAULT_NORMAL_SIGMA) -> ReflectanceMaps:
-    """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
+@dataclass(frozen=True)
+class FitMapsConfig:
+    """Settings of :func:`fit_maps`, declared once (the fit-reflectance stage takes its defaults from here).
 
-    Args:
-        obs: uv-observations arrays (docs/pipeline.md); ``radiance`` may be float16.
+    Fields:
         exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
         solver: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
         symmetry: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
@@ -453,8 +443,9 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
             weight s, and a well-posed one at weight s · (mirror trust), the trust being 1 where the face is as
             symmetric as the noise can tell and → 0 where it measurably is not (:func:`_mirror_trust`);
             ``ill-posed``: pool only texels whose own data cannot determine their unknowns (fewer than
-            ``min_obs`` observations or conditioning < ``cond_min``); ``all``: pool every texel (the minimiser of the paper's random-flip objective). Fast solver only;
-            the Adam solver always flips whole maps (the paper).
+            ``min_obs`` observations or conditioning < ``cond_min``); ``all``: pool every texel (the minimiser of
+            the paper's random-flip objective). Fast solver only; the Adam solver always flips whole maps (the
+            paper).
         loss: ``l1`` (cos-weighted L1, IRLS) or ``l2`` (cos-weighted least squares); Adam always uses L1.
         prior: Tikhonov strength relative to the trace of each texel's data term (fast solver; 0 = off).
         prior_tail, prior_tail_obs: extra prior on lobe weight W_i where the lobe is seen only in its tail:
@@ -463,9 +454,6 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
             observability (the largest fraction of its peak any fitted observation reaches). A weight fitted
             from the tail of its lobe extrapolates badly to views that see the peak, and the tail is where a
             Blinn-Phong lobe matches a real (GGX) lobe least. 0 = off; off also when ``prior`` is 0.
-        pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
-        flash_intensity: scalar or (F,) radiant intensity replacing the artifact's (global scale ambiguity:
-            multiplying it by k divides C and W by k).
         irls_iterations, irls_delta, irls_tol, irls_obj_tol: IRLS settings (l1): at most ``irls_iterations``
             reweighted solves per band of UV rows, stopping when the largest change of any unknown is below
             ``irls_tol`` × max |x| or the band's L1 objective changes by less than ``irls_obj_tol`` (relative).
@@ -475,54 +463,106 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
         steps, lr, w_reg, init, device, seed: Adam settings (init = (C, W) constant start, default 0.3, 0.1).
         chunk: texels per design block (memory).
         threads: worker threads of the fast solver (default min(cpu count, 4)); results do not depend on it.
-        progress: optional wrapper ``progress(iterable, desc=..., total=...)`` for progress bars.
         refine_normals: photometric normal refinement (fast solver): this many alternations of
             ``NORMAL_STEPS`` damped Gauss–Newton steps of each solved texel's normal (reflectance fixed) and the
             reflectance solve (normals fixed); 0 = off (:mod:`.normals`).
         normal_sigma: σ (degrees) of the Gaussian prior of the refined normal towards the geometric one.
+    """
+
+    exponents: tuple[float, ...] = tuple(DEFAULT_EXPONENTS)
+    solver: str = "fast"
+    symmetry: float = 1.0
+    symmetry_mode: str = "adaptive"
+    loss: str = "l1"
+    prior: float = 1e-4
+    prior_tail: float = 100.0
+    prior_tail_obs: float = 0.5
+    irls_iterations: int = 10
+    irls_delta: float = 1e-3
+    irls_tol: float = 1e-3
+    irls_obj_tol: float = 1e-3
+    cond_min: float = 1e-4
+    min_obs: int | None = None
+    observable_min: float = 0.1
+    prior_sigma: float | None = None
+    refine_normals: int = 0
+    normal_sigma: float = DEFAULT_NORMAL_SIGMA
+    steps: int = 1000
+    lr: float = 5e-3
+    w_reg: float = 100.0
+    init: tuple[float, float] | None = None
+    device: str = "cpu"
+    seed: int = 0
+    chunk: int = DEFAULT_CHUNK
+    threads: int | None = None
+
+    def check(self) -> None:
+        """Raise ReflectmmError naming the first bad setting."""
+        _check_exponents(self.exponents)
+        if self.solver not in ("fast", "adam"):
+            raise ReflectmmError(f"solver must be 'fast' or 'adam', got {self.solver!r}")
+        if self.loss not in ("l1", "l2"):
+            raise ReflectmmError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
+        if not (0.0 <= float(self.symmetry) <= 1.0):
+            raise ReflectmmError(f"symmetry must be in [0, 1], got {self.symmetry}")
+        if self.symmetry_mode not in SYMMETRY_MODES:
+            raise ReflectmmError(f"symmetry_mode must be one of {', '.join(SYMMETRY_MODES)}, "
+                                 f"got {self.symmetry_mode!r}")
+        if not (np.isfinite(self.prior) and self.prior >= 0):
+            raise ReflectmmError(f"prior must be finite and >= 0, got {self.prior}")
+        if not (np.isfinite(self.prior_tail) and self.prior_tail >= 0):
+            raise ReflectmmError(f"prior_tail must be finite and >= 0, got {self.prior_tail}")
+        if not (np.isfinite(self.prior_tail_obs) and 0 < self.prior_tail_obs <= 1):
+            raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {self.prior_tail_obs}")
+        if int(self.refine_normals) != self.refine_normals or self.refine_normals < 0:
+            raise ReflectmmError(f"refine_normals must be an integer >= 0, got {self.refine_normals}")
+        if not (np.isfinite(self.normal_sigma) and self.normal_sigma > 0):
+            raise ReflectmmError(f"normal_sigma must be finite and > 0 (degrees), got {self.normal_sigma}")
+        if self.refine_normals > 0 and self.solver != "fast":
+            raise ReflectmmError("normal refinement (refine_normals > 0) needs the fast solver; use "
+                                 "refine_normals=0 with solver='adam'")
+
+
+def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None, *, pair_mask=None,
+             flash_intensity=None, progress: Callable | None = None, path=None, **settings) -> ReflectanceMaps:
+    """Fit diffuse albedo C (3,S,S) and lobe weights W (K,S,S) to one identity's uv-observations.
+
+    Args:
+        obs: uv-observations arrays (docs/pipeline.md); ``radiance`` may be float16.
+        config: the solver's settings (:class:`FitMapsConfig`; default: its defaults).
+        settings: single settings overriding ``config`` by name (``fit_maps(obs, loss="l2", prior=0)``).
+        pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
+        flash_intensity: scalar or (F,) radiant intensity replacing the artifact's (global scale ambiguity:
+            multiplying it by k divides C and W by k).
+        progress: optional wrapper ``progress(iterable, desc=..., total=...)`` for progress bars.
         path: file name used in error messages.
     Returns:
         :class:`ReflectanceMaps`.
     Raises:
-        ReflectmmError on malformed observations (shapes, NaN/inf radiance in observed texels), bad options.
+        ReflectmmError on malformed observations (shapes, NaN/inf radiance in observed texels), bad settings.
     """
     t0 = time.perf_counter()
-    if threads is None:
-        threads = min(os.cpu_count() or 1, 4)
+    try:
+        cfg = replace(config or FitMapsConfig(), **settings)
+    except TypeError as e:
+        raise TypeError(f"fit_maps: unknown setting ({e}); the settings are the fields of FitMapsConfig") from None
+    cfg.check()
+    threads = cfg.threads if cfg.threads is not None else min(os.cpu_count() or 1, 4)
     obs = _as_arrays(obs)
     S = check_observations(obs, path)
-    p = _check_exponents(exponents)
+    p = _check_exponents(cfg.exponents)
     K = p.size
-    if solver not in ("fast", "adam"):
-        raise ReflectmmError(f"solver must be 'fast' or 'adam', got {solver!r}")
-    if loss not in ("l1", "l2"):
-        raise ReflectmmError(f"loss must be 'l1' or 'l2', got {loss!r}")
-    if not (0.0 <= float(symmetry) <= 1.0):
-        raise ReflectmmError(f"symmetry must be in [0, 1], got {symmetry}")
-    if not (np.isfinite(prior) and prior >= 0):
-        raise ReflectmmError(f"prior must be finite and >= 0, got {prior}")
-    if not (np.isfinite(prior_tail) and prior_tail >= 0):
-        raise ReflectmmError(f"prior_tail must be finite and >= 0, got {prior_tail}")
-    if not (np.isfinite(prior_tail_obs) and 0 < prior_tail_obs <= 1):
-        raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {prior_tail_obs}")
-    if int(refine_normals) != refine_normals or refine_normals < 0:
-        raise ReflectmmError(f"refine_normals must be an integer >= 0, got {refine_normals}")
-    if not (np.isfinite(normal_sigma) and normal_sigma > 0):
-        raise ReflectmmError(f"normal_sigma must be finite and > 0 (degrees), got {normal_sigma}")
-    if refine_normals > 0 and solver != "fast":
-        raise ReflectmmError("normal refinement (refine_normals > 0) needs the fast solver; use refine_normals=0 "
-                             "with solver='adam'")
     P = np.asarray(obs["pair_view"]).shape[0]
     pm = _parse_pair_mask(pair_mask, P)
     used = np.asarray(obs["observed"], bool) & pm[:, None, None]
     F = np.asarray(obs["flash_pos"]).shape[0]
     I = pair_irradiance(obs["flash_intensity"], F, flash_intensity)
     mask = np.asarray(obs["mask"], bool)
-    min_obs = 1 + K if min_obs is None else int(min_obs)
-    sym = float(symmetry)
+    min_obs = 1 + K if cfg.min_obs is None else int(cfg.min_obs)
+    sym = float(cfg.symmetry)
     m = 3 + K
 
-    prob = _Problem(obs, p, used, I, chunk, threads)
+    prob = _Problem(obs, p, used, I, cfg.chunk, threads)
     idx = prob.idx
     n = idx.size
     # full-size per-texel quantities and mirror pooling
@@ -533,16 +573,14 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     has_m = mpos >= 0
     mp = np.where(has_m, mpos, 0)
 
-    if symmetry_mode not in SYMMETRY_MODES:
-        raise ReflectmmError(f"symmetry_mode must be one of {', '.join(SYMMETRY_MODES)}, got {symmetry_mode!r}")
     # per-texel mirror weight: s everywhere ("all", the paper's flip), or s only where the texel's own data
     # cannot determine its unknowns ("ill-posed": fewer than min_obs observations or conditioning < cond_min)
     symv = np.full(n, sym)
     sym_info: dict[str, Any] = {}
-    if sym > 0 and symmetry_mode in ("ill-posed", "adaptive") and solver == "fast":
+    if sym > 0 and cfg.symmetry_mode in ("ill-posed", "adaptive") and cfg.solver == "fast":
         own_cond = gram_conditioning(prob.G) if n else np.zeros(0)
-        ill = (prob.count < min_obs) | (own_cond < cond_min)
-        if symmetry_mode == "adaptive" and n:
+        ill = (prob.count < min_obs) | (own_cond < cfg.cond_min)
+        if cfg.symmetry_mode == "adaptive" and n:
             wt, sym_info = _mirror_trust(prob, ~ill, has_m, mp, idx=idx, S=S, m=3 + K, sigma=max(S / 16.0, 1.0),
                                          threads=threads)
             symv = np.where(ill, sym, sym * wt)
@@ -569,15 +607,15 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     cnt_p = prob.count + np.where(pooled, prob.count[mp], 0)
     obsv_p = np.where(pooled[:, None], np.maximum(prob.obsv, prob.obsv[mp]), prob.obsv)
     cond = gram_conditioning(Gp) if n else np.zeros(0)
-    flag = (cnt_p < min_obs) | (cond < cond_min)
+    flag = (cnt_p < min_obs) | (cond < cfg.cond_min)
     solve = ~flag
-    stats: dict[str, Any] = {"solver": solver, "loss": loss if solver == "fast" else "l1", "symmetry": sym,
-                             "symmetry_mode": symmetry_mode if solver == "fast" else "all",
+    stats: dict[str, Any] = {"solver": cfg.solver, "loss": cfg.loss if cfg.solver == "fast" else "l1", "symmetry": sym,
+                             "symmetry_mode": cfg.symmetry_mode if cfg.solver == "fast" else "all",
                              "n_pooled": int((symv > 0).sum()), **sym_info,
-                             "prior": float(prior), "prior_tail": float(prior_tail),
-                             "prior_tail_obs": float(prior_tail_obs), "n_texels": int(n),
+                             "prior": float(cfg.prior), "prior_tail": float(cfg.prior_tail),
+                             "prior_tail_obs": float(cfg.prior_tail_obs), "n_texels": int(n),
                              "n_pairs_used": int(pm.sum()),
-                             "n_flagged": int(flag.sum()), "cond_min": cond_min, "min_obs": min_obs}
+                             "n_flagged": int(flag.sum()), "cond_min": cfg.cond_min, "min_obs": min_obs}
 
     def to_map(v: np.ndarray, fill=0.0) -> np.ndarray:
         v = np.asarray(v)
@@ -585,31 +623,29 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
         out[idx] = v
         return np.moveaxis(out.reshape((S, S) + v.shape[1:]), (0, 1), (-2, -1)) if v.ndim > 1 else out.reshape(S, S)
 
-    delta = irls_delta * np.maximum(prob.rms, 1e-30)
+    delta = cfg.irls_delta * np.maximum(prob.rms, 1e-30)
     solved_map = to_map(solve.astype(float)) > 0
     flagged_map = to_map(flag.astype(float)) > 0
     obsv_map = to_map(obsv_p)
-    if prior_sigma is None:
-        prior_sigma = max(S / 16.0, 1.0)
+    prior_sigma = cfg.prior_sigma if cfg.prior_sigma is not None else max(S / 16.0, 1.0)
 
     normal_map = correction_map = None
-    if solver == "fast":
+    if cfg.solver == "fast":
         def fast(obsv_p):
-            return _fast(prob, pool, pool_band, solve, n, m, loss, float(prior), delta, irls_iterations,
-                         obsv_p, observable_min, prior_sigma, to_map, idx, S, progress, irls_tol,
-                         irls_obj_tol, threads, float(prior_tail), float(prior_tail_obs))
+            return _fast(prob, pool, pool_band, solve, n, m, cfg, delta, obsv_p, prior_sigma, to_map, idx, S,
+                         progress, threads)
 
         x, prior_map, info = fast(obsv_p)
-        if refine_normals > 0:
+        if cfg.refine_normals > 0:
             # alternate: Gauss–Newton steps of the normals with (C, W) fixed, then the reflectance solve again
             # with the design re-evaluated at the new normals (rows, flags and mirror weights stay those of the
             # geometric normals)
             from .normals import NormalRefinement, correction_angle_deg
 
-            ref = NormalRefinement(prob, normal_sigma, loss, delta, solve, chunk=chunk, threads=threads,
-                                   ridge=float(prior))
+            ref = NormalRefinement(prob, cfg.normal_sigma, cfg.loss, delta, solve, chunk=cfg.chunk, threads=threads,
+                                   ridge=float(cfg.prior))
             hist = []
-            for _ in range(int(refine_normals)):
+            for _ in range(int(cfg.refine_normals)):
                 xs = x
                 for _ in range(NORMAL_STEPS):
                     st = ref.step(xs)
@@ -623,8 +659,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
             ang = correction_angle_deg(ref.delta)
             normal_map = np.where(mask[None], to_map(prob.nm), 0.0)
             correction_map = to_map(ang)
-            stats["normal_refinement"] = {"iterations": int(refine_normals), "gn_steps": NORMAL_STEPS,
-                                          "sigma_deg": float(normal_sigma), "history": hist,
+            stats["normal_refinement"] = {"iterations": int(cfg.refine_normals), "gn_steps": NORMAL_STEPS,
+                                          "sigma_deg": float(cfg.normal_sigma), "history": hist,
                                           "angle_median_deg": float(np.median(ang[solve])) if solve.any() else 0.0,
                                           "angle_p90_deg": float(np.percentile(ang[solve], 90))
                                           if solve.any() else 0.0}
@@ -632,8 +668,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     else:
         from .adam import fit_adam
 
-        x, info = fit_adam(prob, idx, S, K, steps=steps, lr=lr, w_reg=w_reg, symmetry=sym, init=init,
-                           device=device, seed=seed, progress=progress)
+        x, info = fit_adam(prob, idx, S, K, steps=cfg.steps, lr=cfg.lr, w_reg=cfg.w_reg, symmetry=sym, init=cfg.init,
+                           device=cfg.device, seed=cfg.seed, progress=progress)
         prior_map = None
         stats.update(info)
         # flagged texels (a property of the data, not of the solver) are filled as for the fast solver
@@ -649,9 +685,9 @@ def fit_maps(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT
     resid = np.sqrt(rss / np.maximum(3 * prob.count, 1))
     stats["residual_rms_median"] = float(np.median(resid[prob.count > 0])) if np.any(prob.count > 0) else 0.0
     stats["time_s"] = time.perf_counter() - t0
-    obs_ok = solve & np.all(obsv_p >= observable_min, axis=1)
+    obs_ok = solve & np.all(obsv_p >= cfg.observable_min, axis=1)
     stats["n_observable"] = int(obs_ok.sum())
-    stats["n_unobservable_lobe"] = [int((~(obsv_p[:, k] >= observable_min) & solve).sum()) for k in range(K)]
+    stats["n_unobservable_lobe"] = [int((~(obsv_p[:, k] >= cfg.observable_min) & solve).sum()) for k in range(K)]
     return ReflectanceMaps(
         albedo=xfill[:3], weights=xfill[3:], exponents=p, mask=mask, residual=to_map(resid),
         conditioning=to_map(cond), flagged=flagged_map, obs_count=to_map(prob.count).astype(np.int32),
@@ -735,8 +771,11 @@ def _solve_system(H, g, lam, x0):
     return x, info, Hr, gr
 
 
-def _fast(prob, pool, pool_band, solve, n, m, loss, prior, delta, iters, obsv_p, observable_min, prior_sigma, to_map,
-          idx, S, progress, irls_tol, irls_obj_tol, threads, prior_tail=0.0, prior_tail_obs=0.5):
+def _fast(prob, pool, pool_band, solve, n, m, cfg: FitMapsConfig, delta, obsv_p, prior_sigma, to_map, idx, S,
+          progress, threads):
+    loss, prior, iters = cfg.loss, float(cfg.prior), cfg.irls_iterations
+    prior_tail, prior_tail_obs = float(cfg.prior_tail), float(cfg.prior_tail_obs)
+    observable_min, irls_tol, irls_obj_tol = cfg.observable_min, cfg.irls_tol, cfg.irls_obj_tol
     info: dict[str, Any] = {}
     sel = np.flatnonzero(solve)
     x = np.zeros((n, m))

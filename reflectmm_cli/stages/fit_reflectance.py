@@ -12,48 +12,61 @@ from reflectmm_cli.artifacts import make_meta, read_artifact, write_artifact, wr
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS, check_exponents
+from reflectmm_cli.reflectance.fit import FitMapsConfig
+from reflectmm_cli.shading.brdf import check_exponents
 from reflectmm_cli.stages.base import Stage, StageContext
 from reflectmm_cli.workspace import stage_output
 
 VERB = "fit-reflectance"
 
+_CFG = FitMapsConfig()
+
+
+def _cfg(name: str, kind: str, **kw) -> Param:
+    """A Param for a FitMapsConfig field, its default taken from FitMapsConfig (declared once, there)."""
+    default = getattr(_CFG, name)
+    return Param(name, kind, list(default) if isinstance(default, tuple) else default, **kw)
+
+
 #: Lobe exponents: positive, at most MAX_EXPONENT, no two collinear lobes (shading.brdf.check_exponents).
-EXPONENTS = Param("exponents", "floats", list(DEFAULT_EXPONENTS), check=check_exponents,
+EXPONENTS = _cfg("exponents", "floats", check=check_exponents,
                   help="Lobe exponents, comma separated (distinct, each in (0, 10000]).")
 
 #: The solver's parameters, shared with evaluate-representation (which refits every representation).
 SOLVER_PARAMS = (
-    Param("solver", "str", "fast", choices=("fast", "adam"),
+    _cfg("solver", "str", choices=("fast", "adam"),
           help="fast: exact batched IRLS/NNLS per texel; adam: the paper's Adam reference."),
-    Param("symmetry", "float", 1.0, range=(0.0, 1.0),
+    _cfg("symmetry", "float", range=(0.0, 1.0),
           help="Mirror pooling weight (fast) / random flips on (adam, when > 0)."),
-    Param("symmetry_mode", "str", "adaptive", choices=("adaptive", "ill-posed", "all"),
+    _cfg("symmetry_mode", "str", choices=("adaptive", "ill-posed", "all"),
           help="Fast solver: adaptive = pool ill-posed texels with their mirror and well-posed ones only as far "
                "as the measured local asymmetry allows; ill-posed = only where a texel's own data are ill-posed "
                "(few observations or conditioning < --cond-min); all = every texel (the paper's random flip)."),
-    Param("loss", "str", "l1", choices=("l1", "l2"),
+    _cfg("loss", "str", choices=("l1", "l2"),
           help="cos-weighted L1 (the paper's, IRLS) or cos-weighted least squares (fast solver)."),
-    Param("prior", "float", 1e-4, range=(0.0, None),
+    _cfg("prior", "float", range=(0.0, None),
           help="Tikhonov strength towards the neighbourhood prior, × trace of each texel's data term."),
-    Param("prior_tail", "float", 100.0, range=(0.0, None),
+    _cfg("prior_tail", "float", range=(0.0, None),
           help="Extra prior on a lobe weight whose lobe is seen only in its tail: × prior × "
                "(1 − observability/0.5)² (0 = off)."),
 )
 
 PARAMS = (EXPONENTS,) + SOLVER_PARAMS + (
-    Param("steps", "int", 1000, range=(1, None), help="Adam steps."),
+    _cfg("steps", "int", range=(1, None), help="Adam steps."),
     Param("flash_intensity", "floats", None, range=(0.0, None), low_open=True,
           help="Flash radiant intensity (one value or one per flash, comma separated); default: the "
                "observations' values. Sets the global scale of C and W."),
-    Param("cond_min", "float", 1e-4, range=(0.0, 1.0), help="Flag texels whose pooled conditioning is below this."),
-    Param("seed", "int", 0, help="Seed of Adam's random flips."),
-    Param("refine_normals", "int", 0, range=(0, 100),
+    _cfg("cond_min", "float", range=(0.0, 1.0), help="Flag texels whose pooled conditioning is below this."),
+    _cfg("seed", "int", help="Seed of Adam's random flips."),
+    _cfg("refine_normals", "int", range=(0, 100),
           help="Photometric normal refinement: alternations of Gauss–Newton steps of each texel's normal and the "
                "reflectance solve (fast solver; 0 = off)."),
-    Param("normal_sigma", "float", 5.0, range=(0.0, 90.0), low_open=True, unit="degrees",
+    _cfg("normal_sigma", "float", range=(0.0, 90.0), low_open=True, unit="degrees",
           help="σ of the refined normal's Gaussian prior towards the geometric normal."),
 )
+
+#: the params that are FitMapsConfig settings (flash_intensity is an input of the fit, not a setting)
+_SETTINGS = tuple(q.name for q in PARAMS if q.name in FitMapsConfig.__dataclass_fields__)
 
 PREVIEWS = ("albedo", "weights", "residual", "flagged")
 
@@ -95,11 +108,8 @@ def run(ctx: StageContext) -> list[Path]:
         raise ReflectmmError("uv-observations input not found (run unwrap-uv first or give --input)", src)
     obs = read_artifact(src, "uv-observations")
     fi = p.get("flash_intensity")
-    maps = fit_maps(obs.arrays, exponents=p["exponents"], solver=p["solver"], symmetry=p["symmetry"],
-                    symmetry_mode=p["symmetry_mode"], loss=p["loss"], prior=p["prior"], prior_tail=p["prior_tail"],
-                    flash_intensity=fi, steps=p["steps"], device=ctx.device, seed=p["seed"],
-                    cond_min=p["cond_min"], refine_normals=p["refine_normals"], normal_sigma=p["normal_sigma"],
-                    progress=progress, path=src)
+    cfg = FitMapsConfig(**{k: p[k] for k in _SETTINGS}, device=ctx.device)
+    maps = fit_maps(obs.arrays, cfg, flash_intensity=fi, progress=progress, path=src)
     stats = {k: v for k, v in maps.stats.items() if k != "time_s"}  # no timings in artifacts (byte-identical reruns)
     out = ctx.output_path()
     resolved = {q.name: p.get(q.name) for q in sorted(PARAMS, key=lambda q: q.name)}
