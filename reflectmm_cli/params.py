@@ -255,6 +255,13 @@ class Param:
             h += f" [{self.unit}]"
         return h
 
+    @classmethod
+    def of_field(cls, config: Any, name: str, kind: str, **kw: Any) -> "Param":
+        """A Param for the field ``name`` of a settings dataclass instance, its default taken from there (declared
+        once; a tuple default becomes a list)."""
+        default = getattr(config, name)
+        return cls(name, kind, list(default) if isinstance(default, tuple) else default, **kw)
+
 
 def closest_name(name: str, names: Iterable[str]) -> str | None:
     """The declared name nearest to a misspelt one (difflib), or None."""

@@ -27,8 +27,8 @@ _CFG = CalibrationConfig()
 
 
 def _cfg(name: str, kind: str, **kw: Any) -> Param:
-    """A Param for a CalibrationConfig field, its default taken from CalibrationConfig (declared once, there)."""
-    return Param(name, kind, getattr(_CFG, name), **kw)
+    """A Param for a CalibrationConfig field, its default declared once, there."""
+    return Param.of_field(_CFG, name, kind, **kw)
 
 
 PARAMS = (

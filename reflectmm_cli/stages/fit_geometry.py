@@ -29,9 +29,8 @@ _CFG = FitConfig()
 
 
 def _cfg(name: str, kind: str, **kw: Any) -> Param:
-    """A Param for a FitConfig field, its default taken from FitConfig (declared once, there)."""
-    default = getattr(_CFG, name)
-    return Param(name, kind, list(default) if isinstance(default, tuple) else default, **kw)
+    """A Param for a FitConfig field, its default declared once, there."""
+    return Param.of_field(_CFG, name, kind, **kw)
 
 
 PARAMS = (

@@ -7,6 +7,7 @@ Reads a ``uv-observations`` artifact, calls :func:`reflectmm_cli.reflectance.fit
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from reflectmm_cli.artifacts import make_meta, read_artifact, write_artifact, write_exr, write_png
 from reflectmm_cli.errors import ReflectmmError
@@ -22,10 +23,9 @@ VERB = "fit-reflectance"
 _CFG = FitMapsConfig()
 
 
-def _cfg(name: str, kind: str, **kw) -> Param:
-    """A Param for a FitMapsConfig field, its default taken from FitMapsConfig (declared once, there)."""
-    default = getattr(_CFG, name)
-    return Param(name, kind, list(default) if isinstance(default, tuple) else default, **kw)
+def _cfg(name: str, kind: str, **kw: Any) -> Param:
+    """A Param for a FitMapsConfig field, its default declared once, there."""
+    return Param.of_field(_CFG, name, kind, **kw)
 
 
 #: Lobe exponents: positive, at most MAX_EXPONENT, no two collinear lobes (shading.brdf.check_exponents).
