@@ -8,7 +8,6 @@ Call: ``result = finetune(shards, model, light, config, workdir)`` → :class:`F
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
