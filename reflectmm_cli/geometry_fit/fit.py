@@ -31,6 +31,8 @@ from reflectmm_cli.geometry.face_model import vertex_normals
 from reflectmm_cli.geometry_fit.model import ShapeModel
 from reflectmm_cli.geometry_fit.photometric import (
     SH_ORDER,
+    flash_loss,
+    gather_bilinear,
     inside_image,
     photometric_loss,
     sample_images,
@@ -81,6 +83,16 @@ class FitConfig:
     photo_min_cos: float = 0.5      # a vertex enters a view's photometric term only if n·v exceeds this
                                     # (grazing vertices sample the silhouette, where the background bleeds in)
     photo_blur_px: tuple[float, ...] = (1.5, 0.0)  # Gaussian blur of the images per photometric round
+    flash_rounds: int = 0           # rounds of the flash (point-light) photometric term after the room-light
+                                    # rounds (0 = off; needs flash images in the ViewSet)
+    flash_iters: int = 60           # L-BFGS iterations per flash round
+    w_flash: float = 30.0           # the flash term is a mean relative (Charbonnier) residual over ~10⁵ samples,
+                                    # the landmark term a mean squared pixel residual over ~700; 30 holds on
+                                    # every synthetic setup measured (docs/benchmarks.md, "The flash term")
+    flash_highlight_deg: float = 25.0  # a (view, flash) sample whose normal is within this angle of the half
+                                       # vector is left out (the specular highlight is not Lambertian)
+    flash_min_cos: float = 0.2      # a vertex enters a flash's term only if n·l exceeds this
+    flash_gains: bool = True        # fit one relative intensity per flash (the table's intensities are nominal)
     albedo: str = "auto"            # "auto": model texture if any else per-vertex estimate; "texture",
                                     # "per-vertex", "constant"
     group_weights: dict[str, float] | None = None
@@ -104,6 +116,10 @@ class ViewSet:
     rig_R: (V, 3, 3) the rig's world-to-camera rotations (soft orientation constraint) or None;
     image_origin: (V, 2) full-frame pixel (x0, y0) of each image's top-left pixel when the images are crops
     (capture ``crop_origin``); landmarks and K are always in full-frame pixels.
+    Flash images (optional, the flash term): flash_images (V, F, h, w, 3) linear, one flash each, same crops as
+    ``images``; flash_view (F,) index of the view whose camera carries the flash (its fitted centre is the
+    flash position) or −1; flash_rig_pos (F, 3) rig-frame positions of the flashes with flash_view −1 (mapped by
+    the fitted head pose; needs rig_centers); flash_intensity (F,); flash_saturated (V, F, h, w) bool or None.
     """
 
     names: list[str]
@@ -116,6 +132,11 @@ class ViewSet:
     rig_centers: np.ndarray | None = None
     image_origin: np.ndarray | None = None
     rig_R: np.ndarray | None = None
+    flash_images: np.ndarray | None = None
+    flash_view: np.ndarray | None = None
+    flash_rig_pos: np.ndarray | None = None
+    flash_intensity: np.ndarray | None = None
+    flash_saturated: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         V = len(self.names)
@@ -133,6 +154,18 @@ class ViewSet:
             raise ReflectmmError(f"{self.images.shape[0]} images for {V} views")
         self.image_origin = (np.zeros((V, 2)) if self.image_origin is None
                              else np.asarray(self.image_origin, dtype=np.float64).reshape(V, 2))
+        if self.flash_images is not None:
+            fi = self.flash_images
+            if fi.ndim != 5 or fi.shape[0] != V or fi.shape[-1] != 3:
+                raise ReflectmmError(f"flash images must be (V, F, h, w, 3) with V = {V}, got {fi.shape}")
+            F = fi.shape[1]
+            self.flash_view = np.asarray(self.flash_view, dtype=np.int64).reshape(F)
+            self.flash_intensity = np.asarray(self.flash_intensity, dtype=np.float64).reshape(F)
+            self.flash_rig_pos = (np.full((F, 3), np.nan) if self.flash_rig_pos is None
+                                  else np.asarray(self.flash_rig_pos, dtype=np.float64).reshape(F, 3))
+            if self.flash_saturated is not None and self.flash_saturated.shape != fi.shape[:4]:
+                raise ReflectmmError(f"flash saturation masks {self.flash_saturated.shape} do not match the flash "
+                                     f"images {fi.shape[:4]}")
 
     def image_K(self) -> np.ndarray:
         """(V, 3, 3) intrinsics in the pixel frame of the stored (possibly cropped) images."""
@@ -159,6 +192,8 @@ class GeometryFit:
     sh: np.ndarray | None = None     # (V, 9, 3)
     albedo: np.ndarray | None = None  # (M, 3) at ``photo_sample``
     photo_sample: np.ndarray | None = None
+    flash_residual: np.ndarray | None = None  # (V,) RMS linear residual of the flash term per view (or None)
+    flash_gain: np.ndarray | None = None  # (F,) fitted relative flash intensities (geometric mean 1; NaN = unused)
     history: list[dict] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -256,26 +291,30 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         r = torch.sqrt((d * d).sum(-1) + 1e-12)
         return (wl_t * huber(r, cfg.huber_px)).sum() / (wsum * cfg.landmark_sigma_px ** 2), uv
 
+    def head():
+        """The rig → model rigid transform (Rh, th): a rig-frame point x sits at ``Rh x + th`` in model space."""
+        return axis_angle_to_matrix(dwh * r_unit) @ Rh0_t, th0_t + dth * t_unit
+
     def prior(R, t):
         """Negative log priors (½‖z‖², rig), divided by the landmark weight sum like the landmark term."""
         p = 0.5 * cfg.w_shape * (zs * zs).sum() + 0.5 * cfg.w_exp * (ze * ze).sum()
         if use_rig:
             c = camera_centers(R, t)
-            Rh = axis_angle_to_matrix(dwh * r_unit) @ Rh0_t
-            ch = rig_t @ Rh.T + th0_t + dth * t_unit
+            Rh, th = head()
+            ch = rig_t @ Rh.T + th
             p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
             if use_rot:
                 # model → camera of view v is R_rig,v · Rhᵀ when the head pose (rig → model) is (Rh, th);
                 # ‖ΔR‖²_F = 2·(2 − 2cos θ) ≈ 2θ² for a rotation error θ, so ¼‖ΔR‖²/σ² ≈ ½θ²/σ²
                 p = p + 0.25 * ((R - rigR_t @ Rh.T) ** 2).sum() / rot_sigma ** 2
             if cfg.head_sigma_mm > 0:
-                th = th0_t + dth * t_unit
                 p = p + 0.5 * (th * th).sum() / cfg.head_sigma_mm ** 2
         return p / wsum
 
     history: list[dict] = []
     n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
-    bar = progress(range(1 + n_photo), desc="fit-geometry", unit="stage")
+    n_flash = cfg.flash_rounds if (views.flash_images is not None and cfg.w_flash > 0) else 0
+    bar = progress(range(1 + n_photo + n_flash), desc="fit-geometry", unit="stage")
 
     def run_lbfgs(params, closure_loss, iters, stage):
         if iters <= 0:
@@ -306,18 +345,16 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
     # ---- stage 2: + photometric
     sh = albedo = sample = None
     photo_res = np.full(V, np.nan)
+    flash_res = flash_gain = None
     vis_count = np.zeros(V, dtype=np.int64)
-    if views.images is not None and cfg.photo_rounds > 0 and cfg.w_photo > 0:
+    if n_photo or n_flash:
         Kimg = views.image_K()
         Kimg_t = tt(Kimg)
-        Hc, Wc = views.images.shape[1:3]
-        kernel = sh_kernel(dtype, device)
-        kernel_np = kernel.cpu().numpy()
         skin = model.skin_mask if model.skin_mask is not None else np.ones(model.n_vertices, dtype=bool)
         sample = np.nonzero(skin)[0]
         if len(sample) > cfg.photo_vertices:
             sample = sample[np.linspace(0, len(sample) - 1, cfg.photo_vertices).round().astype(np.int64)]
-        # the photometric closure only needs the sampled vertices and the triangles around them (their normals
+        # the photometric closures only need the sampled vertices and the triangles around them (their normals
         # are then exactly the full mesh's): evaluate that sub-mesh only
         touch = np.isin(model.triangles, sample).any(1)
         sub_ids = np.unique(model.triangles[touch])
@@ -326,6 +363,10 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                                     device=device)
         sub = ts.subset(sub_ids)
         sample_t = torch.as_tensor(np.searchsorted(sub_ids, sample), dtype=torch.long, device=device)
+    if n_photo:
+        Hc, Wc = views.images.shape[1:3]
+        kernel = sh_kernel(dtype, device)
+        kernel_np = kernel.cpu().numpy()
         mode = cfg.albedo
         if mode == "auto":
             mode = "texture" if model.mean_tex is not None else "per-vertex"
@@ -385,6 +426,12 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             for v in range(V):
                 photo_res[v] = float(np.sqrt((r[v][vis[v]] ** 2).mean())) if vis[v].any() else np.nan
 
+    # ---- stage 3: + flash images (point lights at the flashes; docs/fit-geometry.md)
+    if n_flash:
+        flash_res, flash_gain = _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg, Kimg_t, tt,
+                                  poses, head, use_rig, lm_loss, prior, zs, ze, pose_params, run_lbfgs, dtype,
+                                  device)
+
     for _ in bar:  # close the progress bar
         pass
     with torch.no_grad():
@@ -403,4 +450,112 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                        R=R.cpu().numpy().astype(np.float64), t=t.cpu().numpy().astype(np.float64),
                        K=views.K.copy(), landmark_rmse_px=rmse, landmark_px=uv, photo_residual=photo_res,
                        visible_count=vis_count, sh=sh, albedo=albedo, photo_sample=sample, history=history,
+                       flash_residual=flash_res, flash_gain=flash_gain,
                        seconds=time.perf_counter() - t_start)
+
+
+def _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg, Kimg_t, tt, poses, head, use_rig,
+                  lm_loss, prior, zs, ze, pose_params, run_lbfgs, dtype, device) -> tuple:
+    """The flash stage of :func:`_fit`: ``flash_rounds`` L-BFGS rounds of landmarks + priors + the point-light
+    term (:func:`.photometric.flash_loss`), visibility, shadows and highlight masks refreshed each round.
+    Returns the (V,) RMS residual per view of the last round and the (F,) relative flash gains."""
+    V = len(views.names)
+    fimg = views.flash_images
+    F = fimg.shape[1]
+    h, w = fimg.shape[2:4]
+    fv = views.flash_view
+    rig_ok = np.isfinite(views.flash_rig_pos).all(-1) & use_rig
+    usable = np.nonzero((fv >= 0) | rig_ok)[0]
+    if len(usable) == 0:
+        log.warning("fit-geometry: no flash has a fitted camera or a rig position: the flash term is skipped")
+        return np.full(V, np.nan), np.full(F, np.nan)
+    skipped = [f for f in range(F) if f not in set(usable.tolist())]
+    if skipped:
+        log.warning("fit-geometry: %d flash(es) have no fitted camera and no rig position: left out of the flash "
+                    "term", len(skipped))
+    pv = np.repeat(np.arange(V), len(usable))
+    pf = np.tile(usable, V)
+    pv_t = torch.as_tensor(pv, dtype=torch.long, device=device)
+    fv_t = torch.as_tensor(np.maximum(fv, 0), dtype=torch.long, device=device)
+    rigpos_t = tt(np.nan_to_num(views.flash_rig_pos))
+    from_view_t = torch.as_tensor(fv >= 0, device=device)[:, None]
+    lint_t = tt(views.flash_intensity[pf])
+    pf_t = torch.as_tensor(pf, dtype=torch.long, device=device)
+    use_t = torch.as_tensor(usable, dtype=torch.long, device=device)
+    log_gain = torch.zeros(F, dtype=dtype, device=device, requires_grad=cfg.flash_gains)
+
+    def intensities():
+        """(P,) flash intensity of each pair: the table's, times the fitted relative gain (geometric mean 1)."""
+        g = log_gain - log_gain[use_t].mean()
+        return lint_t * torch.exp(g[pf_t])
+
+    def flash_positions_t(R, t):
+        c = camera_centers(R, t)[fv_t]
+        if use_rig:
+            Rh, th = head()
+            return torch.where(from_view_t, c, rigpos_t @ Rh.T + th)
+        return c
+
+    blurs = list(cfg.photo_blur_px) + [cfg.photo_blur_px[-1] if cfg.photo_blur_px else 0.0] * cfg.flash_rounds
+    raw = np.asarray(fimg[pv, pf], dtype=np.float32)  # (P, h, w, 3)
+    sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[pv, pf], dtype=bool)
+    cos_hl = math.cos(math.radians(cfg.flash_highlight_deg))
+    res = np.full(V, np.nan)
+    for rnd in range(cfg.flash_rounds):
+        images_t = torch.as_tensor(_blur(raw, blurs[rnd]), device=device)  # (P, h, w, 3) channels last
+        with torch.no_grad():
+            X = ts.vertices(zs, ze)
+            R, t = poses()
+            lpos = flash_positions_t(R, t)
+            Xn, Rn, tn = X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
+            lpos_np = lpos.cpu().numpy().astype(np.float64)
+        nrm = vertex_normals(Xn, model.triangles, dtype=np.float64)
+        centers = camera_centers(Rn, tn)
+        cam_vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample, cos_cutoff=cfg.photo_min_cos)
+        fl_vis = vertex_visibility(Xn, model.triangles, nrm, lpos_np, sample=sample, cos_cutoff=cfg.flash_min_cos)
+        uv, _ = project(Xn[sample][None].repeat(V, 0), Kimg, Rn, tn)
+        inside = inside_image(uv, w, h)
+        p, n = Xn[sample], nrm[sample]
+        vdir = centers[pv][:, None] - p[None]
+        ldir = lpos_np[pf][:, None] - p[None]
+        hvec = vdir / np.linalg.norm(vdir, axis=-1, keepdims=True) + ldir / np.linalg.norm(ldir, axis=-1,
+                                                                                          keepdims=True)
+        hvec /= np.linalg.norm(hvec, axis=-1, keepdims=True)
+        highlight = (hvec * n[None]).sum(-1) > cos_hl
+        weight = cam_vis[pv] & fl_vis[pf] & inside[pv] & ~highlight
+        if sat is not None:
+            px = np.clip(np.rint(uv[pv]).astype(np.int64), 0, [w - 1, h - 1])
+            weight &= ~sat[np.arange(len(pv))[:, None], px[..., 1], px[..., 0]]
+        sp, sm = np.nonzero(weight)
+        seen = gather_bilinear(images_t, torch.as_tensor(sp, device=device),
+                               torch.as_tensor(uv[pv[sp], sm], device=device)).cpu().numpy()
+        scale = max(float(np.median(seen)) if seen.size else 1.0, 1e-3)
+        weight_t = tt(weight.astype(np.float64))
+
+        def stage3():
+            Xs = sub.vertices(zs, ze)
+            R, t = poses()
+            nv = vertex_normals(Xs, sub_tri_t)
+            lf, _, _ = flash_loss(Xs, nv, sample_t, weight_t, Kimg_t, R, t, images_t, pv_t,
+                                  flash_positions_t(R, t)[pf_t], intensities(), scale, residual=False)
+            lml = lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0]
+            return cfg.w_landmark * lml + cfg.w_flash * lf + prior(R, t)
+
+        gains = [log_gain] if cfg.flash_gains else []
+        run_lbfgs([zs, ze] + pose_params + gains, stage3, cfg.flash_iters, f"flash round {rnd + 1}")
+        with torch.no_grad():
+            Xs = sub.vertices(zs, ze)
+            R, t = poses()
+            nv = vertex_normals(Xs, sub_tri_t)
+            raw_t = torch.as_tensor(raw, device=device)
+            _, r, _ = flash_loss(Xs, nv, sample_t, weight_t, Kimg_t, R, t, raw_t, pv_t,
+                                 flash_positions_t(R, t)[pf_t], intensities(), scale)
+            r = r.cpu().numpy()
+        for v in range(V):
+            m = weight[pv == v]
+            res[v] = float(np.sqrt((r[pv == v][m] ** 2).mean())) if m.any() else np.nan
+    with torch.no_grad():
+        g = torch.exp(log_gain - log_gain[use_t].mean()).cpu().numpy().astype(np.float64)
+    gain = np.full(F, np.nan)
+    gain[usable] = g[usable]
+    return res, gain

@@ -109,6 +109,34 @@ def view_cameras(rig, view_names: list[str], image_size: tuple[int, int], focal:
     return np.array(Ks), np.array(Rs), np.array(ts), np.array(pos)
 
 
+def _flash_inputs(capture: Artifact, capture_path: Path, rig, view_names: list[str], flash_ids: list[str],
+                  hw: tuple[int, int], flash_intensity: float | None) -> dict[str, np.ndarray]:
+    """The flash images of a capture and where each flash sits, for the fit's flash term (``ViewSet`` fields)."""
+    if "olat" not in capture.arrays:
+        raise ReflectmmError("the flash term needs the capture's flash images ('olat'), which it does not have",
+                             capture_path)
+    olat = np.asarray(capture["olat"])
+    V, F = len(view_names), len(flash_ids)
+    if olat.shape != (V, F, *hw, 3):
+        raise ReflectmmError(f"capture 'olat' has shape {olat.shape}, expected {(V, F, *hw, 3)}", capture_path)
+    fview = np.full(F, -1, dtype=np.int64)
+    fpos = np.full((F, 3), np.nan)
+    fint = np.zeros(F)
+    for i, fid in enumerate(flash_ids):
+        fl = rig.flash(fid)
+        fint[i] = fl.intensity if flash_intensity is None else float(flash_intensity)
+        if fl.camera is not None and fl.camera in view_names:
+            fview[i] = view_names.index(fl.camera)
+        else:
+            fpos[i] = rig.camera(fl.camera).position if fl.camera is not None else fl.position
+    sat = capture.arrays.get("saturated")
+    sat = None if sat is None else np.asarray(sat, dtype=bool)
+    if sat is not None and sat.shape != olat.shape[:4]:
+        raise ReflectmmError(f"capture 'saturated' has shape {sat.shape}, expected {olat.shape[:4]}", capture_path)
+    return {"flash_images": olat, "flash_view": fview, "flash_rig_pos": fpos, "flash_intensity": fint,
+            "flash_saturated": sat}
+
+
 # --------------------------------------------------------------------------- library
 
 def _truth_views(truth: Artifact, view_names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -156,8 +184,10 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     R0, t0, init_rms = initial_poses(model.mean[model.landmarks], lm, K, R_rig, t_rig)
     log.info("fit-geometry %s: %d views, %d vertices, initial landmark RMS %s px", identity, len(view_names),
              model.n_vertices, " ".join(f"{e:.1f}" for e in init_rms))
+    flash_kw = _flash_inputs(capture, capture_path, rig, view_names, flash_ids, room.shape[1:3], flash_intensity) \
+        if cfg.flash_rounds > 0 and cfg.w_flash > 0 else {}
     views = ViewSet(names=view_names, K=K, R0=R0, t0=t0, landmarks=lm, image_size=(W, H), images=room,
-                    rig_centers=rig_pos, image_origin=origin, rig_R=R_rig)
+                    rig_centers=rig_pos, image_origin=origin, rig_R=R_rig, **flash_kw)
     fit = fit_geometry(model, views, cfg, device=device)
     fpos, fint, fsrc, rig_res = flash_positions(rig, flash_ids, view_names, fit.R, fit.t)
     if flash_intensity is not None:
@@ -175,6 +205,9 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     }
     if fit.sh is not None:
         arrays["sh_room"] = fit.sh
+    if fit.flash_residual is not None:
+        arrays["flash_residual"] = fit.flash_residual
+        arrays["flash_gain"] = fit.flash_gain
     report: dict[str, Any] = {
         "identity": identity, "views": len(view_names),
         "landmark_rmse_px": [round(float(x), 4) for x in fit.landmark_rmse_px],

@@ -109,3 +109,88 @@ def photometric_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torc
     rho = charbonnier(r / scale, eps).sum(-1)
     loss = (rho * vis).sum() / vis.sum().clamp_min(1.0)
     return loss, r
+
+
+def point_irradiance(points: torch.Tensor, normals: torch.Tensor, light_pos: torch.Tensor,
+                     light_int: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Irradiance of point lights on surface points: ``I · max(n·l, 0) / d²``.
+
+    points, normals (M, 3); light_pos (P, 3); light_int (P,) radiant intensity → (E (P, M), unit l (P, M, 3)).
+    """
+    d = light_pos[:, None, :] - points[None]
+    r2 = (d * d).sum(-1)
+    ld = d / torch.sqrt(r2)[..., None]
+    cos = (normals[None] * ld).sum(-1).clamp_min(0.0)
+    return light_int[:, None] * cos / r2, ld
+
+
+def gather_bilinear(images: torch.Tensor, pair: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of channels-last images (P, h, w, C) at (K, 2) pixel coordinates of image ``pair`` (K,)
+    → (K, C) in ``uv``'s dtype; pixel centres at integer coordinates, clamped at the border (the convention of
+    :func:`sample_images`).  Differentiable in ``uv``; only the K samples are touched."""
+    P, h, w, C = images.shape
+    flat = images.reshape(P * h * w, C)
+    u = uv[:, 0].clamp(0.0, w - 1.0)
+    v = uv[:, 1].clamp(0.0, h - 1.0)
+    x0 = torch.floor(u).clamp(max=w - 2 if w > 1 else 0)
+    y0 = torch.floor(v).clamp(max=h - 2 if h > 1 else 0)
+    fx = (u - x0)[:, None]
+    fy = (v - y0)[:, None]
+    base = pair * (h * w) + y0.long() * w + x0.long()
+    dx = 1 if w > 1 else 0
+    dy = w if h > 1 else 0
+
+    def at(off):
+        return flat.index_select(0, base + off).to(uv.dtype)
+
+    top = at(0) * (1 - fx) + at(dx) * fx
+    bottom = at(dy) * (1 - fx) + at(dy + dx) * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def flash_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torch.Tensor, weight: torch.Tensor,
+               K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, images: torch.Tensor, pair_view: torch.Tensor,
+               light_pos: torch.Tensor, light_int: torch.Tensor, scale: float, eps: float = 0.02,
+               residual: bool = True) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """Point-light Lambertian photometric term of flash images, the albedo eliminated per vertex.
+
+    Each (view, flash) pair ``p`` is an image of the surface lit by one point light.  The Lambertian prediction
+    of vertex ``m`` is ``c_m/π · E_pm`` with ``E = I·max(n·l, 0)/d²``; the albedo ``c_m`` (per channel) is the
+    weighted least-squares value over the pairs that see the vertex, ``c/π = Σ_p w E O / Σ_p w E²``, computed
+    inside the loss (variable projection), so the term measures only how well the *shape* explains the change of
+    brightness between flashes — photometric stereo with known lights — and the image positions between views.
+
+    Args:
+        vertices, normals: (N, 3) current (sub-)mesh; sample (M,) vertex ids; weight (P, M) 0/1 (camera and
+            flash visibility, no highlight, not saturated).
+        K, R (V, 3, 3), t (V, 3): cameras (K in the images' pixel frame); images (P, h, w, 3) linear
+            (channels last, any float dtype: only the samples are converted);
+            pair_view (P,) view index of each pair; light_pos (P, 3) and light_int (P,) the pair's flash.
+        scale: intensity scale of the residuals; eps: Charbonnier ε (relative to ``scale``).
+        residual: also return the residuals (else None: the optimiser's closure needs only the loss).
+    Returns:
+        (loss, residual (P, M, 3) — 0 where the weight is 0, albedo/π (M, 3)).
+    Only the (pair, vertex) samples of non-zero weight are evaluated.
+    """
+    p = vertices[sample]
+    n = normals[sample]
+    uv, _ = project(p[None].expand(K.shape[0], -1, -1), K, R, t)  # (V, M, 2)
+    # only the samples that count: (pair, vertex) index lists
+    sp, sm = torch.nonzero(weight > 0, as_tuple=True)
+    w = weight[sp, sm]
+    obs = gather_bilinear(images, sp, uv[pair_view[sp], sm])  # (S, 3)
+    d = light_pos[sp] - p[sm]
+    r2 = (d * d).sum(-1)
+    E = light_int[sp] * ((n[sm] * d).sum(-1) / torch.sqrt(r2)).clamp_min(0.0) / r2  # (S,)
+    M = p.shape[0]
+    wE = w * E
+    num = torch.zeros(M, 3, dtype=p.dtype, device=p.device).index_add(0, sm, wE[:, None] * obs)
+    den = torch.zeros(M, dtype=p.dtype, device=p.device).index_add(0, sm, wE * E)[:, None]
+    ok = den > 0
+    c = torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
+    r = c[sm] * E[:, None] - obs
+    loss = (charbonnier(r / scale, eps).sum(-1) * w).sum() / w.sum().clamp_min(1.0)
+    if not residual:
+        return loss, None, c
+    dense = torch.zeros(*weight.shape, 3, dtype=r.dtype, device=r.device)
+    return loss, dense.index_put((sp, sm), r), c

@@ -59,6 +59,15 @@ PARAMS = (
     _cfg("photo_min_cos", "float", range=(-1.0, 1.0), option="", help="n·v threshold of the photometric term."),
     _cfg("photo_blur_px", "floats", range=(0.0, None), option="", unit="px",
          help="Gaussian blur of the images per photometric round."),
+    _cfg("flash_rounds", "int", range=(0, 10),
+         help="rounds of the flash term after the photometric rounds: each flash image as a point light at its "
+              "flash, cast shadows and highlights left out, the albedo per vertex (0 = off; docs/fit-geometry.md)."),
+    _cfg("flash_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per flash round."),
+    _cfg("w_flash", "float", range=(0.0, None), help="weight of the flash term."),
+    _cfg("flash_highlight_deg", "float", range=(0.0, 90.0), option="", unit="deg",
+         help="flash samples whose normal is within this angle of the half vector are left out (highlights)."),
+    _cfg("flash_min_cos", "float", range=(0.0, 1.0), option="", help="n·l threshold of the flash term."),
+    _cfg("flash_gains", "bool", option="", help="fit one relative intensity per flash."),
     _cfg("albedo", "str", choices=("auto", "texture", "per-vertex", "constant"),
          help="albedo of the photometric term (auto: the model's mean texture if it has one, else a per-vertex "
               "estimate; constant = one skin colour)."),

@@ -155,3 +155,41 @@ def render(vertices, triangles, albedo, sh, K, R, t, width, height):
     A = np.array([math.pi] + [2 * math.pi / 3] * 3 + [math.pi / 4] * 5)
     img[ray_id] = alb / math.pi * (Y @ (A[:, None] * sh))
     return img.reshape(height, width, 3)
+
+
+def render_point(vertices, triangles, albedo, light_pos, intensity, K, R, t, width, height):
+    """Ray-traced Lambertian render under one point light, with cast shadows (independent of the fit code):
+    (H, W, 3) linear image, 0 background.  Per pixel: primary ray → hit → barycentric normal/albedo →
+    ``albedo/π · I · max(n·l, 0)/d²`` unless the segment to the light hits the mesh."""
+    import trimesh
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, process=False)
+    ray = RayMeshIntersector(mesh)
+    c = -R.T @ t
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+    d = d_cam @ R
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    tri_id, ray_id, loc = ray.intersects_id(np.broadcast_to(c, d.shape), d, multiple_hits=False,
+                                            return_locations=True)
+    vn = vertex_normals(vertices, triangles, dtype=np.float64)
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri_id], loc)
+    f = triangles[tri_id]
+    n = (bary[:, :, None] * vn[f]).sum(1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    alb = (bary[:, :, None] * albedo[f]).sum(1)
+    to_l = np.asarray(light_pos, float)[None] - loc
+    dist = np.linalg.norm(to_l, axis=-1)
+    ldir = to_l / dist[:, None]
+    # shadow rays: start just off the surface (along the geometric normal side of the light)
+    fn = mesh.face_normals[tri_id]
+    origin = loc + 1e-3 * np.sign((fn * ldir).sum(-1))[:, None] * fn
+    blocked = np.zeros(len(loc), dtype=bool)
+    hit_tri, hit_ray, hit_loc = ray.intersects_id(origin, ldir, multiple_hits=False, return_locations=True)
+    if len(hit_ray):
+        blocked[hit_ray] = np.linalg.norm(hit_loc - origin[hit_ray], axis=-1) < dist[hit_ray]
+    irr = intensity * np.clip((n * ldir).sum(-1), 0.0, None) / dist ** 2 * ~blocked
+    img = np.zeros((height * width, 3))
+    img[ray_id] = alb / math.pi * irr[:, None]
+    return img.reshape(height, width, 3)
