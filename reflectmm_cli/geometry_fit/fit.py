@@ -6,11 +6,14 @@ Unknowns (optimised with L-BFGS, strong-Wolfe line search, in torch):
   (``shape_coeffs = zs · shape_sigma``);
 * per view ``δ_v`` (3,) and ``τ_v`` (3,): ``R_v = exp([δ_v]×) R0_v``, ``t_v = t0_v + τ_v · t_unit``
   (the pose of the head in camera ``v``, which is the camera's extrinsics in model space);
-* photometric stage only: per-view SH lighting (V, 9, 3) and, without a model texture, a per-vertex albedo.
+* photometric stage only: per-view SH lighting (V, 9, 3) and, without a model texture, a per-vertex albedo;
+* flash stage only: one log-gain per flash (relative intensities); its per-vertex albedo is eliminated in closed
+  form inside the loss (:func:`.photometric.flash_loss`).
 
 Loss (docs/fit-geometry.md):
 ``w_lm · Σ w_i huber(‖π(R_v X_i + t_v) − x_vi‖, δ_px) / Σ w_i`` +
-``w_photo · mean_visible Σ_c charbonnier((ρ_vm − I_v(π(X_m)))/s)`` + ``w_shape ‖zs‖² + w_exp ‖ze‖²``.
+``w_photo · mean_visible Σ_c charbonnier((ρ_vm − I_v(π(X_m)))/s)`` + ``w_shape ‖zs‖² + w_exp ‖ze‖²``, and in the
+flash stage ``w_flash · mean_lit,visible Σ_c charbonnier((c_m g_f I_f max(n·l, 0)/d² − O_vf(π(X_m)))/s)``.
 """
 
 from __future__ import annotations
@@ -89,7 +92,7 @@ class FitConfig:
     w_flash: float = 30.0           # the flash term is a mean relative (Charbonnier) residual over ~10⁵ samples,
                                     # the landmark term a mean squared pixel residual over ~700; 30 holds on
                                     # every synthetic setup measured (docs/benchmarks.md, "The flash term")
-    flash_highlight_deg: float = 25.0  # a (view, flash) sample whose normal is within this angle of the half
+    flash_highlight_deg: float = 40.0  # a (view, flash) sample whose normal is within this angle of the half
                                        # vector is left out (the specular highlight is not Lambertian)
     flash_min_cos: float = 0.2      # a vertex enters a flash's term only if n·l exceeds this
     flash_gains: bool = True        # fit one relative intensity per flash (the table's intensities are nominal)

@@ -64,7 +64,7 @@ PARAMS = (
               "flash, cast shadows and highlights left out, the albedo per vertex (0 = off; docs/fit-geometry.md)."),
     _cfg("flash_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per flash round."),
     _cfg("w_flash", "float", range=(0.0, None), help="weight of the flash term."),
-    _cfg("flash_highlight_deg", "float", range=(0.0, 90.0), option="", unit="deg",
+    _cfg("flash_highlight_deg", "float", range=(0.0, 90.0), option="--flash-highlight", unit="deg",
          help="flash samples whose normal is within this angle of the half vector are left out (highlights)."),
     _cfg("flash_min_cos", "float", range=(0.0, 1.0), option="", help="n·l threshold of the flash term."),
     _cfg("flash_gains", "bool", option="", help="fit one relative intensity per flash."),
