@@ -167,7 +167,8 @@ def test_flash_gradient_matches_finite_differences(world):
 
 def test_flash_stage_improves_a_noisy_landmark_fit_and_recovers_flash_gains():
     # 2 px landmark noise; the flashes' true intensities differ by up to 20 % from the table's (all equal): the
-    # flash rounds must pull the geometry towards the truth and find the relative intensities.
+    # flash rounds must pull the geometry towards the truth and find the relative intensities.  Measured: vertex
+    # RMSE 3.20 mm with landmarks only, 0.58 mm with the flash rounds; gains within 1.5 % of the truth.
     gains = np.array([1.0, 1.2, 0.85, 1.1, 0.95])
     m, zs, ze, verts, K, R, t, lights, imgs = _flash_world(gains=gains)
     rng = np.random.default_rng(4)

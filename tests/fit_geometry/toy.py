@@ -119,16 +119,13 @@ def rotvec_matrix(w):
     return Rotation.from_rotvec(w).as_matrix()
 
 
-def render(vertices, triangles, albedo, sh, K, R, t, width, height):
-    """Ray-traced Lambertian SH render (independent of the fit code): (H, W, 3) linear image, 0 background.
-
-    Per pixel: primary ray → triangle hit → barycentric normal/albedo → albedo/π Σ A_l K_lm Y_lm(n).
-    """
+def _primary_hits(vertices, triangles, albedo, K, R, t, width, height):
+    """Primary rays through every pixel centre → (ray intersector, mesh, pixel ids hit, hit points, triangle ids,
+    interpolated unit normals, interpolated albedo)."""
     import trimesh
-
-    mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, process=False)
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
+    mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, process=False)
     ray = RayMeshIntersector(mesh)
     c = -R.T @ t
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
@@ -137,13 +134,22 @@ def render(vertices, triangles, albedo, sh, K, R, t, width, height):
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     tri_id, ray_id, loc = ray.intersects_id(np.broadcast_to(c, d.shape), d, multiple_hits=False,
                                             return_locations=True)
-    img = np.zeros((height * width, 3))
     vn = vertex_normals(vertices, triangles, dtype=np.float64)
     bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri_id], loc)
     f = triangles[tri_id]
     n = (bary[:, :, None] * vn[f]).sum(1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     alb = (bary[:, :, None] * albedo[f]).sum(1)
+    return ray, mesh, ray_id, loc, tri_id, n, alb
+
+
+def render(vertices, triangles, albedo, sh, K, R, t, width, height):
+    """Ray-traced Lambertian SH render (independent of the fit code): (H, W, 3) linear image, 0 background.
+
+    Per pixel: primary ray → triangle hit → barycentric normal/albedo → albedo/π Σ A_l K_lm Y_lm(n).
+    """
+    _, _, ray_id, _, _, n, alb = _primary_hits(vertices, triangles, albedo, K, R, t, width, height)
+    img = np.zeros((height * width, 3))
     nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
     # explicit real SH (order 2, Condon–Shortley phase), flat index l²+l+m
     Y = np.stack([np.full_like(nx, 0.5 / math.sqrt(math.pi)),
@@ -161,24 +167,7 @@ def render_point(vertices, triangles, albedo, light_pos, intensity, K, R, t, wid
     """Ray-traced Lambertian render under one point light, with cast shadows (independent of the fit code):
     (H, W, 3) linear image, 0 background.  Per pixel: primary ray → hit → barycentric normal/albedo →
     ``albedo/π · I · max(n·l, 0)/d²`` unless the segment to the light hits the mesh."""
-    import trimesh
-    from trimesh.ray.ray_pyembree import RayMeshIntersector
-
-    mesh = trimesh.Trimesh(vertices=vertices, faces=triangles, process=False)
-    ray = RayMeshIntersector(mesh)
-    c = -R.T @ t
-    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
-    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
-    d = d_cam @ R
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    tri_id, ray_id, loc = ray.intersects_id(np.broadcast_to(c, d.shape), d, multiple_hits=False,
-                                            return_locations=True)
-    vn = vertex_normals(vertices, triangles, dtype=np.float64)
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri_id], loc)
-    f = triangles[tri_id]
-    n = (bary[:, :, None] * vn[f]).sum(1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    alb = (bary[:, :, None] * albedo[f]).sum(1)
+    ray, mesh, ray_id, loc, tri_id, n, alb = _primary_hits(vertices, triangles, albedo, K, R, t, width, height)
     to_l = np.asarray(light_pos, float)[None] - loc
     dist = np.linalg.norm(to_l, axis=-1)
     ldir = to_l / dist[:, None]
