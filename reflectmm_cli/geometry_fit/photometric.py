@@ -113,15 +113,17 @@ def photometric_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torc
 
 def point_irradiance(points: torch.Tensor, normals: torch.Tensor, light_pos: torch.Tensor,
                      light_int: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Irradiance of point lights on surface points: ``I · max(n·l, 0) / d²``.
+    """Irradiance of point lights on surface points: ``I · max(n·l, 0) / d²``, elementwise with broadcasting.
 
-    points, normals (M, 3); light_pos (P, 3); light_int (P,) radiant intensity → (E (P, M), unit l (P, M, 3)).
+    points, normals (..., 3); light_pos (..., 3); light_int (...) radiant intensity → (E (...), unit l (..., 3)).
+    E.g. (M, 3) points against (P, 3) lights: pass ``points[None]``, ``normals[None]``, ``light_pos[:, None]``,
+    ``light_int[:, None]`` for (P, M).
     """
-    d = light_pos[:, None, :] - points[None]
+    d = light_pos - points
     r2 = (d * d).sum(-1)
-    ld = d / torch.sqrt(r2)[..., None]
-    cos = (normals[None] * ld).sum(-1).clamp_min(0.0)
-    return light_int[:, None] * cos / r2, ld
+    r = torch.sqrt(r2)
+    cos = ((normals * d).sum(-1) / r).clamp_min(0.0)
+    return light_int * cos / r2, d / r[..., None]
 
 
 def gather_bilinear(images: torch.Tensor, pair: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -179,9 +181,7 @@ def flash_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torch.Tens
     sp, sm = torch.nonzero(weight > 0, as_tuple=True)
     w = weight[sp, sm]
     obs = gather_bilinear(images, sp, uv[pair_view[sp], sm])  # (S, 3)
-    d = light_pos[sp] - p[sm]
-    r2 = (d * d).sum(-1)
-    E = light_int[sp] * ((n[sm] * d).sum(-1) / torch.sqrt(r2)).clamp_min(0.0) / r2  # (S,)
+    E, _ = point_irradiance(p[sm], n[sm], light_pos[sp], light_int[sp])  # (S,)
     M = p.shape[0]
     wE = w * E
     num = torch.zeros(M, 3, dtype=p.dtype, device=p.device).index_add(0, sm, wE[:, None] * obs)

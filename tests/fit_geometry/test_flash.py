@@ -25,7 +25,7 @@ def test_point_irradiance_closed_forms():
     p = torch.zeros(3, 3, dtype=D)
     n = torch.tensor([[0, 0, 1.0], [0, 0, 1.0], [0, 0, -1.0]], dtype=D)
     lights = torch.tensor([[0, 0, 2.0], [math.sqrt(3.0), 0, 1.0]], dtype=D)  # on the normal; 60° off it
-    E, ld = point_irradiance(p, n, lights, torch.tensor([8.0, 8.0], dtype=D))
+    E, ld = point_irradiance(p[None], n[None], lights[:, None], torch.tensor([[8.0], [8.0]], dtype=D))
     assert torch.allclose(E[0], torch.tensor([2.0, 2.0, 0.0], dtype=D))  # I/d², I/d², back-facing → 0
     assert torch.allclose(E[1, :2], torch.tensor([8.0 * 0.5 / 4.0] * 2, dtype=D))  # I cos60°/d²
     assert torch.allclose(ld[1, 0], torch.tensor([math.sqrt(3.0) / 2, 0, 0.5], dtype=D))
@@ -41,7 +41,8 @@ def test_point_irradiance_is_finite_and_matches_numpy(seed, dist):
     lp = rng.normal(size=(3, 3))
     lp = dist * lp / np.linalg.norm(lp, axis=-1, keepdims=True) + 2 * dist * np.eye(3)
     inten = rng.uniform(0.1, 10, size=3)
-    E, _ = point_irradiance(torch.tensor(pts), torch.tensor(nrm), torch.tensor(lp), torch.tensor(inten))
+    E, _ = point_irradiance(torch.tensor(pts)[None], torch.tensor(nrm)[None], torch.tensor(lp)[:, None],
+                            torch.tensor(inten)[:, None])
     ref = np.zeros((3, 7))
     for a in range(3):
         for m in range(7):
