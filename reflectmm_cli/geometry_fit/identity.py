@@ -112,6 +112,8 @@ def view_cameras(rig, view_names: list[str], image_size: tuple[int, int], focal:
 def _flash_inputs(capture: Artifact, capture_path: Path, rig, view_names: list[str], flash_ids: list[str],
                   hw: tuple[int, int], flash_intensity: float | None) -> dict[str, np.ndarray]:
     """The flash images of a capture and where each flash sits, for the fit's flash term (``ViewSet`` fields)."""
+    from reflectmm_cli.geometry_fit.init import flash_mounts
+
     if "olat" not in capture.arrays:
         raise ReflectmmError("the flash term needs the capture's flash images ('olat'), which it does not have",
                              capture_path)
@@ -119,16 +121,10 @@ def _flash_inputs(capture: Artifact, capture_path: Path, rig, view_names: list[s
     V, F = len(view_names), len(flash_ids)
     if olat.shape != (V, F, *hw, 3):
         raise ReflectmmError(f"capture 'olat' has shape {olat.shape}, expected {(V, F, *hw, 3)}", capture_path)
-    fview = np.full(F, -1, dtype=np.int64)
-    fpos = np.full((F, 3), np.nan)
-    fint = np.zeros(F)
-    for i, fid in enumerate(flash_ids):
-        fl = rig.flash(fid)
-        fint[i] = fl.intensity if flash_intensity is None else float(flash_intensity)
-        if fl.camera is not None and fl.camera in view_names:
-            fview[i] = view_names.index(fl.camera)
-        else:
-            fpos[i] = rig.camera(fl.camera).position if fl.camera is not None else fl.position
+    fview, fpos, fint = flash_mounts(rig, flash_ids, view_names)
+    fpos[fview >= 0] = np.nan  # these move with their fitted view
+    if flash_intensity is not None:
+        fint = np.full(F, float(flash_intensity))
     sat = capture.arrays.get("saturated")
     sat = None if sat is None else np.asarray(sat, dtype=bool)
     if sat is not None and sat.shape != olat.shape[:4]:

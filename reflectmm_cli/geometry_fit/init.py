@@ -84,6 +84,22 @@ def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return R, t, res
 
 
+def flash_mounts(rig, flash_ids: list[str], view_names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each flash sits: (index of the fitted view whose camera carries it, −1 if none (F,); its rig-frame
+    position (F, 3) — the carrying camera's for an attached flash, the table's for a free-standing one; its
+    radiant intensity (F,))."""
+    view = np.full(len(flash_ids), -1, dtype=np.int64)
+    pos = np.zeros((len(flash_ids), 3))
+    inten = np.zeros(len(flash_ids))
+    for i, fid in enumerate(flash_ids):
+        fl = rig.flash(fid)
+        inten[i] = fl.intensity
+        pos[i] = rig.camera(fl.camera).position if fl.camera is not None else fl.position
+        if fl.camera is not None and fl.camera in view_names:
+            view[i] = view_names.index(fl.camera)
+    return view, pos, inten
+
+
 def flash_positions(rig, flash_ids: list[str], view_names: list[str], R: np.ndarray, t: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
     """Flash positions in the fitted model space.
@@ -101,17 +117,8 @@ def flash_positions(rig, flash_ids: list[str], view_names: list[str], R: np.ndar
         Ra, ta, res = rigid_align(rig_pos, centers)
     else:
         Ra, ta, res = np.eye(3), np.zeros(3), np.linalg.norm(rig_pos - centers, axis=-1)
-    pos = np.zeros((len(flash_ids), 3))
-    inten = np.zeros(len(flash_ids))
-    source = []
-    for i, fid in enumerate(flash_ids):
-        fl = rig.flash(fid)
-        inten[i] = fl.intensity
-        if fl.camera is not None and fl.camera in view_names:
-            pos[i] = centers[view_names.index(fl.camera)]
-            source.append("view")
-        else:
-            p = rig.camera(fl.camera).position if fl.camera is not None else fl.position
-            pos[i] = Ra @ np.asarray(p, dtype=np.float64) + ta
-            source.append("rig")
+    view, pos, inten = flash_mounts(rig, flash_ids, view_names)
+    for i, v in enumerate(view):
+        pos[i] = centers[v] if v >= 0 else Ra @ pos[i] + ta
+    source = ["view" if v >= 0 else "rig" for v in view]
     return pos, inten, source, res
