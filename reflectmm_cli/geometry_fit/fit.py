@@ -366,6 +366,11 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                                     device=device)
         sub = ts.subset(sub_ids)
         sample_t = torch.as_tensor(np.searchsorted(sub_ids, sample), dtype=torch.long, device=device)
+
+        def sub_surface():
+            """(vertices, vertex normals) of the sub-mesh at the current coefficients."""
+            Xs = sub.vertices(zs, ze)
+            return Xs, vertex_normals(Xs, sub_tri_t)
     if n_photo:
         Hc, Wc = views.images.shape[1:3]
         kernel = sh_kernel(dtype, device)
@@ -406,9 +411,8 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             alb_t = tt(alb).requires_grad_(mode == "per-vertex")
 
             def stage2():
-                Xs = sub.vertices(zs, ze)
+                Xs, nv = sub_surface()
                 R, t = poses()
-                nv = vertex_normals(Xs, sub_tri_t)
                 lp, _ = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, images_t, alb_t, sh_t, kernel, scale)
                 lml = lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0]
                 return cfg.w_landmark * lml + cfg.w_photo * lp + prior(R, t)
@@ -419,9 +423,8 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             albedo = alb_t.detach().cpu().numpy()
             # residuals on the unblurred images at the final estimate of this round
             with torch.no_grad():
-                Xs = sub.vertices(zs, ze)
+                Xs, nv = sub_surface()
                 R, t = poses()
-                nv = vertex_normals(Xs, sub_tri_t)
                 raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
                 _, r = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
                 r = r.cpu().numpy()
@@ -431,9 +434,9 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
 
     # ---- stage 3: + flash images (point lights at the flashes; docs/fit-geometry.md)
     if n_flash:
-        flash_res, flash_gain = _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg, Kimg_t, tt,
-                                  poses, head, use_rig, lm_loss, prior, zs, ze, pose_params, run_lbfgs, dtype,
-                                  device)
+        flash_res, flash_gain = _flash_rounds(cfg, views, model, ts, sub_surface, sample, sample_t, Kimg, Kimg_t,
+                                              tt, poses, head, use_rig, lm_loss, prior, zs, ze, pose_params,
+                                              run_lbfgs, dtype, device)
 
     for _ in bar:  # close the progress bar
         pass
@@ -457,7 +460,7 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
                        seconds=time.perf_counter() - t_start)
 
 
-def _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg, Kimg_t, tt, poses, head, use_rig,
+def _flash_rounds(cfg, views, model, ts, sub_surface, sample, sample_t, Kimg, Kimg_t, tt, poses, head, use_rig,
                   lm_loss, prior, zs, ze, pose_params, run_lbfgs, dtype, device) -> tuple:
     """The flash stage of :func:`_fit`: ``flash_rounds`` L-BFGS rounds of landmarks + priors + the point-light
     term (:func:`.photometric.flash_loss`), visibility, shadows and highlight masks refreshed each round.
@@ -472,10 +475,9 @@ def _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg,
     if len(usable) == 0:
         log.warning("fit-geometry: no flash has a fitted camera or a rig position: the flash term is skipped")
         return np.full(V, np.nan), np.full(F, np.nan)
-    skipped = [f for f in range(F) if f not in set(usable.tolist())]
-    if skipped:
+    if len(usable) < F:
         log.warning("fit-geometry: %d flash(es) have no fitted camera and no rig position: left out of the flash "
-                    "term", len(skipped))
+                    "term", F - len(usable))
     pv = np.repeat(np.arange(V), len(usable))
     pf = np.tile(usable, V)
     pv_t = torch.as_tensor(pv, dtype=torch.long, device=device)
@@ -487,10 +489,13 @@ def _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg,
     use_t = torch.as_tensor(usable, dtype=torch.long, device=device)
     log_gain = torch.zeros(F, dtype=dtype, device=device, requires_grad=cfg.flash_gains)
 
+    def log_gains():
+        """(F,) log relative flash gains, geometric mean 1 over the flashes in the term."""
+        return log_gain - log_gain[use_t].mean()
+
     def intensities():
-        """(P,) flash intensity of each pair: the table's, times the fitted relative gain (geometric mean 1)."""
-        g = log_gain - log_gain[use_t].mean()
-        return lint_t * torch.exp(g[pf_t])
+        """(P,) flash intensity of each pair: the table's, times the fitted relative gain."""
+        return lint_t * torch.exp(log_gains()[pf_t])
 
     def flash_positions_t(R, t):
         c = camera_centers(R, t)[fv_t]
@@ -536,9 +541,8 @@ def _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg,
         weight_t = tt(weight.astype(np.float64))
 
         def stage3():
-            Xs = sub.vertices(zs, ze)
+            Xs, nv = sub_surface()
             R, t = poses()
-            nv = vertex_normals(Xs, sub_tri_t)
             lf, _, _ = flash_loss(Xs, nv, sample_t, weight_t, Kimg_t, R, t, images_t, pv_t,
                                   flash_positions_t(R, t)[pf_t], intensities(), scale, residual=False)
             lml = lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0]
@@ -547,9 +551,8 @@ def _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg,
         gains = [log_gain] if cfg.flash_gains else []
         run_lbfgs([zs, ze] + pose_params + gains, stage3, cfg.flash_iters, f"flash round {rnd + 1}")
         with torch.no_grad():
-            Xs = sub.vertices(zs, ze)
+            Xs, nv = sub_surface()
             R, t = poses()
-            nv = vertex_normals(Xs, sub_tri_t)
             raw_t = torch.as_tensor(raw, device=device)
             _, r, _ = flash_loss(Xs, nv, sample_t, weight_t, Kimg_t, R, t, raw_t, pv_t,
                                  flash_positions_t(R, t)[pf_t], intensities(), scale)
@@ -558,7 +561,7 @@ def _flash_rounds(cfg, views, model, ts, sub, sub_tri_t, sample, sample_t, Kimg,
             m = weight[pv == v]
             res[v] = float(np.sqrt((r[pv == v][m] ** 2).mean())) if m.any() else np.nan
     with torch.no_grad():
-        g = torch.exp(log_gain - log_gain[use_t].mean()).cpu().numpy().astype(np.float64)
+        g = torch.exp(log_gains()).cpu().numpy().astype(np.float64)
     gain = np.full(F, np.nan)
     gain[usable] = g[usable]
     return res, gain
