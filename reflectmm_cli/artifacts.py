@@ -27,6 +27,7 @@ import os
 import tempfile
 import zipfile
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -178,24 +179,72 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
             with open(tmp_path, "rb+") as f:
                 os.fsync(f.fileno())
             os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
+            staged = _STAGED.get()
+            if staged is not None:  # inside committed_together(): renamed when the whole group has succeeded
+                staged.append((tmp_path, target))
+                return
             os.replace(tmp_path, target)
         except OSError as exc:
             _raise_write_error(exc, target)
             raise
-        try:
-            dfd = os.open(target.parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        except OSError:
-            pass
+        _fsync_dir(target.parent)
     except BaseException:
         try:
             tmp_path.unlink()
         except FileNotFoundError:
             pass
         raise
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        dfd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
+
+
+#: the (temporary file, target) pairs of the innermost :func:`committed_together` block, else None
+_STAGED: ContextVar[list[tuple[Path, Path]] | None] = ContextVar("reflectmm_staged_writes", default=None)
+
+
+@contextmanager
+def committed_together() -> Iterator[None]:
+    """Commit every atomic write of the block (:func:`write_artifact`, :func:`write_png`, :func:`write_exr`,
+    :func:`atomic_write_bytes` ...) together, only when the whole block succeeds.
+
+    Inside the block each file is written to its temporary file as usual but not renamed; at the end the targets
+    are checked (none may be a folder) and renamed one after the other, in the order written.  If anything in the
+    block raises, no target is touched and the temporary files are removed: a run's outputs never mix files of a
+    failed run with the previous run's.  A nested block joins the outer one.
+    """
+    if _STAGED.get() is not None:
+        yield
+        return
+    staged: list[tuple[Path, Path]] = []
+    token = _STAGED.set(staged)
+    try:
+        yield
+        for _, target in staged:
+            if target.is_dir():
+                raise ReflectmmError("cannot write: a folder is in the way", target)
+        for i, (tmp, target) in enumerate(staged):
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                _raise_write_error(exc, target)
+                raise
+            staged[i] = (target, target)
+    finally:
+        _STAGED.reset(token)
+        for tmp, target in staged:
+            if tmp != target:
+                tmp.unlink(missing_ok=True)
+    for folder in dict.fromkeys(t.parent for _, t in staged):
+        _fsync_dir(folder)
 
 
 # errors of the file system, not of the data: reported as one line naming the file being written

@@ -307,8 +307,11 @@ def resolve_params(params: Iterable[Param], given: Mapping[str, Any], *, strict:
 
 def parse_ids(ids: str | None, id_file: Any = None) -> list[str]:
     """Identities from ``"001,002"`` (spaces also separate; ranges ``001-010`` keep the zero padding) and/or a
-    file (one per line, ``#`` comments); duplicates dropped, order kept."""
+    file (one per line, ``#`` comments); duplicates dropped, order kept.  Each must be a safe id
+    (:func:`reflectmm_cli.workspace.check_id`): a one-line error names the id, where it was read and the rule."""
     from pathlib import Path
+
+    from reflectmm_cli.workspace import check_id
 
     out: list[str] = []
     if ids:
@@ -322,12 +325,16 @@ def parse_ids(ids: str | None, id_file: Any = None) -> list[str]:
                     raise ReflectmmError(f"--ids: bad range '{tok}'")
                 out.extend(str(i).zfill(len(a)) for i in range(int(a), int(b) + 1))
             else:
-                out.append(tok)
+                out.append(check_id(tok, "--ids"))
     if id_file is not None:
         try:
             lines = Path(id_file).read_text().splitlines()
-        except OSError as exc:
-            raise ReflectmmError(f"cannot read id file ({exc.strerror})", id_file) from None
-        out.extend(ln.split("#", 1)[0].strip() for ln in lines if ln.split("#", 1)[0].strip())
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) else "not a text file"
+            raise ReflectmmError(f"cannot read id file ({why})", id_file) from None
+        for n, ln in enumerate(lines, 1):
+            tok = ln.split("#", 1)[0].strip()
+            if tok:
+                out.append(check_id(tok, f"{id_file}: line {n}"))
     seen: set[str] = set()
     return [i for i in out if not (i in seen or seen.add(i))]

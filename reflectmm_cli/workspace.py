@@ -3,6 +3,10 @@
 * The workspace: ``--workspace``, else ``$REFLECTMM_WORKSPACE``, else the current directory.
 * A stage's output: ``<workspace>/<stage>/<id>.npz`` (``<stage>/<stage>.npz`` for a stage that is not per
   identity) — :func:`stage_output`; recipes name stages after verbs so both agree.
+* An identity (``--id``, ``--ids``, an ids file, a recipe's ``foreach``, a discovered id) names files, so it must
+  be a *safe id* (:data:`ID_RULE`, checked by :func:`check_id` — the one place that says what an id may be), and a
+  path the conventions compose must stay inside the workspace (:func:`check_inside`).  Paths the user gives
+  explicitly (``--input``, ``-o``) are the user's choice and are not checked.
 * Face model (one search order, first hit wins — :func:`find_face_model`): the face model a geometry artifact
   records → ``face_model.npz`` of the capture's dataset folder → ``<ws>/face_model.npz`` →
   ``<ws>/synth/face_model.npz`` → ``<ws>/synth-multipie/face_model.npz``.
@@ -19,10 +23,12 @@ No click here: stages, the planner, the report and the commands all import this 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any
 
-__all__ = ["default_workspace", "resolve_workspace", "stage_dir", "stage_output", "default_input", "capture_root",
+__all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_workspace", "stage_dir",
+           "stage_output", "default_input", "capture_root",
            "face_model_from_geometry", "find_face_model", "find_rig", "find_truth_dir", "find_truth",
            "list_artifacts", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
@@ -32,6 +38,36 @@ FACE_MODEL_NAME = "face_model.npz"
 WORKSPACE_FACE_MODELS = ("face_model.npz", "synth/face_model.npz", "synth-multipie/face_model.npz")
 #: Where ground truth (synth-truth ``<id>.npz``) is looked for inside a workspace (after the dataset's own).
 WORKSPACE_TRUTH_DIRS = ("truth", "synth/truth", "synth-multipie/truth")
+
+#: What an identity may be: it becomes a file name (``<workspace>/<stage>/<id>.npz``), so no path separator, no
+#: ``..``, no leading ``/``, no space or shell character (Multi-PIE's ``001``, ``w001_000024``, ``shard_00000``).
+ID_RULE = "a safe id is 1-128 letters, digits, '_' or '-' (e.g. 001, w001_000024, shard_00000)"
+_ID_RE = re.compile(r"[A-Za-z0-9_-]{1,128}")
+
+
+def check_id(identity: Any, where: str = "id") -> str:
+    """``identity`` as a str if it is a safe id (:data:`ID_RULE`); else a one-line error naming ``where`` it came
+    from (``--id``, ``[stages.x] foreach``, ``ids.txt: line 3``), the id and the rule.  Every way an identity
+    enters (options, id files, recipes, discovery, :class:`~reflectmm_cli.stages.StageContext`) calls this."""
+    from reflectmm_cli.errors import ReflectmmError
+
+    text = identity if isinstance(identity, str) else str(identity)
+    if not (text.isascii() and _ID_RE.fullmatch(text)):
+        raise ReflectmmError(f"{where}: id {text!r} refused: {ID_RULE}")
+    return text
+
+
+def check_inside(path: Path | str, workspace: Path | str) -> Path:
+    """``path`` (a path composed by the workspace conventions) if it lies inside ``workspace`` once ``.`` and
+    ``..`` are resolved; else a one-line error.  The check is on the path as written (a symlink the user put
+    inside the workspace is the user's choice)."""
+    from reflectmm_cli.errors import ReflectmmError
+
+    ws = os.path.normpath(os.path.abspath(workspace))
+    p = os.path.normpath(os.path.abspath(path))
+    if os.path.commonpath([ws, p]) != ws:
+        raise ReflectmmError(f"resolves outside the workspace {ws}; a workspace path may not leave it", path)
+    return Path(path)
 
 
 def default_workspace() -> Path:
@@ -50,8 +86,9 @@ def stage_dir(workspace: Path, stage: str) -> Path:
 
 
 def stage_output(workspace: Path, stage: str, name: str | None = None, suffix: str = ".npz") -> Path:
-    """``<workspace>/<stage>/<name><suffix>`` (name = the identity, or the stage name for an aggregate)."""
-    return stage_dir(workspace, stage) / f"{name if name is not None else stage}{suffix}"
+    """``<workspace>/<stage>/<name><suffix>`` (name = the identity, or the stage name for an aggregate); a
+    one-line error if it would lie outside the workspace (:func:`check_inside`)."""
+    return check_inside(stage_dir(workspace, stage) / f"{name if name is not None else stage}{suffix}", workspace)
 
 
 def default_input(workspace: Path, stage: str, option: str, name: str | None = None, suffix: str = ".npz") -> Path:
@@ -152,7 +189,8 @@ def require_truth_dir(workspace: Path) -> Path:
 
 
 def find_truth(workspace: Path | None, identity: str, capture: Any = None) -> Path | None:
-    """``<truth dir>/<identity>.npz`` if it exists."""
+    """``<truth dir>/<identity>.npz`` if it exists (``identity``: a safe id, :func:`check_id`)."""
+    check_id(identity)
     d = find_truth_dir(workspace, capture)
     if d is not None and (d / f"{identity}.npz").is_file():
         return d / f"{identity}.npz"

@@ -15,11 +15,23 @@ import click
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param, ParamError, parse_ids, parse_list
 from reflectmm_cli.stages import get_stage, run_stage
+from reflectmm_cli.workspace import check_id
 
 
 def workspace_option(f):
     return click.option("--workspace", "-w", type=click.Path(file_okay=False, path_type=Path), default=None,
                         help="Workspace root (default: $REFLECTMM_WORKSPACE or the current directory).")(f)
+
+
+def id_callback(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+    """click callback of ``--id``-like options: each value must be a safe id
+    (:func:`reflectmm_cli.workspace.check_id`); a one-line error naming the option, the id and the rule."""
+    if value is None:
+        return None
+    where = max(param.opts, key=len)
+    if isinstance(value, tuple):
+        return tuple(check_id(v, where) for v in value)
+    return check_id(value, where)
 
 
 def json_option(f):
@@ -133,5 +145,6 @@ def run_stage_cli(verb: str, *, workspace: Path | None, identity: str | None = N
                      output=output, device=device, stage_name=stage_name)
 
 
-__all__ = ["ParamType", "device_option", "emit", "given_params", "json_option", "output_option", "param_options",
+__all__ = ["ParamType", "device_option", "emit", "given_params", "id_callback", "json_option", "output_option",
+           "param_options",
            "parse_ids", "parse_list", "run_stage_cli", "silence_stdout", "workspace_option", "ReflectmmError"]

@@ -6,13 +6,15 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import emit, json_option, output_option, run_stage_cli, workspace_option
+from reflectmm_cli.commands._common import (emit, id_callback, json_option, output_option, run_stage_cli,
+                                            workspace_option)
 from reflectmm_cli.stages.checksum import VERB
 
 
 @click.command(VERB)
 @click.argument("files", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--id", "identity", default=None, help="Identity this manifest belongs to (names the output).")
+@click.option("--id", "identity", callback=id_callback, default=None,
+              help="Identity this manifest belongs to (names the output).")
 @workspace_option
 @output_option
 @json_option

@@ -9,8 +9,8 @@ from pathlib import Path
 import click
 
 from reflectmm_cli.artifacts import read_artifact
-from reflectmm_cli.commands._common import (device_option, emit, given_params, json_option, output_option,
-                                            param_options, parse_ids, run_stage_cli, workspace_option)
+from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
+                                            output_option, param_options, parse_ids, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.stages import (evaluate_albedo, evaluate_reconstruction, evaluate_relighting, evaluate_report,
@@ -24,7 +24,7 @@ def evaluate_group():
 
 
 @evaluate_group.command("truth")
-@click.option("--id", "identity", required=True, help="Identity (names the output).")
+@click.option("--id", "identity", callback=id_callback, required=True, help="Identity (names the output).")
 @click.option("--maps", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="reflectance-maps artifact (default <ws>/fit-reflectance/<id>.npz if present).")
 @click.option("--truth", "truth", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -194,7 +194,7 @@ def evaluate_albedo_cmd(ids, obs, truth, method_specs, workspace, output, as_jso
 
 
 @evaluate_group.command("relighting")
-@click.option("--id", "identity", required=True, help="The held-out identity (names the output).")
+@click.option("--id", "identity", callback=id_callback, required=True, help="The held-out identity (names the output).")
 @click.option("--capture", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="capture artifact (default <ws>/preprocess-multipie/<id>.npz).")
 @click.option("--geometry", type=click.Path(dir_okay=False, path_type=Path), default=None,

@@ -11,15 +11,15 @@ from typing import Any
 import click
 
 from reflectmm_cli.artifacts import read_artifact
-from reflectmm_cli.commands._common import (device_option, emit, given_params, json_option, output_option,
-                                            param_options, run_stage_cli, workspace_option)
+from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
+                                            output_option, param_options, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.fit_geometry import PARAMS, VERB
 from reflectmm_cli.workspace import find_face_model, find_rig, find_truth, resolve_workspace, stage_output
 
 
 @click.command(VERB)
-@click.option("--id", "identity", required=True, help="Identity (e.g. 042).")
+@click.option("--id", "identity", callback=id_callback, required=True, help="Identity (e.g. 042).")
 @click.option("--capture", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="capture artifact (default <ws>/preprocess-multipie/<id>.npz).")
 @click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,

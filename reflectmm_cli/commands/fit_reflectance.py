@@ -6,15 +6,16 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import (device_option, emit, given_params, json_option, output_option,
-                                            param_options, run_stage_cli, workspace_option)
+from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
+                                            output_option, param_options, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.fit_reflectance import PARAMS, VERB
-from reflectmm_cli.workspace import resolve_workspace, stage_output
+from reflectmm_cli.workspace import check_id, resolve_workspace, stage_output
 
 
 @click.command(VERB)
-@click.option("--id", "identity", default=None, help="Identity (reads <workspace>/unwrap-uv/<id>.npz).")
+@click.option("--id", "identity", callback=id_callback, default=None,
+              help="Identity (reads <workspace>/unwrap-uv/<id>.npz).")
 @click.option("--input", "-i", "input_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="uv-observations artifact (overrides the workspace convention).")
 @param_options(PARAMS)
@@ -37,7 +38,9 @@ def fit_reflectance_cmd(identity, input_path, device, workspace, output, as_json
         src = stage_output(resolve_workspace(workspace), "unwrap-uv", identity)
         if not src.exists():
             raise ReflectmmError("uv-observations not found (run unwrap-uv first or give --input)", src)
-    paths = run_stage_cli(VERB, workspace=workspace, identity=identity or Path(input_path).stem, params=params,
+    if identity is None:  # the input's name is the identity: it names the outputs, so it must be a safe id
+        identity = check_id(Path(input_path).stem, f"--input {input_path}: its name is the identity (or give --id)")
+    paths = run_stage_cli(VERB, workspace=workspace, identity=identity, params=params,
                           inputs={"observations": [src]}, output=output, device=device)
     emit(paths, as_json)
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import emit, given_params, json_option, param_options, workspace_option
+from reflectmm_cli.commands._common import emit, given_params, id_callback, json_option, param_options, workspace_option
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.prepare_wild import PARAMS, VERB, run_shards
 from reflectmm_cli.workspace import resolve_workspace
@@ -25,7 +25,8 @@ from reflectmm_cli.workspace import resolve_workspace
               help="A synth-wild folder: split, truth arrays and vertex errors (default: the images' parent if it "
                    "holds a manifest.npz).")
 @param_options(PARAMS)
-@click.option("--shard", "shards", multiple=True, help="Only these shards (shard_NNNNN; default all).")
+@click.option("--shard", "shards", callback=id_callback, multiple=True,
+              help="Only these shards (shard_NNNNN; default all).")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Output folder (default <workspace>/prepare-wild/).")
 @workspace_option

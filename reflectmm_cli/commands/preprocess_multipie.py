@@ -8,8 +8,8 @@ from pathlib import Path
 import click
 
 from reflectmm_cli.capture.layout import discover_identities
-from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options, parse_ids,
-                                            run_stage_cli, workspace_option)
+from reflectmm_cli.commands._common import (emit, given_params, id_callback, json_option, output_option, param_options,
+                                            parse_ids, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.preprocess_multipie import PARAMS, VERB
 
@@ -19,7 +19,7 @@ log = logging.getLogger("reflectmm")
 @click.command(VERB)
 @click.option("--root", required=True, type=click.Path(path_type=Path),
               help="Multi-PIE root (the folder holding data/sessionNN, or data/ itself).")
-@click.option("--id", "identity", default=None, help="One identity (e.g. 042).")
+@click.option("--id", "identity", callback=id_callback, default=None, help="One identity (e.g. 042).")
 @click.option("--ids", default=None, help="Identities: 001,002 or ranges 001-010.")
 @click.option("--id-file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="File with one identity per line (# comments).")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options,
+from reflectmm_cli.commands._common import (emit, given_params, id_callback, json_option, output_option, param_options,
                                             run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.unwrap_uv import PARAMS, VERB
@@ -14,7 +14,7 @@ from reflectmm_cli.workspace import find_face_model, resolve_workspace, stage_ou
 
 
 @click.command(VERB)
-@click.option("--id", "identity", required=True, help="Identity (e.g. 042).")
+@click.option("--id", "identity", callback=id_callback, required=True, help="Identity (e.g. 042).")
 @click.option("--capture", "capture", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="capture artifact (default <ws>/preprocess-multipie/<id>.npz).")
 @click.option("--geometry", type=click.Path(dir_okay=False, path_type=Path), default=None,

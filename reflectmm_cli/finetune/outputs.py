@@ -165,7 +165,25 @@ def output_paths(out: Path) -> dict:
 
 def write_finetune_outputs(result, initial, out: Path, *, face_model=None, inputs=None, params=None, producer=None,
                            cache_key=None, samples: int = 60, seed: int = 0, log=None) -> list[Path]:
-    """Write the finetuned model artifact, the encoder and the PNGs; return the paths (model artifact last)."""
+    """Write the finetuned model artifact, the encoder and the PNGs; return the paths (model artifact last).
+
+    The files are committed together (:func:`reflectmm_cli.artifacts.committed_together`): if anything fails, no
+    output of an earlier run is replaced, so the encoder always pairs with the model beside it.  ``samples`` = 0
+    writes no sample PNGs; a preview PNG this run does not write (an earlier run's) is removed after the commit."""
+    from reflectmm_cli.artifacts import committed_together
+
+    with committed_together():
+        written = _write_outputs(result, initial, out, face_model=face_model, inputs=inputs, params=params,
+                                 producer=producer, cache_key=cache_key, samples=samples, seed=seed, log=log)
+    paths = output_paths(out)
+    for key in ("samples_before", "samples_after", "components_before", "components_after"):
+        if paths[key] not in written:
+            paths[key].unlink(missing_ok=True)
+    return written
+
+
+def _write_outputs(result, initial, out: Path, *, face_model, inputs, params, producer, cache_key, samples: int,
+                   seed: int, log) -> list[Path]:
     from reflectmm_cli.artifacts import write_artifact, write_png
     from reflectmm_cli.model.pca import MODEL_KIND, model_arrays
 
@@ -197,10 +215,12 @@ def write_finetune_outputs(result, initial, out: Path, *, face_model=None, input
 
         V, T = np.asarray(face_model.mean_shape), np.asarray(face_model.triangles)
         for tag, mdl in (("before", initial), ("after", new)):
-            img, _ = render_samples(mdl, V, T, n=samples, seed=seed, uv=None)
-            write_png(paths[f"samples_{tag}"], img)
-            write_png(paths[f"components_{tag}"], vertex_component_grid(mdl, V, T))
-            written += [paths[f"samples_{tag}"], paths[f"components_{tag}"]]
+            if samples > 0:
+                img, _ = render_samples(mdl, V, T, n=samples, seed=seed, uv=None)
+                written.append(write_png(paths[f"samples_{tag}"], img))
+            written.append(write_png(paths[f"components_{tag}"], vertex_component_grid(mdl, V, T)))
+        if samples <= 0:
+            say("finetune: --samples 0: no sample PNGs")
     else:
         say("finetune: no face model (give --face-model or shards whose meta names one): no sample/component PNGs")
     vals = [h for h in result.history if h.get("type") == "val" and "val_total" in h]

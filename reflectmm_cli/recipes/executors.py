@@ -79,7 +79,7 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
     blocked = blocked_by(spec, list(upstream))
     if blocked is not None:
         return blocked
-    from reflectmm_cli.stages import cache_key_doc, get_stage, key_of_doc
+    from reflectmm_cli.stages import cache_key_doc, check_no_overwrite, get_stage, key_of_doc
 
     t0 = time.perf_counter()
     doc = spec.key_doc
@@ -90,6 +90,7 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
             raise ReflectmmError(f"worker runs reflectmm {__version__}, the run was planned with "
                                  f"{spec.tool_version}; install the same version on every worker")
         stage = get_stage(spec.verb)
+        check_no_overwrite(stage, spec.ctx)
         if doc is None:
             # the inputs' digests go back with the result into the workspace's hash memo, so the next plan does
             # not hash these files again (a worker process has no access to the planner's memo)

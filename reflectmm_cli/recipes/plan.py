@@ -26,6 +26,7 @@ from reflectmm_cli.recipes.recipe import ALL_FOUND, Recipe, Ref, StageSpec
 from reflectmm_cli.params import ParamError
 from reflectmm_cli.stages import (NON_INVALIDATING, Stage, StageContext, cache_key_doc, file_digest, get_stage,
                                   key_of_doc)
+from reflectmm_cli.workspace import check_id
 
 log = logging.getLogger("reflectmm")
 
@@ -155,6 +156,8 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
     """
     workspace = Path(workspace).resolve()
     prior = prior or {}
+    if ids is not None:
+        ids = [check_id(i, "--ids") for i in ids]
     stages: dict[str, Stage] = {}
     for name, spec in recipe.stages.items():
         try:
@@ -191,6 +194,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
         if stage_ids is _DEFER:
             deferred.append(name)
             continue
+        _check_ids(stage_ids, spec, recipe.path)
         if spec.per_identity and not stage_ids:
             empty.append(name)
         if ids is not None and spec.per_identity:
@@ -245,6 +249,18 @@ def stage_params(spec: StageSpec, stage: Stage, recipe_path: Path | None,
         raise ReflectmmError(f"[stages.{spec.name}] params: {exc}", recipe_path) from None
 
 
+def _check_ids(stage_ids: list[str | None], spec: StageSpec, recipe_path: Path | None) -> None:
+    """Every identity of a stage is a safe id (:func:`~reflectmm_cli.workspace.check_id`), whether listed,
+    read from a file, discovered or taken from the upstream stage: a one-line error before anything runs."""
+    where = f"[stages.{spec.name}] foreach" + (f' = "{ALL_FOUND}"' if spec.foreach == ALL_FOUND else "")
+    for ident in stage_ids:
+        if ident is not None:
+            try:
+                check_id(ident, where)
+            except ReflectmmError as exc:
+                raise ReflectmmError(str(exc), recipe_path) from None
+
+
 def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, tasks: dict[str, Task],
                stage_tasks: dict[str, list[str]], memo: dict[str, Any] | None) -> Any:
     fe = spec.foreach
@@ -259,7 +275,10 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
         p = p if p.is_absolute() else workspace / p
         if not p.is_file():
             raise ReflectmmError(f"[stages.{spec.name}] foreach file not found: {p}", recipe.path)
-        return parse_ids(None, p)
+        try:
+            return parse_ids(None, p)
+        except ReflectmmError as exc:
+            raise ReflectmmError(f"[stages.{spec.name}] foreach file {exc}", recipe.path) from None
     # "all found"
     if stage.discover_ids is not None:
         upstream_tasks = [tid for u in spec.upstream() for tid in stage_tasks.get(u, [])]
@@ -447,7 +466,8 @@ def _decide(t: Task, stage: Stage, tasks: dict[str, Task], workspace: Path, memo
             return
         meta_key = meta.get("cache_key")
         if meta_key == t.cache_key:
-            t.action, t.reason = SKIP, "up to date"
+            stale = stage.stale(t.ctx, meta) if stage.stale is not None else None
+            t.action, t.reason = (RUN, stale) if stale else (SKIP, "up to date")
             return
         if meta_key is not None:
             t.action, t.reason = RUN, _why(record, doc, meta)

@@ -25,7 +25,7 @@ from reflectmm_cli import __version__
 from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param, ParamError, resolve_params
-from reflectmm_cli.workspace import default_workspace, stage_output
+from reflectmm_cli.workspace import check_id, default_workspace, stage_output
 
 #: Bump when the way cache keys are computed changes (invalidates every cache).
 CACHE_HASH_VERSION = 1
@@ -130,6 +130,11 @@ class Stage:
         per_identity: True if the stage runs once per identity (``foreach``).
         outputs: ``outputs(ctx) -> list[Path]`` the paths a run will write (for cache checks);
             default ``[ctx.output_path()]``.
+        side_files: ``side_files(ctx) -> list[Path]`` files a run may also write that do not decide whether it is
+            up to date (previews written only with some inputs); :func:`check_no_overwrite` checks them too.
+        stale: ``stale(ctx, meta) -> reason | None``: why an output whose cache key matches must still be rebuilt
+            (its meta records a state that this run refuses, e.g. images that prepare-wild skipped when skips are
+            not allowed); the recipe planner then runs the task instead of calling it up to date.
         input_files: ``input_files(ctx) -> {role: [files]}`` the concrete files whose content
             keys the cache (e.g. only one identity's images inside a dataset root);
             default: every file in ``ctx.inputs`` (folders expanded recursively).
@@ -152,6 +157,8 @@ class Stage:
     run: Callable[[StageContext], list[Path]]
     per_identity: bool = False
     outputs: Callable[[StageContext], list[Path]] | None = None
+    side_files: Callable[[StageContext], list[Path]] | None = None
+    stale: Callable[[StageContext, dict[str, Any]], str | None] | None = None
     input_files: Callable[[StageContext], dict[str, list[Path]]] | None = None
     discover_ids: Callable[[StageContext], list[str]] | None = None
     params: tuple[Param, ...] | None = None
@@ -206,8 +213,11 @@ class Stage:
 
     def context(self, *, strict: bool = True, **kwargs: Any) -> StageContext:
         """A context for this stage; ``params`` are resolved (:meth:`resolve`), so defaults are filled in
-        before any cache key is computed.  Errors name the stage: ``stage 'unwrap-uv': uv_size: ...``."""
+        before any cache key is computed.  Errors name the stage: ``stage 'unwrap-uv': uv_size: ...``; an
+        identity that is not a safe id (:func:`~reflectmm_cli.workspace.check_id`) is refused here too."""
         kwargs.setdefault("stage_name", self.verb)
+        if kwargs.get("identity") is not None:
+            check_id(kwargs["identity"], f"stage '{kwargs['stage_name']}'")
         try:
             kwargs["params"] = self.resolve(kwargs.get("params"), strict=strict)
         except ParamError as exc:
@@ -215,6 +225,40 @@ class Stage:
         ctx = StageContext(**kwargs)
         volatile = frozenset(p.name for p in self.params or () if not p.invalidates_cache)
         return ctx.with_(verb=self.verb, stage_version=self.version, volatile_params=volatile)
+
+
+def _file_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of an existing file (hard links and symlinks share it), else None."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+def check_no_overwrite(stage: Stage, ctx: StageContext) -> None:
+    """Refuse, before anything is computed, a run whose output or side file (:meth:`Stage.expected_outputs` and
+    ``side_files``) is one of its input files — the same path once symlinks, ``..`` and hard links are resolved,
+    whatever the paths were (ids, ``-o``, ``--input``).  One line naming the output, the input role and the file.
+    :func:`run_stage` (the command line) and the recipe executors call it before ``stage.run``."""
+    inputs: dict[Any, tuple[str, Path]] = {}
+    explicit = {role: [Path(p) for p in paths if not Path(p).is_dir()] for role, paths in ctx.inputs.items()}
+    for files in (explicit, stage.files_to_hash(ctx)):
+        for role, paths in files.items():
+            for p in paths:
+                inputs.setdefault(os.path.realpath(p), (role, Path(p)))
+                fid = _file_id(p)
+                if fid is not None:
+                    inputs.setdefault(fid, (role, Path(p)))
+    if not inputs:
+        return
+    outputs = stage.expected_outputs(ctx) + (list(stage.side_files(ctx)) if stage.side_files else [])
+    for out in outputs:
+        hit = inputs.get(os.path.realpath(out)) or inputs.get(_file_id(out))
+        if hit is not None:
+            role, src = hit
+            raise ReflectmmError(f"would overwrite its own input '{role}' ({src}); refused before computing — "
+                                 f"give another output path (-o/--out) or id", out)
 
 
 def walk_files(folder: Path) -> list[Path]:
@@ -294,5 +338,6 @@ def run_stage(stage: "Stage | str", *, workspace: Path | None = None, identity: 
         for p in paths:
             if not Path(p).exists():
                 raise ReflectmmError(f"input '{role}' not found", p)
+    check_no_overwrite(stage, ctx)
     ctx = ctx.with_(cache_key=compute_cache_key(stage, ctx))
-    return list(stage.run(ctx))
+    return list(stage.run(ctx) or [])

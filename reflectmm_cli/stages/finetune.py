@@ -113,6 +113,12 @@ def _outputs(ctx: StageContext) -> list[Path]:
     return [p["model"], p["encoder"]] + phase1 + [p["loss_png"]]
 
 
+def _side_files(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.finetune.outputs import output_paths
+
+    return [p for k, p in output_paths(ctx.output_path()).items() if k != "workdir"]
+
+
 def _one(ctx: StageContext, role: str) -> Path | None:
     paths = ctx.input_list(role, required=False)
     if len(paths) > 1:
@@ -151,6 +157,6 @@ def run(ctx: StageContext) -> list[Path]:
                                   samples=p["samples"], seed=cfg.seed, log=log.info)
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              complete=complete_params,
+STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, side_files=_side_files,
+              params=PARAMS, complete=complete_params,
               help="finetune the reflectance model on in-the-wild shards (update-by-reconstruction)")

@@ -91,6 +91,19 @@ def _outputs(ctx: StageContext) -> list[Path]:
     return [out_dir(ctx) / f"{ctx.identity}.npz"]
 
 
+def _side_files(ctx: StageContext) -> list[Path]:
+    return [out_dir(ctx) / f"{ctx.identity}_overlay.png"]
+
+
+def _stale(ctx: StageContext, meta: dict) -> str | None:
+    """A shard that lists skipped images is not up to date for a run that does not allow skips (whatever wrote
+    it): the run must try (and report) those images again."""
+    n = len(meta.get("skipped") or [])
+    if n and not ctx.params["allow_skipped"]:
+        return f"{n} image(s) were skipped when it was written and allow_skipped is false"
+    return None
+
+
 def _files(ctx: StageContext) -> dict[str, list[Path]]:
     """Only this shard's images, landmarks, masks and truth files (and the face model) key its cache."""
     from reflectmm_cli.finetune.data import list_wild_inputs
@@ -165,6 +178,6 @@ def run_shards(workspace: Path, params: dict, inputs: dict, output: Path | None 
     return paths, failed
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, input_files=_files,
-              discover_ids=_discover, params=PARAMS,
+STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, side_files=_side_files,
+              stale=_stale, input_files=_files, discover_ids=_discover, params=PARAMS,
               help="aligned crops, fixed geometry and G-buffers as wild-shard files")

@@ -141,3 +141,27 @@ def test_phase1_only_leaves_the_written_model_unchanged(cli, data, tmp_path):
     assert set(got.arrays) == set(init.arrays)
     for k in init.arrays:
         assert np.array_equal(got[k], init[k]), k
+
+
+def test_samples_zero_writes_no_sample_pngs_and_keeps_the_outputs_paired(cli, data, tmp_path):
+    """--samples 0 (inside the declared range) used to fail with an internal error after the encoder had been
+    replaced; now it succeeds, and sample PNGs of an earlier run at the same path do not stay behind."""
+    out = tmp_path / "ft" / "m.npz"
+    base = ["finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out]
+    r = cli(*base, *TINY)
+    assert r.exit_code == 0, r.stderr
+    assert (out.parent / "m_samples_after.png").is_file()
+    args = list(TINY)
+    args[args.index("--samples") + 1] = "0"
+    args[args.index("--epochs1") + 1] = "2"
+    r = cli(*base, *args)
+    assert r.exit_code == 0, r.stderr
+    assert not (out.parent / "m_samples_after.png").exists() and not (out.parent / "m_samples_before.png").exists()
+    assert (out.parent / "m_components_after.png").is_file()
+    art = read_artifact(out, "reflectance-model")
+    assert art.meta["params"]["epochs1"] == 2  # the model and its encoder are the second run's
+    from safetensors import safe_open
+
+    with safe_open(str(out.parent / "m_encoder.safetensors"), "np") as f:
+        assert json.loads(f.metadata()["__meta__"])["config"]["epochs1"] == 2

@@ -307,3 +307,29 @@ params = {{ shard_size = 4, from_truth = true, aligned = true, size = 96, allow_
     again = run_recipe(ws / "recipe.toml", ws, dry_run=True)
     # without allow_skipped the failed shard is tried (and reported) again instead of being called up to date
     assert {t.status for t in again.tasks} == ({"skip"} if allow else {"run"}), [t.reason for t in again.tasks]
+
+
+def test_a_shard_written_allowing_skips_is_stale_for_a_run_that_allows_none(wild_small, tmp_path):
+    """allow_skipped does not key the cache (it only decides the exit status), so the shard an allowing run wrote
+    keeps a valid key; a run that allows no skips must still try those images again (the stage's ``stale`` hook),
+    not call the shard up to date."""
+    from reflectmm_cli.recipes import run_recipe
+
+    out, fm = wild_small
+    ws = tmp_path / "ws"
+    shutil.copytree(out, ws / "wild")
+    sorted((ws / "wild" / "images").iterdir())[1].write_bytes(b"not a png")
+    recipe = """
+schema = "reflectmm.recipe/1"
+[stages.prepare-wild]
+foreach = "all found"
+inputs = {{ images = "wild/images", truth = "wild", face_model = "wild/face_model.npz" }}
+params = {{ shard_size = 4, from_truth = true, aligned = true, size = 96, allow_skipped = {allow} }}
+"""
+    (ws / "recipe.toml").write_text(recipe.format(allow="true"))
+    assert run_recipe(ws / "recipe.toml", ws).ok
+    assert {t.status for t in run_recipe(ws / "recipe.toml", ws, dry_run=True).tasks} == {"skip"}
+    (ws / "recipe.toml").write_text(recipe.format(allow="false"))
+    again = run_recipe(ws / "recipe.toml", ws, dry_run=True)
+    assert {t.status for t in again.tasks} == {"run"}
+    assert any("skipped" in (t.reason or "") for t in again.tasks), [t.reason for t in again.tasks]
