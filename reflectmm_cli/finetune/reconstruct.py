@@ -21,7 +21,7 @@ class Reconstruction:
     """Per image (N of them, S×S, K lobes): ``names`` (N,); ``beta`` (N,M); ``gamma`` (N,N_L); ``z`` (N,3);
     ``sh`` (N,3,(L+1)²) lighting in the light frame; linear layers ``full``, ``diffuse``, ``specular``, ``albedo``
     (N,S,S,3) and ``weights`` (N,S,S,K), 0 outside ``face_mask`` (N,S,S); ``image`` (N,S,S,3) uint8 input;
-    ``encoding`` (N,) how the input is encoded."""
+    ``encoding`` (N,) how the input is encoded; with refinement ``refine_objective`` (N, 2)."""
 
     names: np.ndarray
     beta: np.ndarray
@@ -36,18 +36,25 @@ class Reconstruction:
     face_mask: np.ndarray
     image: np.ndarray
     encoding: np.ndarray
+    refine_objective: np.ndarray | None = None  # (N, 2) E_b before and after refinement (finetune/refine.py)
 
     def arrays(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if getattr(self, k) is not None}
 
 
 def reconstruct(shards, encoder, model, light, *, indices=None, split: str | None = None, batch_size: int = 8,
-                device="cpu") -> Reconstruction:
+                device="cpu", refine=None, n_reflectance: int | None = None, n_light: int | None = None,
+                progress_fn=None) -> Reconstruction:
     """Reconstruct the images ``indices`` (or all of ``split``, or all) of ``shards``.
 
     Args:
-        shards: :class:`~reflectmm_cli.finetune.shards.ShardSet`; encoder: from :func:`load_encoder`;
+        shards: :class:`~reflectmm_cli.finetune.shards.ShardSet`; encoder: from :func:`load_encoder`, or None
+            with ``refine`` (then the fit starts from β = γ = 0 and the least-squares light scale z);
         model: the (finetuned) reflectance model; light: the light model the encoder was trained with.
+        refine: a :class:`~reflectmm_cli.finetune.refine.RefineConfig` to refine every image's β, γ, z by
+            analysis-by-synthesis (the model fixed) after the encoder, or None for the encoder alone.
+        n_reflectance, n_light: coefficients fitted without an encoder (default: all of each model).
+        progress_fn: wraps the iterable of batches (progress on stderr).
     """
     import torch
 
@@ -55,24 +62,45 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
     from .train import check_inputs
 
     check_inputs(shards, model, light)
-    if encoder.n_reflectance > model.n_components or encoder.n_light > light.n_components:
-        raise ReflectmmError(f"reconstruct: the encoder predicts {encoder.n_reflectance} reflectance / "
-                             f"{encoder.n_light} light coefficients, the models have {model.n_components} / "
-                             f"{light.n_components}")
+    if encoder is None and refine is None:
+        raise ReflectmmError("reconstruct: give an encoder, or refine the images without one")
+    if encoder is not None:
+        n_reflectance, n_light = encoder.n_reflectance, encoder.n_light
+    n_reflectance = model.n_components if n_reflectance is None else int(n_reflectance)
+    n_light = light.n_components if n_light is None else int(n_light)
+    if n_reflectance > model.n_components or n_light > light.n_components:
+        raise ReflectmmError(f"reconstruct: {'the encoder predicts ' if encoder is not None else ''}"
+                             f"{n_reflectance} reflectance / {n_light} light coefficients, the models have "
+                             f"{model.n_components} / {light.n_components}")
     idx = (np.arange(len(shards)) if indices is None and split is None else
            shards.indices(split) if indices is None else np.asarray(indices, np.int64))
     if len(idx) == 0:
         raise ReflectmmError(f"reconstruct: no images{'' if split is None else f' in split {split!r}'}")
-    params = ModelParams(model, device, n_components=encoder.n_reflectance)
+    params = ModelParams(model, device, n_components=n_reflectance)
     out = {k: [] for k in ("beta", "gamma", "z", "sh", "full", "diffuse", "specular", "albedo", "weights")}
-    encoder.eval()
+    objective = []
+    if encoder is not None:
+        encoder.eval()
+    starts = range(0, len(idx), batch_size)
     with torch.no_grad():
-        for s0 in range(0, len(idx), batch_size):
+        for s0 in (progress_fn(starts) if progress_fn is not None else starts):
             ib = idx[s0:s0 + batch_size]
-            b = shards.batch(ib, with_target=False)
+            b = shards.batch(ib, with_target=refine is not None)
             gb = batch_gbuffer(b, device)
-            x = torch.as_tensor(b["images"], device=device).permute(0, 3, 1, 2).float() / 255.0
-            beta, gamma, z = encoder(x)
+            if encoder is not None:
+                x = torch.as_tensor(b["images"], device=device).permute(0, 3, 1, 2).float() / 255.0
+                beta, gamma, z = encoder(x)
+            if refine is not None:
+                from .refine import initial_z, refine_batch
+
+                if encoder is None:
+                    beta = gb.bary.new_zeros((len(ib), n_reflectance))
+                    gamma = gb.bary.new_zeros((len(ib), n_light))
+                    z = initial_z(params, light, gb, gamma)
+                res = refine_batch(params, light, gb, beta, gamma, z, refine,
+                                   names=[str(n) for n in shards.names[ib]])
+                beta, gamma, z = res.beta, res.gamma, res.z
+                objective.append(np.stack([res.objective_start, res.objective_end], 1))
             sh = lighting(light, gamma, z)
             d, s, a, w = shade_gbuffer(params, beta, sh, gb)
             for k, v in (("beta", beta), ("gamma", gamma), ("z", z), ("sh", sh)):
@@ -81,7 +109,8 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
                 out[k].append(scatter_pixels(v, gb).cpu().numpy())
     cat = {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
     return Reconstruction(names=shards.names[idx], face_mask=shards.face_mask[idx], image=shards.image[idx],
-                          encoding=shards.encoding[idx], **cat)
+                          encoding=shards.encoding[idx],
+                          refine_objective=np.concatenate(objective) if objective else None, **cat)
 
 
 def shards_from_images(images_dir, face_model, config=None, *, landmarks_dir=None, masks_dir=None,

@@ -58,14 +58,19 @@ class RefineConfig:
             0 = all). The rendered layers always cover every face pixel.
     """
 
-    iterations: int = 12
-    loss: str = "l2"
-    w_coef: float = 1e-5
-    w_light: float = 1e-3
-    damping: float = 1e-3
-    tol: float = 1e-6
-    l1_eps: float = 1e-3
-    max_pixels: int = 0
+    iterations: int = field(default=12, metadata={"help": "Levenberg-Marquardt iterations per image.",
+                                                  "range": (0, 1000)})
+    loss: str = field(default="l2", metadata={"help": "Data term: squared error, or the training's L1 by IRLS.",
+                                              "choices": LOSSES})
+    w_coef: float = field(default=1e-5, metadata={"help": "Coefficient-prior weight (beta, gamma in units of sigma)."})
+    w_light: float = field(default=1e-3, metadata={"help": "Monochrome-light weight."})
+    damping: float = field(default=1e-3, metadata={"help": "Initial Marquardt damping (relative to diag(J^T J))."})
+    tol: float = field(default=1e-6, metadata={"help": "Stop when a step lowers the objective by less than this "
+                                                       "fraction."})
+    l1_eps: float = field(default=1e-3, metadata={"help": "IRLS floor of |residual| (loss l1)."})
+    max_pixels: int = field(default=2000, metadata={"help": "Skin pixels per image in the fit (an even stride; 0 = "
+                                                           "all); the renders cover every face pixel.",
+                                                   "range": (0, None)})
 
     def __post_init__(self):
         if self.loss not in LOSSES:
