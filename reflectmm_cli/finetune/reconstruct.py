@@ -10,7 +10,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Reconstruction", "reconstruct", "write_reconstruction", "RECONSTRUCTION_KIND", "reconstruction_png",
+__all__ = ["Reconstruction", "reconstruct", "reconstruct_truth", "truth_model", "write_reconstruction", "RECONSTRUCTION_KIND", "reconstruction_png",
            "shards_from_images"]
 
 RECONSTRUCTION_KIND = "reconstruction"
@@ -111,6 +111,58 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
     return Reconstruction(names=shards.names[idx], face_mask=shards.face_mask[idx], image=shards.image[idx],
                           encoding=shards.encoding[idx],
                           refine_objective=np.concatenate(objective) if objective else None, **cat)
+
+
+def truth_model(albedo, weights, exponents) -> dict:
+    """A reflectance "model" with no components whose mean is one image's true per-vertex reflectance:
+    ``albedo`` (V,3), ``weights`` (V,K) — what the ceiling of a refinement is measured with."""
+    a = np.asarray(albedo, np.float32)
+    w = np.asarray(weights, np.float32)
+    if a.ndim != 2 or a.shape[1] != 3 or w.ndim != 2 or w.shape[0] != a.shape[0]:
+        raise ReflectmmError(f"reconstruct: true reflectance must be (V,3) and (V,K), got {a.shape} and {w.shape}")
+    return {"vertex_albedo_mean": a, "vertex_albedo_basis": np.zeros((0,) + a.shape, np.float32),
+            "vertex_weights_mean": w, "vertex_weights_basis": np.zeros((0,) + w.shape, np.float32),
+            "sigma": np.zeros(0, np.float32), "exponents": np.asarray(exponents, np.float64)}
+
+
+def reconstruct_truth(shards, light, exponents, refine, *, indices=None, split: str | None = None,
+                      n_light: int | None = None, device="cpu", progress_fn=None) -> Reconstruction:
+    """The ceiling of a refinement (synthetic data): every image refined with its *true* per-vertex diffuse albedo
+    and lobe weights (the shard's ``truth_vertex_albedo``/``truth_vertex_weights``) in place of the model; only the
+    light (γ, z) is fitted. The remaining error is what no reflectance model can remove (light-model span, shading
+    approximation, shadows, noise), so that (model's refined PSNR) / (this PSNR) says how much is the model's fault.
+    """
+    import torch
+
+    from .refine import initial_z, refine_batch
+    from .render import ModelParams, batch_gbuffer, lighting, scatter_pixels, shade_gbuffer
+
+    if "truth_vertex_albedo" not in shards.truth or "truth_vertex_weights" not in shards.truth:
+        raise ReflectmmError("reconstruct: the shards hold no true per-vertex reflectance (synthetic data only)")
+    idx = (np.arange(len(shards)) if indices is None and split is None else
+           shards.indices(split) if indices is None else np.asarray(indices, np.int64))
+    n_light = light.n_components if n_light is None else int(n_light)
+    out = {k: [] for k in ("beta", "gamma", "z", "sh", "full", "diffuse", "specular", "albedo", "weights")}
+    objective = []
+    with torch.no_grad():
+        for i in (progress_fn(idx) if progress_fn is not None else idx):
+            params = ModelParams(truth_model(shards.truth["truth_vertex_albedo"][i],
+                                             shards.truth["truth_vertex_weights"][i], exponents), device)
+            gb = batch_gbuffer(shards.batch([i]), device)
+            gamma = gb.bary.new_zeros((1, n_light))
+            beta = gb.bary.new_zeros((1, 0))
+            res = refine_batch(params, light, gb, beta, gamma, initial_z(params, light, gb, gamma), refine,
+                               names=[str(shards.names[i])])
+            sh = lighting(light, res.gamma, res.z)
+            d, s, a, w = shade_gbuffer(params, res.beta, sh, gb)
+            objective.append(np.stack([res.objective_start, res.objective_end], 1))
+            for k, v in (("beta", res.beta), ("gamma", res.gamma), ("z", res.z), ("sh", sh)):
+                out[k].append(v.cpu().numpy())
+            for k, v in (("full", d + s), ("diffuse", d), ("specular", s), ("albedo", a), ("weights", w)):
+                out[k].append(scatter_pixels(v, gb).cpu().numpy())
+    cat = {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
+    return Reconstruction(names=shards.names[idx], face_mask=shards.face_mask[idx], image=shards.image[idx],
+                          encoding=shards.encoding[idx], refine_objective=np.concatenate(objective), **cat)
 
 
 def shards_from_images(images_dir, face_model, config=None, *, landmarks_dir=None, masks_dir=None,
