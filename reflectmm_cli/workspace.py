@@ -10,7 +10,9 @@
 * Face model (one search order, first hit wins — :func:`find_face_model`): the face model a geometry artifact
   records → ``face_model.npz`` of the capture's dataset folder → ``<ws>/face_model.npz`` →
   ``<ws>/synth/face_model.npz`` → ``<ws>/synth-multipie/face_model.npz``.
-* Rig: ``rig.toml`` of the capture's dataset folder, else None (the packaged Multi-PIE rig).
+* Rig: ``rig.toml`` of the capture's dataset folder, else None (the packaged Multi-PIE rig). A per-identity fit
+  (``fit-geometry``) takes the workspace's calibrated rig (``calibrate-rig/rig.toml``) first, with the soft
+  constraints that go with it (:data:`CALIBRATED_RIG_SIGMAS`), and says on stderr which rig it took.
 * In-the-wild images (:func:`find_wild_truth`, :func:`wild_face_model`): the ``synth wild`` folder of an
   images folder is its parent when that holds ``manifest.npz``; the face model defaults to that folder's
   ``face_model.npz``.
@@ -29,7 +31,8 @@ from typing import Any
 
 __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_workspace", "stage_dir",
            "stage_output", "default_input", "capture_root",
-           "face_model_from_geometry", "find_face_model", "find_rig", "find_truth_dir", "find_truth",
+           "face_model_from_geometry", "find_face_model", "find_rig", "find_fit_rig", "CALIBRATED_RIG_SIGMAS",
+           "find_truth_dir", "find_truth",
            "list_artifacts", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
 #: File name of a dataset's / workspace's face model.
@@ -162,6 +165,23 @@ def find_rig(capture: Any) -> Path | None:
     if root is not None and (root / "rig.toml").is_file():
         return root / "rig.toml"
     return None
+
+
+#: The soft rig constraints that go with a calibrated rig (docs/fit-geometry.md): camera centres within 3 mm and
+#: aims within 0.3° of the calibrated table, moved rigidly.
+CALIBRATED_RIG_SIGMAS = {"rig_sigma_mm": 3.0, "rig_rot_sigma_deg": 0.3}
+
+
+def find_fit_rig(workspace: Path, capture: Any = None) -> tuple[Path | None, str]:
+    """The rig a per-identity fit takes by default, and where it comes from: the workspace's calibrated rig
+    (``<ws>/calibrate-rig/rig.toml``, written by ``calibrate-rig``) first, then the capture dataset's
+    ``rig.toml``, else None (the packaged Multi-PIE rig). Returns ``(path, "calibrated" | "dataset" | "packaged")``.
+    """
+    cal = Path(workspace) / "calibrate-rig" / "rig.toml"
+    if cal.is_file():
+        return cal, "calibrated"
+    found = find_rig(capture)
+    return (found, "dataset") if found is not None else (None, "packaged")
 
 
 def find_truth_dir(workspace: Path | None, capture: Any = None) -> Path | None:

@@ -15,7 +15,9 @@ from reflectmm_cli.commands._common import (device_option, emit, given_params, i
                                             output_option, param_options, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.fit_geometry import PARAMS, VERB
-from reflectmm_cli.workspace import find_face_model, find_rig, find_truth, resolve_workspace, stage_output
+from reflectmm_cli.progress import log
+from reflectmm_cli.workspace import (CALIBRATED_RIG_SIGMAS, find_face_model, find_fit_rig, find_truth,
+                                     resolve_workspace, stage_output)
 
 
 @click.command(VERB)
@@ -26,8 +28,9 @@ from reflectmm_cli.workspace import find_face_model, find_rig, find_truth, resol
               help="face model: face-model artifact or BFM09/Deep3DFaceRecon .mat (default: face_model.npz of the "
                    "capture's dataset folder, else <ws>/face_model.npz).")
 @click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="rig table TOML (default: rig.toml of the capture's dataset folder, else the packaged "
-                   "Multi-PIE rig).")
+              help="rig table TOML (default: the workspace's calibrated rig <ws>/calibrate-rig/rig.toml with "
+                   "--rig-sigma 3 --rig-rot-sigma 0.3 unless given, else rig.toml of the capture's dataset "
+                   "folder, else the packaged Multi-PIE rig; stderr says which).")
 @click.option("--landmarks", "landmarks_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="folder with landmark files <view>.{pts,txt,npy} or *_<CCC>_00_lm.{pts,txt,npy} "
                    "(full-frame pixels; default: the landmarks stored in the capture).")
@@ -75,7 +78,16 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
         if face_model is None:
             raise ReflectmmError("no face model: pass --face-model (a face-model artifact or a BFM .mat); none found "
                                  "beside the capture's dataset or at <workspace>/face_model.npz", capture)
-    rig = rig or find_rig(cap)
+    if rig is None:
+        rig, source = find_fit_rig(ws, cap)
+        if source == "calibrated":
+            for k, v in CALIBRATED_RIG_SIGMAS.items():
+                params.setdefault(k, v)
+            log.info("fit-geometry: rig: the workspace's calibrated rig %s (σ %g mm, %g°)", rig,
+                     params["rig_sigma_mm"], params["rig_rot_sigma_deg"])
+        else:
+            log.info("fit-geometry: rig: %s", f"the capture dataset's {rig}" if rig is not None
+                     else "the packaged Multi-PIE rig")
     truth = truth or find_truth(ws, identity, capture=cap)
     inputs = {"capture": [capture], "face_model": [face_model]}
     if rig is not None:

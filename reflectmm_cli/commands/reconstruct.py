@@ -44,10 +44,11 @@ def reconstruct_cmd(encoder, model, light_model, data, images, landmarks, masks,
     ws = resolve_workspace(workspace)
     if bool(data) == (images is not None):
         raise click.UsageError("give either --data SHARD... or --images DIR")
-    inputs = {"encoder": [encoder or default_input(ws, "finetune", "--encoder", "finetune_encoder",
-                                                   ".safetensors")],
-              "model": [model or default_input(ws, "finetune", "--model")],
-              "light_model": [light_model or default_input(ws, "build-light-pca", "--light-model")]}
+    no_encoder = kw.get("refine") and kw.get("refine_from") == "zero" and encoder is None
+    inputs = {} if no_encoder else {"encoder": [encoder or default_input(ws, "finetune", "--encoder",
+                                                                         "finetune_encoder", ".safetensors")]}
+    inputs |= {"model": [model or default_input(ws, "finetune", "--model")],
+               "light_model": [light_model or default_input(ws, "build-light-pca", "--light-model")]}
     if images is not None:
         inputs["images"] = [images]
         fm = face_model or find_face_model(ws)

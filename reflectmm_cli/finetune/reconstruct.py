@@ -10,7 +10,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Reconstruction", "reconstruct", "write_reconstruction", "RECONSTRUCTION_KIND", "reconstruction_png",
+__all__ = ["Reconstruction", "reconstruct", "reconstruct_truth", "truth_model", "write_reconstruction", "RECONSTRUCTION_KIND", "reconstruction_png",
            "shards_from_images"]
 
 RECONSTRUCTION_KIND = "reconstruction"
@@ -21,7 +21,7 @@ class Reconstruction:
     """Per image (N of them, S×S, K lobes): ``names`` (N,); ``beta`` (N,M); ``gamma`` (N,N_L); ``z`` (N,3);
     ``sh`` (N,3,(L+1)²) lighting in the light frame; linear layers ``full``, ``diffuse``, ``specular``, ``albedo``
     (N,S,S,3) and ``weights`` (N,S,S,K), 0 outside ``face_mask`` (N,S,S); ``image`` (N,S,S,3) uint8 input;
-    ``encoding`` (N,) how the input is encoded."""
+    ``encoding`` (N,) how the input is encoded; with refinement ``refine_objective`` (N, 2)."""
 
     names: np.ndarray
     beta: np.ndarray
@@ -36,18 +36,25 @@ class Reconstruction:
     face_mask: np.ndarray
     image: np.ndarray
     encoding: np.ndarray
+    refine_objective: np.ndarray | None = None  # (N, 2) E_b before and after refinement (finetune/refine.py)
 
     def arrays(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if getattr(self, k) is not None}
 
 
 def reconstruct(shards, encoder, model, light, *, indices=None, split: str | None = None, batch_size: int = 8,
-                device="cpu") -> Reconstruction:
+                device="cpu", refine=None, n_reflectance: int | None = None, n_light: int | None = None,
+                progress_fn=None) -> Reconstruction:
     """Reconstruct the images ``indices`` (or all of ``split``, or all) of ``shards``.
 
     Args:
-        shards: :class:`~reflectmm_cli.finetune.shards.ShardSet`; encoder: from :func:`load_encoder`;
+        shards: :class:`~reflectmm_cli.finetune.shards.ShardSet`; encoder: from :func:`load_encoder`, or None
+            with ``refine`` (then the fit starts from β = γ = 0 and the least-squares light scale z);
         model: the (finetuned) reflectance model; light: the light model the encoder was trained with.
+        refine: a :class:`~reflectmm_cli.finetune.refine.RefineConfig` to refine every image's β, γ, z by
+            analysis-by-synthesis (the model fixed) after the encoder, or None for the encoder alone.
+        n_reflectance, n_light: coefficients fitted without an encoder (default: all of each model).
+        progress_fn: wraps the iterable of batches (progress on stderr).
     """
     import torch
 
@@ -55,24 +62,45 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
     from .train import check_inputs
 
     check_inputs(shards, model, light)
-    if encoder.n_reflectance > model.n_components or encoder.n_light > light.n_components:
-        raise ReflectmmError(f"reconstruct: the encoder predicts {encoder.n_reflectance} reflectance / "
-                             f"{encoder.n_light} light coefficients, the models have {model.n_components} / "
-                             f"{light.n_components}")
+    if encoder is None and refine is None:
+        raise ReflectmmError("reconstruct: give an encoder, or refine the images without one")
+    if encoder is not None:
+        n_reflectance, n_light = encoder.n_reflectance, encoder.n_light
+    n_reflectance = model.n_components if n_reflectance is None else int(n_reflectance)
+    n_light = light.n_components if n_light is None else int(n_light)
+    if n_reflectance > model.n_components or n_light > light.n_components:
+        raise ReflectmmError(f"reconstruct: {'the encoder predicts ' if encoder is not None else ''}"
+                             f"{n_reflectance} reflectance / {n_light} light coefficients, the models have "
+                             f"{model.n_components} / {light.n_components}")
     idx = (np.arange(len(shards)) if indices is None and split is None else
            shards.indices(split) if indices is None else np.asarray(indices, np.int64))
     if len(idx) == 0:
         raise ReflectmmError(f"reconstruct: no images{'' if split is None else f' in split {split!r}'}")
-    params = ModelParams(model, device, n_components=encoder.n_reflectance)
+    params = ModelParams(model, device, n_components=n_reflectance)
     out = {k: [] for k in ("beta", "gamma", "z", "sh", "full", "diffuse", "specular", "albedo", "weights")}
-    encoder.eval()
+    objective = []
+    if encoder is not None:
+        encoder.eval()
+    starts = range(0, len(idx), batch_size)
     with torch.no_grad():
-        for s0 in range(0, len(idx), batch_size):
+        for s0 in (progress_fn(starts) if progress_fn is not None else starts):
             ib = idx[s0:s0 + batch_size]
-            b = shards.batch(ib, with_target=False)
+            b = shards.batch(ib, with_target=refine is not None)
             gb = batch_gbuffer(b, device)
-            x = torch.as_tensor(b["images"], device=device).permute(0, 3, 1, 2).float() / 255.0
-            beta, gamma, z = encoder(x)
+            if encoder is not None:
+                x = torch.as_tensor(b["images"], device=device).permute(0, 3, 1, 2).float() / 255.0
+                beta, gamma, z = encoder(x)
+            if refine is not None:
+                from .refine import initial_z, refine_batch
+
+                if encoder is None:
+                    beta = gb.bary.new_zeros((len(ib), n_reflectance))
+                    gamma = gb.bary.new_zeros((len(ib), n_light))
+                    z = initial_z(params, light, gb, gamma)
+                res = refine_batch(params, light, gb, beta, gamma, z, refine,
+                                   names=[str(n) for n in shards.names[ib]])
+                beta, gamma, z = res.beta, res.gamma, res.z
+                objective.append(np.stack([res.objective_start, res.objective_end], 1))
             sh = lighting(light, gamma, z)
             d, s, a, w = shade_gbuffer(params, beta, sh, gb)
             for k, v in (("beta", beta), ("gamma", gamma), ("z", z), ("sh", sh)):
@@ -81,7 +109,60 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
                 out[k].append(scatter_pixels(v, gb).cpu().numpy())
     cat = {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
     return Reconstruction(names=shards.names[idx], face_mask=shards.face_mask[idx], image=shards.image[idx],
-                          encoding=shards.encoding[idx], **cat)
+                          encoding=shards.encoding[idx],
+                          refine_objective=np.concatenate(objective) if objective else None, **cat)
+
+
+def truth_model(albedo, weights, exponents) -> dict:
+    """A reflectance "model" with no components whose mean is one image's true per-vertex reflectance:
+    ``albedo`` (V,3), ``weights`` (V,K) — what the ceiling of a refinement is measured with."""
+    a = np.asarray(albedo, np.float32)
+    w = np.asarray(weights, np.float32)
+    if a.ndim != 2 or a.shape[1] != 3 or w.ndim != 2 or w.shape[0] != a.shape[0]:
+        raise ReflectmmError(f"reconstruct: true reflectance must be (V,3) and (V,K), got {a.shape} and {w.shape}")
+    return {"vertex_albedo_mean": a, "vertex_albedo_basis": np.zeros((0,) + a.shape, np.float32),
+            "vertex_weights_mean": w, "vertex_weights_basis": np.zeros((0,) + w.shape, np.float32),
+            "sigma": np.zeros(0, np.float32), "exponents": np.asarray(exponents, np.float64)}
+
+
+def reconstruct_truth(shards, light, exponents, refine, *, indices=None, split: str | None = None,
+                      n_light: int | None = None, device="cpu", progress_fn=None) -> Reconstruction:
+    """The ceiling of a refinement (synthetic data): every image refined with its *true* per-vertex diffuse albedo
+    and lobe weights (the shard's ``truth_vertex_albedo``/``truth_vertex_weights``) in place of the model; only the
+    light (γ, z) is fitted. The remaining error is what no reflectance model can remove (light-model span, shading
+    approximation, shadows, noise), so that (model's refined PSNR) / (this PSNR) says how much is the model's fault.
+    """
+    import torch
+
+    from .refine import initial_z, refine_batch
+    from .render import ModelParams, batch_gbuffer, lighting, scatter_pixels, shade_gbuffer
+
+    if "truth_vertex_albedo" not in shards.truth or "truth_vertex_weights" not in shards.truth:
+        raise ReflectmmError("reconstruct: the shards hold no true per-vertex reflectance (synthetic data only)")
+    idx = (np.arange(len(shards)) if indices is None and split is None else
+           shards.indices(split) if indices is None else np.asarray(indices, np.int64))
+    n_light = light.n_components if n_light is None else int(n_light)
+    out = {k: [] for k in ("beta", "gamma", "z", "sh", "full", "diffuse", "specular", "albedo", "weights")}
+    objective = []
+    with torch.no_grad():
+        for i in (progress_fn(idx) if progress_fn is not None else idx):
+            params = ModelParams(truth_model(shards.truth["truth_vertex_albedo"][i],
+                                             shards.truth["truth_vertex_weights"][i], exponents), device)
+            gb = batch_gbuffer(shards.batch([i]), device)
+            gamma = gb.bary.new_zeros((1, n_light))
+            beta = gb.bary.new_zeros((1, 0))
+            res = refine_batch(params, light, gb, beta, gamma, initial_z(params, light, gb, gamma), refine,
+                               names=[str(shards.names[i])])
+            sh = lighting(light, res.gamma, res.z)
+            d, s, a, w = shade_gbuffer(params, res.beta, sh, gb)
+            objective.append(np.stack([res.objective_start, res.objective_end], 1))
+            for k, v in (("beta", res.beta), ("gamma", res.gamma), ("z", res.z), ("sh", sh)):
+                out[k].append(v.cpu().numpy())
+            for k, v in (("full", d + s), ("diffuse", d), ("specular", s), ("albedo", a), ("weights", w)):
+                out[k].append(scatter_pixels(v, gb).cpu().numpy())
+    cat = {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
+    return Reconstruction(names=shards.names[idx], face_mask=shards.face_mask[idx], image=shards.image[idx],
+                          encoding=shards.encoding[idx], refine_objective=np.concatenate(objective), **cat)
 
 
 def shards_from_images(images_dir, face_model, config=None, *, landmarks_dir=None, masks_dir=None,

@@ -209,8 +209,11 @@ def pixel_reflectance(params: ModelParams, beta, gb: GBufferBatch):
         # bases for the gradient; a zero coefficient gives the unused components the same zero gradient
         coef = torch.cat([coef, coef.new_zeros((B, M - m))], 1)
     # one (B, M) @ (M, U·C) product per table
-    alb = am + (coef @ ab.reshape(M, -1)).reshape(B, U, -1)  # (B, U, 3)
-    wts = wm + (coef @ wb.reshape(M, -1)).reshape(B, U, -1)  # (B, U, K)
+    if M:
+        alb = am + (coef @ ab.reshape(M, -1)).reshape(B, U, -1)  # (B, U, 3)
+        wts = wm + (coef @ wb.reshape(M, -1)).reshape(B, U, -1)  # (B, U, K)
+    else:  # a model without components (one fixed reflectance, e.g. an image's truth)
+        alb, wts = am.expand(B, -1, -1), wm.expand(B, -1, -1)
     img = gb.image_of_pixel  # (P,)
     rows = (img[:, None] * U + inv.reshape(-1, 3)).reshape(-1)  # (3P,) rows of the (B·U) tables
     # index_select + a (P, 1, 3) @ (P, 3, C) product: measured 1.7× faster than fancy indexing and a broadcast sum

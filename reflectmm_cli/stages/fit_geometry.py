@@ -164,9 +164,10 @@ def run(ctx: StageContext) -> list[Path]:
                           origin=ex["origin"][v], scale=scale)
             written.append(write_png(ctx.output_path(f"{identity}_overlay_{name}", ".png"), img))
     pr = arrays["photo_residual"]
-    photo = float(np.nanmedian(pr)) if np.isfinite(pr).any() else float("nan")
+    photo = (f"photometric RMS {float(np.nanmedian(pr)):.4f}" if np.isfinite(pr).any()
+             else "no room-light photometric rounds")
     msg = (f"fit-geometry {identity}: landmark RMS {np.median(arrays['landmark_rmse_px']):.2f} px (median of "
-           f"{len(arrays['view_names'])} views), photometric RMS {photo:.4f}")
+           f"{len(arrays['view_names'])} views), {photo}")
     if "err_vertex_rmse_mm" in arrays:
         msg += (f"; vs truth: landmarks {np.median(arrays['err_landmark_px']):.2f} px, vertices "
                 f"{float(arrays['err_vertex_rmse_mm']):.2f} mm RMS ({100 * float(arrays['err_vertex_rmse_iod']):.1f}% "

@@ -1,7 +1,8 @@
 """Stage ``reconstruct``: β, γ, z per image with a trained encoder, and the renders (full, diffuse, specular,
 albedo, lobe weights ×3) through the G-buffer shading path of training (docs/finetune.md).
 
-Inputs (roles): ``encoder`` (finetune's ``*_encoder.safetensors``), ``model`` (the reflectance model, e.g. the
+Inputs (roles): ``encoder`` (finetune's ``*_encoder.safetensors``; not needed with
+``--refine --refine-from zero``), ``model`` (the reflectance model, e.g. the
 finetuned one), ``light_model``, and either ``data`` (``wild-shard`` files or folders) or ``images`` (a folder of
 raw photos) with optional ``landmarks`` and ``masks`` folders and the ``face_model`` (default:
 :func:`reflectmm_cli.workspace.find_face_model`) — prepared in memory with prepare-wild's library
@@ -10,6 +11,7 @@ raw photos) with optional ``landmarks`` and ``masks`` folders and the ``face_mod
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from reflectmm_cli.errors import ReflectmmError
@@ -18,6 +20,37 @@ from reflectmm_cli.progress import log, progress
 from reflectmm_cli.stages.base import Stage, StageContext
 
 VERB = "reconstruct"
+
+_KINDS = {"int": "int", "float": "float", "str": "str"}
+
+
+def refine_params(prefix: str = "refine_") -> tuple[Param, ...]:
+    """The ``refine`` switch, the start (``encoder`` or ``zero``) and one :class:`Param` per
+    :class:`~reflectmm_cli.finetune.refine.RefineConfig` field (``refine_<field>``), from the field metadata; shared by
+    every stage that reconstructs (reconstruct, evaluate reconstruction, evaluate relighting)."""
+    from reflectmm_cli.finetune.refine import RefineConfig
+
+    out = [Param("refine", "bool", False, help="Refine every image's beta, gamma, z by analysis-by-synthesis "
+                                               "(Levenberg-Marquardt, the model fixed) after the encoder."),
+           Param("refine_from", "str", "encoder", choices=("encoder", "zero"),
+                 help="Start of the refinement: the encoder's prediction, or zero coefficients (no encoder).")]
+    for f in dataclasses.fields(RefineConfig):
+        md = f.metadata
+        kind = _KINDS[str(f.type)]
+        rng = md.get("range") or ((0.0, None) if kind == "float" else None)
+        out.append(Param(prefix + f.name, kind, f.default, range=rng, choices=md.get("choices"), help=md["help"]))
+    return tuple(out)
+
+
+def refine_config(params, prefix: str = "refine_"):
+    """The :class:`~reflectmm_cli.finetune.refine.RefineConfig` of resolved stage parameters, or None without
+    ``refine``."""
+    from reflectmm_cli.finetune.refine import RefineConfig
+
+    if not params.get("refine"):
+        return None
+    return RefineConfig(**{f.name: params[prefix + f.name] for f in dataclasses.fields(RefineConfig)})
+
 
 PARAMS = (
     Param("split", "str", None, choices=("train", "val", "test"), help="Only the images of this split (default: all)."),
@@ -29,7 +62,7 @@ PARAMS = (
           help="--images: how the images are encoded (linearised with it)."),
     Param("allow_skipped", "bool", False,
           help="--images: exit 0 when some images could not be prepared (they are reported either way)."),
-)
+) + refine_params()
 
 
 def _outputs(ctx: StageContext) -> list[Path]:
@@ -38,6 +71,8 @@ def _outputs(ctx: StageContext) -> list[Path]:
 
 
 def run(ctx: StageContext) -> list[Path]:
+    import numpy as np
+
     from reflectmm_cli.finetune.data import PrepareConfig
     from reflectmm_cli.finetune.encoder import load_encoder
     from reflectmm_cli.finetune.reconstruct import reconstruct, shards_from_images, write_reconstruction
@@ -69,9 +104,18 @@ def run(ctx: StageContext) -> list[Path]:
             log.warning(f"reconstruct: skipped: {e}")
     else:
         shards = load_shards(data_paths(data))
-    enc, _ = load_encoder(ctx.input("encoder"), ctx.device)
+    refine = refine_config(p)
+    if refine is not None and p["refine_from"] == "zero":
+        enc = None
+    else:
+        enc, _ = load_encoder(ctx.input("encoder"), ctx.device)
     rec = reconstruct(shards, enc, model, light, split=p.get("split"), batch_size=p["batch_size"],
-                      device=ctx.device)
+                      device=ctx.device, refine=refine,
+                      progress_fn=(lambda it: progress(it, desc="refine", unit="batch")) if refine else None)
+    if refine is not None:
+        e = rec.refine_objective
+        log.info(f"reconstruct: refined {len(e)} image(s); objective {float(np.median(e[:, 0])):.3g} -> "
+                 f"{float(np.median(e[:, 1])):.3g} (median)")
     paths = write_reconstruction(rec, out, inputs=ctx.input_refs(out.parent), params=ctx.resolved_params(),
                                  producer=ctx.producer(), cache_key=ctx.cache_key,
                                  extra_meta={"skipped": errors} if images else None)

@@ -56,6 +56,32 @@ def test_calibrate_rig_cli(world, cli, tmp_path):
     assert np.allclose(g["K"][:, 0, 0], np.asarray(art["focal_px"]))
 
 
+def test_fit_geometry_takes_the_workspace_calibrated_rig(world, cli, tmp_path):
+    """Without --rig, fit-geometry takes <ws>/calibrate-rig/rig.toml with the sigmas that go with a calibrated rig
+    (3 mm, 0.3°; given values win) and says so on stderr; without photometric rounds the summary says so instead
+    of printing a NaN RMS. A workspace without a calibrated rig uses the capture's / the packaged one and says so."""
+    from reflectmm_cli.workspace import find_fit_rig
+
+    cal = world / "calibrate-rig" / "rig.toml"
+    if not cal.is_file():
+        save_rig(load_rig(world / "syn" / "rig.toml"), cal)
+    out = tmp_path / "g.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--iters", "60", "--photo-rounds", "0", "--no-overlay",
+            "--rig-rot-sigma", "0.5", "-o", out)
+    assert r.exit_code == 0, r.output + r.stderr
+    assert "calibrated rig" in r.stderr and str(cal) in r.stderr
+    assert "no room-light photometric rounds" in r.stderr and "nan" not in r.stderr.lower()
+    g = read_artifact(out, "geometry")
+    assert g.meta["params"]["rig_sigma_mm"] == 3.0 and g.meta["params"]["rig_rot_sigma_deg"] == 0.5
+    assert any(i["role"] == "rig" and i["path"].endswith("calibrate-rig/rig.toml") for i in g.meta["inputs"])
+    empty = tmp_path / "ws2"
+    empty.mkdir()
+    cap = read_artifact(world / "preprocess-multipie" / "001.npz", "capture")
+    path, source = find_fit_rig(empty, cap)
+    assert source == "dataset" and path.resolve() == (world / "syn" / "rig.toml").resolve()
+    assert find_fit_rig(empty, None) == (None, "packaged")
+
+
 def test_calibrate_rig_refuses_a_rig_of_another_size(world, cli, tmp_path):
     """No silent resize: the dataset is 240x180, the packaged table 640x480."""
     from reflectmm_cli.rig import default_rig_path

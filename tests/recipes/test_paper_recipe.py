@@ -15,8 +15,8 @@ IDS = ("001", "002", "003")
 VIEWS = ("09_0", "08_0", "13_0", "14_0", "05_1", "05_0", "04_1", "19_0", "20_0")
 FLASHES = ("03", "04", "05", "06", "07", "08", "09", "10", "11", "14", "18")
 STAGES = ("face-model-import", "preprocess-multipie", "fit-geometry", "unwrap-uv", "fit-reflectance", "build-pca",
-          "build-light-pca", "evaluate-representation", "prepare-wild", "finetune", "evaluate-reconstruction",
-          "evaluate-report")
+          "build-light-pca", "evaluate-representation", "prepare-wild", "finetune", "finetune-control",
+          "evaluate-reconstruction", "evaluate-report")
 
 
 def _touch(p: Path, text: str = "x") -> None:
@@ -128,8 +128,14 @@ def test_the_paper_numbers():
     assert ft["device"] == "cuda"
     assert st["finetune"]["inputs"]["identity_weights"] == "data/weights/arcface_r50.safetensors"
     ev = st["evaluate-reconstruction"]
-    assert ev["inputs"]["encoder_initial"] == "@finetune.outputs.finetune_encoder_phase1"
-    assert ev["inputs"]["model_initial"] == "@build-pca.output"
+    # the fair control: the same run as finetune with the model frozen in phase 2 (only model_lr differs)
+    ctl = st["finetune-control"]
+    assert ctl["verb"] == "finetune" and ctl["inputs"] == st["finetune"]["inputs"]
+    assert {k: v for k, v in ctl["params"].items() if k != "model_lr"} == \
+        {k: v for k, v in ft.items() if k != "model_lr"} and ctl["params"]["model_lr"] == 0
+    assert ev["inputs"]["encoder_initial"] == "@finetune-control.outputs.finetune-control_encoder"
+    assert ev["inputs"]["model_initial"] == "@finetune-control.output"
+    assert ev["inputs"]["encoder_initial-phase1"] == "@finetune.outputs.finetune_encoder_phase1"
     assert ev["inputs"]["encoder_finetuned"] == "@finetune.outputs.finetune_encoder"
 
 
