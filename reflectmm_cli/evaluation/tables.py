@@ -159,7 +159,8 @@ def reconstruction_evaluation(methods: Sequence[Method], data: Sequence[Path], l
                               split: str = "test", region: str = "face", lpips=None, lpips_name: str = "off",
                               batch_size: int = 8, released_batch: int = 32, ci: str = "t", figure_images: int = 3,
                               max_images: int = 0, gain: Sequence[str] = ("finetuned", "initial"),
-                              device: str = "cpu", log: Callable[[str], Any] | None = None) -> dict[str, Any]:
+                              device: str = "cpu", allow_other_model: bool = False,
+                              log: Callable[[str], Any] | None = None) -> dict[str, Any]:
     """Table 2 for ``methods`` (each with an encoder) on the ``split`` images of the wild shards ``data``.
 
     Each method: :func:`reflectmm_cli.finetune.reconstruct.reconstruct` with its encoder, model and the light
@@ -204,7 +205,7 @@ def reconstruction_evaluation(methods: Sequence[Method], data: Sequence[Path], l
             raise ReflectmmError(f"evaluate reconstruction: method '{m.name}' has no encoder (input "
                                  f"'encoder_{m.name}')")
         model = load_model(m.model)
-        enc, _meta = load_encoder(m.encoder, device)
+        enc, _meta = load_encoder(m.encoder, device, model=m.model, allow_other_model=allow_other_model)
         say(f"evaluate reconstruction: {m.name}: {len(idx)} images")
         rec = reconstruct(shards, enc, model, light, indices=idx, batch_size=batch_size, device=device)
         va, vw = sample_model(model, rec.beta.astype(np.float64), "vertex")
@@ -319,7 +320,7 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
                           light_model: Path | None = None, observations: Path | None = None, view: str = "05_1",
                           input_light: str = "room", holdout: Sequence[str] | None = None, size: int = 224,
                           encoding: str = "gamma1.2", exposure: float = 1.0, scale: str = "global",
-                          prior: float = 1e-4, device: str = "cpu",
+                          prior: float = 1e-4, device: str = "cpu", allow_other_model: bool = False,
                           log: Callable[[str], Any] | None = None) -> dict[str, Any]:
     """Fig. 7 for one held-out identity: each method reconstructs from ONE image of ``view`` (``input_light`` =
     ``"room"`` — the room-light shot — or a flash id — the flash shot, room + OLAT), and is re-rendered under
@@ -393,7 +394,7 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
                 lm = _landmarks_full(cap, geo, fm, c, g)
                 crop = input_crop(inp_lin, np.asarray(cap["crop_origin"])[c], lm, geo["K"][g], geo["R"][g],
                                   geo["t"][g], geo["vertices"], fm, size=size, encoding=encoding, exposure=exposure)
-            enc, _ = load_encoder(m.encoder, device)
+            enc, _ = load_encoder(m.encoder, device, model=m.model, allow_other_model=allow_other_model)
             ss = _one_image_shardset(crop["image"], crop["gbuffer"], encoding, light.order)
             rec = reconstruct(ss, enc, model, light, indices=[0], device=device)
             alb, wts = sample_model(model, rec.beta[0].astype(np.float64), "vertex")

@@ -46,6 +46,8 @@ PARAMS = (
     Param("figure_images", "int", 3, range=(0, 64), help="Test images shown in the figure (one row per method)."),
     Param("max_images", "int", 0, range=(0, None), help="Evaluate only the first N selected images (0 = all)."),
     Param("batch_size", "int", 8, range=(1, 4096), invalidates_cache=False, help="Encoder batch size."),
+    Param("allow_other_model", "bool", False, invalidates_cache=False,
+          help="Use an encoder with a model it was not trained for (a warning instead of an error)."),
 )
 
 ROLE_OPTIONS = {"data": "--data", "light_model": "--light-model", "lpips_weights": "--lpips-weights"}
@@ -72,7 +74,7 @@ def run(ctx: StageContext) -> list[Path]:
                                     batch_size=int(p["batch_size"]), released_batch=int(p["released_batch"]),
                                     ci=p["ci"], figure_images=int(p["figure_images"]),
                                     max_images=int(p["max_images"]), gain=p["gain"], device=ctx.device,
-                                    log=log.info)
+                                    allow_other_model=p["allow_other_model"], log=log.info)
     out = ctx.output_path()
     png = out.with_suffix(".png")
     cmd = command_line(["evaluate", "reconstruction"], p, ctx.inputs, workspace=ctx.workspace, output=out,

@@ -190,3 +190,29 @@ def test_model_lr_zero_is_the_equal_budget_control(cli, data, tmp_path):
     assert p1[0].keys() == p1[1].keys() and all(np.array_equal(p1[0][k], p1[1][k]) for k in p1[0])
     fin = [load_file(outs[n].parent / "m_encoder.safetensors") for n in ("upd", "ctl")]
     assert any(not np.array_equal(fin[0][k], fin[1][k]) for k in fin[0])
+
+
+def test_an_encoder_is_refused_with_a_model_it_was_not_trained_for(cli, data, tmp_path):
+    """Issue 24 §3: the encoder's meta records its model's sha256. reconstruct accepts that model and the finetune
+    output made from it; another model is a one-line error naming both files, unless --allow-other-model (then a
+    warning). evaluate reconstruction applies the same check per method."""
+    out = tmp_path / "ft" / "m.npz"
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY)
+    assert r.exit_code == 0, r.stderr
+    enc = out.parent / "m_encoder.safetensors"
+    base = ["--encoder", enc, "--light-model", data["light_path"], "--data", data["shards"][0], "--split", "val"]
+    for model in (data["init_path"], out):  # the model it was trained for, and the finetune output made from it
+        r = cli("reconstruct", *base, "--model", model, "-o", tmp_path / "ok.npz")
+        assert r.exit_code == 0, r.stderr
+    other = data["truth_path"]
+    rec = tmp_path / "bad.npz"
+    r = cli("reconstruct", *base, "--model", other, "-o", rec)
+    assert r.exit_code == 1 and not rec.exists()
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and str(enc) in err and str(other) in err and "--allow-other-model" in err
+    r = cli("reconstruct", *base, "--model", other, "--allow-other-model", "-o", rec)
+    assert r.exit_code == 0 and rec.is_file() and "warning" in r.stderr
+    r = cli("evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "x", other, enc, "--split", "val", "-o", tmp_path / "ev.npz")
+    assert r.exit_code == 1 and str(other) in r.stderr and not (tmp_path / "ev.npz").exists()
