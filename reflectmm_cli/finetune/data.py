@@ -325,7 +325,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
     from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, pack_gbuffers
     from reflectmm_cli.geometry.camera import Camera
     from reflectmm_cli.geometry.raycast import rasterize
-    from reflectmm_cli.landmarks import read_landmarks
+    from reflectmm_cli.landmarks import check_in_frame, read_landmarks
 
     S = int(cfg.size)
     K_crop = deep3d_camera().with_size(S, S).K
@@ -345,7 +345,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
             if inp.landmarks is None:
                 raise ReflectmmError("no landmark file with the same name (.pts/.txt/.npy)", inp.image)
             img = read_image_u8(inp.image)
-            lm = read_landmarks(inp.landmarks)
+            lm = check_in_frame(read_landmarks(inp.landmarks), img.shape[1], img.shape[0], inp.landmarks)
             encoding = cfg.encoding
             tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
             if tr is not None:

@@ -333,3 +333,26 @@ params = {{ shard_size = 4, from_truth = true, aligned = true, size = 96, allow_
     again = run_recipe(ws / "recipe.toml", ws, dry_run=True)
     assert {t.status for t in again.tasks} == {"run"}
     assert any("skipped" in (t.reason or "") for t in again.tasks), [t.reason for t in again.tasks]
+
+
+@pytest.mark.parametrize("from_truth", [True, False])
+def test_landmarks_far_outside_the_frame_are_refused(wild_small, tmp_path, cli, from_truth):
+    """Issue 24 §6: landmarks 1e6 px outside the frame went through (a vertex error of 5438 mm in the shard); now
+    the image is skipped with the landmark file named, as preprocess-multipie and fit-geometry refuse it."""
+    out, fm = wild_small
+    imgs, lms = tmp_path / "images", tmp_path / "landmarks"
+    imgs.mkdir(), lms.mkdir()
+    names = sorted(p.stem for p in (out / "images").iterdir())[:2]
+    for n in names:
+        shutil.copy(out / "images" / f"{n}.png", imgs / f"{n}.png")
+        shutil.copy(out / "landmarks" / f"{n}.pts", lms / f"{n}.pts")
+    pts = np.loadtxt(out / "landmarks" / f"{names[1]}.pts", skiprows=3, comments="}")
+    pts[7] = [1e6, 50.0]
+    write_pts(lms / f"{names[1]}.pts", pts)
+    args = ["prepare-wild", "--images", imgs, "--landmarks", lms, "--truth", out, "--size", 96, "--out",
+            tmp_path / "shards"] + (["--from-truth"] if from_truth else [])
+    res = cli(*args)
+    assert res.exit_code == 1
+    assert f"{names[1]}.pts" in res.stderr and "far outside" in res.stderr
+    sh = open_shard(tmp_path / "shards" / "shard_00000.npz")
+    assert sh["names"].tolist() == [names[0]]
