@@ -345,6 +345,8 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
             if inp.landmarks is None:
                 raise ReflectmmError("no landmark file with the same name (.pts/.txt/.npy)", inp.image)
             img = read_image_u8(inp.image)
+            if not img.any():
+                raise ReflectmmError("image is all black (nothing to reconstruct)", inp.image)
             lm = check_in_frame(read_landmarks(inp.landmarks), img.shape[1], img.shape[0], inp.landmarks)
             encoding = cfg.encoding
             tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None

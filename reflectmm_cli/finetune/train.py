@@ -66,25 +66,37 @@ def load_models(model_path, light_path):
     from reflectmm_cli.model.pca import MODEL_KIND, model_from_arrays
 
     art = read_artifact(model_path, MODEL_KIND)
+    _check_finite(art.arrays, model_path)
     model = model_from_arrays(art.arrays, art.meta.get("stats"))
-    light = light_model_from_arrays(read_artifact(light_path, LIGHT_MODEL_KIND).arrays)
+    lart = read_artifact(light_path, LIGHT_MODEL_KIND)
+    _check_finite(lart.arrays, light_path)
+    light = light_model_from_arrays(lart.arrays)
     return model, light
 
 
-def check_inputs(shards: ShardSet, model, light) -> None:
-    """One-line errors for a model/light-model/shard mismatch (vertex count, SH order, per-vertex part)."""
+def _check_finite(arrays, path) -> None:
+    """One line naming the file and the first array holding NaN or inf (a model that would poison training)."""
+    for k in sorted(arrays):
+        a = np.asarray(arrays[k])
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise ReflectmmError(f"array '{k}' contains NaN or inf ({int((~np.isfinite(a)).sum())} values)", path)
+
+
+def check_inputs(shards: ShardSet, model, light, verb: str = "finetune") -> None:
+    """One-line errors (prefixed with ``verb``) for a model/light-model/shard mismatch (vertex count, SH order,
+    per-vertex part)."""
     if getattr(model, "vertex_albedo_mean", None) is None:
-        raise ReflectmmError("finetune: the reflectance model has no per-vertex part (build it with --face-model)")
+        raise ReflectmmError(f"{verb}: the reflectance model has no per-vertex part (build it with --face-model)")
     V = int(model.vertex_albedo_mean.shape[0])
     vmax = int(shards.vert_ids.max()) if shards.vert_ids.size else -1
     if vmax >= V:
-        raise ReflectmmError(f"finetune: the shards reference vertex {vmax} but the reflectance model has {V} "
+        raise ReflectmmError(f"{verb}: the shards reference vertex {vmax} but the reflectance model has {V} "
                              f"vertices (shards made with another face model?)")
     if int(light.order) != int(shards.sh_order):
-        raise ReflectmmError(f"finetune: the light model has SH order {light.order} but the shards were prepared "
+        raise ReflectmmError(f"{verb}: the light model has SH order {light.order} but the shards were prepared "
                              f"for order {shards.sh_order}")
     if model.vertex_weights_mean.shape[-1] != len(model.exponents):
-        raise ReflectmmError("finetune: the model's lobe weights and exponents disagree in count")
+        raise ReflectmmError(f"{verb}: the model's lobe weights and exponents disagree in count")
 
 
 def _np(t):

@@ -216,3 +216,32 @@ def test_an_encoder_is_refused_with_a_model_it_was_not_trained_for(cli, data, tm
     r = cli("evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
             "--method", "x", other, enc, "--split", "val", "-o", tmp_path / "ev.npz")
     assert r.exit_code == 1 and str(other) in r.stderr and not (tmp_path / "ev.npz").exists()
+
+
+def test_a_nan_in_the_model_is_refused_at_load_naming_the_file(cli, data, tmp_path):
+    """Issue 24 §6: a NaN in the model reached training ("the loss became nan … lower the learning rate"); now the
+    file and the array are named before anything runs, for finetune and reconstruct alike, and reconstruct's
+    errors no longer begin with "finetune:"."""
+    init = read_artifact(data["init_path"], "reflectance-model")
+    arrays = dict(init.arrays)
+    arrays["vertex_albedo_basis"] = arrays["vertex_albedo_basis"].copy()
+    arrays["vertex_albedo_basis"][0, 3, 1] = np.nan
+    bad = write_artifact(tmp_path / "nan.npz", "reflectance-model", arrays, extra_meta={"stats": init.meta.get("stats")})
+    r = cli("finetune", "--model", bad, "--light-model", data["light_path"], "--data", data["shards"][0], "-o",
+            tmp_path / "ft" / "m.npz", *TINY)
+    assert r.exit_code == 1 and "nan.npz" in r.stderr and "vertex_albedo_basis" in r.stderr and "NaN" in r.stderr
+    assert not (tmp_path / "ft").exists() or not any((tmp_path / "ft").glob("m*"))
+    r = cli("reconstruct", "--refine", "--refine-from", "zero", "--model", bad, "--light-model", data["light_path"],
+            "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
+    assert r.exit_code == 1 and "nan.npz" in r.stderr and not (tmp_path / "rec.npz").exists()
+    # a model of another face model: the message names the verb that failed
+    arrays = dict(init.arrays)
+    for k in ("vertex_albedo_mean", "vertex_weights_mean"):
+        arrays[k] = arrays[k][:5]
+    for k in ("vertex_albedo_basis", "vertex_weights_basis"):
+        arrays[k] = arrays[k][:, :5]
+    small = write_artifact(tmp_path / "small.npz", "reflectance-model", arrays,
+                           extra_meta={"stats": init.meta.get("stats")})
+    r = cli("reconstruct", "--refine", "--refine-from", "zero", "--model", small, "--light-model", data["light_path"],
+            "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
+    assert r.exit_code == 1 and "reconstruct: the shards reference vertex" in r.stderr and "finetune:" not in r.stderr
