@@ -308,6 +308,18 @@ def _truth_for(truth_dir: Path, name: str):
     return read_artifact(p, "wild-truth")
 
 
+def _truth_at_size(a: np.ndarray, size: int, interpolation: str = "linear") -> np.ndarray:
+    """A synth-wild truth image (H,H[,C]) at the crop size S (the pixel-centre rescale of ``--from-truth``)."""
+    from .align import warp_to_crop
+
+    h = int(a.shape[0])
+    if h == size:
+        return a
+    k = size / h
+    A = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2]])
+    return warp_to_crop(a, A, size, interpolation=interpolation)
+
+
 def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareConfig, *,
                         truth_dir: str | Path | None = None, splits: Mapping[str, str] | None = None,
                         progress_fn=None) -> tuple[dict[str, np.ndarray], dict, list[str]]:
@@ -398,7 +410,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
                 lab_c = warp_to_crop(lab, A, S, interpolation="nearest")
                 skin = skin_mask_from_labels(lab_c) & vis_px
             elif tr is not None and cfg.from_truth:
-                skin = np.asarray(tr["skin_mask"], bool) & vis_px
+                skin = _truth_at_size(np.asarray(tr["skin_mask"], np.uint8), S, "nearest").astype(bool) & vis_px
             else:
                 skin = skin_mask_from_model(gb, face_model.skin_mask, lin) & vis_px
             verr = float("nan")
@@ -422,8 +434,10 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
                                    ("truth_vertex_weights", np.asarray(ia["vertex_weights"], np.float16)),
                                    ("truth_vertex_spec_albedo", np.asarray(ia["vertex_spec_albedo"], np.float16)),
                                    ("truth_vertex_roughness", np.asarray(ia["vertex_roughness"], np.float16)),
-                                   ("truth_diffuse", np.asarray(tr["diffuse"], np.float16)),
-                                   ("truth_specular", np.asarray(tr["specular"], np.float16))):
+                                   ("truth_diffuse", _truth_at_size(np.asarray(tr["diffuse"], np.float32),
+                                                                    S).astype(np.float16)),
+                                   ("truth_specular", _truth_at_size(np.asarray(tr["specular"], np.float32),
+                                                                     S).astype(np.float16))):
                         truth.setdefault(k_, []).append(v_)
         except ReflectmmError as exc:
             errors.append(str(exc).splitlines()[0])

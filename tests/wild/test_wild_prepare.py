@@ -356,3 +356,23 @@ def test_landmarks_far_outside_the_frame_are_refused(wild_small, tmp_path, cli, 
     assert f"{names[1]}.pts" in res.stderr and "far outside" in res.stderr
     sh = open_shard(tmp_path / "shards" / "shard_00000.npz")
     assert sh["names"].tolist() == [names[0]]
+
+
+def test_from_truth_at_another_size_resamples_the_truth_layers(wild_small, tmp_path, cli):
+    """Issue 24 §6: --from-truth --size 64 on 96 px images stopped with an internal broadcast error; the truth's
+    skin mask and layers are now resampled to the crop like the image (and agree with a crop at full size)."""
+    out, fm = wild_small
+    shards = {}
+    for size in (96, 64):
+        r = cli("prepare-wild", "--images", out / "images", "--truth", out, "--from-truth", "--size", size, "--out",
+                tmp_path / f"s{size}")
+        assert r.exit_code == 0, r.stderr
+        shards[size] = open_shard(tmp_path / f"s{size}" / "shard_00000.npz")
+    sh = shards[64]
+    n = len(sh["names"])
+    assert sh["image"].shape == (n, 64, 64, 3) and sh["skin_mask"].shape == (n, 64, 64)
+    assert sh["truth_diffuse"].shape == (n, 64, 64, 3) and sh["truth_specular"].shape == (n, 64, 64, 3)
+    full = np.asarray(shards[96]["truth_diffuse"], np.float32).mean(axis=(1, 2))
+    small = np.asarray(sh["truth_diffuse"], np.float32).mean(axis=(1, 2))
+    np.testing.assert_allclose(small, full, rtol=0.05, atol=2e-3)  # the same picture, fewer pixels
+    assert abs(sh["skin_mask"].mean() - shards[96]["skin_mask"].mean()) < 0.03
