@@ -57,6 +57,7 @@ class FinetuneResult:
     n_val: int = 0
     stats: dict = field(default_factory=dict)
     phase1_encoder: Path | None = None
+    image_size: int | None = None  # the side S of the training images (recorded in the encoder's meta)
 
 
 def load_models(model_path, light_path):
@@ -283,7 +284,8 @@ class Trainer:
         from .encoder import save_encoder
 
         return save_encoder(self.encoder, self.phase1_encoder_path,
-                            {"config": self.cfg.to_dict(), "phase": 1, "steps": self.global_step})
+                            {"config": self.cfg.to_dict(), "phase": 1, "steps": self.global_step,
+                             "image_size": int(self.shards.size)})
 
     @property
     def ckpt_path(self) -> Path:
@@ -482,5 +484,6 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
                           f"{identity.name} ({identity.path.name})", z0=tr.z0, steps=tr.global_step,
                           stopped_early=stopped, n_train=int(len(tr.train_idx)), n_val=int(len(tr.val_idx)),
                           phase1_encoder=tr.phase1_encoder_path if tr.phase1_encoder_path.is_file() else None,
+                          image_size=int(shards.size),
                           stats={"basis_cache_images": len(tr.basis_cache),
                                  "basis_cache_mib": round(tr.basis_bytes / 2 ** 20, 3)})

@@ -245,3 +245,22 @@ def test_a_nan_in_the_model_is_refused_at_load_naming_the_file(cli, data, tmp_pa
     r = cli("reconstruct", "--refine", "--refine-from", "zero", "--model", small, "--light-model", data["light_path"],
             "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
     assert r.exit_code == 1 and "reconstruct: the shards reference vertex" in r.stderr and "finetune:" not in r.stderr
+
+
+def test_reconstruct_warns_when_the_images_are_not_the_encoders_size(cli, data, tmp_path):
+    """Issue 24 §6: an encoder trained at one size used on images of another ran without a word."""
+    from safetensors import safe_open
+
+    out = tmp_path / "ft" / "m.npz"
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY)
+    assert r.exit_code == 0, r.stderr
+    enc = out.parent / "m_encoder.safetensors"
+    with safe_open(str(enc), "np") as f:
+        assert json.loads(f.metadata()["__meta__"])["image_size"] == 32
+    base = ["reconstruct", "--encoder", enc, "--model", out, "--light-model", data["light_path"], "--split", "val"]
+    r = cli(*base, "--data", data["shards"][0], "-o", tmp_path / "a.npz")
+    assert r.exit_code == 0 and "trained on" not in r.stderr
+    other = make_dataset(tmp_path / "d24", n_images=3, size=24, seed=9)
+    r = cli(*base, "--data", other["shards"][0], "-o", tmp_path / "b.npz")
+    assert r.exit_code == 0 and "trained on 32² images, these are 24²" in r.stderr
