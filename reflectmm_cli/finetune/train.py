@@ -387,6 +387,10 @@ class Trainer:
             self.log_path.unlink()
         self.encoder.train()
         show = self.show_progress and plog.getEffectiveLevel() <= logging.INFO
+        # a terminal gets one line redrawn in place; a log file or a captured stderr gets plain lines, one per
+        # ~10 % of an epoch, and never a carriage return
+        tty = show and bool(getattr(sys.stderr, "isatty", lambda: False)())
+        every = max(1, self.steps_per_epoch // 10)
         total_steps = len(self.plan) * self.steps_per_epoch
         while self.pos[0] < len(self.plan):
             pi, k0 = self.pos
@@ -414,12 +418,13 @@ class Trainer:
                 rec = {"type": "step", "phase": phase, "epoch": ep, "step": k, "global_step": self.global_step,
                        "loss": float(total.detach()), **{k_: float(v.detach()) for k_, v in terms.items()}}
                 self._append_log(rec)
-                if show:
+                if show and (tty or (k + 1) % every == 0 or k + 1 == self.steps_per_epoch):
                     ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
-                    sys.stderr.write(f"\rfinetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
+                    sys.stderr.write(("\r" if tty else "")
+                                     + f"finetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
                                      f"[{self.global_step}/{total_steps}] loss {rec['loss']:.4g} "
                                      + " ".join(f"{k_} {rec[k_]:.3g}" for k_ in terms)
-                                     + f" {ips:.1f} img/s ")
+                                     + f" {ips:.1f} img/s" + (" " if tty else "\n"))
                     sys.stderr.flush()
                 last = k + 1 == self.steps_per_epoch
                 if not last and self.global_step % self.cfg.checkpoint_every == 0:
@@ -430,7 +435,7 @@ class Trainer:
             rec = {"type": "val", "phase": phase, "epoch": ep, "global_step": self.global_step,
                    **({} if val is None else {f"val_{k_}": v for k_, v in val.items()})}
             self._append_log(rec)
-            if show:
+            if tty:
                 sys.stderr.write("\n")
             el = time.perf_counter() - t_epoch
             self.log(f"finetune: phase {phase} epoch {ep + 1}: {n_img / max(el, 1e-9):.1f} images/s"

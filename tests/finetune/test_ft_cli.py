@@ -264,3 +264,11 @@ def test_reconstruct_warns_when_the_images_are_not_the_encoders_size(cli, data, 
     other = make_dataset(tmp_path / "d24", n_images=3, size=24, seed=9)
     r = cli(*base, "--data", other["shards"][0], "-o", tmp_path / "b.npz")
     assert r.exit_code == 0 and "trained on 32² images, these are 24²" in r.stderr
+
+
+def test_finetune_progress_to_a_captured_stderr_has_no_carriage_returns(cli, data, tmp_path):
+    """Issue 24 §6: finetune wrote \\r-redrawn progress into log files and captured stderr."""
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "-o", tmp_path / "m.npz", *TINY)
+    assert r.exit_code == 0, r.stderr
+    assert "\r" not in r.stderr and "finetune phase 1 epoch 1 step" in r.stderr
