@@ -129,6 +129,13 @@ class Trainer:
             raise ReflectmmError("finetune: the shards have no image in the 'train' split")
         M = model.n_components if config.n_reflectance is None else min(config.n_reflectance, model.n_components)
         NL = light.n_components if config.n_light is None else min(config.n_light, light.n_components)
+        for opt, asked, got, what in (("--components", config.n_reflectance, M, "reflectance model"),
+                                      ("--light-components", config.n_light, NL, "light model")):
+            if asked is not None and asked > got:
+                self.log(f"finetune: warning: {opt} {asked} but the {what} has {got} components; using {got}")
+        if config.epochs1 == 0 and config.epochs2 == 0:
+            self.log("finetune: warning: --epochs1 0 --epochs2 0: no training step; the encoder written is the "
+                     "untrained initialisation and the model is the initial one")
         self.M, self.NL = M, NL
         dc = getattr(light, "dc", None)
         self.z0 = float(np.mean(dc)) if dc is not None and np.size(dc) and np.all(np.asarray(dc) > 0) else 1.0

@@ -272,3 +272,18 @@ def test_finetune_progress_to_a_captured_stderr_has_no_carriage_returns(cli, dat
             data["shards"][0], "-o", tmp_path / "m.npz", *TINY)
     assert r.exit_code == 0, r.stderr
     assert "\r" not in r.stderr and "finetune phase 1 epoch 1 step" in r.stderr
+
+
+def test_capped_components_and_an_untrained_encoder_are_said(cli, data, tmp_path):
+    """Issue 24 §6: --components beyond the model was capped silently; --epochs1 0 --epochs2 0 wrote an untrained
+    encoder without a word."""
+    base = ["finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0]]
+    args = list(TINY) + ["--components", "100"]
+    r = cli(*base, "-o", tmp_path / "a" / "m.npz", *args)
+    assert r.exit_code == 0 and "--components 100 but the reflectance model has 3 components; using 3" in r.stderr
+    args = list(TINY)
+    args[args.index("--epochs1") + 1] = "0"
+    args[args.index("--epochs2") + 1] = "0"
+    r = cli(*base, "-o", tmp_path / "b" / "m.npz", *args)
+    assert r.exit_code == 0 and "no training step" in r.stderr
