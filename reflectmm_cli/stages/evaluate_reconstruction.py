@@ -18,6 +18,7 @@ import numpy as np
 from reflectmm_cli.artifacts import atomic_write_text, write_artifact, write_png
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
+from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
@@ -65,6 +66,11 @@ def run(ctx: StageContext) -> list[Path]:
 
     p = ctx.params
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), need_encoder=True, stage=VERB)
+    names = [m.name for m in methods]
+    missing = [g for g in p["gain"] if g not in names]
+    if missing and list(p["gain"]) != ["finetuned", "initial"]:  # the default applies when both are present
+        raise ReflectmmError(f"{VERB}: --gain names {', '.join(missing)}, not among the methods "
+                             f"({', '.join(names)})")
     lw = ctx.input_list("lpips_weights", required=False)
     lp = load_lpips(lw[0] if lw else None, p["lpips_net"])
     res = reconstruction_evaluation(methods, ctx.input_list("data"), ctx.input("light_model"), split=p["split"],

@@ -115,6 +115,9 @@ def test_evaluate_reconstruction_bad_inputs(data, cli, tmp_path):
     assert r.exit_code == 1 and "encoder" in r.stderr
     r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--gain", "a,a")
     assert r.exit_code == 1 and "--gain" in r.stderr
+    # issue 24 §6: names that are not methods were ignored (no gain, exit 0)
+    r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--gain", "ours,initial")
+    assert r.exit_code == 1 and "--gain names ours, not among the methods (initial)" in r.stderr
     assert not (tmp_path / "x.npz").exists()
 
 
