@@ -24,7 +24,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from reflectmm_cli.artifacts import IMAGE_EXTENSIONS, META_KEY, check_schema, read_image_u8, write_artifact
+from reflectmm_cli.artifacts import (CORRUPT_ERRORS, IMAGE_EXTENSIONS, META_KEY, check_schema, read_image_u8,
+                                     write_artifact)
 from reflectmm_cli.errors import ArtifactError, ReflectmmError
 from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
 
@@ -152,7 +153,7 @@ def _member_offsets(path: Path) -> dict[str, tuple[int, int]]:
     return out
 
 
-def _npy_memmap(path: Path, offset: int) -> np.ndarray:
+def _npy_memmap(path: Path, offset: int, size: int | None = None) -> np.ndarray:
     with open(path, "rb") as f:
         f.seek(offset)
         version = np.lib.format.read_magic(f)
@@ -163,6 +164,10 @@ def _npy_memmap(path: Path, offset: int) -> np.ndarray:
         data_off = f.tell()
     if dtype.hasobject:
         raise ArtifactError("object arrays are not allowed in shards", path)
+    nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if size is not None and data_off - offset + nbytes > size:
+        raise ArtifactError(f"corrupt wild-shard: an array header claims {nbytes} bytes, its member holds "
+                            f"{size - (data_off - offset)}", path)
     if int(np.prod(shape)) == 0:
         return np.zeros(shape, dtype)
     return np.memmap(path, dtype=dtype, mode="r", offset=data_off, shape=shape, order="F" if fortran else "C")
@@ -177,6 +182,13 @@ class Shard:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        try:
+            self._open()
+        except CORRUPT_ERRORS as exc:
+            raise ArtifactError(f"truncated or corrupt wild-shard ({type(exc).__name__}: "
+                                f"{(str(exc).splitlines() or [''])[0]})", self.path) from None
+
+    def _open(self) -> None:
         if not self.path.is_file():
             raise ArtifactError("shard file not found", self.path)
         if not zipfile.is_zipfile(self.path):
@@ -201,7 +213,12 @@ class Shard:
         if name not in self:
             raise ArtifactError(f"wild-shard has no array '{name}'", self.path)
         if name not in self._cache:
-            self._cache[name] = _npy_memmap(self.path, self._offsets[name][0])
+            off, size = self._offsets[name]
+            try:
+                self._cache[name] = _npy_memmap(self.path, off, size)
+            except CORRUPT_ERRORS as exc:
+                raise ArtifactError(f"corrupt wild-shard array '{name}' ({type(exc).__name__}: "
+                                    f"{(str(exc).splitlines() or [''])[0]})", self.path) from None
         return self._cache[name]
 
     def __len__(self) -> int:

@@ -251,8 +251,11 @@ def load_encoder(path: str | Path, device="cpu", *, model=None, allow_other_mode
         raise ReflectmmError(f"not a reflectmm encoder (schema {meta.get('schema')!r})", path)
     if model is not None:
         check_encoder_model(meta, path, model, allow_other_model=allow_other_model, warn=warn)
-    enc = Encoder(meta["arch"], int(meta["n_reflectance"]), int(meta["n_light"]), int(meta["width"]),
-                  float(meta["z0"]))
+    try:
+        enc = Encoder(meta["arch"], int(meta["n_reflectance"]), int(meta["n_light"]), int(meta["width"]),
+                      float(meta["z0"]))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ReflectmmError(f"encoder meta is incomplete or corrupt ({type(e).__name__}: {e})", path) from None
     try:
         enc.load_state_dict(sd)
     except RuntimeError as e:
