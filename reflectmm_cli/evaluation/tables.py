@@ -294,15 +294,22 @@ def reconstruction_evaluation(methods: Sequence[Method], data: Sequence[Path], l
     if refine is not None and "truth_vertex_albedo" in shards.truth and "truth_vertex_weights" in shards.truth:
         from reflectmm_cli.finetune.reconstruct import reconstruct_truth
 
-        say(f"evaluate reconstruction: ceiling: refining {len(idx)} images with their true reflectance")
-        exps = np.asarray(load_model(methods[0].model).exponents, np.float64)
-        rc = reconstruct_truth(shards, light, exps, refine, indices=idx, device=device)
-        out = evaluate_reconstruction({"render": rc.full}, sarr, encoding=encoding, select=idx, region=region,
-                                      lpips=lpips, method=ci, batch_size=released_batch)
-        results["ceiling"] = out
-        rows.append(table_row("ceiling", out["image"], None))
-        per_method["ceiling"] = {"psnr": out["image"]["per_image"].summary["psnr"]["mean"],
-                                 "ssim": out["image"]["per_image"].summary["ssim"]["mean"]}
+        # the truth's lobe weights belong to the lobes of the models that have as many (the shards do not record
+        # the exponents): the first such method's
+        K = int(np.shape(shards.truth["truth_vertex_weights"][0])[-1])
+        exps = next((e for e in (np.asarray(load_model(m.model).exponents, np.float64) for m in methods)
+                     if e.shape == (K,)), None)
+        if exps is None:
+            say(f"evaluate reconstruction: no ceiling row: no method has the truth's {K} lobes")
+        else:
+            say(f"evaluate reconstruction: ceiling: refining {len(idx)} images with their true reflectance")
+            rc = reconstruct_truth(shards, light, exps, refine, indices=idx, device=device)
+            out = evaluate_reconstruction({"render": rc.full}, sarr, encoding=encoding, select=idx, region=region,
+                                          lpips=lpips, method=ci, batch_size=released_batch)
+            results["ceiling"] = out
+            rows.append(table_row("ceiling", out["image"], None))
+            per_method["ceiling"] = {"psnr": out["image"]["per_image"].summary["psnr"]["mean"],
+                                     "ssim": out["image"]["per_image"].summary["ssim"]["mean"]}
     paper = {}
     gains = {}
     if len(gain) == 2 and gain[0] in per_method and gain[1] in per_method:
