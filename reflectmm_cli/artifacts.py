@@ -24,8 +24,11 @@ import hashlib
 import io
 import json
 import os
+import struct
 import tempfile
+import tokenize
 import zipfile
+import zlib
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field
@@ -410,6 +413,13 @@ def write_artifact(path: str | Path, kind: str, arrays: Mapping[str, Any], *,
     return path
 
 
+#: What a damaged NPZ (zip, deflate or .npy header) makes the zipfile and numpy readers raise: each is turned into
+#: a one-line error naming the file.
+CORRUPT_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError, SyntaxError, zlib.error,
+                  struct.error, UnicodeDecodeError, KeyError, NotImplementedError, OverflowError, MemoryError,
+                  tokenize.TokenError)
+
+
 def _open_npz(path: Path):
     if not path.exists():
         raise ArtifactError("file not found", path)
@@ -423,7 +433,7 @@ def _open_npz(path: Path):
         raise ArtifactError("not an NPZ artifact (not a zip archive)", path)
     try:
         return np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+    except CORRUPT_ERRORS as exc:
         raise ArtifactError(f"truncated or corrupt NPZ ({type(exc).__name__}: {exc})", path) from None
 
 
@@ -432,7 +442,7 @@ def _meta_from_npz(npz, path: Path) -> dict[str, Any]:
         raise ArtifactError("not a reflectmm artifact (no __meta__ entry)", path)
     try:
         meta = json.loads(str(npz[META_KEY].reshape(-1)[0]))
-    except (ValueError, zipfile.BadZipFile, EOFError, OSError) as exc:
+    except CORRUPT_ERRORS as exc:
         raise ArtifactError(f"corrupt __meta__ entry ({exc})", path) from None
     if not isinstance(meta, dict):
         raise ArtifactError("corrupt __meta__ entry (not a JSON object)", path)
@@ -463,8 +473,9 @@ def read_artifact(path: str | Path, kind: str | None = None) -> Artifact:
             for name in npz.files:
                 if name != META_KEY:
                     arrays[name] = npz[name]
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-            raise ArtifactError(f"truncated or corrupt NPZ member ({exc})", path) from None
+        except CORRUPT_ERRORS as exc:
+            raise ArtifactError(f"truncated or corrupt NPZ member ({type(exc).__name__}: "
+                                f"{str(exc).splitlines()[0] if str(exc) else ''})", path) from None
     return Artifact(found, arrays, meta, path)
 
 
@@ -517,6 +528,14 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], meta: Mappin
     return path
 
 
+def _oiio_error(obj) -> str:
+    """OpenImageIO's last error message; a message that is not UTF-8 (it may quote a damaged header) is not one."""
+    try:
+        return obj.geterror()
+    except UnicodeDecodeError:
+        return "error message not readable (damaged header text)"
+
+
 def _first_line(msg: str) -> str:
     """OpenImageIO errors can span lines and repeat the path; keep one short line."""
     lines = [ln.strip() for ln in (msg or "").splitlines() if ln.strip()]
@@ -529,13 +548,21 @@ def read_exr(path: str | Path, meta_only: bool = False) -> tuple[dict[str, np.nd
     path = Path(path)
     if not path.exists():
         raise ArtifactError("file not found", path)
-    inp = oiio.ImageInput.open(str(path))
+    try:
+        inp = oiio.ImageInput.open(str(path))
+    except UnicodeDecodeError:  # a damaged header string reaches Python as bytes that are not text
+        raise ArtifactError("unreadable or corrupt EXR (a header string is not text)", path) from None
     if inp is None:
-        raise ArtifactError(f"unreadable or corrupt EXR ({_first_line(oiio.geterror())})", path)
+        raise ArtifactError(f"unreadable or corrupt EXR ({_first_line(_oiio_error(oiio))})", path)
     try:
         spec = inp.spec()
-        raw = spec.getattribute(EXR_META_ATTR)
+        try:
+            raw = spec.getattribute(EXR_META_ATTR)
+        except UnicodeDecodeError:
+            raise ArtifactError("corrupt reflectmm:meta header attribute (not text)", path) from None
         meta: dict[str, Any] = {}
+        if raw is not None and not isinstance(raw, str):
+            raise ArtifactError("corrupt reflectmm:meta header attribute (not text)", path)
         if raw:
             try:
                 meta = json.loads(raw)
@@ -545,8 +572,11 @@ def read_exr(path: str | Path, meta_only: bool = False) -> tuple[dict[str, np.nd
             return {}, meta
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if pixels is None or (hasattr(pixels, "size") and pixels.size == 0):
-            raise ArtifactError(f"truncated or corrupt EXR pixel data ({_first_line(inp.geterror())})", path)
-        pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+            raise ArtifactError(f"truncated or corrupt EXR pixel data ({_first_line(_oiio_error(inp))})", path)
+        try:
+            pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        except ValueError:
+            raise ArtifactError("corrupt EXR (pixel data do not match the header's size)", path) from None
         channels = {name: pixels[..., i].copy() for i, name in enumerate(spec.channelnames)}
     finally:
         inp.close()
@@ -563,14 +593,17 @@ def read_image(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.exists():
         raise ReflectmmError("file not found", path)
-    inp = oiio.ImageInput.open(str(path))
+    try:
+        inp = oiio.ImageInput.open(str(path))
+    except UnicodeDecodeError:
+        raise ReflectmmError("not a readable image (a header string is not text)", path) from None
     if inp is None:
-        raise ReflectmmError(f"not a readable image ({_first_line(oiio.geterror())})", path)
+        raise ReflectmmError(f"not a readable image ({_first_line(_oiio_error(oiio))})", path)
     try:
         spec = inp.spec()
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if pixels is None or (hasattr(pixels, "size") and pixels.size == 0):
-            raise ReflectmmError(f"truncated or corrupt image ({_first_line(inp.geterror())})", path)
+            raise ReflectmmError(f"truncated or corrupt image ({_first_line(_oiio_error(inp))})", path)
     finally:
         inp.close()
     return np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)

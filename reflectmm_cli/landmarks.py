@@ -28,7 +28,10 @@ def _parse_pts(text: str) -> np.ndarray:
         if not inside and low.startswith("version"):
             continue
         if not inside and low.startswith("n_points"):
-            declared = int(ln.split(":", 1)[1])
+            head, sep, count = ln.partition(":")
+            if not sep or not count.strip().isdigit():
+                raise ValueError(f"malformed header line {ln!r} (expected 'n_points: N')")
+            declared = int(count)
             continue
         if ln.startswith("{"):
             inside = True

@@ -13,9 +13,9 @@ from reflectmm_cli.commands._common import (device_option, emit, given_params, i
                                             output_option, param_options, parse_ids, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
-from reflectmm_cli.stages import (evaluate_albedo, evaluate_reconstruction, evaluate_relighting, evaluate_report,
+from reflectmm_cli.stages import (evaluate_albedo, evaluate_expressive, evaluate_reconstruction, evaluate_relighting, evaluate_report,
                                   evaluate_representation, evaluate_truth)
-from reflectmm_cli.workspace import find_face_model, require_truth_dir, resolve_workspace, stage_output
+from reflectmm_cli.workspace import find_face_model, require_truth_dir, resolve_workspace, stage_dir, stage_output
 
 
 @click.group("evaluate")
@@ -190,6 +190,33 @@ def evaluate_albedo_cmd(ids, obs, truth, method_specs, workspace, output, as_jso
     params = given_params(kw, evaluate_albedo.PARAMS)
     params["methods"] = names
     paths = run_stage_cli(evaluate_albedo.VERB, workspace=workspace, params=params, inputs=inputs, output=output)
+    _emit_table(paths, as_json)
+
+
+@evaluate_group.command("expressive")
+@click.option("--truth", "truth", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
+              help="A synth wild folder (manifest.npz, identities/) (default: <ws>/synth-wild).")
+@method_option
+@param_options(evaluate_expressive.PARAMS)
+@workspace_option
+@output_option
+@json_option
+def evaluate_expressive_cmd(truth, method_specs, workspace, output, as_json, **kw):
+    """Expressive power (synthetic data): the held-out wild identities' true per-vertex albedo and lobe weights
+    projected onto each model (one free scale, the model's prior) and onto an oracle of the same size built from
+    the training identities' truth; the gap to the oracle that --gain A,B closes. Encoders are not used (give '-').
+
+    Writes an `evaluation` artifact (<ws>/evaluate-expressive/evaluate-expressive.npz or --output) and its table.
+    """
+    ws = resolve_workspace(workspace)
+    truth = truth or stage_dir(ws, "synth-wild")
+    inputs, names = _methods(method_specs)
+    inputs = {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
+    inputs["truth"] = [truth]
+    params = given_params(kw, evaluate_expressive.PARAMS)
+    params["methods"] = names
+    paths = run_stage_cli(evaluate_expressive.VERB, workspace=workspace, params=params, inputs=inputs,
+                          output=output)
     _emit_table(paths, as_json)
 
 

@@ -44,7 +44,7 @@ def discover_inputs(workspace: Path, truth_dir: Path | None = None) -> dict[str,
             "model": list_artifacts(ws, "build-pca"), "representation": list_artifacts(ws, "evaluate-representation"),
             "reconstruction": list_artifacts(ws, "evaluate-reconstruction"),
             "albedo": list_artifacts(ws, "evaluate-albedo"), "relighting": list_artifacts(ws, "evaluate-relighting"),
-            "finetune": list_artifacts(ws, "finetune"),
+            "finetune": list_artifacts(ws, "finetune"), "expressive": list_artifacts(ws, "evaluate-expressive"),
             "truth": _npz(Path(td)) if td is not None else []}
 
 
@@ -84,8 +84,8 @@ def _ident(art, path: Path) -> str:
 def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), maps: Sequence[Path] = (),
                  models: Sequence[Path] = (), truth: Sequence[Path] = (), representation: Sequence[Path] = (),
                  progress: Callable = lambda it, **k: it, reconstruction: Sequence[Path] = (),
-                 albedo: Sequence[Path] = (), relighting: Sequence[Path] = (), finetune: Sequence[Path] = ()
-                 ) -> tuple[str, dict[str, Any]]:
+                 albedo: Sequence[Path] = (), relighting: Sequence[Path] = (), finetune: Sequence[Path] = (),
+                 expressive: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
     """Markdown text and a document of numbers. ``truth`` files are matched to identities by file stem.
     ``reconstruction`` / ``albedo`` / ``relighting``: ``evaluation`` artifacts of those stages; ``finetune``:
     finetuned ``reflectance-model`` artifacts (their sample PNGs are shown)."""
@@ -234,7 +234,7 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
         doc.setdefault("representation", {})[Path(rpath).stem] = art.meta.get("margin")
 
     lines += paper_sections(base, reconstruction=reconstruction, albedo=albedo, relighting=relighting,
-                            finetune=finetune, doc=doc)
+                            finetune=finetune, expressive=expressive, doc=doc)
     return "\n".join(lines) + "\n", doc
 
 
@@ -256,7 +256,7 @@ def _command(art) -> list[str]:
 
 
 def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: Sequence[Path] = (),
-                   relighting: Sequence[Path] = (), finetune: Sequence[Path] = (),
+                   relighting: Sequence[Path] = (), finetune: Sequence[Path] = (), expressive: Sequence[Path] = (),
                    doc: dict[str, Any] | None = None) -> list[str]:
     """Markdown lines of the Table 2, Table 3, relighting, model-sample and "paper vs reflectmm" sections (each
     only when its inputs are given); numbers go into ``doc``."""
@@ -284,8 +284,25 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: S
             lines += [f"![Table 2 figure]({_rel(png, base)})", "",
                       "Columns: input | reconstruction | diffuse | specular | error; rows: "
                       + "; ".join(art.meta["figure_rows"]) + ".", ""]
+        if art.meta.get("gains_table"):
+            lines += ["### The finetuning gain, per image (mean ± 95 % CI)", "",
+                      "A − B of each test image, averaged (for the reflectance errors B − A, so that a positive "
+                      "gain is an improvement). `initial` is the control run: the finetuned run's schedule with "
+                      "the model frozen, so the gain measures the model update alone (docs/evaluation.md, "
+                      "\"A fair Table 2\").", "", art.meta["gains_table"], ""]
         lines += _command(art)
         doc.setdefault("table2", {})[path.stem] = art.meta.get("summary")
+        if art.meta.get("gains"):
+            doc.setdefault("table2_gains", {})[path.stem] = art.meta["gains"]
+    for path, art in _evaluations(expressive, "expressive"):
+        lines += [f"## Expressive power on held-out identities (`{_rel(path, base)}`)", "",
+                  art.meta.get("protocol", ""), "", art.meta.get("table", ""), ""]
+        gap = art.meta.get("gap_closed") or {}
+        if gap:
+            lines += [f"Gap to the oracle closed by finetuning: diffuse albedo {100 * gap['albedo']:.0f} %, lobe "
+                      f"weights {100 * gap['weights']:.0f} %.", ""]
+        lines += _command(art)
+        doc.setdefault("expressive", {})[path.stem] = {"means": art.meta.get("means"), "gap_closed": gap}
     for path, art in _evaluations(albedo, "albedo"):
         take(art)
         lines += [f"## Table 3: albedo of held-out identities (`{_rel(path, base)}`)", "",

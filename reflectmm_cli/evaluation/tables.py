@@ -11,7 +11,7 @@ as :data:`reflectmm_cli.evaluation.paper_numbers.PAPER_NUMBERS`) and, where ther
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -155,12 +155,73 @@ def _shard_arrays(shards) -> dict[str, np.ndarray]:
     return arr
 
 
+#: Table 2's measures whose finetuning gain is reported (image measures: higher is better; reflectance errors:
+#: lower is better — the gain of an error is its decrease).
+GAIN_MEASURES = (("image", "psnr", "PSNR (dB)", 1.0), ("image", "ssim", "SSIM", 1.0),
+                 ("scaled", "albedo_rel", "albedo rel (scaled)", -1.0), ("scaled", "spec_rel", "Σw rel (scaled)", -1.0))
+
+
+def paired_gains(a: Mapping[str, Any], b: Mapping[str, Any], *, level: float = 0.95,
+                 method: str = "t") -> dict[str, dict[str, Any]]:
+    """Per measure, the per-image difference A − B (for error measures B − A, so that a positive gain is an
+    improvement) of two methods evaluated on the same images, with the mean's confidence interval.
+
+    Args:
+        a, b: :func:`.reconstruction_eval.evaluate_reconstruction` results of the two methods (same images).
+    Returns:
+        ``{measure: {"per_image": (N,), "summary": mean_ci}}`` for the measures of :data:`GAIN_MEASURES` that both
+        have.
+    """
+    from .face_metrics import mean_ci
+
+    out = {}
+    for part, key, _label, sign in GAIN_MEASURES:
+        if part == "image":
+            va = a["image"]["per_image"].per_image.get(key)
+            vb = b["image"]["per_image"].per_image.get(key)
+        else:
+            ra, rb = a.get("reflectance"), b.get("reflectance")
+            va = None if ra is None else ra["per_image"][part].get(key)
+            vb = None if rb is None else rb["per_image"][part].get(key)
+        if va is None or vb is None:
+            continue
+        d = sign * (np.asarray(va, np.float64) - np.asarray(vb, np.float64))
+        d = d[np.isfinite(d)]
+        if d.size:
+            out[key] = {"per_image": d, "summary": mean_ci(d, level=level, method=method)}
+    return out
+
+
+def gains_table(gains: Mapping[str, Mapping[str, Any]]) -> str:
+    """Markdown table of :func:`paired_gains` results: one row per compared pair, one column per measure."""
+    from .face_metrics import format_ci
+
+    labels = {key: label for _p, key, label, _s in GAIN_MEASURES}
+    rows = []
+    for pair, g in gains.items():
+        row = {"gain": pair}
+        for _p, key, label, _s in GAIN_MEASURES:
+            digits = 2 if key == "psnr" else 4 if key == "ssim" else 3
+            row[labels[key]] = format_ci(g[key]["summary"], digits) if key in g else "–"
+        rows.append(row)
+    from .reconstruction_eval import markdown_table
+
+    return markdown_table(rows)
+
+
 def reconstruction_evaluation(methods: Sequence[Method], data: Sequence[Path], light_model: Path, *,
                               split: str = "test", region: str = "face", lpips=None, lpips_name: str = "off",
                               batch_size: int = 8, released_batch: int = 32, ci: str = "t", figure_images: int = 3,
                               max_images: int = 0, gain: Sequence[str] = ("finetuned", "initial"),
-                              device: str = "cpu", log: Callable[[str], Any] | None = None) -> dict[str, Any]:
+                              device: str = "cpu", allow_other_model: bool = False, refine=None,
+                              log: Callable[[str], Any] | None = None) -> dict[str, Any]:
     """Table 2 for ``methods`` (each with an encoder) on the ``split`` images of the wild shards ``data``.
+
+    With ``refine`` (a :class:`~reflectmm_cli.finetune.refine.RefineConfig`) every method also gets a refined row
+    (``<name>-refined``: the encoder's prediction refined per image, the model fixed) and, when the shards carry
+    the true per-vertex reflectance, a ``ceiling`` row (the same refinement with each image's true reflectance).
+    The gain A − B is reported per measure as the mean of the per-image differences with its confidence interval
+    (:func:`paired_gains`), for the encoder-only and, with ``refine``, the refined rows.
 
     Each method: :func:`reflectmm_cli.finetune.reconstruct.reconstruct` with its encoder, model and the light
     model → per-vertex reflectance of the predicted β (``sample_model``) → :func:`.reconstruction_eval.
@@ -204,18 +265,24 @@ def reconstruction_evaluation(methods: Sequence[Method], data: Sequence[Path], l
             raise ReflectmmError(f"evaluate reconstruction: method '{m.name}' has no encoder (input "
                                  f"'encoder_{m.name}')")
         model = load_model(m.model)
-        enc, _meta = load_encoder(m.encoder, device)
+        enc, _meta = load_encoder(m.encoder, device, model=m.model, allow_other_model=allow_other_model)
         say(f"evaluate reconstruction: {m.name}: {len(idx)} images")
         rec = reconstruct(shards, enc, model, light, indices=idx, batch_size=batch_size, device=device)
-        va, vw = sample_model(model, rec.beta.astype(np.float64), "vertex")
-        pred = {"render": rec.full, "vertex_albedo": np.asarray(va, np.float32),
-                "vertex_weights": np.asarray(vw, np.float32)}
-        out = evaluate_reconstruction(pred, sarr, encoding=encoding, select=idx, region=region, lpips=lpips,
-                                      method=ci, batch_size=released_batch)
-        results[m.name] = out
-        rows.append(table_row(m.name, out["image"], out["reflectance"]))
-        per_method[m.name] = {"psnr": out["image"]["per_image"].summary["psnr"]["mean"],
-                              "ssim": out["image"]["per_image"].summary["ssim"]["mean"]}
+        variants = [(m.name, rec)]
+        if refine is not None:
+            say(f"evaluate reconstruction: {m.name}: refining {len(idx)} images")
+            variants.append((f"{m.name}-refined", reconstruct(shards, enc, model, light, indices=idx,
+                                                              batch_size=batch_size, device=device, refine=refine)))
+        for name, rv in variants:
+            va, vw = sample_model(model, rv.beta.astype(np.float64), "vertex")
+            pred = {"render": rv.full, "vertex_albedo": np.asarray(va, np.float32),
+                    "vertex_weights": np.asarray(vw, np.float32)}
+            out = evaluate_reconstruction(pred, sarr, encoding=encoding, select=idx, region=region, lpips=lpips,
+                                          method=ci, batch_size=released_batch)
+            results[name] = out
+            rows.append(table_row(name, out["image"], out["reflectance"]))
+            per_method[name] = {"psnr": out["image"]["per_image"].summary["psnr"]["mean"],
+                                "ssim": out["image"]["per_image"].summary["ssim"]["mean"]}
         for r in range(nfig):
             i = int(idx[r])
             inp = shards.image[i].astype(np.float64) / 255.0
@@ -224,9 +291,33 @@ def reconstruction_evaluation(methods: Sequence[Method], data: Sequence[Path], l
                                              encode_like(rec.specular[r], encoding), shards.face_mask[i]))
             labels[r].append(f"{shards.names[i]} — {m.name}")
         del rec, va, vw, pred
+    if refine is not None and "truth_vertex_albedo" in shards.truth and "truth_vertex_weights" in shards.truth:
+        from reflectmm_cli.finetune.reconstruct import reconstruct_truth
+
+        # the truth's lobe weights belong to the lobes of the models that have as many (the shards do not record
+        # the exponents): the first such method's
+        K = int(np.shape(shards.truth["truth_vertex_weights"][0])[-1])
+        exps = next((e for e in (np.asarray(load_model(m.model).exponents, np.float64) for m in methods)
+                     if e.shape == (K,)), None)
+        if exps is None:
+            say(f"evaluate reconstruction: no ceiling row: no method has the truth's {K} lobes")
+        else:
+            say(f"evaluate reconstruction: ceiling: refining {len(idx)} images with their true reflectance")
+            rc = reconstruct_truth(shards, light, exps, refine, indices=idx, device=device)
+            out = evaluate_reconstruction({"render": rc.full}, sarr, encoding=encoding, select=idx, region=region,
+                                          lpips=lpips, method=ci, batch_size=released_batch)
+            results["ceiling"] = out
+            rows.append(table_row("ceiling", out["image"], None))
+            per_method["ceiling"] = {"psnr": out["image"]["per_image"].summary["psnr"]["mean"],
+                                     "ssim": out["image"]["per_image"].summary["ssim"]["mean"]}
     paper = {}
+    gains = {}
     if len(gain) == 2 and gain[0] in per_method and gain[1] in per_method:
         paper["table2.psnr_gain_finetune"] = per_method[gain[0]]["psnr"] - per_method[gain[1]]["psnr"]
+        for suffix in ("", "-refined"):
+            a, b = gain[0] + suffix, gain[1] + suffix
+            if a in results and b in results:
+                gains[f"{a} - {b}"] = paired_gains(results[a], results[b], method=ci)
     flat_rows = [r for rr in fig_rows for r in rr]
     doc = {name: {"image": {"per_image": out["image"]["per_image"], "released": out["image"]["released"]},
                   "reflectance": (None if out["reflectance"] is None else
@@ -237,8 +328,14 @@ def reconstruction_evaluation(methods: Sequence[Method], data: Sequence[Path], l
                       "released": to_document(out["image"]["released"]),
                       "reflectance": None if out["reflectance"] is None else to_document(out["reflectance"]["summary"])}
                for name, out in results.items()}
+    if gains:
+        doc["gains"] = {k: {m: {"per_image": g["per_image"], "summary": g["summary"]} for m, g in v.items()}
+                        for k, v in gains.items()}
     return {"arrays": evaluation_arrays(doc), "table": markdown_table(rows), "summary": summary,
-            "paper_numbers": paper, "figure": grid(flat_rows) if flat_rows else None,
+            "paper_numbers": paper, "gains": {k: {m: to_document(g["summary"]) for m, g in v.items()}
+                                              for k, v in gains.items()},
+            "gains_table": gains_table(gains) if gains else "",
+            "ceiling": "ceiling" in results, "figure": grid(flat_rows) if flat_rows else None,
             "figure_rows": [lab for ll in labels for lab in ll], "n_images": int(len(idx)),
             "images": [str(shards.names[i]) for i in idx], "encoding": encoding, "lpips": lpips_name,
             "protocol": RECONSTRUCTION_PROTOCOL}
@@ -319,7 +416,7 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
                           light_model: Path | None = None, observations: Path | None = None, view: str = "05_1",
                           input_light: str = "room", holdout: Sequence[str] | None = None, size: int = 224,
                           encoding: str = "gamma1.2", exposure: float = 1.0, scale: str = "global",
-                          prior: float = 1e-4, device: str = "cpu",
+                          prior: float = 1e-4, device: str = "cpu", allow_other_model: bool = False,
                           log: Callable[[str], Any] | None = None) -> dict[str, Any]:
     """Fig. 7 for one held-out identity: each method reconstructs from ONE image of ``view`` (``input_light`` =
     ``"room"`` — the room-light shot — or a flash id — the flash shot, room + OLAT), and is re-rendered under
@@ -393,7 +490,7 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
                 lm = _landmarks_full(cap, geo, fm, c, g)
                 crop = input_crop(inp_lin, np.asarray(cap["crop_origin"])[c], lm, geo["K"][g], geo["R"][g],
                                   geo["t"][g], geo["vertices"], fm, size=size, encoding=encoding, exposure=exposure)
-            enc, _ = load_encoder(m.encoder, device)
+            enc, _ = load_encoder(m.encoder, device, model=m.model, allow_other_model=allow_other_model)
             ss = _one_image_shardset(crop["image"], crop["gbuffer"], encoding, light.order)
             rec = reconstruct(ss, enc, model, light, indices=[0], device=device)
             alb, wts = sample_model(model, rec.beta[0].astype(np.float64), "vertex")

@@ -24,7 +24,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from reflectmm_cli.artifacts import IMAGE_EXTENSIONS, META_KEY, check_schema, read_image_u8, write_artifact
+from reflectmm_cli.artifacts import (CORRUPT_ERRORS, IMAGE_EXTENSIONS, META_KEY, check_schema, read_image_u8,
+                                     write_artifact)
 from reflectmm_cli.errors import ArtifactError, ReflectmmError
 from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
 
@@ -152,7 +153,7 @@ def _member_offsets(path: Path) -> dict[str, tuple[int, int]]:
     return out
 
 
-def _npy_memmap(path: Path, offset: int) -> np.ndarray:
+def _npy_memmap(path: Path, offset: int, size: int | None = None) -> np.ndarray:
     with open(path, "rb") as f:
         f.seek(offset)
         version = np.lib.format.read_magic(f)
@@ -163,6 +164,10 @@ def _npy_memmap(path: Path, offset: int) -> np.ndarray:
         data_off = f.tell()
     if dtype.hasobject:
         raise ArtifactError("object arrays are not allowed in shards", path)
+    nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if size is not None and data_off - offset + nbytes > size:
+        raise ArtifactError(f"corrupt wild-shard: an array header claims {nbytes} bytes, its member holds "
+                            f"{size - (data_off - offset)}", path)
     if int(np.prod(shape)) == 0:
         return np.zeros(shape, dtype)
     return np.memmap(path, dtype=dtype, mode="r", offset=data_off, shape=shape, order="F" if fortran else "C")
@@ -177,6 +182,13 @@ class Shard:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        try:
+            self._open()
+        except CORRUPT_ERRORS as exc:
+            raise ArtifactError(f"truncated or corrupt wild-shard ({type(exc).__name__}: "
+                                f"{(str(exc).splitlines() or [''])[0]})", self.path) from None
+
+    def _open(self) -> None:
         if not self.path.is_file():
             raise ArtifactError("shard file not found", self.path)
         if not zipfile.is_zipfile(self.path):
@@ -201,7 +213,12 @@ class Shard:
         if name not in self:
             raise ArtifactError(f"wild-shard has no array '{name}'", self.path)
         if name not in self._cache:
-            self._cache[name] = _npy_memmap(self.path, self._offsets[name][0])
+            off, size = self._offsets[name]
+            try:
+                self._cache[name] = _npy_memmap(self.path, off, size)
+            except CORRUPT_ERRORS as exc:
+                raise ArtifactError(f"corrupt wild-shard array '{name}' ({type(exc).__name__}: "
+                                    f"{(str(exc).splitlines() or [''])[0]})", self.path) from None
         return self._cache[name]
 
     def __len__(self) -> int:
@@ -308,6 +325,18 @@ def _truth_for(truth_dir: Path, name: str):
     return read_artifact(p, "wild-truth")
 
 
+def _truth_at_size(a: np.ndarray, size: int, interpolation: str = "linear") -> np.ndarray:
+    """A synth-wild truth image (H,H[,C]) at the crop size S (the pixel-centre rescale of ``--from-truth``)."""
+    from .align import warp_to_crop
+
+    h = int(a.shape[0])
+    if h == size:
+        return a
+    k = size / h
+    A = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2]])
+    return warp_to_crop(a, A, size, interpolation=interpolation)
+
+
 def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareConfig, *,
                         truth_dir: str | Path | None = None, splits: Mapping[str, str] | None = None,
                         progress_fn=None) -> tuple[dict[str, np.ndarray], dict, list[str]]:
@@ -325,7 +354,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
     from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, pack_gbuffers
     from reflectmm_cli.geometry.camera import Camera
     from reflectmm_cli.geometry.raycast import rasterize
-    from reflectmm_cli.landmarks import read_landmarks
+    from reflectmm_cli.landmarks import check_in_frame, read_landmarks
 
     S = int(cfg.size)
     K_crop = deep3d_camera().with_size(S, S).K
@@ -345,7 +374,9 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
             if inp.landmarks is None:
                 raise ReflectmmError("no landmark file with the same name (.pts/.txt/.npy)", inp.image)
             img = read_image_u8(inp.image)
-            lm = read_landmarks(inp.landmarks)
+            if not img.any():
+                raise ReflectmmError("image is all black (nothing to reconstruct)", inp.image)
+            lm = check_in_frame(read_landmarks(inp.landmarks), img.shape[1], img.shape[0], inp.landmarks)
             encoding = cfg.encoding
             tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
             if tr is not None:
@@ -396,7 +427,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
                 lab_c = warp_to_crop(lab, A, S, interpolation="nearest")
                 skin = skin_mask_from_labels(lab_c) & vis_px
             elif tr is not None and cfg.from_truth:
-                skin = np.asarray(tr["skin_mask"], bool) & vis_px
+                skin = _truth_at_size(np.asarray(tr["skin_mask"], np.uint8), S, "nearest").astype(bool) & vis_px
             else:
                 skin = skin_mask_from_model(gb, face_model.skin_mask, lin) & vis_px
             verr = float("nan")
@@ -420,8 +451,10 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
                                    ("truth_vertex_weights", np.asarray(ia["vertex_weights"], np.float16)),
                                    ("truth_vertex_spec_albedo", np.asarray(ia["vertex_spec_albedo"], np.float16)),
                                    ("truth_vertex_roughness", np.asarray(ia["vertex_roughness"], np.float16)),
-                                   ("truth_diffuse", np.asarray(tr["diffuse"], np.float16)),
-                                   ("truth_specular", np.asarray(tr["specular"], np.float16))):
+                                   ("truth_diffuse", _truth_at_size(np.asarray(tr["diffuse"], np.float32),
+                                                                    S).astype(np.float16)),
+                                   ("truth_specular", _truth_at_size(np.asarray(tr["specular"], np.float32),
+                                                                     S).astype(np.float16))):
                         truth.setdefault(k_, []).append(v_)
         except ReflectmmError as exc:
             errors.append(str(exc).splitlines()[0])

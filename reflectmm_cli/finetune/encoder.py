@@ -16,7 +16,8 @@ from pathlib import Path
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Encoder", "build_encoder", "load_trunk", "save_encoder", "load_encoder", "ENCODER_KIND"]
+__all__ = ["Encoder", "build_encoder", "load_trunk", "save_encoder", "load_encoder", "check_encoder_model",
+           "encoder_model_sha", "ENCODER_KIND"]
 
 ENCODER_KIND = "finetune-encoder"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -186,8 +187,52 @@ def save_encoder(encoder, path: str | Path, meta: dict) -> Path:
     return atomic_write_bytes(path, data)
 
 
-def load_encoder(path: str | Path, device="cpu"):
-    """(encoder in eval mode, meta) from :func:`save_encoder`'s file."""
+def encoder_model_sha(meta: dict) -> str | None:
+    """sha256 of the reflectance model an encoder was trained with (its meta's ``model`` input), if recorded."""
+    for ref in meta.get("inputs") or []:
+        if isinstance(ref, dict) and ref.get("role") == "model" and isinstance(ref.get("sha256"), str):
+            return ref["sha256"]
+    return None
+
+
+def check_encoder_model(meta: dict, encoder_path, model_path, *, allow_other_model: bool = False,
+                        warn=None) -> None:
+    """Refuse an encoder used with a model it was not trained for.
+
+    Accepted: the model the encoder's meta records (by sha256), or a ``finetune`` output made from that model
+    (its own meta's ``model`` input has that sha256 — the finetuned model of a run whose encoder this is, or of a
+    control run). Anything else is a one-line error naming both files, or with ``allow_other_model`` a warning
+    (``warn``, default the log). An encoder that records no model is not checked.
+    """
+    from reflectmm_cli.artifacts import read_meta, sha256_file
+
+    trained = encoder_model_sha(meta)
+    if trained is None:
+        return
+    given = sha256_file(model_path)
+    if given == trained:
+        return
+    try:
+        mmeta = read_meta(model_path)
+    except ReflectmmError:
+        mmeta = {}
+    parent = encoder_model_sha(mmeta) if (mmeta.get("producer") or {}).get("stage") == "finetune" else None
+    if parent == trained:
+        return
+    msg = (f"the encoder {encoder_path} was trained for another reflectance model than {model_path} (sha256 "
+           f"{trained[:12]}…, not {given[:12]}…, nor a finetune output of it)")
+    if not allow_other_model:
+        raise ReflectmmError(msg + "; pass --allow-other-model to use it anyway")
+    if warn is None:
+        from reflectmm_cli.progress import log
+
+        warn = log.warning
+    warn("warning: " + msg + " (--allow-other-model)")
+
+
+def load_encoder(path: str | Path, device="cpu", *, model=None, allow_other_model: bool = False, warn=None):
+    """(encoder in eval mode, meta) from :func:`save_encoder`'s file; with ``model`` (a path), the pairing is
+    checked first (:func:`check_encoder_model`)."""
     import json
 
     from safetensors import safe_open
@@ -204,8 +249,13 @@ def load_encoder(path: str | Path, device="cpu"):
         raise ReflectmmError(f"not a readable encoder safetensors file ({type(e).__name__}: {e})", path) from None
     if meta.get("schema") != f"reflectmm.{ENCODER_KIND}/1":
         raise ReflectmmError(f"not a reflectmm encoder (schema {meta.get('schema')!r})", path)
-    enc = Encoder(meta["arch"], int(meta["n_reflectance"]), int(meta["n_light"]), int(meta["width"]),
-                  float(meta["z0"]))
+    if model is not None:
+        check_encoder_model(meta, path, model, allow_other_model=allow_other_model, warn=warn)
+    try:
+        enc = Encoder(meta["arch"], int(meta["n_reflectance"]), int(meta["n_light"]), int(meta["width"]),
+                      float(meta["z0"]))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ReflectmmError(f"encoder meta is incomplete or corrupt ({type(e).__name__}: {e})", path) from None
     try:
         enc.load_state_dict(sd)
     except RuntimeError as e:

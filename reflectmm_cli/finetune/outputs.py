@@ -201,7 +201,7 @@ def _write_outputs(result, initial, out: Path, *, face_model, inputs, params, pr
         upd[k] = float(np.sqrt(np.mean((np.asarray(v, np.float64) - v0) ** 2)))
     written = []
     enc_meta = {"config": result.config.to_dict(), "perceptual": result.perceptual, "steps": result.steps,
-                "inputs": inputs or [], "producer": producer or {}}
+                "inputs": inputs or [], "producer": producer or {}, "image_size": result.image_size}
     written.append(save_encoder(result.encoder, paths["encoder"], enc_meta))
     if result.phase1_encoder is not None and result.config.epochs2 > 0:
         # the encoder of the "without finetuning" method: phase 1 only, on the initial (frozen) model

@@ -61,7 +61,7 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
     from .render import ModelParams, batch_gbuffer, lighting, scatter_pixels, shade_gbuffer
     from .train import check_inputs
 
-    check_inputs(shards, model, light)
+    check_inputs(shards, model, light, verb="reconstruct")
     if encoder is None and refine is None:
         raise ReflectmmError("reconstruct: give an encoder, or refine the images without one")
     if encoder is not None:

@@ -97,8 +97,8 @@ class ModelParams:
         dt = dtype or torch.float32
         get = (lambda k: getattr(model, k)) if hasattr(model, "vertex_albedo_mean") else (lambda k: model[k])
         if get("vertex_albedo_mean") is None:
-            raise ReflectmmError("finetune: the reflectance model has no per-vertex part (build-pca without "
-                                 "--face-model); finetuning needs it")
+            raise ReflectmmError("the reflectance model has no per-vertex part (build-pca without --face-model); "
+                                 "finetuning and reconstruction need it")
         m = int(np.shape(get("sigma"))[0]) if n_components is None else int(n_components)
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=dt, device=device).clone()  # noqa: E731
         self.sigma = t(get("sigma"))[:m]
@@ -189,7 +189,7 @@ def pixel_reflectance(params: ModelParams, beta, gb: GBufferBatch):
     flat = gb.vert_ids.reshape(-1)
     V = params.n_vertices
     if flat.numel() and (int(flat.max()) >= V or int(flat.min()) < 0):
-        raise ReflectmmError(f"finetune: the G-buffer references vertex {int(flat.max())} but the reflectance model "
+        raise ReflectmmError(f"the G-buffer references vertex {int(flat.max())} but the reflectance model "
                              f"has {V} vertices (wrong face model?)")
     # the touched vertices by a mask (a sort-free torch.unique: ascending ids, inverse by a prefix sum)
     touched = torch.zeros(V, dtype=torch.bool, device=flat.device)

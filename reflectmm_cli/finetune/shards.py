@@ -205,6 +205,18 @@ def _check(path, a: Mapping[str, np.ndarray], meta) -> tuple[int, int, str]:
             raise ReflectmmError(f"wild-shard: {k} must have shape ({P},{c}), got {a[k].shape}", path)
         if a[k].dtype.kind == "f" and not np.isfinite(a[k]).all():
             raise ReflectmmError(f"wild-shard: {k} contains NaN or inf", path)
+    yx = np.asarray(a["pix_yx"])
+    if yx.size and (int(yx.min()) < 0 or int(yx.max()) >= S):
+        raise ReflectmmError(f"wild-shard: pix_yx holds pixel index {int(yx.min()) if int(yx.min()) < 0 else int(yx.max())}"
+                             f" outside the {S}x{S} image", path)
+    vid = np.asarray(a["vert_ids"])
+    if vid.size and int(vid.min()) < 0:
+        raise ReflectmmError(f"wild-shard: vert_ids holds a negative vertex id ({int(vid.min())})", path)
+    for k in ("K", "R", "t", "landmarks", "shape", "expression"):
+        if k in a and np.asarray(a[k]).dtype.kind == "f" and not np.isfinite(np.asarray(a[k])).all():
+            i = int(np.flatnonzero(~np.isfinite(np.asarray(a[k])).reshape(n, -1).all(1))[0]) \
+                if np.asarray(a[k]).shape[:1] == (n,) else 0
+            raise ReflectmmError(f"wild-shard: {k} of image {i} ({a['names'][i]}) contains NaN or inf", path)
     enc = str(meta.get("encoding", "gamma1.2"))
     if enc not in ENCODINGS:
         raise ReflectmmError(f"wild-shard: unknown encoding {enc!r} (expected one of {', '.join(ENCODINGS)})", path)

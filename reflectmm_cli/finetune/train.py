@@ -57,6 +57,7 @@ class FinetuneResult:
     n_val: int = 0
     stats: dict = field(default_factory=dict)
     phase1_encoder: Path | None = None
+    image_size: int | None = None  # the side S of the training images (recorded in the encoder's meta)
 
 
 def load_models(model_path, light_path):
@@ -66,25 +67,37 @@ def load_models(model_path, light_path):
     from reflectmm_cli.model.pca import MODEL_KIND, model_from_arrays
 
     art = read_artifact(model_path, MODEL_KIND)
+    _check_finite(art.arrays, model_path)
     model = model_from_arrays(art.arrays, art.meta.get("stats"))
-    light = light_model_from_arrays(read_artifact(light_path, LIGHT_MODEL_KIND).arrays)
+    lart = read_artifact(light_path, LIGHT_MODEL_KIND)
+    _check_finite(lart.arrays, light_path)
+    light = light_model_from_arrays(lart.arrays)
     return model, light
 
 
-def check_inputs(shards: ShardSet, model, light) -> None:
-    """One-line errors for a model/light-model/shard mismatch (vertex count, SH order, per-vertex part)."""
+def _check_finite(arrays, path) -> None:
+    """One line naming the file and the first array holding NaN or inf (a model that would poison training)."""
+    for k in sorted(arrays):
+        a = np.asarray(arrays[k])
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise ReflectmmError(f"array '{k}' contains NaN or inf ({int((~np.isfinite(a)).sum())} values)", path)
+
+
+def check_inputs(shards: ShardSet, model, light, verb: str = "finetune") -> None:
+    """One-line errors (prefixed with ``verb``) for a model/light-model/shard mismatch (vertex count, SH order,
+    per-vertex part)."""
     if getattr(model, "vertex_albedo_mean", None) is None:
-        raise ReflectmmError("finetune: the reflectance model has no per-vertex part (build it with --face-model)")
+        raise ReflectmmError(f"{verb}: the reflectance model has no per-vertex part (build it with --face-model)")
     V = int(model.vertex_albedo_mean.shape[0])
     vmax = int(shards.vert_ids.max()) if shards.vert_ids.size else -1
     if vmax >= V:
-        raise ReflectmmError(f"finetune: the shards reference vertex {vmax} but the reflectance model has {V} "
+        raise ReflectmmError(f"{verb}: the shards reference vertex {vmax} but the reflectance model has {V} "
                              f"vertices (shards made with another face model?)")
     if int(light.order) != int(shards.sh_order):
-        raise ReflectmmError(f"finetune: the light model has SH order {light.order} but the shards were prepared "
+        raise ReflectmmError(f"{verb}: the light model has SH order {light.order} but the shards were prepared "
                              f"for order {shards.sh_order}")
     if model.vertex_weights_mean.shape[-1] != len(model.exponents):
-        raise ReflectmmError("finetune: the model's lobe weights and exponents disagree in count")
+        raise ReflectmmError(f"{verb}: the model's lobe weights and exponents disagree in count")
 
 
 def _np(t):
@@ -116,6 +129,13 @@ class Trainer:
             raise ReflectmmError("finetune: the shards have no image in the 'train' split")
         M = model.n_components if config.n_reflectance is None else min(config.n_reflectance, model.n_components)
         NL = light.n_components if config.n_light is None else min(config.n_light, light.n_components)
+        for opt, asked, got, what in (("--components", config.n_reflectance, M, "reflectance model"),
+                                      ("--light-components", config.n_light, NL, "light model")):
+            if asked is not None and asked > got:
+                self.log(f"finetune: warning: {opt} {asked} but the {what} has {got} components; using {got}")
+        if config.epochs1 == 0 and config.epochs2 == 0:
+            self.log("finetune: warning: --epochs1 0 --epochs2 0: no training step; the encoder written is the "
+                     "untrained initialisation and the model is the initial one")
         self.M, self.NL = M, NL
         dc = getattr(light, "dc", None)
         self.z0 = float(np.mean(dc)) if dc is not None and np.size(dc) and np.all(np.asarray(dc) > 0) else 1.0
@@ -271,7 +291,8 @@ class Trainer:
         from .encoder import save_encoder
 
         return save_encoder(self.encoder, self.phase1_encoder_path,
-                            {"config": self.cfg.to_dict(), "phase": 1, "steps": self.global_step})
+                            {"config": self.cfg.to_dict(), "phase": 1, "steps": self.global_step,
+                             "image_size": int(self.shards.size)})
 
     @property
     def ckpt_path(self) -> Path:
@@ -373,6 +394,10 @@ class Trainer:
             self.log_path.unlink()
         self.encoder.train()
         show = self.show_progress and plog.getEffectiveLevel() <= logging.INFO
+        # a terminal gets one line redrawn in place; a log file or a captured stderr gets plain lines, one per
+        # ~10 % of an epoch, and never a carriage return
+        tty = show and bool(getattr(sys.stderr, "isatty", lambda: False)())
+        every = max(1, self.steps_per_epoch // 10)
         total_steps = len(self.plan) * self.steps_per_epoch
         while self.pos[0] < len(self.plan):
             pi, k0 = self.pos
@@ -400,12 +425,13 @@ class Trainer:
                 rec = {"type": "step", "phase": phase, "epoch": ep, "step": k, "global_step": self.global_step,
                        "loss": float(total.detach()), **{k_: float(v.detach()) for k_, v in terms.items()}}
                 self._append_log(rec)
-                if show:
+                if show and (tty or (k + 1) % every == 0 or k + 1 == self.steps_per_epoch):
                     ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
-                    sys.stderr.write(f"\rfinetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
+                    sys.stderr.write(("\r" if tty else "")
+                                     + f"finetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
                                      f"[{self.global_step}/{total_steps}] loss {rec['loss']:.4g} "
                                      + " ".join(f"{k_} {rec[k_]:.3g}" for k_ in terms)
-                                     + f" {ips:.1f} img/s ")
+                                     + f" {ips:.1f} img/s" + (" " if tty else "\n"))
                     sys.stderr.flush()
                 last = k + 1 == self.steps_per_epoch
                 if not last and self.global_step % self.cfg.checkpoint_every == 0:
@@ -416,7 +442,7 @@ class Trainer:
             rec = {"type": "val", "phase": phase, "epoch": ep, "global_step": self.global_step,
                    **({} if val is None else {f"val_{k_}": v for k_, v in val.items()})}
             self._append_log(rec)
-            if show:
+            if tty:
                 sys.stderr.write("\n")
             el = time.perf_counter() - t_epoch
             self.log(f"finetune: phase {phase} epoch {ep + 1}: {n_img / max(el, 1e-9):.1f} images/s"
@@ -470,5 +496,6 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
                           f"{identity.name} ({identity.path.name})", z0=tr.z0, steps=tr.global_step,
                           stopped_early=stopped, n_train=int(len(tr.train_idx)), n_val=int(len(tr.val_idx)),
                           phase1_encoder=tr.phase1_encoder_path if tr.phase1_encoder_path.is_file() else None,
+                          image_size=int(shards.size),
                           stats={"basis_cache_images": len(tr.basis_cache),
                                  "basis_cache_mib": round(tr.basis_bytes / 2 ** 20, 3)})

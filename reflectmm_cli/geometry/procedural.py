@@ -35,7 +35,11 @@ from reflectmm_cli.errors import ReflectmmError
 
 from .face_model import FaceModel
 
-__all__ = ["procedural_face_model", "DEFAULT_PARAMS", "face_surface", "grid_shape"]
+__all__ = ["procedural_face_model", "DEFAULT_PARAMS", "face_surface", "grid_shape", "MIN_VERTICES"]
+
+#: The fewest vertices a procedural face model can have (a 20 × 21 grid); the verbs' ``--face-vertices`` range
+#: starts here.
+MIN_VERTICES = 400
 
 THETA_MAX = math.radians(100.0)
 Y_TOP, Y_BOTTOM = 110.0, -90.0
@@ -91,8 +95,8 @@ def _smoothstep(e0, e1, x):
 
 def grid_shape(n_vertices: int) -> tuple[int, int]:
     """(columns, rows) of the grid for about ``n_vertices`` vertices (aspect ~ arc length : height)."""
-    if n_vertices < 400:
-        raise ReflectmmError(f"procedural face model: need at least 400 vertices, got {n_vertices}")
+    if n_vertices < MIN_VERTICES:
+        raise ReflectmmError(f"procedural face model: need at least {MIN_VERTICES} vertices, got {n_vertices}")
     aspect = (2 * THETA_MAX * 74.0) / (Y_TOP - Y_BOTTOM)  # ≈ 1.29
     rows = max(20, int(round(math.sqrt(n_vertices / aspect))))
     cols = max(21, int(round(n_vertices / rows)))

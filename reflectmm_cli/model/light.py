@@ -262,6 +262,8 @@ def light_model_from_arrays(arrays) -> LightModel:
         sigma = np.asarray(get("sigma"), dtype=np.float64)
     except KeyError as e:
         raise ReflectmmError(f"light model: missing array {e}") from None
+    except (TypeError, ValueError) as e:
+        raise ReflectmmError(f"light model: corrupt array ({type(e).__name__}: {e})") from None
     F = 3 * (order + 1) ** 2
     if mean.shape != (F,) or bases.ndim != 2 or bases.shape[1] != F or sigma.shape != (bases.shape[0],):
         raise ReflectmmError(f"light model: inconsistent shapes (order {order}, mean {mean.shape}, "

@@ -157,7 +157,16 @@ class SerialExecutor(Executor):
         return results
 
 
+#: After ``kill -9`` of ``reflectmm run``, multiprocessing's resource tracker (a separate process that outlives it)
+#: removes the pool's semaphores and warns "There appear to be N leaked semaphore objects to clean up": nothing is
+#: left behind, the line only alarms. The tracker takes its warning filters from the interpreter options it is
+#: started with, so this one is added before the first pool starts it.
+_TRACKER_WARNING = "ignore::UserWarning:multiprocessing.resource_tracker"
+
+
 def _mp_context():
+    if _TRACKER_WARNING not in sys.warnoptions:
+        sys.warnoptions.append(_TRACKER_WARNING)
     methods = multiprocessing.get_all_start_methods()
     return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
 

@@ -35,6 +35,12 @@ def image_files(ctx: StageContext) -> list[Path]:
             out += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
         else:
             out.append(p)
+    seen: dict[str, Path] = {}
+    for p in out:
+        other = seen.setdefault(p.stem, p)
+        if other != p:
+            raise ReflectmmError(f"{VERB}: two images would write the same {p.stem}.pts ({other} and {p}); give "
+                                 f"them distinct names or run the folders separately with their own --out")
     return out
 
 

@@ -18,9 +18,11 @@ import numpy as np
 from reflectmm_cli.artifacts import atomic_write_text, write_artifact, write_png
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
+from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.reconstruct import refine_config, refine_params
 
 VERB = "evaluate-reconstruction"
 
@@ -46,7 +48,9 @@ PARAMS = (
     Param("figure_images", "int", 3, range=(0, 64), help="Test images shown in the figure (one row per method)."),
     Param("max_images", "int", 0, range=(0, None), help="Evaluate only the first N selected images (0 = all)."),
     Param("batch_size", "int", 8, range=(1, 4096), invalidates_cache=False, help="Encoder batch size."),
-)
+    Param("allow_other_model", "bool", False, invalidates_cache=False,
+          help="Use an encoder with a model it was not trained for (a warning instead of an error)."),
+) + refine_params()
 
 ROLE_OPTIONS = {"data": "--data", "light_model": "--light-model", "lpips_weights": "--lpips-weights"}
 
@@ -63,6 +67,11 @@ def run(ctx: StageContext) -> list[Path]:
 
     p = ctx.params
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), need_encoder=True, stage=VERB)
+    names = [m.name for m in methods]
+    missing = [g for g in p["gain"] if g not in names]
+    if missing and list(p["gain"]) != ["finetuned", "initial"]:  # the default applies when both are present
+        raise ReflectmmError(f"{VERB}: --gain names {', '.join(missing)}, not among the methods "
+                             f"({', '.join(names)})")
     lw = ctx.input_list("lpips_weights", required=False)
     lp = load_lpips(lw[0] if lw else None, p["lpips_net"])
     res = reconstruction_evaluation(methods, ctx.input_list("data"), ctx.input("light_model"), split=p["split"],
@@ -72,6 +81,7 @@ def run(ctx: StageContext) -> list[Path]:
                                     batch_size=int(p["batch_size"]), released_batch=int(p["released_batch"]),
                                     ci=p["ci"], figure_images=int(p["figure_images"]),
                                     max_images=int(p["max_images"]), gain=p["gain"], device=ctx.device,
+                                    allow_other_model=p["allow_other_model"], refine=refine_config(p),
                                     log=log.info)
     out = ctx.output_path()
     png = out.with_suffix(".png")
@@ -79,6 +89,16 @@ def run(ctx: StageContext) -> list[Path]:
                        role_options=ROLE_OPTIONS, declared=PARAMS)
     md = (f"# Table 2: reconstruction on {res['n_images']} '{p['split']}' images\n\n{res['protocol']}\n\n"
           f"{res['table']}\n\nLPIPS: {res['lpips']}. Images encoded as {res['encoding']}.\n")
+    if p.get("refine"):
+        md += ("\nRows `<method>-refined`: the encoder's β, γ, z refined per image by analysis-by-synthesis with the "
+               "model fixed (docs/finetune.md, \"Per-image refinement\")."
+               + (" Row `ceiling`: the same refinement with each image's true per-vertex reflectance, so that "
+                  "(method's refined PSNR) / (ceiling PSNR) shows how much of the remaining error is the model's."
+                  if res["ceiling"] else "") + "\n")
+    if res["gains_table"]:
+        md += ("\n## The finetuning gain (per image, same images; mean ± 95 % CI)\n\nA − B of each image, averaged; "
+               "for the reflectance errors B − A, so that a positive gain is an improvement everywhere.\n\n"
+               f"{res['gains_table']}\n")
     if res["figure"] is not None:
         md += (f"\nFigure `{png.name}`: columns input | reconstruction | diffuse | specular | error (|recon − input|, "
                "white at 0.2); rows: " + "; ".join(res["figure_rows"]) + ".\n")
@@ -91,7 +111,8 @@ def run(ctx: StageContext) -> list[Path]:
                                "methods": [m.name for m in methods], "images": res["images"],
                                "lpips": res["lpips"], "encoding": res["encoding"], "summary": res["summary"],
                                "paper_numbers": res["paper_numbers"], "figure_rows": res["figure_rows"],
-                               "protocol": res["protocol"]})
+                               "protocol": res["protocol"], "gains": res["gains"],
+                               "gains_table": res["gains_table"]})
     log.info(res["table"])
     return [out, out.with_suffix(".md"), png]
 

@@ -36,6 +36,8 @@ PARAMS = (
     Param("exposure", "float", 1.0, range=(0.0, 1e6), low_open=True,
           help="Factor on the linear input image before encoding it for the encoders."),
     Param("prior", "float", 1e-4, range=(0.0, 1e6), help="λ of the encoder-free coefficient fit."),
+    Param("allow_other_model", "bool", False, invalidates_cache=False,
+          help="Use an encoder with a model it was not trained for (a warning instead of an error)."),
 )
 
 ROLE_OPTIONS = {"capture": "--capture", "geometry": "--geometry", "face_model": "--face-model",
@@ -59,7 +61,8 @@ def run(ctx: StageContext) -> list[Path]:
                                 light_model=lm[0] if lm else None, observations=ob[0] if ob else None,
                                 view=p["view"], input_light=p["input"], holdout=p.get("holdout"), size=int(p["size"]),
                                 encoding=p["encoding"], exposure=float(p["exposure"]), scale=p["scale"],
-                                prior=float(p["prior"]), device=ctx.device, log=log.info)
+                                prior=float(p["prior"]), device=ctx.device,
+                                allow_other_model=p["allow_other_model"], log=log.info)
     out = ctx.output_path()
     png = out.with_suffix(".png")
     cmd = command_line(["evaluate", "relighting"], p, ctx.inputs, workspace=ctx.workspace, output=out,

@@ -62,6 +62,8 @@ PARAMS = (
           help="--images: how the images are encoded (linearised with it)."),
     Param("allow_skipped", "bool", False,
           help="--images: exit 0 when some images could not be prepared (they are reported either way)."),
+    Param("allow_other_model", "bool", False, invalidates_cache=False,
+          help="Use an encoder with a model it was not trained for (a warning instead of an error)."),
 ) + refine_params()
 
 
@@ -108,7 +110,12 @@ def run(ctx: StageContext) -> list[Path]:
     if refine is not None and p["refine_from"] == "zero":
         enc = None
     else:
-        enc, _ = load_encoder(ctx.input("encoder"), ctx.device)
+        enc, emeta = load_encoder(ctx.input("encoder"), ctx.device, model=ctx.input("model"),
+                                  allow_other_model=p["allow_other_model"])
+        trained = emeta.get("image_size")
+        if trained is not None and int(trained) != int(shards.size):
+            log.warning(f"reconstruct: warning: the encoder was trained on {trained}² images, these are "
+                        f"{shards.size}² (--size); its predictions are unreliable at another scale")
     rec = reconstruct(shards, enc, model, light, split=p.get("split"), batch_size=p["batch_size"],
                       device=ctx.device, refine=refine,
                       progress_fn=(lambda it: progress(it, desc="refine", unit="batch")) if refine else None)

@@ -37,6 +37,7 @@ STAGE_MODULES: dict[str, str] = {
     "evaluate-representation": "evaluate_representation",
     "build-baseline": "build_baseline",
     "evaluate-albedo": "evaluate_albedo",
+    "evaluate-expressive": "evaluate_expressive",
     "evaluate-reconstruction": "evaluate_reconstruction",
     "evaluate-relighting": "evaluate_relighting",
     "evaluate-report": "evaluate_report",

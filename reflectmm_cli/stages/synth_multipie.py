@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.procedural import MIN_VERTICES
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
@@ -33,7 +34,7 @@ PARAMS = (
     Param("shape_scale", "float", 1.0, range=(0.0, None),
           help="Scale of the random identity shape (x the model's shape sigma)."),
     Param("first_id", "int", 1, range=(1, 999), help="Id of the first identity."),
-    Param("face_vertices", "int", 35000, range=(200, 500000),
+    Param("face_vertices", "int", 35000, range=(MIN_VERTICES, 500000),
           help="Vertex count of the procedural face model (when --face-model is not given)."),
     Param("supersample", "int", 1, range=(1, 8),
           help="k x k rays per pixel, box-filtered in linear space (anti-aliased silhouettes and shadow edges)."),

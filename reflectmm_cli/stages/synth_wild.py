@@ -12,6 +12,7 @@ from dataclasses import fields
 from pathlib import Path
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.procedural import MIN_VERTICES
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
@@ -49,7 +50,7 @@ PARAMS = (
           help="Equirectangular width of the maps (height = width/2; even)."),
     Param("uv_size", "int", _D.uv_size, range=(16, 4096), unit="texels",
           help="Resolution of the skin maps sampled at the vertices."),
-    Param("face_vertices", "int", _D.face_vertices, range=(200, 500000),
+    Param("face_vertices", "int", _D.face_vertices, range=(MIN_VERTICES, 500000),
           help="Vertex count of the procedural face model (when no face model is given)."),
     Param("ao_rays", "int", _D.ao_rays, range=(1, 1024), help="Ambient-occlusion rays per vertex."),
     Param("spec_rays", "int", _D.spec_rays, range=(1, 1024), help="GGX-lobe visibility rays per vertex."),

@@ -115,6 +115,9 @@ def test_evaluate_reconstruction_bad_inputs(data, cli, tmp_path):
     assert r.exit_code == 1 and "encoder" in r.stderr
     r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--gain", "a,a")
     assert r.exit_code == 1 and "--gain" in r.stderr
+    # issue 24 §6: names that are not methods were ignored (no gain, exit 0)
+    r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--gain", "ours,initial")
+    assert r.exit_code == 1 and "--gain names ours, not among the methods (initial)" in r.stderr
     assert not (tmp_path / "x.npz").exists()
 
 
@@ -149,3 +152,36 @@ def test_report_gains_table2_samples_and_paper_sections(data, cli, tmp_path):
     rep = read_artifact(ws / "evaluate-report" / "evaluate-report.npz", "evaluation")
     names = list(rep["names"])
     assert rep["values"][names.index("paper_vs_reflectmm.table2.psnr_gain_finetune")] == pytest.approx(gain)
+
+
+def test_evaluate_reconstruction_refined_rows_ceiling_and_paired_gains(data, cli, tmp_path):
+    """--refine adds `<method>-refined` rows and the `ceiling` row; the gain table is the mean of per-image
+    differences with a Student-t interval (checked against scipy on the stored per-image values)."""
+    from scipy import stats
+
+    out = tmp_path / "t2r.npz"
+    r = cli("-q", "evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_oracle"], "--refine", "--refine-iterations", "20",
+            "--figure-images", "0", "-w", tmp_path, "-o", out)
+    assert r.exit_code == 0, r.stderr
+    art = read_artifact(out, "evaluation")
+    s = art.meta["summary"]
+    assert set(s) == {"initial", "finetuned", "initial-refined", "finetuned-refined", "ceiling"}
+    # the images were rendered from the truth model: refining from the untrained head's prediction recovers them
+    # (up to 8-bit codes), far above the head alone; the ceiling (true reflectance) is as good
+    assert s["initial-refined"]["image"]["psnr"]["mean"] > s["initial"]["image"]["psnr"]["mean"] + 10
+    assert s["initial-refined"]["image"]["psnr"]["mean"] > 40 and s["ceiling"]["image"]["psnr"]["mean"] > 40
+    g = art.meta["gains"]["finetuned - initial"]["psnr"]
+    d = np.array([_value(art, f"finetuned.image.per_image.per_image.psnr[{j}]")
+                  - _value(art, f"initial.image.per_image.per_image.psnr[{j}]") for j in range(3)])
+    assert g["mean"] == pytest.approx(d.mean())
+    half = stats.t.ppf(0.975, 2) * d.std(ddof=1) / np.sqrt(3)
+    assert g["half_width"] == pytest.approx(half, rel=1e-6)
+    # reflectance errors: a positive gain is a decrease of the error
+    ga = art.meta["gains"]["finetuned - initial"]["albedo_rel"]["mean"]
+    ea = [s[m]["reflectance"]["scaled"]["albedo_rel"]["mean"] for m in ("initial", "finetuned")]
+    assert ga == pytest.approx(ea[0] - ea[1])
+    assert "finetuned-refined - initial-refined" in art.meta["gains"]
+    md = out.with_suffix(".md").read_text()
+    assert "| ceiling |" in md and "The finetuning gain" in md

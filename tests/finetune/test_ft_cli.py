@@ -190,3 +190,100 @@ def test_model_lr_zero_is_the_equal_budget_control(cli, data, tmp_path):
     assert p1[0].keys() == p1[1].keys() and all(np.array_equal(p1[0][k], p1[1][k]) for k in p1[0])
     fin = [load_file(outs[n].parent / "m_encoder.safetensors") for n in ("upd", "ctl")]
     assert any(not np.array_equal(fin[0][k], fin[1][k]) for k in fin[0])
+
+
+def test_an_encoder_is_refused_with_a_model_it_was_not_trained_for(cli, data, tmp_path):
+    """Issue 24 §3: the encoder's meta records its model's sha256. reconstruct accepts that model and the finetune
+    output made from it; another model is a one-line error naming both files, unless --allow-other-model (then a
+    warning). evaluate reconstruction applies the same check per method."""
+    out = tmp_path / "ft" / "m.npz"
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY)
+    assert r.exit_code == 0, r.stderr
+    enc = out.parent / "m_encoder.safetensors"
+    base = ["--encoder", enc, "--light-model", data["light_path"], "--data", data["shards"][0], "--split", "val"]
+    for model in (data["init_path"], out):  # the model it was trained for, and the finetune output made from it
+        r = cli("reconstruct", *base, "--model", model, "-o", tmp_path / "ok.npz")
+        assert r.exit_code == 0, r.stderr
+    other = data["truth_path"]
+    rec = tmp_path / "bad.npz"
+    r = cli("reconstruct", *base, "--model", other, "-o", rec)
+    assert r.exit_code == 1 and not rec.exists()
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and str(enc) in err and str(other) in err and "--allow-other-model" in err
+    r = cli("reconstruct", *base, "--model", other, "--allow-other-model", "-o", rec)
+    assert r.exit_code == 0 and rec.is_file() and "warning" in r.stderr
+    r = cli("evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "x", other, enc, "--split", "val", "-o", tmp_path / "ev.npz")
+    assert r.exit_code == 1 and str(other) in r.stderr and not (tmp_path / "ev.npz").exists()
+
+
+def test_a_nan_in_the_model_is_refused_at_load_naming_the_file(cli, data, tmp_path):
+    """Issue 24 §6: a NaN in the model reached training ("the loss became nan … lower the learning rate"); now the
+    file and the array are named before anything runs, for finetune and reconstruct alike, and reconstruct's
+    errors no longer begin with "finetune:"."""
+    init = read_artifact(data["init_path"], "reflectance-model")
+    arrays = dict(init.arrays)
+    arrays["vertex_albedo_basis"] = arrays["vertex_albedo_basis"].copy()
+    arrays["vertex_albedo_basis"][0, 3, 1] = np.nan
+    bad = write_artifact(tmp_path / "nan.npz", "reflectance-model", arrays, extra_meta={"stats": init.meta.get("stats")})
+    r = cli("finetune", "--model", bad, "--light-model", data["light_path"], "--data", data["shards"][0], "-o",
+            tmp_path / "ft" / "m.npz", *TINY)
+    assert r.exit_code == 1 and "nan.npz" in r.stderr and "vertex_albedo_basis" in r.stderr and "NaN" in r.stderr
+    assert not (tmp_path / "ft").exists() or not any((tmp_path / "ft").glob("m*"))
+    r = cli("reconstruct", "--refine", "--refine-from", "zero", "--model", bad, "--light-model", data["light_path"],
+            "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
+    assert r.exit_code == 1 and "nan.npz" in r.stderr and not (tmp_path / "rec.npz").exists()
+    # a model of another face model: the message names the verb that failed
+    arrays = dict(init.arrays)
+    for k in ("vertex_albedo_mean", "vertex_weights_mean"):
+        arrays[k] = arrays[k][:5]
+    for k in ("vertex_albedo_basis", "vertex_weights_basis"):
+        arrays[k] = arrays[k][:, :5]
+    small = write_artifact(tmp_path / "small.npz", "reflectance-model", arrays,
+                           extra_meta={"stats": init.meta.get("stats")})
+    r = cli("reconstruct", "--refine", "--refine-from", "zero", "--model", small, "--light-model", data["light_path"],
+            "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
+    assert r.exit_code == 1 and "reconstruct: the shards reference vertex" in r.stderr and "finetune:" not in r.stderr
+
+
+def test_reconstruct_warns_when_the_images_are_not_the_encoders_size(cli, data, tmp_path):
+    """Issue 24 §6: an encoder trained at one size used on images of another ran without a word."""
+    from safetensors import safe_open
+
+    out = tmp_path / "ft" / "m.npz"
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY)
+    assert r.exit_code == 0, r.stderr
+    enc = out.parent / "m_encoder.safetensors"
+    with safe_open(str(enc), "np") as f:
+        assert json.loads(f.metadata()["__meta__"])["image_size"] == 32
+    base = ["reconstruct", "--encoder", enc, "--model", out, "--light-model", data["light_path"], "--split", "val"]
+    r = cli(*base, "--data", data["shards"][0], "-o", tmp_path / "a.npz")
+    assert r.exit_code == 0 and "trained on" not in r.stderr
+    other = make_dataset(tmp_path / "d24", n_images=3, size=24, seed=9)
+    r = cli(*base, "--data", other["shards"][0], "-o", tmp_path / "b.npz")
+    assert r.exit_code == 0 and "trained on 32² images, these are 24²" in r.stderr
+
+
+def test_finetune_progress_to_a_captured_stderr_has_no_carriage_returns(cli, data, tmp_path):
+    """Issue 24 §6: finetune wrote \\r-redrawn progress into log files and captured stderr."""
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "-o", tmp_path / "m.npz", *TINY)
+    assert r.exit_code == 0, r.stderr
+    assert "\r" not in r.stderr and "finetune phase 1 epoch 1 step" in r.stderr
+
+
+def test_capped_components_and_an_untrained_encoder_are_said(cli, data, tmp_path):
+    """Issue 24 §6: --components beyond the model was capped silently; --epochs1 0 --epochs2 0 wrote an untrained
+    encoder without a word."""
+    base = ["finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0]]
+    args = list(TINY) + ["--components", "100"]
+    r = cli(*base, "-o", tmp_path / "a" / "m.npz", *args)
+    assert r.exit_code == 0 and "--components 100 but the reflectance model has 3 components; using 3" in r.stderr
+    args = list(TINY)
+    args[args.index("--epochs1") + 1] = "0"
+    args[args.index("--epochs2") + 1] = "0"
+    r = cli(*base, "-o", tmp_path / "b" / "m.npz", *args)
+    assert r.exit_code == 0 and "no training step" in r.stderr

@@ -55,3 +55,16 @@ def test_missing_extra_gives_one_line_error(monkeypatch):
     with pytest.raises(ReflectmmError, match=r"reflectmm\[landmarks\]"):
         detect_landmarks(np.zeros((8, 8, 3), np.uint8))
     detection._models.cache_clear()
+
+
+def test_two_folders_with_the_same_file_name_are_refused(tmp_path, cli):
+    """Issue 24 §6: two inputs named face.png (in two folders) silently wrote one face.pts."""
+    from reflectmm_cli.artifacts import write_png
+
+    for d in ("a", "b"):
+        (tmp_path / d).mkdir()
+        write_png(tmp_path / d / "face.png", np.full((40, 40, 3), 0.5))
+    res = cli("detect-landmarks", tmp_path / "a", tmp_path / "b", "--out", tmp_path / "lm")
+    assert res.exit_code == 1 and len(res.stderr.strip().splitlines()) == 1
+    assert "face.pts" in res.stderr and str(tmp_path / "a" / "face.png") in res.stderr
+    assert not (tmp_path / "lm").exists()

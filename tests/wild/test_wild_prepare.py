@@ -333,3 +333,46 @@ params = {{ shard_size = 4, from_truth = true, aligned = true, size = 96, allow_
     again = run_recipe(ws / "recipe.toml", ws, dry_run=True)
     assert {t.status for t in again.tasks} == {"run"}
     assert any("skipped" in (t.reason or "") for t in again.tasks), [t.reason for t in again.tasks]
+
+
+@pytest.mark.parametrize("from_truth", [True, False])
+def test_landmarks_far_outside_the_frame_are_refused(wild_small, tmp_path, cli, from_truth):
+    """Issue 24 §6: landmarks 1e6 px outside the frame went through (a vertex error of 5438 mm in the shard); now
+    the image is skipped with the landmark file named, as preprocess-multipie and fit-geometry refuse it."""
+    out, fm = wild_small
+    imgs, lms = tmp_path / "images", tmp_path / "landmarks"
+    imgs.mkdir(), lms.mkdir()
+    names = sorted(p.stem for p in (out / "images").iterdir())[:2]
+    for n in names:
+        shutil.copy(out / "images" / f"{n}.png", imgs / f"{n}.png")
+        shutil.copy(out / "landmarks" / f"{n}.pts", lms / f"{n}.pts")
+    pts = np.loadtxt(out / "landmarks" / f"{names[1]}.pts", skiprows=3, comments="}")
+    pts[7] = [1e6, 50.0]
+    write_pts(lms / f"{names[1]}.pts", pts)
+    args = ["prepare-wild", "--images", imgs, "--landmarks", lms, "--truth", out, "--size", 96, "--out",
+            tmp_path / "shards"] + (["--from-truth"] if from_truth else [])
+    res = cli(*args)
+    assert res.exit_code == 1
+    assert f"{names[1]}.pts" in res.stderr and "far outside" in res.stderr
+    sh = open_shard(tmp_path / "shards" / "shard_00000.npz")
+    assert sh["names"].tolist() == [names[0]]
+
+
+def test_from_truth_at_another_size_resamples_the_truth_layers(wild_small, tmp_path, cli):
+    """Issue 24 §6: --from-truth --size 64 on 96 px images stopped with an internal broadcast error; the truth's
+    skin mask and layers are now resampled to the crop like the image (and agree with a crop at full size)."""
+    out, fm = wild_small
+    shards = {}
+    for size in (96, 64):
+        r = cli("prepare-wild", "--images", out / "images", "--truth", out, "--from-truth", "--size", size, "--out",
+                tmp_path / f"s{size}")
+        assert r.exit_code == 0, r.stderr
+        shards[size] = open_shard(tmp_path / f"s{size}" / "shard_00000.npz")
+    sh = shards[64]
+    n = len(sh["names"])
+    assert sh["image"].shape == (n, 64, 64, 3) and sh["skin_mask"].shape == (n, 64, 64)
+    assert sh["truth_diffuse"].shape == (n, 64, 64, 3) and sh["truth_specular"].shape == (n, 64, 64, 3)
+    full = np.asarray(shards[96]["truth_diffuse"], np.float32).mean(axis=(1, 2))
+    small = np.asarray(sh["truth_diffuse"], np.float32).mean(axis=(1, 2))
+    np.testing.assert_allclose(small, full, rtol=0.05, atol=2e-3)  # the same picture, fewer pixels
+    assert abs(sh["skin_mask"].mean() - shards[96]["skin_mask"].mean()) < 0.03

@@ -104,3 +104,40 @@ def test_linearize_matches_definitions():
     lin = np.linspace(0, 1, 50)[:, None, None] * np.ones((1, 1, 3))
     enc = np.round(to_display(lin, exposure=1.0) * 255).astype(np.uint8)
     assert np.abs(linearize(enc, "srgb") - lin).max() < 0.01
+
+
+def _mutated(src, dst, **changes):
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    for k, f in changes.items():
+        arrays[k] = f(arrays[k].copy())
+    np.savez(dst, **arrays)
+    return dst
+
+
+def _set(idx, value):
+    def f(a):
+        a[idx] = value
+        return a
+    return f
+
+
+@pytest.mark.parametrize("change,match", [
+    (dict(pix_yx=_set((5, 0), 500)), "pix_yx holds pixel index 500 outside the 48x48 image"),
+    (dict(pix_yx=_set((0, 1), -3)), "pix_yx holds pixel index -3"),
+    (dict(vert_ids=_set((2, 1), -1)), "negative vertex id"),
+    (dict(t=_set((1, 2), np.nan)), r"t of image 1 \(img001\) contains NaN or inf"),
+    (dict(landmarks=_set((0, 3, 0), np.inf)), r"landmarks of image 0 \(img000\) contains NaN or inf"),
+])
+def test_opening_a_shard_checks_index_ranges_and_finiteness(small_face, tmp_path, change, match):
+    """Issue 24 §6: an out-of-range pix_yx gave an internal IndexError without the file's name; NaN/inf t or
+    landmarks were accepted. Now opening the shard is a one-line error naming the file."""
+    from reflectmm_cli.finetune.shards import load_shards
+
+    a = make_arrays(small_face, n=2)
+    p = write_shard(tmp_path / "s.npz", a, encoding="srgb", face_model_sha256="0" * 64, face_model_path="fm.npz")
+    load_shards([p])
+    bad = _mutated(p, tmp_path / "bad.npz", **change)
+    with pytest.raises(ReflectmmError, match=match) as exc:
+        load_shards([bad])
+    assert "bad.npz" in str(exc.value) and "\n" not in str(exc.value)
