@@ -1,4 +1,4 @@
-"""Versioned, self-describing, atomically written artifacts (DESIGN.md §5).
+"""Versioned, self-describing, atomically written artifacts (docs/design.md §5).
 
 An artifact is one file:
 

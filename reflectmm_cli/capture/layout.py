@@ -14,7 +14,7 @@ from pathlib import Path
 
 from reflectmm_cli.errors import ReflectmmError
 
-#: The paper's 9 views (DESIGN.md §1), in arc order.
+#: The paper's 9 views (docs/design.md §1), in arc order.
 DEFAULT_VIEWS = ("09_0", "08_0", "13_0", "14_0", "05_1", "05_0", "04_1", "19_0", "20_0")
 #: The paper's 11 flashes: 9 on the selected cameras plus the two raised ones (14 on 08_1, 18 on 19_1).
 DEFAULT_FLASHES = ("03", "04", "05", "06", "07", "08", "09", "10", "11", "14", "18")

@@ -1,5 +1,5 @@
 """``reflectmm evaluate``: click wrappers of the ``evaluate-truth``, ``evaluate-representation`` and
-``evaluate-report`` stages (DESIGN.md §1 step 8; reflectmm_cli/stages/evaluate_*.py)."""
+``evaluate-report`` stages (docs/design.md §1 step 8; reflectmm_cli/stages/evaluate_*.py)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The paper's baseline reflectance models, rebuilt in the synthetic world from ground truth (DESIGN.md §8).
+"""The paper's baseline reflectance models, rebuilt in the synthetic world from ground truth (docs/design.md §8).
 
 Both are ``reflectance-model`` artifacts of the same kind as ``build-pca``'s
 (:func:`reflectmm_cli.model.fit_reflectance_pca` + :func:`reflectmm_cli.model.model_arrays`), so ``render``,

@@ -1,5 +1,5 @@
 """Face-region image metrics over a set of images: per-image PSNR / SSIM / LPIPS, their mean with a 95 %
-confidence interval, and the released code's batch protocol (DESIGN.md §8; docs/evaluation.md).
+confidence interval, and the released code's batch protocol (docs/design.md §8; docs/evaluation.md).
 
 Two protocols, both on images in the display encoding (peak 1):
 

@@ -1,4 +1,4 @@
-"""Image metrics in a face region: PSNR, SSIM and LPIPS (DESIGN.md §1 step 8).
+"""Image metrics in a face region: PSNR, SSIM and LPIPS (docs/design.md §1 step 8).
 
 All images are (H,W,3) (or (H,W)) float arrays; ``mask`` (H,W) bool selects the face region.
 

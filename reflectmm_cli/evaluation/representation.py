@@ -1,4 +1,4 @@
-"""The representation comparison — the paper's Table 1 on our own data (DESIGN.md §1 step 8).
+"""The representation comparison — the paper's Table 1 on our own data (docs/design.md §1 step 8).
 
 Protocol (documented in docs/model.md):
 

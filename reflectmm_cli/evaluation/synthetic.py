@@ -4,7 +4,7 @@ benchmarks without running the whole synthetic pipeline).
 Geometry, rig, masks and the diffuse albedo are those of :func:`reflectmm_cli.reflectance.simulate.
 simulate_observations`; the radiance of every pair is re-rendered with
 :func:`reflectmm_cli.synth.ggx.ggx_directional` (Lambert + GGX/Smith/Schlick) with spatially varying roughness α
-and specular intensity ρ, so no Blinn-Phong representation is exact (DESIGN.md §4).
+and specular intensity ρ, so no Blinn-Phong representation is exact (docs/design.md §4).
 """
 from __future__ import annotations
 

@@ -417,7 +417,7 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
                           input_light: str = "room", holdout: Sequence[str] | None = None, size: int = 224,
                           encoding: str = "gamma1.2", exposure: float = 1.0, scale: str = "global",
                           prior: float = 1e-4, device: str = "cpu", allow_other_model: bool = False,
-                          log: Callable[[str], Any] | None = None) -> dict[str, Any]:
+                          refine=None, log: Callable[[str], Any] | None = None) -> dict[str, Any]:
     """Fig. 7 for one held-out identity: each method reconstructs from ONE image of ``view`` (``input_light`` =
     ``"room"`` — the room-light shot — or a flash id — the flash shot, room + OLAT), and is re-rendered under
     the ``holdout`` flashes (default: every flash but the input's).
@@ -492,11 +492,11 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
                                   geo["t"][g], geo["vertices"], fm, size=size, encoding=encoding, exposure=exposure)
             enc, _ = load_encoder(m.encoder, device, model=m.model, allow_other_model=allow_other_model)
             ss = _one_image_shardset(crop["image"], crop["gbuffer"], encoding, light.order)
-            rec = reconstruct(ss, enc, model, light, indices=[0], device=device)
+            rec = reconstruct(ss, enc, model, light, indices=[0], device=device, refine=refine)
             alb, wts = sample_model(model, rec.beta[0].astype(np.float64), "vertex")
             renders[m.name] = relight(scene_v, alb, wts, exps, held)
             metrics[m.name] = relighting_metrics(scene_v, renders[m.name], targets, scale=scale)
-            used[m.name] = {"path": "encoder", "beta": rec.beta[0]}
+            used[m.name] = {"path": "encoder" if refine is None else "encoder + refine", "beta": rec.beta[0]}
         else:
             from .albedo_eval import fit_coefficients
 

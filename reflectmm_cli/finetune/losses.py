@@ -1,4 +1,4 @@
-"""Finetuning losses as pure torch functions (DESIGN.md §7). Shapes: P packed face pixels, B images, M model
+"""Finetuning losses as pure torch functions (docs/design.md §7). Shapes: P packed face pixels, B images, M model
 components, N_L light components, V vertices, K lobes, n = (L+1)² SH coefficients per channel."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Differentiable shading from a precomputed G-buffer (DESIGN.md §7): no rasterisation per step.
+"""Differentiable shading from a precomputed G-buffer (docs/design.md §7): no rasterisation per step.
 
 Per face pixel the G-buffer holds the hit triangle's three vertex ids and barycentrics and the unit normal and view
 direction in the light frame (COMMON format ``wild-shard``). One step:

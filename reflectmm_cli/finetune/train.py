@@ -1,4 +1,4 @@
-"""The two-phase finetuning loop (DESIGN.md §7): phase 1 trains the encoder with the model frozen, phase 2 trains
+"""The two-phase finetuning loop (docs/design.md §7): phase 1 trains the encoder with the model frozen, phase 2 trains
 the encoder and the model's mean and bases jointly. Adam; deterministic on CPU for a seed; atomic checkpoints
 (one safetensors file with the JSON state in its header) every N steps and at each epoch end; ``resume``.
 

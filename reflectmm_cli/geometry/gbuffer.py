@@ -1,4 +1,4 @@
-"""Per-pixel G-buffers of fixed geometry, rasterised once with Embree (DESIGN.md §7, docs/wild.md).
+"""Per-pixel G-buffers of fixed geometry, rasterised once with Embree (docs/design.md §7, docs/wild.md).
 
 A G-buffer holds, for every face pixel of an S×S image (the pixels whose centre ray hits the face model):
 

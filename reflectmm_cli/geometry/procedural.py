@@ -1,4 +1,4 @@
-"""The built-in procedural face model (the toolkit's embedded default; DESIGN.md §4).
+"""The built-in procedural face model (the toolkit's embedded default; docs/design.md §4).
 
 Construction (all in mm, model space of docs/pipeline.md):
 

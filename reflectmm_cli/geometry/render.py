@@ -1,6 +1,6 @@
 """A small physically based renderer on top of :mod:`raycast` and :mod:`reflectmm_cli.shading`.
 
-Radiance per pixel = the shading of DESIGN.md §2 at the first hit of the pixel's primary ray:
+Radiance per pixel = the shading of docs/design.md §2 at the first hit of the pixel's primary ray:
 
 * point light of radiant intensity ``I`` at ``light_pos``: ``E = I / d²`` and ``shade_directional`` with
   ``l = normalize(light_pos − x)``, ``v = normalize(c − x)`` (c = camera centre); optional cast shadows by a

@@ -1,4 +1,4 @@
-"""Statistical models: the reflectance morphable model (PCA of fitted maps with specular transfer, DESIGN.md §1
+"""Statistical models: the reflectance morphable model (PCA of fitted maps with specular transfer, docs/design.md §1
 step 5, :mod:`.pca`) and the light model (PCA of SH lighting, step 6, :mod:`.light`).
 
 See docs/model.md. numpy in → numpy out; :func:`sample_model` also takes a torch β (differentiable).

@@ -1,4 +1,4 @@
-"""Statistical lighting model: PCA of normalised SH lighting (DESIGN.md §1 step 6).
+"""Statistical lighting model: PCA of normalised SH lighting (docs/design.md §1 step 6).
 
 Pipeline: each HDR environment map → SH up to ``order`` (:func:`project_envmap`) → ``rotations`` copies rotated
 about the vertical (+y) axis by ``2πk/rotations`` (optionally each also tilted by ±``tilt`` degrees about +x),

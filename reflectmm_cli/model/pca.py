@@ -1,4 +1,4 @@
-"""The initial reflectance model: PCA of diffuse albedo with AlbedoMM-style specular transfer (DESIGN.md §1 step 5).
+"""The initial reflectance model: PCA of diffuse albedo with AlbedoMM-style specular transfer (docs/design.md §1 step 5).
 
 Data. Each identity j contributes a diffuse albedo map ``C_j (3,S,S)`` and a lobe-weight map ``W_j (K,S,S)``
 (``reflectance-maps`` artifacts). The model lives on the *model domain* ``D`` = union of the maps' masks; texels
@@ -308,7 +308,7 @@ def model_to_torch(model, device="cpu", dtype=None, requires_grad: bool = False)
     """The model's arrays as torch tensors (a dict usable by :func:`sample_model`), converted once.
 
     ``requires_grad=True`` makes the means and bases trainable leaves (finetuning updates the model jointly with
-    the encoder, DESIGN.md §1 step 7); ``sigma`` and ``exponents`` stay constants.
+    the encoder, docs/design.md §1 step 7); ``sigma`` and ``exponents`` stay constants.
     """
     import torch
 

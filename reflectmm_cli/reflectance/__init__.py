@@ -1,4 +1,4 @@
-"""Per-identity reflectance estimation (DESIGN.md §3): design columns, conditioning, solvers, simulation.
+"""Per-identity reflectance estimation (docs/design.md §3): design columns, conditioning, solvers, simulation.
 
 See docs/fit-reflectance.md.
 """

@@ -1,4 +1,4 @@
-"""The paper's reference solver (DESIGN.md §3): Adam on the cos-weighted L1 loss, random horizontal flips.
+"""The paper's reference solver (docs/design.md §3): Adam on the cos-weighted L1 loss, random horizontal flips.
 
 Loss per step (C (3,S,S), W (K,S,S) are the optimised maps; ``flip`` is a horizontal flip of both maps,
 applied with probability 1/2 each step when symmetry > 0):

@@ -1,6 +1,6 @@
-"""Per-texel shading design of the linear reflectance problem (DESIGN.md §2–§3, docs/fit-reflectance.md).
+"""Per-texel shading design of the linear reflectance problem (docs/design.md §2–§3, docs/fit-reflectance.md).
 
-For one texel (position x, unit normal n) and one (view, flash) pair j the model of DESIGN.md §2 reads, per
+For one texel (position x, unit normal n) and one (view, flash) pair j the model of docs/design.md §2 reads, per
 colour channel c,
 
     I_jc = C_c · d_j + Σ_i W_i · s_ji

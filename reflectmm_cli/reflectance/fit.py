@@ -1,4 +1,4 @@
-"""Per-identity reflectance fitting: the exact batched solver, the Adam reference, rendering (DESIGN.md §3).
+"""Per-identity reflectance fitting: the exact batched solver, the Adam reference, rendering (docs/design.md §3).
 
 Model (per texel t, pair j, channel c; design columns of :mod:`.design`):
 ``Î_jc = C_c · d_j + Σ_i W_i · s_ji`` — linear in the 3 + K unknowns ``x = (C_r, C_g, C_b, W_1..W_K)``.

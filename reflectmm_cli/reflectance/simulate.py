@@ -7,7 +7,7 @@ nose bump, parametrised symmetrically in UV (column → azimuth φ ∈ [−100°
 1.3 m from the head (views ``09_0 … 20_0``), a flash on each of them (``03``–``11``) and two raised flashes
 (``14`` on ``08_1``, ``18`` on ``19_1``, 25° above the arc at ∓45°).  With every flash near the horizontal
 plane the half vectors lie near one plane: the p = 64 lobe is never seen near its peak on much of the face
-(DESIGN.md §3) — the observability problem is reproduced, not avoided.
+(docs/design.md §3) — the observability problem is reproduced, not avoided.
 
 Radiance is rendered with :func:`reflectmm_cli.shading.shade_directional` (the shading core, independent of
 the design columns of :mod:`reflectmm_cli.reflectance.design`).  Occlusion (nose shadows) is not modelled:

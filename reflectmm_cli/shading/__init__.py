@@ -1,4 +1,4 @@
-"""Shading core: multi-lobe Blinn-Phong BRDF, real spherical harmonics, SH environment lighting (DESIGN.md §2;
+"""Shading core: multi-lobe Blinn-Phong BRDF, real spherical harmonics, SH environment lighting (docs/design.md §2;
 the light model lives in :mod:`reflectmm_cli.model.light`). Conventions and formulas: docs/shading.md.
 
 numpy in → numpy out; any torch tensor in → torch out (differentiable).

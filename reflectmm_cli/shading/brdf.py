@@ -1,4 +1,4 @@
-"""Multi-lobe Blinn-Phong shading under a directional light (DESIGN.md §2).
+"""Multi-lobe Blinn-Phong shading under a directional light (docs/design.md §2).
 
 Frames: all vectors are in one common frame (the caller's; the toolkit uses model/world space, +y up, camera
 looking down −z). ``light_dir`` points from the surface *towards* the light, ``view_dir`` from the surface

@@ -1,4 +1,4 @@
-"""Shading under SH environment lighting (DESIGN.md §2).
+"""Shading under SH environment lighting (docs/design.md §2).
 
 ``s_d = c/π · Σ_l A_l Σ_m K_lm Y_lm(n)`` (exact for band-limited lighting) and
 ``s_s = Σ_i w_i Σ_l B_l^i Σ_m K_lm Y_lm(r)``, ``r = 2(n·v)n − v`` (exact at normal view, an approximation at
@@ -110,7 +110,7 @@ def specular_view_albedo(p, cos_view):
     """Directional albedo ρ_p(n·v) of the true half-vector lobe under uniform unit radiance.
 
     ``ρ_p(μ) = ∫_{n·l>0} f (n·h)^p dω_l`` for a view at ``n·v = μ``: 1 at normal view (the normalisation), ≈ μ
-    for sharp lobes towards grazing. The SH specular of DESIGN.md §2 keeps the normal-view energy (1) at every
+    for sharp lobes towards grazing. The SH specular of docs/design.md §2 keeps the normal-view energy (1) at every
     view; ``shade_env(..., view_correction=True)`` multiplies each lobe by ρ_p(n·v) to follow the true lobe's
     falloff. Tabulated (65 nodes in μ, product Gauss quadrature in the half-vector domain, ~1e-3) and
     interpolated linearly; numpy or torch ``cos_view`` (differentiable).

@@ -1,4 +1,4 @@
-"""Real spherical harmonics: basis, rotation and the Funk–Hecke kernels of DESIGN.md §2.
+"""Real spherical harmonics: basis, rotation and the Funk–Hecke kernels of docs/design.md §2.
 
 Convention (the one of Deep3DFaceRecon): real, orthonormal over the unit sphere, Condon–Shortley phase kept,
 polar axis +z, azimuth φ = atan2(y, x), flat index ``l² + l + m``::
@@ -369,7 +369,7 @@ def _bp_coeffs_cached(p: float, order: int) -> tuple:
 
 
 def blinn_phong_sh_coeffs(p, order: int) -> np.ndarray:
-    """Funk–Hecke coefficients B_l (l = 0..L) of the normalised half-angle lobe of DESIGN.md §2.
+    """Funk–Hecke coefficients B_l (l = 0..L) of the normalised half-angle lobe of docs/design.md §2.
 
     ``B_l = 2π ∫_0^1 f ((1+t)/2)^(p/2) P_l(t) dt`` so that ``B_0 = 1``. Accurate to ~1e-12 for any p > 0:
     Gauss–Legendre quadrature below p = 200, a closed form above (O(L) work, so p = 1e5 costs nothing).

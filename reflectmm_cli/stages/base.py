@@ -6,7 +6,7 @@ write artifacts.  The CLI command and the recipe runner both build a :class:`Sta
 and call ``stage.run(ctx)``, so a verb behaves the same — and gets the same cache key — from the shell and
 inside ``reflectmm run``.
 
-Workspace convention (DESIGN.md §5, :mod:`reflectmm_cli.workspace`): ``<workspace>/<stage_name>/<identity>.npz``
+Workspace convention (docs/design.md §5, :mod:`reflectmm_cli.workspace`): ``<workspace>/<stage_name>/<identity>.npz``
 (``<workspace>/<stage_name>/<name>.npz`` for stages that are not per identity), overridable with an explicit
 output path.
 

@@ -1,4 +1,4 @@
-"""Stage ``build-light-pca``: HDR environment maps → PCA lighting model (DESIGN.md §1 step 6).
+"""Stage ``build-light-pca``: HDR environment maps → PCA lighting model (docs/design.md §1 step 6).
 
 Reads the maps → :func:`reflectmm_cli.model.light.build_light_model` → the ``light-model`` artifact and a PNG
 preview next to it.

@@ -1,4 +1,4 @@
-"""Stage ``build-pca``: N identities' reflectance maps → the initial reflectance model (DESIGN.md §1 step 5).
+"""Stage ``build-pca``: N identities' reflectance maps → the initial reflectance model (docs/design.md §1 step 5).
 
 Reads ``reflectance-maps`` artifacts → :func:`reflectmm_cli.model.build.build_reflectance_model` (PCA with
 specular transfer, per-vertex model on the face model) → ``reflectance-model`` artifact + PNG previews beside it.

@@ -42,7 +42,7 @@ PARAMS = (
           help="λ of the projection's prior λ‖β‖² (the data term is relative to the truth's squared norm)."),
     Param("gain", "strs", ["finetuned", "initial"], check=_check_gain,
           help="A,B: the gap to the oracle that going from B to A closes."),
-    Param("oracle", "bool", True, help="Build the oracle model from the training identities' truth."),
+    Param("no_oracle", "bool", False, help="Do not build the oracle model from the training identities' truth."),
 )
 
 ROLE_OPTIONS = {"truth": "--truth"}
@@ -114,7 +114,7 @@ def run(ctx: StageContext) -> list[Path]:
                          model.vertex_albedo_basis, "vertex_weights_mean": model.vertex_weights_mean,
                          "vertex_weights_basis": model.vertex_weights_basis, "sigma": model.sigma,
                          "exponents": model.exponents}
-    if p["oracle"]:
+    if not p["no_oracle"]:
         first = parts[names[0]]
         M = int(np.shape(first["sigma"])[0])
         parts["oracle"] = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),

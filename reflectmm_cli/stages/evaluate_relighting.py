@@ -18,6 +18,7 @@ from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.reconstruct import refine_config, refine_params
 
 VERB = "evaluate-relighting"
 
@@ -38,7 +39,7 @@ PARAMS = (
     Param("prior", "float", 1e-4, range=(0.0, 1e6), help="λ of the encoder-free coefficient fit."),
     Param("allow_other_model", "bool", False, invalidates_cache=False,
           help="Use an encoder with a model it was not trained for (a warning instead of an error)."),
-)
+) + refine_params()
 
 ROLE_OPTIONS = {"capture": "--capture", "geometry": "--geometry", "face_model": "--face-model",
                 "light_model": "--light-model", "observations": "--observations"}
@@ -62,7 +63,8 @@ def run(ctx: StageContext) -> list[Path]:
                                 view=p["view"], input_light=p["input"], holdout=p.get("holdout"), size=int(p["size"]),
                                 encoding=p["encoding"], exposure=float(p["exposure"]), scale=p["scale"],
                                 prior=float(p["prior"]), device=ctx.device,
-                                allow_other_model=p["allow_other_model"], log=log.info)
+                                allow_other_model=p["allow_other_model"], refine=refine_config(p),
+                                log=log.info)
     out = ctx.output_path()
     png = out.with_suffix(".png")
     cmd = command_line(["evaluate", "relighting"], p, ctx.inputs, workspace=ctx.workspace, output=out,

@@ -1,4 +1,4 @@
-"""Stage ``finetune``: update-by-reconstruction of the reflectance model on in-the-wild shards (DESIGN.md §7,
+"""Stage ``finetune``: update-by-reconstruction of the reflectance model on in-the-wild shards (docs/design.md §7,
 docs/finetune.md).
 
 Inputs (roles): ``model`` the initial ``reflectance-model`` (build-pca, with its per-vertex part), ``light_model``

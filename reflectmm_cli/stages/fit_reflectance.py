@@ -1,4 +1,4 @@
-"""Stage ``fit-reflectance``: one identity's UV observations → diffuse albedo and lobe-weight maps (DESIGN.md §3).
+"""Stage ``fit-reflectance``: one identity's UV observations → diffuse albedo and lobe-weight maps (docs/design.md §3).
 
 Reads a ``uv-observations`` artifact, calls :func:`reflectmm_cli.reflectance.fit_maps`, writes the
 ``reflectance-maps`` artifact, an EXR with named channels and PNG previews next to it.

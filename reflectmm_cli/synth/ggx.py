@@ -1,7 +1,7 @@
 """GGX microfacet specular + Lambertian diffuse: the ground-truth BRDF of the synthetic world.
 
 The synthetic identities are rendered with a *different* BRDF than the project's 3-lobe Blinn-Phong model, so
-that fitted representations are compared honestly (DESIGN.md §4).  Per texel:
+that fitted representations are compared honestly (docs/design.md §4).  Per texel:
 
 * diffuse: Lambertian ``c/π`` (no (1−F) energy coupling);
 * specular: ``ρ · F(v·h) · D(n·h) · G2(l, v) / (4 (n·l)(n·v))`` with

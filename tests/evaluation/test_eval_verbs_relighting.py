@@ -198,3 +198,17 @@ def test_encoder_free_fit_path_recovers_a_constant_albedo(tmp_path, cli):
     assert beta == pytest.approx(3.0, rel=5e-3), beta
     assert art.meta["coefficients_from"]["model-fit"] == "fit (no encoder)"
     assert art.meta["summary"]["model-fit"]["psnr"] > 60
+
+
+def test_evaluate_relighting_with_refinement(world, cli):
+    """--refine refines the encoder's β (and the light) on the input image before relighting; the table says
+    which path each method took. A model with one component per identity-truth reflectance: β stays the truth's
+    (0) within the refinement's tolerance, so relighting stays near-perfect."""
+    t = world["tmp"]
+    r = cli("-q", *_args(world, "--input", "07", "--method", "truth", t / "truth_model.npz", t / "encoder.safetensors",
+                         "--refine", "-o", t / "refined.npz"))
+    assert r.exit_code == 0, r.stderr
+    art = read_artifact(t / "refined.npz", "evaluation")
+    assert art.meta["coefficients_from"]["truth"] == "encoder + refine"
+    assert art.meta["summary"]["truth"]["psnr"] > 35
+    assert "| truth | encoder + refine |" in (t / "refined.md").read_text()

@@ -11,7 +11,7 @@ from reflectmm_cli.shading import shade_directional
 
 
 def _scalar_shading(x, n, cam, flash, I, p):
-    """DESIGN.md §2 written out with scalar math: (diffuse column, lobe columns)."""
+    """docs/design.md §2 written out with scalar math: (diffuse column, lobe columns)."""
     def sub(a, b):
         return [a[i] - b[i] for i in range(3)]
 
@@ -119,7 +119,7 @@ def test_conditioning_maps_observability_and_mirror():
     np.testing.assert_allclose(c.observability[:, r, col], best, rtol=1e-5)
     assert np.all(c.conditioning[~m] == 0) and np.all(c.conditioning[m] > 0)
     assert np.array_equal(c.obs_count, obs["observed"].sum(0))
-    # the simulated rig reproduces DESIGN.md §3: many texels never see the p=64 lobe near its peak
+    # the simulated rig reproduces docs/design.md §3: many texels never see the p=64 lobe near its peak
     frac = np.mean(c.observability[2][m] < 0.1)
     assert 0.2 < frac < 0.8
     # geometry is mirror symmetric, so the conditioning map is too

@@ -1,4 +1,4 @@
-"""Directional multi-lobe Blinn-Phong shading (DESIGN.md §2) against an independent scalar evaluation."""
+"""Directional multi-lobe Blinn-Phong shading (docs/design.md §2) against an independent scalar evaluation."""
 import math
 
 import numpy as np

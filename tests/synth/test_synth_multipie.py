@@ -139,7 +139,7 @@ def test_ggx_truth_is_consistent(ggx_set):
 
 
 def _closed_form_shading(c, w, p, n, l, v, E):
-    """DESIGN.md §2 written out directly (not through reflectmm_cli.shading)."""
+    """docs/design.md §2 written out directly (not through reflectmm_cli.shading)."""
     n = n / np.linalg.norm(n, axis=-1, keepdims=True)
     l = l / np.linalg.norm(l, axis=-1, keepdims=True)
     v = v / np.linalg.norm(v, axis=-1, keepdims=True)
