@@ -228,7 +228,8 @@ def _write_outputs(result, initial, out: Path, *, face_model, inputs, params, pr
                           "n_train": result.n_train, "n_val": result.n_val, "z0": result.z0,
                           "diffuse_basis_orthonormality": ortho, "update_rms": upd, **info,
                           "final_validation": vals[-1] if vals else None,
-                          "encoder": paths["encoder"].name, "log": str(paths["log"].relative_to(out.parent))},
+                          "encoder": paths["encoder"].name, "log": str(paths["log"].relative_to(out.parent)),
+                          **({"model_solve": result.stats["model_solve"]} if "model_solve" in result.stats else {})},
              "ids": list(initial.ids), "n_components": int(new.n_components),
              "method": "build-pca model finetuned by update-by-reconstruction (docs/finetune.md)"}
     write_artifact(out, MODEL_KIND, model_arrays(new), params=params or {}, inputs=inputs or [], producer=producer,

@@ -21,6 +21,8 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.config import RELEASED, FinetuneConfig
 from reflectmm_cli.params import Param
@@ -60,6 +62,32 @@ def config_params() -> tuple[Param, ...]:
     return tuple(out)
 
 
+_SOLVE_KINDS = {"int": "int", "float": "float"}
+
+
+def solver_params() -> tuple[Param, ...]:
+    """``solver`` (the paper's joint SGD, or the least-squares model update) and one ``ls_<field>`` Param per
+    :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` field, from the field metadata."""
+    from reflectmm_cli.finetune.model_solve import SolveConfig
+
+    out = [Param("solver", "str", "sgd", choices=("sgd", "ls"),
+                 help="Model update: sgd = the paper's joint training of encoder and model (phase 2); ls = rounds of "
+                      "per-image refinement and a least-squares model solve, then the encoder trained on the final "
+                      "model with the same schedule and the model frozen (docs/finetune.md).")]
+    for f in dataclasses.fields(SolveConfig):
+        md = f.metadata
+        kind = _SOLVE_KINDS[str(f.type)]
+        out.append(Param("ls_" + f.name, kind, f.default, range=md.get("range") or (0.0, None), help=md["help"]))
+    return tuple(out)
+
+
+def solve_config(params: dict[str, Any]):
+    """The :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` of resolved params."""
+    from reflectmm_cli.finetune.model_solve import SolveConfig
+
+    return SolveConfig(**{f.name: params["ls_" + f.name] for f in dataclasses.fields(SolveConfig)})
+
+
 CONFIG_KEYS = tuple(f.name for f in dataclasses.fields(FinetuneConfig) if f.name != "extra")
 
 PARAMS = config_params() + (
@@ -68,7 +96,7 @@ PARAMS = config_params() + (
           help="Continue from the checkpoint in <output stem>_work/ (refused if made with other settings)."),
     Param("threads", "int", None, range=(1, 256), invalidates_cache=False,
           help="torch CPU threads (default: torch's; 1 is fastest for tiny problems on a busy machine)."),
-)
+) + solver_params()
 
 
 def config_from_params(params: dict[str, Any]) -> FinetuneConfig:
@@ -149,12 +177,41 @@ def run(ctx: StageContext) -> list[Path]:
         log.info("finetune: perceptual loss off (no --identity-weights given)")
     fm_path = _one(ctx, "face_model") or find_face_model(ctx.workspace, geometry=data[0])
     face_model = load_face_model(fm_path) if fm_path is not None else None
-    res = finetune(shards, model, light, cfg, output_paths(out)["workdir"], device=ctx.device, identity=identity,
-                   init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")), log=log.info,
-                   threads=p.get("threads"))
+    train_model, solve_report = model, None
+    if p["solver"] == "ls":
+        train_model, solve_report = _least_squares_update(model, light, shards, solve_config(p), ctx)
+        cfg = cfg.replace(model_lr=0.0)  # the encoder is trained on the solved model, which stays fixed
+    res = finetune(shards, train_model, light, cfg, output_paths(out)["workdir"], device=ctx.device,
+                   identity=identity, init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")),
+                   log=log.info, threads=p.get("threads"))
+    if solve_report is not None:
+        from reflectmm_cli.finetune.render import ModelParams
+
+        # the update is measured from the initial model, not from the solved one the encoder was trained on
+        res.initial = ModelParams(model, "cpu", n_components=res.params.n_components).vertex_arrays()
+        res.stats["model_solve"] = {"rounds": solve_report.rounds, "best_round": solve_report.best_round}
     return write_finetune_outputs(res, model, out, face_model=face_model, inputs=ctx.input_refs(out.parent),
                                   params=ctx.resolved_params(), producer=ctx.producer(), cache_key=ctx.cache_key,
                                   samples=p["samples"], seed=cfg.seed, log=log.info)
+
+
+def _least_squares_update(model, light, shards, scfg, ctx):
+    """(the model with its per-vertex part solved by :func:`~reflectmm_cli.finetune.model_solve.alternate`, the
+    report)."""
+    import copy
+
+    from reflectmm_cli.finetune.model_solve import alternate
+
+    arrays, report = alternate(model, light, shards, scfg, device=ctx.device, log=log.info)
+    solved = copy.deepcopy(model)
+    for k, v in arrays.items():
+        full = np.array(getattr(model, k), np.float32)
+        if k.endswith("basis"):
+            full[:v.shape[0]] = v
+        else:
+            full = v
+        setattr(solved, k, full)
+    return solved, report
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, side_files=_side_files,
