@@ -28,13 +28,16 @@ _FILE = click.Path(dir_okay=False, path_type=Path)
               help="ArcFace iresnet safetensors (insightface key names) for L_per; without it L_per is off.")
 @click.option("--init-weights", type=_FILE, default=None,
               help="ImageNet ResNet trunk as safetensors with torchvision key names.")
+@click.option("--phase1-encoder", type=_FILE, default=None,
+              help="Start at phase 2 from another run's *_encoder_phase1.safetensors (same phase-1 settings and data;"
+                   " Table 2's control run shares phase 1 with the finetuned run this way).")
 @param_options(PARAMS)
 @device_option
 @workspace_option
 @output_option
 @json_option
-def finetune_cmd(model, light_model, data, face_model, identity_weights, init_weights, device, workspace, output,
-                 as_json, **kw):
+def finetune_cmd(model, light_model, data, face_model, identity_weights, init_weights, phase1_encoder, device,
+                 workspace, output, as_json, **kw):
     """Finetune the reflectance model and train the reconstruction encoder on wild-shard data.
 
     Writes the finetuned reflectance-model artifact (<ws>/finetune/finetune.npz or --output), the encoder
@@ -50,7 +53,7 @@ def finetune_cmd(model, light_model, data, face_model, identity_weights, init_we
               "data": data}
     face_model = face_model or find_face_model(ws, geometry=data[0] if Path(data[0]).is_file() else None)
     for role, p in (("face_model", face_model), ("identity_weights", identity_weights),
-                    ("init_weights", init_weights)):
+                    ("init_weights", init_weights), ("phase1_encoder", phase1_encoder)):
         if p is not None:
             inputs[role] = [p]
     out = run_stage_cli(VERB, workspace=ws, params=given_params(kw, PARAMS), inputs=inputs, output=output,

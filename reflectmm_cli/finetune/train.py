@@ -294,6 +294,51 @@ class Trainer:
                             {"config": self.cfg.to_dict(), "phase": 1, "steps": self.global_step,
                              "image_size": int(self.shards.size)})
 
+    #: The config fields that decide what phase 1 computes (given the same data and initial model).
+    PHASE1_FIELDS = ("arch", "width", "photometric", "w_photo", "w_per", "w_coef", "w_light", "epochs1", "lr1",
+                     "batch_size", "betas", "seed", "n_reflectance", "n_light", "variant")
+
+    def start_phase2_from(self, encoder_path) -> None:
+        """Skip phase 1 by taking the encoder another run's phase 1 left (its ``*_encoder_phase1.safetensors``).
+
+        Phase 1 is deterministic and phase 2 starts with a fresh optimiser, so the result equals a run that trains
+        phase 1 itself (tested). Refused unless the file was written by phase 1 with the same phase-1 settings
+        (:data:`PHASE1_FIELDS`), the same number of steps and the same image size."""
+        import json
+
+        from safetensors import safe_open
+        from safetensors.torch import load_file
+
+        path = Path(encoder_path)
+        if self.cfg.epochs2 == 0:
+            raise ReflectmmError("finetune: a phase-1 encoder was given but --epochs2 is 0 (nothing left to train)",
+                                 path)
+        try:
+            with safe_open(str(path), "pt") as f:
+                meta = json.loads((f.metadata() or {}).get("__meta__", "{}"))
+            sd = load_file(str(path))
+        except Exception as e:  # safetensors raises several types for a bad header
+            raise ReflectmmError(f"not a readable encoder safetensors file ({type(e).__name__}: {e})", path) \
+                from None
+        if meta.get("phase") != 1:
+            raise ReflectmmError("not a phase-1 encoder (finetune's *_encoder_phase1.safetensors)", path)
+        mine, theirs = self.cfg.to_dict(), meta.get("config") or {}
+        diff = [k for k in self.PHASE1_FIELDS if theirs.get(k) != mine.get(k)]
+        steps = self.cfg.epochs1 * self.steps_per_epoch
+        if diff or int(meta.get("steps", -1)) != steps or meta.get("image_size") not in (None, int(self.shards.size)):
+            why = (f"phase-1 settings differ ({', '.join(diff)})" if diff else
+                   f"{meta.get('steps')} steps, this run's phase 1 has {steps}" if int(meta.get("steps", -1)) != steps
+                   else f"trained on {meta.get('image_size')}² images")
+            raise ReflectmmError(f"this phase-1 encoder does not belong to this run: {why}", path)
+        try:
+            self.encoder.load_state_dict(sd)
+        except RuntimeError as e:
+            raise ReflectmmError(f"phase-1 encoder weights do not fit ({str(e).splitlines()[0]})", path) from None
+        self.pos = (self.cfg.epochs1, 0)
+        self.global_step = steps
+        self._enter_phase2()
+        self.save_phase1_encoder()
+
     @property
     def ckpt_path(self) -> Path:
         return self.workdir / CHECKPOINT_NAME
@@ -459,6 +504,7 @@ class Trainer:
 
 def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: str | Path, *, device="cpu",
              identity=None, init_weights=None, resume: bool = False, stop_after: int | None = None,
+             phase1_encoder=None,
              log: Callable[[str], None] | None = None, progress: bool = True,
              threads: int | None = None, basis_cache_mb: float = BASIS_CACHE_MB) -> FinetuneResult:
     """Library entry of ``finetune``.
@@ -474,6 +520,8 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
         resume: continue from ``workdir``'s checkpoint (an error if it was made with other settings);
             without it an existing checkpoint is ignored and overwritten.
         stop_after: stop after this many global steps (tests; simulates an interruption).
+        phase1_encoder: start at phase 2 from another run's phase-1 encoder (:meth:`Trainer.start_phase2_from`):
+            the control run of Table 2 shares phase 1 with the finetuned run instead of training it twice.
         basis_cache_mb: memory for the per-image SH bases kept across steps (0: evaluate them every step; the
             result is the same either way).
         threads: torch CPU threads for the run (None: unchanged). Small images on a busy machine run fastest
@@ -486,9 +534,12 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
     with torch_threads(threads):
         tr = Trainer(shards, model, light, config, workdir, device=device, identity=identity,
                      init_weights=init_weights, log=log, progress=progress, basis_cache_mb=basis_cache_mb)
-        if resume:
-            if tr.load_checkpoint():
-                (log or (lambda s: None))(f"finetune: resumed at global step {tr.global_step}")
+        resumed = bool(resume) and tr.load_checkpoint()
+        if resumed:
+            (log or (lambda s: None))(f"finetune: resumed at global step {tr.global_step}")
+        elif phase1_encoder is not None:
+            tr.start_phase2_from(phase1_encoder)
+            (log or (lambda s: None))(f"finetune: phase 1 taken from {phase1_encoder}")
         stopped = tr.run(stop_after)
     tr.encoder.eval()
     return FinetuneResult(params=tr.params, encoder=tr.encoder, initial=tr.initial_np, history=tr.history,

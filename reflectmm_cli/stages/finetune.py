@@ -4,8 +4,8 @@ docs/finetune.md).
 Inputs (roles): ``model`` the initial ``reflectance-model`` (build-pca, with its per-vertex part), ``light_model``
 (build-light-pca), ``data`` the ``wild-shard`` files (or folders of them), optional ``face_model`` (previews and
 the UV-map update; default: the one the shards record, :func:`reflectmm_cli.workspace.find_face_model`),
-optional ``identity_weights`` (ArcFace safetensors; L_per is off without it) and ``init_weights`` (an ImageNet
-trunk for the encoder).
+optional ``identity_weights`` (ArcFace safetensors; L_per is off without it), ``init_weights`` (an ImageNet
+trunk for the encoder) and ``phase1_encoder`` (another run's phase-1 encoder: start at phase 2).
 
 Reads → :func:`reflectmm_cli.finetune.train.finetune` → :func:`reflectmm_cli.finetune.outputs.
 write_finetune_outputs`.  The parameters are generated from the fields of
@@ -183,7 +183,7 @@ def run(ctx: StageContext) -> list[Path]:
         cfg = cfg.replace(model_lr=0.0)  # the encoder is trained on the solved model, which stays fixed
     res = finetune(shards, train_model, light, cfg, output_paths(out)["workdir"], device=ctx.device,
                    identity=identity, init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")),
-                   log=log.info, threads=p.get("threads"))
+                   phase1_encoder=_one(ctx, "phase1_encoder"), log=log.info, threads=p.get("threads"))
     if solve_report is not None:
         from reflectmm_cli.finetune.render import ModelParams
 

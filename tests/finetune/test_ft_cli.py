@@ -318,3 +318,33 @@ def test_finetune_solver_ls_writes_a_solved_model_and_an_encoder_trained_on_it(c
     r = cli("reconstruct", "--encoder", out.parent / "m_encoder.safetensors", "--model", out, "--light-model",
             data["light_path"], "--data", data["shards"][0], "--split", "val", "-o", tmp_path / "rec.npz")
     assert r.exit_code == 0, r.stderr
+
+
+def test_a_control_started_from_the_phase1_encoder_equals_a_full_control_run(cli, data, tmp_path):
+    """--phase1-encoder: the control run takes phase 1 from the finetuned run (same settings, data and seed) and
+    trains phase 2 only; its encoder and model equal those of a control run that trains phase 1 itself. Another
+    run's phase-1 encoder (other settings) is refused in one line."""
+    from safetensors.numpy import load_file
+
+    base = ["finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"]]
+    upd = tmp_path / "upd" / "m.npz"
+    assert cli(*base, "-o", upd, *TINY).exit_code == 0
+    ctl_args = list(TINY)
+    ctl_args[ctl_args.index("--model-lr") + 1] = "0"
+    full = tmp_path / "full" / "m.npz"
+    assert cli(*base, "-o", full, *ctl_args).exit_code == 0
+    short = tmp_path / "short" / "m.npz"
+    r = cli(*base, "-o", short, *ctl_args, "--phase1-encoder", upd.parent / "m_encoder_phase1.safetensors")
+    assert r.exit_code == 0, r.stderr
+    for name in ("m_encoder.safetensors", "m_encoder_phase1.safetensors"):
+        a, b = load_file(full.parent / name), load_file(short.parent / name)
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a), name
+    fa, fb = read_artifact(full, "reflectance-model"), read_artifact(short, "reflectance-model")
+    for k in fa.arrays:
+        assert np.array_equal(fa[k], fb[k]), k
+    other = list(ctl_args)
+    other[other.index("--lr1") + 1] = "1e-3"
+    r = cli(*base, "-o", tmp_path / "bad" / "m.npz", *other, "--phase1-encoder",
+            upd.parent / "m_encoder_phase1.safetensors")
+    assert r.exit_code == 1 and "phase-1 settings differ (lr1)" in r.stderr

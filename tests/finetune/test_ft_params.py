@@ -14,7 +14,10 @@ def test_params_are_the_config_fields():
     st = get_stage("finetune")
     decl = {p.name: p for p in st.params}
     fields = {f.name: f for f in dataclasses.fields(FinetuneConfig) if f.name != "extra"}
-    assert set(fields) <= set(decl) and set(decl) - set(fields) == {"samples", "resume", "threads"}
+    from reflectmm_cli.finetune.model_solve import SolveConfig
+
+    solver = {"solver"} | {"ls_" + f.name for f in dataclasses.fields(SolveConfig)}
+    assert set(fields) <= set(decl) and set(decl) - set(fields) == {"samples", "resume", "threads"} | solver
     for name, f in fields.items():
         want = None if name in RELEASED and name != "variant" else f.default
         assert decl[name].default == (list(want) if isinstance(want, tuple) else want), name

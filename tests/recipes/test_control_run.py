@@ -12,7 +12,8 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_control_is_the_finetune_run_with_the_model_frozen(recipe):
     st = tomllib.loads((ROOT / "recipes" / recipe).read_text())["stages"]
     ft, ctl = st["finetune"], st["finetune-control"]
-    assert ctl["verb"] == "finetune" and ctl["inputs"] == ft["inputs"]
+    assert ctl["verb"] == "finetune"
+    assert ctl["inputs"] == dict(ft["inputs"], phase1_encoder="@finetune.outputs.finetune_encoder_phase1")
     assert ctl["params"]["model_lr"] == 0 and ft["params"]["model_lr"] > 0
     assert {k: v for k, v in ctl["params"].items() if k != "model_lr"} == \
         {k: v for k, v in ft["params"].items() if k != "model_lr"}

@@ -130,7 +130,8 @@ def test_the_paper_numbers():
     ev = st["evaluate-reconstruction"]
     # the fair control: the same run as finetune with the model frozen in phase 2 (only model_lr differs)
     ctl = st["finetune-control"]
-    assert ctl["verb"] == "finetune" and ctl["inputs"] == st["finetune"]["inputs"]
+    assert ctl["verb"] == "finetune"
+    assert ctl["inputs"] == dict(st["finetune"]["inputs"], phase1_encoder="@finetune.outputs.finetune_encoder_phase1")
     assert {k: v for k, v in ctl["params"].items() if k != "model_lr"} == \
         {k: v for k, v in ft.items() if k != "model_lr"} and ctl["params"]["model_lr"] == 0
     assert ev["inputs"]["encoder_initial"] == "@finetune-control.outputs.finetune-control_encoder"
