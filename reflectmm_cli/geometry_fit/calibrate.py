@@ -52,7 +52,7 @@ log = logging.getLogger("reflectmm")
 
 __all__ = ["CalibrationConfig", "RigCalibration", "calibrate_rig", "calibrate_from_captures", "landmarks_from_captures",
            "write_rig_calibration", "read_rig_calibration", "rig_calibration_arrays", "expected_face_size",
-           "simulate_landmarks", "perturb_rig", "rodrigues", "RIG_KIND"]
+           "simulate_landmarks", "perturb_rig", "rodrigues", "LMOptions", "RIG_KIND"]
 
 RIG_KIND = "rig"
 FOCAL_MODES = ("fixed", "shared", "per-camera")

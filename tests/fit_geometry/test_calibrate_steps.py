@@ -39,6 +39,20 @@ def _problem(model, rig, lm, **cfg):
     return config, setup, prob
 
 
+def _dense(prob, eq):
+    """The full (Pc + N·n_id)² Gauss–Newton matrix assembled from the Schur blocks (cameras first)."""
+    Hcc, _, Hic, Hii, _ = eq
+    N, n, P = prob.N, prob.n_id, prob.Pc
+    H = np.zeros((P + N * n, P + N * n))
+    H[:P, :P] = Hcc
+    for i in range(N):
+        a = P + i * n
+        H[a:a + n, a:a + n] = Hii[i]
+        H[a:a + n, :P] = Hic[i]
+        H[:P, a:a + n] = Hic[i].T
+    return H
+
+
 def test_setup_refuses_bad_shapes_and_unseen_cameras(model, small):
     rig, lm = small
     with pytest.raises(ReflectmmError, match="landmarks must be"):
@@ -70,15 +84,9 @@ def test_lm_step_matches_the_dense_damped_solve(model, small):
     eq = prob.normal_equations(st, 2.0)
     lam = 0.05
     dc, di = prob.solve_step(eq, lam)
-    Hcc, gc, Hic, Hii, gi = eq
-    N, n, P = prob.N, prob.n_id, prob.Pc
-    H = np.zeros((P + N * n, P + N * n))
-    H[:P, :P] = Hcc
-    for i in range(N):
-        a = P + i * n
-        H[a:a + n, a:a + n] = Hii[i]
-        H[a:a + n, :P] = Hic[i]
-        H[:P, a:a + n] = Hic[i].T
+    H = _dense(prob, eq)
+    _, gc, _, _, gi = eq
+    P = prob.Pc
     D = H + lam * np.diag(np.diag(H)) + 1e-9 * np.eye(len(H))
     ref = np.linalg.solve(D, np.concatenate([gc, gi.reshape(-1)]))
     assert np.allclose(dc, ref[:P], rtol=1e-6, atol=1e-9)
@@ -145,15 +153,8 @@ def test_uncertainty_is_the_camera_block_of_the_dense_inverse(model, small):
     st = _levenberg_marquardt(prob, _initial_state(prob, setup.R0, setup.c0), opts).state
     res = _residuals(prob, st, setup.lm, cfg)
     unc = _uncertainty(prob, st, res, opts.loss_scale)
-    Hcc, _, Hic, Hii, _ = prob.normal_equations(st, opts.loss_scale)
+    H = _dense(prob, prob.normal_equations(st, opts.loss_scale))
     N, n, P, C = prob.N, prob.n_id, prob.Pc, prob.C
-    H = np.zeros((P + N * n, P + N * n))
-    H[:P, :P] = Hcc
-    for i in range(N):
-        a = P + i * n
-        H[a:a + n, a:a + n] = Hii[i]
-        H[a:a + n, :P] = Hic[i]
-        H[:P, a:a + n] = Hic[i].T
     cov = np.linalg.inv(H)[:P, :P] * unc.s2
     ri = (6 * np.arange(C)[:, None] + np.arange(3)).reshape(-1)
     rot = np.degrees(np.sqrt(np.diag(cov)[ri]).reshape(C, 3).max(1) * prob.ROT_UNIT)
