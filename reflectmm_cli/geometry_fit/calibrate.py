@@ -52,7 +52,7 @@ log = logging.getLogger("reflectmm")
 
 __all__ = ["CalibrationConfig", "RigCalibration", "calibrate_rig", "calibrate_from_captures", "landmarks_from_captures",
            "write_rig_calibration", "read_rig_calibration", "rig_calibration_arrays", "expected_face_size",
-           "simulate_landmarks", "perturb_rig", "rodrigues", "RIG_KIND"]
+           "simulate_landmarks", "perturb_rig", "rodrigues", "LMOptions", "RIG_KIND"]
 
 RIG_KIND = "rig"
 FOCAL_MODES = ("fixed", "shared", "per-camera")
@@ -482,24 +482,102 @@ def _gauge_free_cov(cov_c: np.ndarray, centers: np.ndarray) -> np.ndarray:
     return P @ cov_c @ P.T
 
 
-def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequence[str], image_size,
-                  nominal: Rig, config: CalibrationConfig | None = None, identities: Sequence[str] | None = None,
-                  flash_ids: Sequence[str] | None = None, progress_fn=None) -> RigCalibration:
-    """Bundle-adjust one rig to the landmarks of every identity.
+@dataclass
+class _RigSetup:
+    """The checked inputs of one calibration: landmarks (N, C, 68, 2) float64 (NaN missing), camera names (C,),
+    identity ids (N,), image sizes (C, 2), the nominal cameras R0 (C, 3, 3) / c0 (C, 3) mm / f0 (C,) px, the
+    principal points pp (C, 2) px, the model components used (Ks shape, Ke expression) and the assumptions so far."""
 
-    Args:
-        model: the face model (its landmark vertices, shape / expression bases and σ).
-        landmarks: (N, C, 68, 2) float, full-frame pixels (pixel centres at integers), NaN where missing.
-        camera_names: (C,) the views, names of cameras of ``nominal``.
-        image_size: (W, H) or (C, 2) per camera; must equal the nominal table's size (refused otherwise).
-        nominal: the nominal rig (angles + rough distance + focal; the packaged table or the user's).
-        config: :class:`CalibrationConfig`; identities: (N,) ids for the report; flash_ids: flashes to place
-            (default: every flash of the nominal table).
-    Returns:
-        :class:`RigCalibration`.
+    lm: np.ndarray
+    names: list[str]
+    ids: list[str]
+    image_size: np.ndarray
+    R0: np.ndarray
+    c0: np.ndarray
+    f0: np.ndarray
+    pp: np.ndarray
+    Ks: int
+    Ke: int
+    assumptions: list[str]
+
+    @property
+    def N(self) -> int:
+        return self.lm.shape[0]
+
+    @property
+    def C(self) -> int:
+        return self.lm.shape[1]
+
+
+@dataclass
+class LMOptions:
+    """Levenberg–Marquardt schedule of :func:`_levenberg_marquardt` (pycolmap-style solver options).
+
+    max_iters / tol: outer iterations (robust weights refreshed in each) and the relative cost decrease that stops
+    them once the robust scale is steady; loss_scale: final robust scale in units of σ_lm; lam0: initial damping;
+    tries: damping increases (×4) tried per iteration before giving up on it.
     """
-    cfg = config or CalibrationConfig()
-    t_start = time.perf_counter()
+
+    max_iters: int = 60
+    tol: float = 1e-6
+    loss_scale: float = 3.0
+    lam0: float = 1e-3
+    tries: int = 12
+
+    @classmethod
+    def from_config(cls, cfg: CalibrationConfig) -> "LMOptions":
+        return cls(max_iters=max(int(cfg.max_iters), 1), tol=cfg.tol,
+                   loss_scale=cfg.loss_scale_px / cfg.landmark_sigma_px)
+
+
+@dataclass
+class _LMResult:
+    """Output of :func:`_levenberg_marquardt`: the state, per-iteration history and whether it converged."""
+
+    state: _State
+    history: list[dict]
+    converged: bool
+
+
+@dataclass
+class _Residuals:
+    """Final landmark distances d (N, C, 68) px (NaN missing), their validity, depths z, per-view RMSE (N, C)
+    and the outlier mask (N, C, 68)."""
+
+    d: np.ndarray
+    valid: np.ndarray
+    z: np.ndarray
+    rmse: np.ndarray
+    outliers: np.ndarray
+
+
+@dataclass
+class _Uncertainty:
+    """Laplace-approximation σ of the cameras: centres (C, 3) mm (gauge-free), rotations (C,) deg, focal (C,) px,
+    and the noise variance factor s2."""
+
+    center_mm: np.ndarray
+    rotation_deg: np.ndarray
+    focal_px: np.ndarray
+    s2: float
+
+
+@dataclass
+class _Flashes:
+    """Placed flashes: ids (F,), positions (F, 3) mm, camera names ('' free-standing), offsets in their camera
+    frame (F, 3) mm, intensities (F,), σ (F,) mm (NaN: carried from the nominal table)."""
+
+    ids: list[str]
+    pos: np.ndarray
+    camera: list[str]
+    offset: np.ndarray
+    intensity: np.ndarray
+    sigma_mm: np.ndarray
+
+
+def _setup(model: ShapeModel, landmarks, camera_names: Sequence[str], image_size, nominal: Rig,
+           cfg: CalibrationConfig, identities: Sequence[str] | None) -> _RigSetup:
+    """Check the inputs of :func:`calibrate_rig` and gather them with the nominal cameras and first assumptions."""
     lm = np.asarray(landmarks, np.float64)
     names = list(camera_names)
     if lm.ndim != 4 or lm.shape[1:] != (len(names), 68, 2):
@@ -518,7 +596,6 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
     Ks = model.n_shape if cfg.n_shape is None else min(cfg.n_shape, model.n_shape)
     Ke = 0 if not cfg.fit_expression else (model.n_exp if cfg.n_exp is None else min(cfg.n_exp, model.n_exp))
     pp = np.stack([(isz[:, 0] - 1) / 2.0, (isz[:, 1] - 1) / 2.0], axis=1)
-    prob = _Problem(model, lm, R0, c0, f0, pp, cfg, Ks, Ke)
     assumptions = list(notes)
     assumptions.append(f"nominal camera orientations and centres from {nominal.source or 'the given table'}; "
                        f"weak prior σ = {cfg.camera_sigma_mm:g} mm / {cfg.camera_sigma_deg:g}° fixes the global "
@@ -527,25 +604,41 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
                         "(estimated)", "per-camera": "one focal per camera (estimated)"}[cfg.focal])
     assumptions.append("principal point at the image centre, no lens distortion")
     assumptions.append("scale from the face model's mean face size (shape prior, averaged over identities)")
+    return _RigSetup(lm, names, ids, isz, R0, c0, f0, pp, Ks, Ke, assumptions)
 
-    # initial head positions: the point closest to every nominal camera axis (where the rig looks)
+
+def _rig_target(R0: np.ndarray, c0: np.ndarray) -> np.ndarray:
+    """The point (3,) closest, in least squares, to every camera's optical axis (R0 (C, 3, 3), centres c0 (C, 3));
+    the origin for fewer than two cameras."""
     A = np.zeros((3, 3))
     b = np.zeros(3)
-    for k in range(C):
+    for k in range(len(R0)):
         d = R0[k, 2]
         P = np.eye(3) - np.outer(d, d)
         A += P
         b += P @ c0[k]
-    target = np.linalg.lstsq(A, b, rcond=None)[0] if C >= 2 else np.zeros(3)
-    st = _State(R0.copy(), c0.copy(), np.zeros(prob.nf), np.broadcast_to(np.eye(3), (N, 3, 3)).copy(),
-                np.broadcast_to(target, (N, 3)).copy(), np.zeros((N, prob.K)))
-    history: list[dict] = []
-    # robust scale annealed from the initial residual level down to loss_scale_px (a wrong nominal rig starts
-    # with residuals of tens of pixels, which a Cauchy loss at 3 px would treat as outliers)
-    c_final = cfg.loss_scale_px / cfg.landmark_sigma_px
-    lam = 1e-3
-    it_max = max(int(cfg.max_iters), 1)
+    return np.linalg.lstsq(A, b, rcond=None)[0] if len(R0) >= 2 else np.zeros(3)
+
+
+def _initial_state(prob: _Problem, R0: np.ndarray, c0: np.ndarray) -> _State:
+    """Nominal cameras, nominal focal, every head unrotated at the point where the rig looks, mean faces."""
+    N = prob.N
+    target = _rig_target(R0, c0)
+    return _State(R0.copy(), c0.copy(), np.zeros(prob.nf), np.broadcast_to(np.eye(3), (N, 3, 3)).copy(),
+                  np.broadcast_to(target, (N, 3)).copy(), np.zeros((N, prob.K)))
+
+
+def _levenberg_marquardt(prob: _Problem, st: _State, opts: LMOptions, progress_fn=None) -> _LMResult:
+    """Robust Levenberg–Marquardt on ``prob`` from ``st`` (not modified).
+
+    The robust scale is annealed from 3× the median landmark distance down to ``opts.loss_scale`` (a wrong
+    nominal rig starts with residuals of tens of pixels, which a Cauchy loss at 3 px would treat as outliers);
+    each iteration refreshes the IRLS weights, then tries damped Schur steps until the cost decreases.
+    """
+    lam = opts.lam0
+    it_max = opts.max_iters
     bar = progress_fn(range(it_max), desc="calibrate-rig", unit="iter") if progress_fn else range(it_max)
+    history: list[dict] = []
     converged = False
     c_prev = np.inf
     for it in bar:
@@ -553,12 +646,12 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
             continue
         d = prob.distances(st)
         med = float(np.median(d[prob.valid])) if prob.valid.any() else 0.0
-        c_now = min(c_prev, max(c_final, 3.0 * med))
+        c_now = min(c_prev, max(opts.loss_scale, 3.0 * med))
         steady = c_now >= 0.99 * c_prev
         c_prev = c_now
         eq = prob.normal_equations(st, c_now)
         cost0 = prob.cost(st, c_now)
-        for _ in range(12):
+        for _ in range(opts.tries):
             dc, di = prob.solve_step(eq, lam)
             trial = prob.apply(st, dc, di)
             cost1 = prob.cost(trial, c_now)
@@ -571,41 +664,49 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
             cost1 = cost0
         history.append({"iter": it, "cost": round(cost1, 6), "scale": round(c_now, 4), "lambda": lam})
         log.debug("calibrate-rig iteration %d: cost %.6g (robust scale %.2f, lambda %.2g)", it, cost1, c_now, lam)
-        if steady and cost0 - cost1 <= cfg.tol * max(cost0, 1e-300):
+        if steady and cost0 - cost1 <= opts.tol * max(cost0, 1e-300):
             converged = True
+    return _LMResult(st, history, converged)
 
-    # ---- scale anchoring: the MAP shrinks each face towards the mean in the directions its landmarks do not
-    # determine, and a shrunk face is a smaller face (size is a norm of the coefficients), so the joint optimum
-    # puts the rig too close by a few per cent.  The landmarks fix the scene only up to a similarity; choose its
-    # scale so that the identities' mean face size equals the model's expected size under its prior.  Scaling
-    # the whole scene (centres, head positions, faces) leaves every projection unchanged.
-    anchor = 1.0
-    if cfg.anchor_scale and Ks > 0:
-        target, spread = expected_face_size(model, Ks, return_std=True)
-        fitted = float(np.mean(_face_size(prob.mean[None] + np.einsum("nk,klj->nlj", st.z[:, :Ks], prob.B[:Ks]))))
-        # two estimates of the scene's scale, fused by their variances (in log scale): the faces' mean size (σ =
-        # the size spread of the prior / √N) and the nominal table's camera spread (σ = distance_sigma_rel)
-        s_face = target / fitted
-        sig_f = spread / target / math.sqrt(N)
-        logs = math.log(s_face)
-        note = (f"scale: the identities' mean landmark-face size set to the model's expected {target:.2f} mm "
-                f"(x{s_face:.4f}, ±{100 * sig_f:.1f} %)")
-        if cfg.distance_sigma_rel and cfg.distance_sigma_rel > 0 and C >= 2:
-            spread_fit = math.sqrt(((st.c - st.c.mean(0)) ** 2).sum())
-            spread_nom = math.sqrt(((c0 - c0.mean(0)) ** 2).sum())
-            s_nom = spread_nom / max(spread_fit, 1e-12)
-            wf, wn = 1.0 / sig_f ** 2, 1.0 / cfg.distance_sigma_rel ** 2
-            logs = (wf * math.log(s_face) + wn * math.log(s_nom)) / (wf + wn)
-            note += (f", fused with the nominal table's size (x{s_nom:.4f}, ±{100 * cfg.distance_sigma_rel:.1f} %) "
-                     f"at weight {wn / (wf + wn):.2f}")
-        anchor = math.exp(logs)
-        st.c = st.c * anchor
-        st.th = st.th * anchor
-        assumptions.append(note + f": x{anchor:.4f} on the bundle-adjustment optimum")
 
-    # ---- frame: the landmarks fix the scene up to a rigid motion (the weak prior only picked one near the nominal
-    # table); express the rig in the table's convention instead — the head at the origin, i.e. the identities'
-    # mean head position and mean head orientation (x' = R̄ᵀ (x − t̄))
+def _scale_anchor(model: ShapeModel, prob: _Problem, st: _State, setup: _RigSetup, cfg: CalibrationConfig
+                  ) -> tuple[float, str | None]:
+    """Scale factor for the whole scene, and its note (None when not anchored).
+
+    The MAP shrinks each face towards the mean in the directions its landmarks do not determine, and a shrunk face
+    is a smaller face (size is a norm of the coefficients), so the joint optimum puts the rig too close by a few per
+    cent.  The landmarks fix the scene only up to a similarity; its scale is chosen so that the identities' mean face
+    size equals the model's expected size under its prior, fused (in log scale, by inverse variances) with the
+    nominal table's camera spread of relative σ ``cfg.distance_sigma_rel``.  Scaling the whole scene (centres, head
+    positions, faces) leaves every projection unchanged.
+    """
+    Ks, N, C = setup.Ks, setup.N, setup.C
+    if not (cfg.anchor_scale and Ks > 0):
+        return 1.0, None
+    target, spread = expected_face_size(model, Ks, return_std=True)
+    fitted = float(np.mean(_face_size(prob.mean[None] + np.einsum("nk,klj->nlj", st.z[:, :Ks], prob.B[:Ks]))))
+    s_face = target / fitted
+    sig_f = spread / target / math.sqrt(N)
+    logs = math.log(s_face)
+    note = (f"scale: the identities' mean landmark-face size set to the model's expected {target:.2f} mm "
+            f"(x{s_face:.4f}, ±{100 * sig_f:.1f} %)")
+    if cfg.distance_sigma_rel and cfg.distance_sigma_rel > 0 and C >= 2:
+        c0 = setup.c0
+        spread_fit = math.sqrt(((st.c - st.c.mean(0)) ** 2).sum())
+        spread_nom = math.sqrt(((c0 - c0.mean(0)) ** 2).sum())
+        s_nom = spread_nom / max(spread_fit, 1e-12)
+        wf, wn = 1.0 / sig_f ** 2, 1.0 / cfg.distance_sigma_rel ** 2
+        logs = (wf * math.log(s_face) + wn * math.log(s_nom)) / (wf + wn)
+        note += (f", fused with the nominal table's size (x{s_nom:.4f}, ±{100 * cfg.distance_sigma_rel:.1f} %) "
+                 f"at weight {wn / (wf + wn):.2f}")
+    anchor = math.exp(logs)
+    return anchor, note + f": x{anchor:.4f} on the bundle-adjustment optimum"
+
+
+def _reframe(st: _State) -> None:
+    """Express ``st`` (in place) in the rig table's convention: origin at the identities' mean head position, axes
+    along their mean head orientation (x' = R̄ᵀ (x − t̄), R̄ the rotation nearest the mean of the R_h).  The
+    landmarks fix the scene only up to a rigid motion, so every projection is unchanged."""
     Mh = st.Rh.mean(0)
     U, _, Vt = np.linalg.svd(Mh)
     Rbar = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
@@ -614,13 +715,10 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
     st.c = (st.c - tbar) @ Rbar
     st.Rh = np.einsum("ji,njk->nik", Rbar, st.Rh)
     st.th = (st.th - tbar) @ Rbar
-    assumptions.append("rig frame: origin at the identities' mean head position, axes along their mean head "
-                       "orientation (the rig table convention: the head at the origin)")
 
-    # ---- results
-    R, c, f = st.R, st.c, prob.focal(st)
-    Rh, th = st.Rh, st.th
-    zs, ze = st.z[:, :Ks], st.z[:, Ks:]
+
+def _residuals(prob: _Problem, st: _State, lm: np.ndarray, cfg: CalibrationConfig) -> _Residuals:
+    """Final landmark distances, per-view RMSE and outliers; refuses landmarks that ended behind a camera."""
     uv, z = prob.project(st)
     d = np.linalg.norm(uv - lm, axis=-1)                                               # (N, C, 68), NaN missing
     valid = np.isfinite(d)
@@ -630,17 +728,23 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
     if np.any(valid & (z <= 0)):
         raise ReflectmmError("calibrate-rig: landmarks ended up behind a camera; the nominal rig is too far off "
                              "(check camera names, angles and image size)")
+    return _Residuals(d, valid, z, rmse, outliers)
 
-    # ---- uncertainties: Laplace approximation at the solution (Gauss–Newton Hessian with the final IRLS
-    # weights), heads and shapes eliminated by the Schur complement, noise scale from the weighted residuals
-    eq = prob.normal_equations(st, c_final)
+
+def _uncertainty(prob: _Problem, st: _State, res: _Residuals, loss_scale: float) -> _Uncertainty:
+    """Laplace approximation at the solution: Gauss–Newton Hessian with the final IRLS weights (robust scale
+    ``loss_scale`` in σ_lm units), heads and shapes eliminated by the Schur complement, noise scale from the
+    weighted inlier residuals; the centres' covariance has the global rigid motion projected out."""
+    cfg, C, N = prob.cfg, prob.C, prob.N
+    d, valid, outliers = res.d, res.valid, res.outliers
+    eq = prob.normal_equations(st, loss_scale)
     inl = valid & ~outliers
     dof = max(2 * int(inl.sum()) - (prob.Pc + N * prob.n_id), 1)
-    _, wr = prob.rho((d / cfg.landmark_sigma_px) ** 2, c_final)
+    _, wr = prob.rho((d / cfg.landmark_sigma_px) ** 2, loss_scale)
     s2 = float((wr[inl] * prob.wl[inl] * (d[inl] / cfg.landmark_sigma_px) ** 2).sum()) / dof
     cov = np.linalg.pinv(prob.schur(eq)) * max(s2, 1e-12)
     ci = (6 * np.arange(C)[:, None] + 3 + np.arange(3)).reshape(-1)
-    cov_c = _gauge_free_cov(cov[np.ix_(ci, ci)] * prob.POS_UNIT ** 2, c)
+    cov_c = _gauge_free_cov(cov[np.ix_(ci, ci)] * prob.POS_UNIT ** 2, st.c)
     cam_sig = np.sqrt(np.clip(np.diag(cov_c), 0, None)).reshape(C, 3)
     ri = (6 * np.arange(C)[:, None] + np.arange(3)).reshape(-1)
     rot_sig = np.degrees(np.sqrt(np.clip(np.diag(cov[np.ix_(ri, ri)]), 0, None)).reshape(C, 3).max(1)
@@ -648,11 +752,21 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
     foc_sig = np.zeros(C)
     if prob.nf:
         fv = np.sqrt(np.clip(np.diag(cov)[6 * C:], 0, None)) * prob.F_UNIT
-        foc_sig = f * np.broadcast_to(fv, (C,))
+        foc_sig = prob.focal(st) * np.broadcast_to(fv, (C,))
+    return _Uncertainty(cam_sig, rot_sig, foc_sig, s2)
 
-    # ---- flashes: attached ones follow their camera, others are carried by the rigid nominal → fitted map
+
+def _place_flashes(nominal: Rig, flash_ids: Sequence[str] | None, setup: _RigSetup, st: _State,
+                   cam_sig: np.ndarray) -> tuple[_Flashes, list[str]]:
+    """Place the flashes in the fitted rig, and say which were not measured.
+
+    A flash attached to a calibrated camera keeps its nominal offset in that camera's frame; the others are carried
+    by the rigid map that best aligns the nominal camera centres to the fitted ones (identity below three cameras).
+    """
+    names, c0, R, c = setup.names, setup.c0, st.R, st.c
+    notes: list[str] = []
     fl_ids = list(flash_ids) if flash_ids is not None else nominal.flash_ids
-    Ra, ta, _ = rigid_align(c0, c) if C >= 3 else (np.eye(3), np.zeros(3), None)
+    Ra, ta, _ = rigid_align(c0, c) if setup.C >= 3 else (np.eye(3), np.zeros(3), None)
     fpos, fcam, foff, fint, fsig = [], [], [], [], []
     for fid in fl_ids:
         fl = nominal.flash(fid)
@@ -673,19 +787,23 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
             fsig.append(float("nan"))
             why = (f"its camera {fl.camera} has no landmarks in this capture" if fl.camera is not None
                    else "it is free-standing")
-            assumptions.append(f"flash {fid} carried from the nominal table ({why}): not measured")
+            notes.append(f"flash {fid} carried from the nominal table ({why}): not measured")
     for raised, fid in zip(RAISED_CAMERAS, ("14", "18")):
         if fid in fl_ids and raised not in names:
-            assumptions.append(f"flash {fid} sits on camera {raised}, which is not among the calibrated views: "
-                               "add its landmarks to place it")
-    if anchor != 1.0:  # the anchored faces are the fitted ones scaled about the head origin
-        shape_coeffs_note = f"shape coefficients are those of the unscaled optimum (faces x{anchor:.4f})"
-        assumptions.append(shape_coeffs_note)
-    shape_coeffs = np.zeros((N, model.n_shape))
-    shape_coeffs[:, :Ks] = zs * model.shape_sigma[:Ks]
-    exp_coeffs = np.zeros((N, model.n_exp))
-    exp_coeffs[:, :Ke] = ze * model.exp_sigma[:Ke]
-    out_list = [(ids[i], names[k], int(l)) for i, k, l in zip(*np.nonzero(outliers))]
+            notes.append(f"flash {fid} sits on camera {raised}, which is not among the calibrated views: "
+                         "add its landmarks to place it")
+    flashes = _Flashes(fl_ids, np.array(fpos).reshape(-1, 3), fcam, np.array(foff).reshape(-1, 3),
+                       np.array(fint, np.float64), np.array(fsig))
+    return flashes, notes
+
+
+def _calibration_report(prob: _Problem, st: _State, setup: _RigSetup, res: _Residuals, unc: _Uncertainty,
+                        lmr: _LMResult, anchor: float, t_start: float) -> dict[str, Any]:
+    """The report dict of :class:`RigCalibration` (counts, residuals, outliers, history, camera moves)."""
+    cfg, N, C, ids, names = prob.cfg, setup.N, setup.C, setup.ids, setup.names
+    valid, rmse, c, R, f = res.valid, res.rmse, st.c, st.R, prob.focal(st)
+    out_list = [(ids[i], names[k], int(l)) for i, k, l in zip(*np.nonzero(res.outliers))]
+    history = lmr.history
     report = {
         "identities": N, "cameras": C, "landmarks_used": int(valid.sum()), "unknowns": int(prob.Pc + N * prob.n_id),
         "landmark_rmse_px_median": float(np.nanmedian(rmse)), "outliers": len(out_list),
@@ -694,24 +812,80 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
         "views_worst": [f"{ids[i]}/{names[k]}: {rmse[i, k]:.2f} px" for i, k in
                         zip(*np.unravel_index(np.argsort(-np.nan_to_num(rmse, nan=-1.0), axis=None)[:10],
                                               rmse.shape))],
-        "noise_scale": math.sqrt(s2), "iterations": len(history), "converged": converged,
+        "noise_scale": math.sqrt(unc.s2), "iterations": len(history), "converged": lmr.converged,
         "cost_final": history[-1]["cost"] if history else None, "history": history,
         "seconds": round(time.perf_counter() - t_start, 3),
-        "camera_shift_mm": {n: round(float(np.linalg.norm(c[k] - c0[k])), 3) for k, n in enumerate(names)},
-        "camera_turn_deg": {n: round(float(_rot_angle_deg(R[k], R0[k])), 4) for k, n in enumerate(names)},
+        "camera_shift_mm": {n: round(float(np.linalg.norm(c[k] - setup.c0[k])), 3) for k, n in enumerate(names)},
+        "camera_turn_deg": {n: round(float(_rot_angle_deg(R[k], setup.R0[k])), 4) for k, n in enumerate(names)},
         "focal_px": [round(float(v), 3) for v in f],
         "config": cfg.as_dict(), "scale_anchor": anchor,
     }
     log.info("calibrate-rig: %d identities x %d views, landmark RMS %.2f px (median), %d outliers, "
              "focal %s px, %.1f s", N, C, report["landmark_rmse_px_median"], len(out_list),
              "/".join(f"{v:.0f}" for v in np.unique(np.round(f))), report["seconds"])
+    return report
+
+
+def _model_coeffs(model: ShapeModel, st: _State, Ks: int, Ke: int) -> tuple[np.ndarray, np.ndarray]:
+    """σ-unit coefficients of ``st`` → the model's shape (N, n_shape) and expression (N, n_exp) coefficients."""
+    N = len(st.z)
+    shape_coeffs = np.zeros((N, model.n_shape))
+    shape_coeffs[:, :Ks] = st.z[:, :Ks] * model.shape_sigma[:Ks]
+    exp_coeffs = np.zeros((N, model.n_exp))
+    exp_coeffs[:, :Ke] = st.z[:, Ks:] * model.exp_sigma[:Ke]
+    return shape_coeffs, exp_coeffs
+
+
+def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequence[str], image_size,
+                  nominal: Rig, config: CalibrationConfig | None = None, identities: Sequence[str] | None = None,
+                  flash_ids: Sequence[str] | None = None, progress_fn=None) -> RigCalibration:
+    """Bundle-adjust one rig to the landmarks of every identity.
+
+    Args:
+        model: the face model (its landmark vertices, shape / expression bases and σ).
+        landmarks: (N, C, 68, 2) float, full-frame pixels (pixel centres at integers), NaN where missing.
+        camera_names: (C,) the views, names of cameras of ``nominal``.
+        image_size: (W, H) or (C, 2) per camera; must equal the nominal table's size (refused otherwise).
+        nominal: the nominal rig (angles + rough distance + focal; the packaged table or the user's).
+        config: :class:`CalibrationConfig`; identities: (N,) ids for the report; flash_ids: flashes to place
+            (default: every flash of the nominal table).
+    Returns:
+        :class:`RigCalibration`.
+
+    Steps: :func:`_setup` → :func:`_initial_state` → :func:`_levenberg_marquardt` → :func:`_scale_anchor` →
+    :func:`_reframe` → :func:`_residuals` → :func:`_uncertainty` → :func:`_place_flashes` →
+    :func:`_calibration_report`.
+    """
+    cfg = config or CalibrationConfig()
+    t_start = time.perf_counter()
+    setup = _setup(model, landmarks, camera_names, image_size, nominal, cfg, identities)
+    prob = _Problem(model, setup.lm, setup.R0, setup.c0, setup.f0, setup.pp, cfg, setup.Ks, setup.Ke)
+    opts = LMOptions.from_config(cfg)
+    lmr = _levenberg_marquardt(prob, _initial_state(prob, setup.R0, setup.c0), opts, progress_fn)
+    st = lmr.state
+    anchor, note = _scale_anchor(model, prob, st, setup, cfg)
+    if note is not None:
+        st.c = st.c * anchor
+        st.th = st.th * anchor
+        setup.assumptions.append(note)
+    _reframe(st)
+    setup.assumptions.append("rig frame: origin at the identities' mean head position, axes along their mean head "
+                             "orientation (the rig table convention: the head at the origin)")
+    res = _residuals(prob, st, setup.lm, cfg)
+    unc = _uncertainty(prob, st, res, opts.loss_scale)
+    flashes, flash_notes = _place_flashes(nominal, flash_ids, setup, st, unc.center_mm)
+    setup.assumptions.extend(flash_notes)
+    if anchor != 1.0:  # the anchored faces are the fitted ones scaled about the head origin
+        setup.assumptions.append(f"shape coefficients are those of the unscaled optimum (faces x{anchor:.4f})")
+    shape_coeffs, exp_coeffs = _model_coeffs(model, st, setup.Ks, setup.Ke)
+    report = _calibration_report(prob, st, setup, res, unc, lmr, anchor, t_start)
     return RigCalibration(
-        camera_names=names, R=R, centers=c, focal=f, image_size=isz, center_sigma_mm=cam_sig,
-        focal_sigma_px=foc_sig, rotation_sigma_deg=rot_sig, flash_ids=fl_ids, flash_pos=np.array(fpos).reshape(-1, 3),
-        flash_camera=fcam, flash_offset=np.array(foff).reshape(-1, 3), flash_intensity=np.array(fint, np.float64),
-        flash_sigma_mm=np.array(fsig), identities=ids, head_R=Rh, head_t=th, shape_coeffs=shape_coeffs,
-        exp_coeffs=exp_coeffs, landmark_rmse_px=rmse, outliers=outliers, nominal=nominal, assumptions=assumptions,
-        report=report)
+        camera_names=setup.names, R=st.R, centers=st.c, focal=prob.focal(st), image_size=setup.image_size,
+        center_sigma_mm=unc.center_mm, focal_sigma_px=unc.focal_px, rotation_sigma_deg=unc.rotation_deg,
+        flash_ids=flashes.ids, flash_pos=flashes.pos, flash_camera=flashes.camera, flash_offset=flashes.offset,
+        flash_intensity=flashes.intensity, flash_sigma_mm=flashes.sigma_mm, identities=setup.ids, head_R=st.Rh,
+        head_t=st.th, shape_coeffs=shape_coeffs, exp_coeffs=exp_coeffs, landmark_rmse_px=res.rmse,
+        outliers=res.outliers, nominal=nominal, assumptions=setup.assumptions, report=report)
 
 
 # --------------------------------------------------------------------------- artifact

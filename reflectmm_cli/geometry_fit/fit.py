@@ -230,96 +230,114 @@ def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = N
         return _fit(model, views, cfg, device)
 
 
-def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> GeometryFit:
-    t_start = time.perf_counter()
-    dtype = {"float64": torch.float64, "float32": torch.float32}[cfg.dtype]
-    V = len(views.names)
+class _FitProblem:
+    """The unknowns, fixed tensors and loss terms of one :func:`fit_geometry` run (the record every stage takes).
 
-    def tt(a):
-        return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
+    Unknowns (torch leaves): ``zs`` (Ks,), ``ze`` (Ke,), per-view ``dw``/``dtr`` (V, 3) and, with the soft rig
+    constraint, the head's ``dwh``/``dth`` (3,).  Parameter scaling: one unit of τ moves a point ≈ 10 px sideways
+    (depth: ≈ f·r·Δz/Z² for a face of radius r), one unit of δ is 0.1 rad.  ``history`` collects one entry per
+    L-BFGS run and ``bar`` ticks once per stage.
+    """
 
-    ts = model.torch_parts(dtype, device)
-    lm_obs = views.landmarks
-    valid = np.isfinite(lm_obs).all(-1)
-    for v in range(V):
-        if valid[v].sum() < 6:
-            raise ReflectmmError(f"view {views.names[v]}: only {int(valid[v].sum())} valid landmarks "
-                                 "(at least 6 needed)")
-    wl = landmark_weights(cfg.group_weights)[None, :] * valid
-    wl_t = tt(wl)
-    wsum = float(wl.sum())
-    obs_t = tt(np.where(valid[..., None], lm_obs, 0.0))
-    K_t, R0_t, t0_t = tt(views.K), tt(views.R0), tt(views.t0)
+    def __init__(self, model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str):
+        self.model, self.views, self.cfg, self.device = model, views, cfg, device
+        self.dtype = dtype = {"float64": torch.float64, "float32": torch.float32}[cfg.dtype]
+        self.V = V = len(views.names)
+        tt = self.tt
+        self.ts = model.torch_parts(dtype, device)
+        lm_obs = views.landmarks
+        self.valid = valid = np.isfinite(lm_obs).all(-1)
+        for v in range(V):
+            if valid[v].sum() < 6:
+                raise ReflectmmError(f"view {views.names[v]}: only {int(valid[v].sum())} valid landmarks "
+                                     "(at least 6 needed)")
+        wl = landmark_weights(cfg.group_weights)[None, :] * valid
+        self.wl_t = tt(wl)
+        self.wsum = float(wl.sum())
+        self.obs_t = tt(np.where(valid[..., None], lm_obs, 0.0))
+        self.K_t, self.R0_t, self.t0_t = tt(views.K), tt(views.R0), tt(views.t0)
+        depth = np.abs(views.t0[:, 2]).mean()
+        f = float(views.K[:, 0, 0].mean())
+        self.t_unit = 10.0 * depth / f
+        lm0 = model.mean[model.landmarks]
+        radius = float(np.sqrt(((lm0 - lm0.mean(0)) ** 2).sum(-1).mean()))
+        self.tv_unit = torch.tensor([self.t_unit, self.t_unit, self.t_unit * depth / max(radius, 1e-6)],
+                                    dtype=dtype, device=device)
+        self.r_unit = 0.1
+        self.zs = torch.zeros(model.n_shape, dtype=dtype, device=device, requires_grad=True)
+        self.ze = torch.zeros(model.n_exp if cfg.fit_expression else 0, dtype=dtype, device=device,
+                              requires_grad=True)
+        self.dw = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
+        self.dtr = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
+        self._init_rig()
+        self.history: list[dict] = []
+        self.n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
+        self.n_flash = cfg.flash_rounds if (views.flash_images is not None and cfg.w_flash > 0) else 0
+        self.bar = progress(range(1 + self.n_photo + self.n_flash), desc="fit-geometry", unit="stage")
 
-    # parameter scaling: one unit of τ moves a point ≈ 10 px sideways, one unit of δ is 0.1 rad
-    depth = np.abs(views.t0[:, 2]).mean()
-    f = float(views.K[:, 0, 0].mean())
-    t_unit = 10.0 * depth / f
-    # depth moves the landmarks only through the scale of the face: ≈ f·r·Δz/Z² for a face of radius r
-    lm0 = model.mean[model.landmarks]
-    radius = float(np.sqrt(((lm0 - lm0.mean(0)) ** 2).sum(-1).mean()))
-    tv_unit = torch.tensor([t_unit, t_unit, t_unit * depth / max(radius, 1e-6)], dtype=dtype, device=device)
-    r_unit = 0.1
-
-    zs = torch.zeros(model.n_shape, dtype=dtype, device=device, requires_grad=True)
-    ze = torch.zeros(model.n_exp if cfg.fit_expression else 0, dtype=dtype, device=device, requires_grad=True)
-    dw = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
-    dtr = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
-    # rigid rig → model transform (the head pose in the rig frame), for the soft rig constraint
-    use_rig = views.rig_centers is not None and cfg.rig_sigma_mm > 0 and V >= 3
-    if use_rig:
-        Rh0, th0, _ = rigid_align(views.rig_centers, camera_centers(views.R0, views.t0))
-    else:
-        Rh0, th0 = np.eye(3), np.zeros(3)
-    Rh0_t, th0_t = tt(Rh0), tt(th0)
-    rig_t = tt(views.rig_centers) if use_rig else None
-    use_rot = use_rig and views.rig_R is not None and cfg.rig_rot_sigma_deg > 0
-    rigR_t = tt(views.rig_R) if use_rot else None
-    rot_sigma = math.radians(cfg.rig_rot_sigma_deg) if use_rot else 1.0
-    dwh = torch.zeros(3, dtype=dtype, device=device, requires_grad=use_rig)
-    dth = torch.zeros(3, dtype=dtype, device=device, requires_grad=use_rig)
-    pose_params = [dw, dtr] + ([dwh, dth] if use_rig else [])
-
-    def poses():
-        R = axis_angle_to_matrix(dw * r_unit) @ R0_t
-        return R, t0_t + dtr * tv_unit
-
-    def verts():
-        return ts.vertices(zs, ze)
-
-    def lm_loss(X, R, t, landmarks_only=False):
-        L = X if landmarks_only else X[ts.landmarks]
-        uv, _ = project(L[None].expand(V, -1, -1), K_t, R, t)
-        d = uv - obs_t
-        r = torch.sqrt((d * d).sum(-1) + 1e-12)
-        return (wl_t * huber(r, cfg.huber_px)).sum() / (wsum * cfg.landmark_sigma_px ** 2), uv
-
-    def head():
-        """The rig → model rigid transform (Rh, th): a rig-frame point x sits at ``Rh x + th`` in model space."""
-        return axis_angle_to_matrix(dwh * r_unit) @ Rh0_t, th0_t + dth * t_unit
-
-    def prior(R, t):
-        """Negative log priors (½‖z‖², rig), divided by the landmark weight sum like the landmark term."""
-        p = 0.5 * cfg.w_shape * (zs * zs).sum() + 0.5 * cfg.w_exp * (ze * ze).sum()
+    def _init_rig(self) -> None:
+        """The rigid rig → model transform (the head pose in the rig frame) of the soft rig constraint."""
+        views, cfg, tt, V = self.views, self.cfg, self.tt, self.V
+        self.use_rig = use_rig = views.rig_centers is not None and cfg.rig_sigma_mm > 0 and V >= 3
         if use_rig:
+            Rh0, th0, _ = rigid_align(views.rig_centers, camera_centers(views.R0, views.t0))
+        else:
+            Rh0, th0 = np.eye(3), np.zeros(3)
+        self.Rh0_t, self.th0_t = tt(Rh0), tt(th0)
+        self.rig_t = tt(views.rig_centers) if use_rig else None
+        self.use_rot = use_rot = use_rig and views.rig_R is not None and cfg.rig_rot_sigma_deg > 0
+        self.rigR_t = tt(views.rig_R) if use_rot else None
+        self.rot_sigma = math.radians(cfg.rig_rot_sigma_deg) if use_rot else 1.0
+        self.dwh = torch.zeros(3, dtype=self.dtype, device=self.device, requires_grad=use_rig)
+        self.dth = torch.zeros(3, dtype=self.dtype, device=self.device, requires_grad=use_rig)
+        self.pose_params = [self.dw, self.dtr] + ([self.dwh, self.dth] if use_rig else [])
+
+    def tt(self, a) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)
+
+    def poses(self):
+        """Per-view world-to-camera (R (V, 3, 3), t (V, 3)) at the current unknowns."""
+        R = axis_angle_to_matrix(self.dw * self.r_unit) @ self.R0_t
+        return R, self.t0_t + self.dtr * self.tv_unit
+
+    def verts(self) -> torch.Tensor:
+        return self.ts.vertices(self.zs, self.ze)
+
+    def lm_loss(self, X, R, t, landmarks_only=False):
+        """Weighted Huber landmark term (divided by the weight sum and σ_lm²) and the projections (V, 68, 2)."""
+        L = X if landmarks_only else X[self.ts.landmarks]
+        uv, _ = project(L[None].expand(self.V, -1, -1), self.K_t, R, t)
+        d = uv - self.obs_t
+        r = torch.sqrt((d * d).sum(-1) + 1e-12)
+        return (self.wl_t * huber(r, self.cfg.huber_px)).sum() / (self.wsum * self.cfg.landmark_sigma_px ** 2), uv
+
+    def landmark_term(self, R, t) -> torch.Tensor:
+        return self.lm_loss(self.ts.landmark_vertices(self.zs, self.ze), R, t, True)[0]
+
+    def head(self):
+        """The rig → model rigid transform (Rh, th): a rig-frame point x sits at ``Rh x + th`` in model space."""
+        return axis_angle_to_matrix(self.dwh * self.r_unit) @ self.Rh0_t, self.th0_t + self.dth * self.t_unit
+
+    def prior(self, R, t):
+        """Negative log priors (½‖z‖², rig), divided by the landmark weight sum like the landmark term."""
+        cfg, zs, ze = self.cfg, self.zs, self.ze
+        p = 0.5 * cfg.w_shape * (zs * zs).sum() + 0.5 * cfg.w_exp * (ze * ze).sum()
+        if self.use_rig:
             c = camera_centers(R, t)
-            Rh, th = head()
-            ch = rig_t @ Rh.T + th
+            Rh, th = self.head()
+            ch = self.rig_t @ Rh.T + th
             p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
-            if use_rot:
+            if self.use_rot:
                 # model → camera of view v is R_rig,v · Rhᵀ when the head pose (rig → model) is (Rh, th);
                 # ‖ΔR‖²_F = 2·(2 − 2cos θ) ≈ 2θ² for a rotation error θ, so ¼‖ΔR‖²/σ² ≈ ½θ²/σ²
-                p = p + 0.25 * ((R - rigR_t @ Rh.T) ** 2).sum() / rot_sigma ** 2
+                p = p + 0.25 * ((R - self.rigR_t @ Rh.T) ** 2).sum() / self.rot_sigma ** 2
             if cfg.head_sigma_mm > 0:
                 p = p + 0.5 * (th * th).sum() / cfg.head_sigma_mm ** 2
-        return p / wsum
+        return p / self.wsum
 
-    history: list[dict] = []
-    n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
-    n_flash = cfg.flash_rounds if (views.flash_images is not None and cfg.w_flash > 0) else 0
-    bar = progress(range(1 + n_photo + n_flash), desc="fit-geometry", unit="stage")
-
-    def run_lbfgs(params, closure_loss, iters, stage):
+    def run_lbfgs(self, params, closure_loss, iters: int, stage: str) -> None:
+        """Minimise ``closure_loss()`` over ``params`` (at most ``iters`` L-BFGS iterations, strong Wolfe) and
+        record the final loss in ``history``."""
         if iters <= 0:
             return
         opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=30, tolerance_grad=1e-9,
@@ -334,234 +352,335 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         opt.step(closure)
         with torch.no_grad():
             final = float(closure_loss())
-        history.append({"stage": stage, "loss": final, "evals": int(opt.state[opt._params[0]]["func_evals"])})
-        next(bar, None)
-        log.debug("fit-geometry: %s loss %.6g after %d evaluations", stage, final, history[-1]["evals"])
+        self.history.append({"stage": stage, "loss": final, "evals": int(opt.state[opt._params[0]]["func_evals"])})
+        next(self.bar, None)
+        log.debug("fit-geometry: %s loss %.6g after %d evaluations", stage, final, self.history[-1]["evals"])
 
-    # ---- stage 1: landmarks + priors
+    def numpy_geometry(self):
+        """Current vertices (n, 3) float64 and poses R (V, 3, 3), t (V, 3) as numpy (no gradient)."""
+        with torch.no_grad():
+            X = self.verts()
+            R, t = self.poses()
+            return X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
+
+
+@dataclass
+class _SubMesh:
+    """The photometric vertex sample (M,) (skin, at most ``photo_vertices``), its indices in the sub-mesh of the
+    triangles around it (``sample_t``), the sub-mesh model parts and triangles, and the image-frame intrinsics."""
+
+    sample: np.ndarray
+    sample_t: torch.Tensor
+    sub: object
+    sub_tri_t: torch.Tensor
+    Kimg: np.ndarray
+    Kimg_t: torch.Tensor
+
+    def surface(self, prob: _FitProblem):
+        """(vertices, vertex normals) of the sub-mesh at the current coefficients (exactly the full mesh's)."""
+        Xs = self.sub.vertices(prob.zs, prob.ze)
+        return Xs, vertex_normals(Xs, self.sub_tri_t)
+
+
+def _sub_mesh(prob: _FitProblem) -> _SubMesh:
+    """The photometric terms only need the sampled vertices and the triangles around them: that sub-mesh."""
+    model, cfg, device = prob.model, prob.cfg, prob.device
+    Kimg = prob.views.image_K()
+    skin = model.skin_mask if model.skin_mask is not None else np.ones(model.n_vertices, dtype=bool)
+    sample = np.nonzero(skin)[0]
+    if len(sample) > cfg.photo_vertices:
+        sample = sample[np.linspace(0, len(sample) - 1, cfg.photo_vertices).round().astype(np.int64)]
+    touch = np.isin(model.triangles, sample).any(1)
+    sub_ids = np.unique(model.triangles[touch])
+    sub_ids = np.union1d(sub_ids, sample)
+    sub_tri_t = torch.as_tensor(np.searchsorted(sub_ids, model.triangles[touch]), dtype=torch.long, device=device)
+    sub = prob.ts.subset(sub_ids)
+    sample_t = torch.as_tensor(np.searchsorted(sub_ids, sample), dtype=torch.long, device=device)
+    return _SubMesh(sample, sample_t, sub, sub_tri_t, Kimg, prob.tt(Kimg))
+
+
+def _landmark_stage(prob: _FitProblem) -> None:
+    """Stage 1: landmarks + priors over the coefficients and poses."""
     def stage1():
-        R, t = poses()
-        return cfg.w_landmark * lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0] + prior(R, t)
+        R, t = prob.poses()
+        return prob.cfg.w_landmark * prob.landmark_term(R, t) + prob.prior(R, t)
 
-    run_lbfgs([zs, ze] + pose_params, stage1, cfg.landmark_iters, "landmarks")
+    prob.run_lbfgs([prob.zs, prob.ze] + prob.pose_params, stage1, prob.cfg.landmark_iters, "landmarks")
 
-    # ---- stage 2: + photometric
-    sh = albedo = sample = None
-    photo_res = np.full(V, np.nan)
+
+@dataclass
+class _PhotoResult:
+    """Output of the photometric stage: SH lighting (V, 9, 3), albedo (M, 3), RMS residual (V,) and visible
+    sample count (V,) of the last round."""
+
+    sh: np.ndarray | None
+    albedo: np.ndarray | None
+    residual: np.ndarray
+    visible: np.ndarray
+
+
+def _albedo_mode(model: ShapeModel, cfg: FitConfig) -> str:
+    """The albedo of the photometric term: ``texture``, ``per-vertex`` or ``constant`` (``auto`` resolved)."""
+    mode = cfg.albedo
+    if mode == "auto":
+        mode = "texture" if model.mean_tex is not None else "per-vertex"
+    if mode == "texture" and model.mean_tex is None:
+        raise ReflectmmError("--albedo texture: the face model has no mean texture")
+    return mode
+
+
+def _round_blurs(cfg: FitConfig, rounds: int) -> list[float]:
+    """Blur σ (px) of each round: ``photo_blur_px``, its last value repeated."""
+    return list(cfg.photo_blur_px) + [cfg.photo_blur_px[-1] if cfg.photo_blur_px else 0.0] * rounds
+
+
+def _photo_visibility(prob: _FitProblem, sm: _SubMesh, Wc: int, Hc: int):
+    """Visibility (V, M) of the sample (ray cast, n·v > photo_min_cos, inside the image), its projections
+    (V, M, 2) in image pixels and the vertex normals (n, 3), at the current geometry."""
+    Xn, Rn, tn = prob.numpy_geometry()
+    nrm = vertex_normals(Xn, prob.model.triangles, dtype=np.float64)
+    centers = camera_centers(Rn, tn)
+    vis = vertex_visibility(Xn, prob.model.triangles, nrm, centers, sample=sm.sample,
+                            cos_cutoff=prob.cfg.photo_min_cos)
+    uv, _ = project(Xn[sm.sample][None].repeat(prob.V, 0), sm.Kimg, Rn, tn)
+    vis &= inside_image(uv, Wc, Hc)
+    return vis, uv, nrm
+
+
+def _photometric_stage(prob: _FitProblem, sm: _SubMesh) -> _PhotoResult:
+    """Stage 2: ``photo_rounds`` rounds of landmarks + priors + the room-light term; each round refreshes the
+    visibility, solves lighting (and albedo) in closed form, then runs L-BFGS with them as unknowns."""
+    cfg, views, V, tt = prob.cfg, prob.views, prob.V, prob.tt
+    Hc, Wc = views.images.shape[1:3]
+    kernel = sh_kernel(prob.dtype, prob.device)
+    kernel_np = kernel.cpu().numpy()
+    mode = _albedo_mode(prob.model, cfg)
+    sample = sm.sample
+    base_albedo = prob.model.mean_tex[sample] if mode == "texture" else np.broadcast_to(DEFAULT_SKIN,
+                                                                                       (len(sample), 3)).copy()
+    blurs = _round_blurs(cfg, cfg.photo_rounds)
+    out = _PhotoResult(None, None, np.full(V, np.nan), np.zeros(V, dtype=np.int64))
+    for rnd in range(cfg.photo_rounds):
+        imgs_np = _blur(np.asarray(views.images, dtype=np.float32), blurs[rnd])
+        images_t = tt(np.ascontiguousarray(imgs_np.transpose(0, 3, 1, 2)))
+        vis, uv, nrm = _photo_visibility(prob, sm, Wc, Hc)
+        vis_t = tt(vis.astype(np.float64))
+        # closed-form lighting/albedo at the current geometry
+        obs = sample_images(images_t, tt(uv)).cpu().numpy().astype(np.float64)
+        Y = sh_basis(nrm[sample], SH_ORDER)
+        alb = base_albedo.copy() if out.albedo is None else out.albedo
+        for _ in range(3):
+            L = solve_lighting(Y, alb, obs, vis, kernel_np)
+            if mode == "per-vertex":
+                alb = solve_albedo(Y, L, obs, vis, kernel_np, base_albedo)
+        seen = obs[vis]
+        scale = float(np.median(seen)) if seen.size else 1.0
+        scale = max(scale, 1e-3)
+        sh_t = tt(L).requires_grad_(True)
+        alb_t = tt(alb).requires_grad_(mode == "per-vertex")
+
+        def photo(images):
+            Xs, nv = sm.surface(prob)
+            R, t = prob.poses()
+            return photometric_loss(Xs, nv, sm.sample_t, vis_t, sm.Kimg_t, R, t, images, alb_t, sh_t, kernel,
+                                    scale), R, t
+
+        def stage2():
+            (lp, _), R, t = photo(images_t)
+            return cfg.w_landmark * prob.landmark_term(R, t) + cfg.w_photo * lp + prob.prior(R, t)
+
+        params = [prob.zs, prob.ze] + prob.pose_params + [sh_t] + ([alb_t] if mode == "per-vertex" else [])
+        prob.run_lbfgs(params, stage2, cfg.photo_iters, f"photometric round {rnd + 1}")
+        out.sh = sh_t.detach().cpu().numpy()
+        out.albedo = alb_t.detach().cpu().numpy()
+        # residuals on the unblurred images at the final estimate of this round
+        with torch.no_grad():
+            raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
+            r = photo(raw_t)[0][1].cpu().numpy()
+        out.visible = vis.sum(1)
+        for v in range(V):
+            out.residual[v] = float(np.sqrt((r[v][vis[v]] ** 2).mean())) if vis[v].any() else np.nan
+    return out
+
+
+def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> GeometryFit:
+    """Stages of :func:`fit_geometry`: :func:`_landmark_stage`, then with images :func:`_photometric_stage` and
+    with flash images :func:`_flash_stage`, then :func:`_fit_result`."""
+    t_start = time.perf_counter()
+    prob = _FitProblem(model, views, cfg, device)
+    _landmark_stage(prob)
+    photo = _PhotoResult(None, None, np.full(prob.V, np.nan), np.zeros(prob.V, dtype=np.int64))
     flash_res = flash_gain = None
-    vis_count = np.zeros(V, dtype=np.int64)
-    if n_photo or n_flash:
-        Kimg = views.image_K()
-        Kimg_t = tt(Kimg)
-        skin = model.skin_mask if model.skin_mask is not None else np.ones(model.n_vertices, dtype=bool)
-        sample = np.nonzero(skin)[0]
-        if len(sample) > cfg.photo_vertices:
-            sample = sample[np.linspace(0, len(sample) - 1, cfg.photo_vertices).round().astype(np.int64)]
-        # the photometric closures only need the sampled vertices and the triangles around them (their normals
-        # are then exactly the full mesh's): evaluate that sub-mesh only
-        touch = np.isin(model.triangles, sample).any(1)
-        sub_ids = np.unique(model.triangles[touch])
-        sub_ids = np.union1d(sub_ids, sample)
-        sub_tri_t = torch.as_tensor(np.searchsorted(sub_ids, model.triangles[touch]), dtype=torch.long,
-                                    device=device)
-        sub = ts.subset(sub_ids)
-        sample_t = torch.as_tensor(np.searchsorted(sub_ids, sample), dtype=torch.long, device=device)
-
-        def sub_surface():
-            """(vertices, vertex normals) of the sub-mesh at the current coefficients."""
-            Xs = sub.vertices(zs, ze)
-            return Xs, vertex_normals(Xs, sub_tri_t)
-    if n_photo:
-        Hc, Wc = views.images.shape[1:3]
-        kernel = sh_kernel(dtype, device)
-        kernel_np = kernel.cpu().numpy()
-        mode = cfg.albedo
-        if mode == "auto":
-            mode = "texture" if model.mean_tex is not None else "per-vertex"
-        if mode == "texture" and model.mean_tex is None:
-            raise ReflectmmError("--albedo texture: the face model has no mean texture")
-        base_albedo = model.mean_tex[sample] if mode == "texture" else np.broadcast_to(DEFAULT_SKIN,
-                                                                                      (len(sample), 3)).copy()
-        blurs = list(cfg.photo_blur_px) + [cfg.photo_blur_px[-1] if cfg.photo_blur_px else 0.0] * cfg.photo_rounds
-        for rnd in range(cfg.photo_rounds):
-            imgs_np = _blur(np.asarray(views.images, dtype=np.float32), blurs[rnd])
-            images_t = tt(np.ascontiguousarray(imgs_np.transpose(0, 3, 1, 2)))
-            with torch.no_grad():
-                X = verts()
-                R, t = poses()
-                Xn, Rn, tn = X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
-            nrm = vertex_normals(Xn, model.triangles, dtype=np.float64)
-            centers = camera_centers(Rn, tn)
-            vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample, cos_cutoff=cfg.photo_min_cos)
-            uv, _ = project(Xn[sample][None].repeat(V, 0), Kimg, Rn, tn)
-            vis &= inside_image(uv, Wc, Hc)
-            vis_t = tt(vis.astype(np.float64))
-            # closed-form lighting/albedo at the current geometry
-            obs = sample_images(images_t, tt(uv)).cpu().numpy().astype(np.float64)
-            Y = sh_basis(nrm[sample], SH_ORDER)
-            alb = base_albedo.copy() if albedo is None else albedo
-            for _ in range(3):
-                L = solve_lighting(Y, alb, obs, vis, kernel_np)
-                if mode == "per-vertex":
-                    alb = solve_albedo(Y, L, obs, vis, kernel_np, base_albedo)
-            seen = obs[vis]
-            scale = float(np.median(seen)) if seen.size else 1.0
-            scale = max(scale, 1e-3)
-            sh_t = tt(L).requires_grad_(True)
-            alb_t = tt(alb).requires_grad_(mode == "per-vertex")
-
-            def stage2():
-                Xs, nv = sub_surface()
-                R, t = poses()
-                lp, _ = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, images_t, alb_t, sh_t, kernel, scale)
-                lml = lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0]
-                return cfg.w_landmark * lml + cfg.w_photo * lp + prior(R, t)
-
-            params = [zs, ze] + pose_params + [sh_t] + ([alb_t] if mode == "per-vertex" else [])
-            run_lbfgs(params, stage2, cfg.photo_iters, f"photometric round {rnd + 1}")
-            sh = sh_t.detach().cpu().numpy()
-            albedo = alb_t.detach().cpu().numpy()
-            # residuals on the unblurred images at the final estimate of this round
-            with torch.no_grad():
-                Xs, nv = sub_surface()
-                R, t = poses()
-                raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
-                _, r = photometric_loss(Xs, nv, sample_t, vis_t, Kimg_t, R, t, raw_t, alb_t, sh_t, kernel, scale)
-                r = r.cpu().numpy()
-            vis_count = vis.sum(1)
-            for v in range(V):
-                photo_res[v] = float(np.sqrt((r[v][vis[v]] ** 2).mean())) if vis[v].any() else np.nan
-
-    # ---- stage 3: + flash images (point lights at the flashes; docs/fit-geometry.md)
-    if n_flash:
-        flash_res, flash_gain = _flash_rounds(cfg, views, model, ts, sub_surface, sample, sample_t, Kimg, Kimg_t,
-                                              tt, poses, head, use_rig, lm_loss, prior, zs, ze, pose_params,
-                                              run_lbfgs, dtype, device)
-
-    for _ in bar:  # close the progress bar
+    sm = _sub_mesh(prob) if (prob.n_photo or prob.n_flash) else None
+    if prob.n_photo:
+        photo = _photometric_stage(prob, sm)
+    if prob.n_flash:  # point lights at the flashes (docs/fit-geometry.md)
+        flash_res, flash_gain = _flash_stage(prob, sm)
+    for _ in prob.bar:  # close the progress bar
         pass
+    return _fit_result(prob, photo, sm, flash_res, flash_gain, t_start)
+
+
+def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, flash_res, flash_gain,
+                t_start: float) -> GeometryFit:
+    """Gather the :class:`GeometryFit` at the final unknowns (landmark RMSE per view, coefficients, vertices)."""
+    model, cfg, views, V, valid = prob.model, prob.cfg, prob.views, prob.V, prob.valid
     with torch.no_grad():
-        X = verts()
-        R, t = poses()
-        _, uv = lm_loss(X, R, t)
+        X = prob.verts()
+        R, t = prob.poses()
+        _, uv = prob.lm_loss(X, R, t)
     uv = uv.cpu().numpy().astype(np.float64)
-    err = np.linalg.norm(uv - lm_obs, axis=-1)
+    err = np.linalg.norm(uv - views.landmarks, axis=-1)
     rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) for v in range(V)])
-    zs_np = zs.detach().cpu().numpy().astype(np.float64)
-    ze_np = ze.detach().cpu().numpy().astype(np.float64)
+    zs_np = prob.zs.detach().cpu().numpy().astype(np.float64)
+    ze_np = prob.ze.detach().cpu().numpy().astype(np.float64)
     shape_coeffs = zs_np * model.shape_sigma
     exp_coeffs = ze_np * model.exp_sigma[:len(ze_np)] if cfg.fit_expression else np.zeros(model.n_exp)
     return GeometryFit(shape_coeffs=shape_coeffs, exp_coeffs=exp_coeffs,
                        vertices=model.vertices(shape_coeffs, exp_coeffs),
                        R=R.cpu().numpy().astype(np.float64), t=t.cpu().numpy().astype(np.float64),
-                       K=views.K.copy(), landmark_rmse_px=rmse, landmark_px=uv, photo_residual=photo_res,
-                       visible_count=vis_count, sh=sh, albedo=albedo, photo_sample=sample, history=history,
+                       K=views.K.copy(), landmark_rmse_px=rmse, landmark_px=uv, photo_residual=photo.residual,
+                       visible_count=photo.visible, sh=photo.sh, albedo=photo.albedo,
+                       photo_sample=None if sm is None else sm.sample, history=prob.history,
                        flash_residual=flash_res, flash_gain=flash_gain,
                        seconds=time.perf_counter() - t_start)
 
 
-def _flash_rounds(cfg, views, model, ts, sub_surface, sample, sample_t, Kimg, Kimg_t, tt, poses, head, use_rig,
-                  lm_loss, prior, zs, ze, pose_params, run_lbfgs, dtype, device) -> tuple:
-    """The flash stage of :func:`_fit`: ``flash_rounds`` L-BFGS rounds of landmarks + priors + the point-light
-    term (:func:`.photometric.flash_loss`), visibility, shadows and highlight masks refreshed each round.
-    Returns the (V,) RMS residual per view of the last round and the (F,) relative flash gains."""
-    V = len(views.names)
-    fimg = views.flash_images
-    F = fimg.shape[1]
-    h, w = fimg.shape[2:4]
-    fv = views.flash_view
-    rig_ok = np.isfinite(views.flash_rig_pos).all(-1) & use_rig
-    usable = np.nonzero((fv >= 0) | rig_ok)[0]
-    if len(usable) == 0:
-        log.warning("fit-geometry: no flash has a fitted camera or a rig position: the flash term is skipped")
-        return np.full(V, np.nan), np.full(F, np.nan)
-    if len(usable) < F:
-        log.warning("fit-geometry: %d flash(es) have no fitted camera and no rig position: left out of the flash "
-                    "term", F - len(usable))
-    pv = np.repeat(np.arange(V), len(usable))
-    pf = np.tile(usable, V)
-    pv_t = torch.as_tensor(pv, dtype=torch.long, device=device)
-    fv_t = torch.as_tensor(np.maximum(fv, 0), dtype=torch.long, device=device)
-    rigpos_t = tt(np.nan_to_num(views.flash_rig_pos))
-    from_view_t = torch.as_tensor(fv >= 0, device=device)[:, None]
-    lint_t = tt(views.flash_intensity[pf])
-    pf_t = torch.as_tensor(pf, dtype=torch.long, device=device)
-    use_t = torch.as_tensor(usable, dtype=torch.long, device=device)
-    log_gain = torch.zeros(F, dtype=dtype, device=device, requires_grad=cfg.flash_gains)
+class _FlashPairs:
+    """The (view, flash) pairs of the flash term and the fitted relative flash gains.
 
-    def log_gains():
+    ``usable`` (U,): flashes with a fitted camera or a rig position; pairs ``pv``/``pf`` (P = V·U,) view and flash
+    of each pair; ``log_gain`` (F,) the torch unknown (a leaf that needs gradients only with ``flash_gains``).
+    """
+
+    def __init__(self, prob: _FitProblem, usable: np.ndarray):
+        views, device, tt = prob.views, prob.device, prob.tt
+        self.prob, self.usable = prob, usable
+        fv = views.flash_view
+        self.F = views.flash_images.shape[1]
+        self.pv = pv = np.repeat(np.arange(prob.V), len(usable))
+        self.pf = pf = np.tile(usable, prob.V)
+        self.pv_t = torch.as_tensor(pv, dtype=torch.long, device=device)
+        self.fv_t = torch.as_tensor(np.maximum(fv, 0), dtype=torch.long, device=device)
+        self.rigpos_t = tt(np.nan_to_num(views.flash_rig_pos))
+        self.from_view_t = torch.as_tensor(fv >= 0, device=device)[:, None]
+        self.lint_t = tt(views.flash_intensity[pf])
+        self.pf_t = torch.as_tensor(pf, dtype=torch.long, device=device)
+        self.use_t = torch.as_tensor(usable, dtype=torch.long, device=device)
+        self.log_gain = torch.zeros(self.F, dtype=prob.dtype, device=device, requires_grad=prob.cfg.flash_gains)
+
+    def log_gains(self) -> torch.Tensor:
         """(F,) log relative flash gains, geometric mean 1 over the flashes in the term."""
-        return log_gain - log_gain[use_t].mean()
+        return self.log_gain - self.log_gain[self.use_t].mean()
 
-    def intensities():
+    def intensities(self) -> torch.Tensor:
         """(P,) flash intensity of each pair: the table's, times the fitted relative gain."""
-        return lint_t * torch.exp(log_gains()[pf_t])
+        return self.lint_t * torch.exp(self.log_gains()[self.pf_t])
 
-    def flash_positions_t(R, t):
-        c = camera_centers(R, t)[fv_t]
-        if use_rig:
-            Rh, th = head()
-            return torch.where(from_view_t, c, rigpos_t @ Rh.T + th)
+    def positions(self, R, t) -> torch.Tensor:
+        """(F, 3) flash positions in model space: the fitted camera centre, or the rig position under the head."""
+        c = camera_centers(R, t)[self.fv_t]
+        if self.prob.use_rig:
+            Rh, th = self.prob.head()
+            return torch.where(self.from_view_t, c, self.rigpos_t @ Rh.T + th)
         return c
 
-    blurs = list(cfg.photo_blur_px) + [cfg.photo_blur_px[-1] if cfg.photo_blur_px else 0.0] * cfg.flash_rounds
+    def gains(self) -> np.ndarray:
+        """(F,) fitted relative gains (NaN for flashes left out of the term)."""
+        with torch.no_grad():
+            g = torch.exp(self.log_gains()).cpu().numpy().astype(np.float64)
+        gain = np.full(self.F, np.nan)
+        gain[self.usable] = g[self.usable]
+        return gain
+
+
+def _usable_flashes(prob: _FitProblem) -> np.ndarray:
+    """Indices of the flashes with a fitted camera or (with the rig constraint) a rig position; warns otherwise."""
+    views = prob.views
+    F = views.flash_images.shape[1]
+    rig_ok = np.isfinite(views.flash_rig_pos).all(-1) & prob.use_rig
+    usable = np.nonzero((views.flash_view >= 0) | rig_ok)[0]
+    if len(usable) == 0:
+        log.warning("fit-geometry: no flash has a fitted camera or a rig position: the flash term is skipped")
+    elif len(usable) < F:
+        log.warning("fit-geometry: %d flash(es) have no fitted camera and no rig position: left out of the flash "
+                    "term", F - len(usable))
+    return usable
+
+
+def _flash_weights(prob: _FitProblem, sm: _SubMesh, fp: _FlashPairs, sat: np.ndarray | None) -> tuple:
+    """(P, M) bool weights of the flash term at the current geometry — seen by the pair's camera (n·v >
+    photo_min_cos), lit by its flash (n·l > flash_min_cos), inside the image, outside the specular highlight
+    (normal within ``flash_highlight_deg`` of the half vector) and not saturated — and the projections (V, M, 2)."""
+    cfg, model, V, sample = prob.cfg, prob.model, prob.V, sm.sample
+    h, w = prob.views.flash_images.shape[2:4]
+    pv, pf = fp.pv, fp.pf
+    with torch.no_grad():
+        X = prob.verts()
+        R, t = prob.poses()
+        lpos = fp.positions(R, t)
+        Xn, Rn, tn = X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
+        lpos_np = lpos.cpu().numpy().astype(np.float64)
+    nrm = vertex_normals(Xn, model.triangles, dtype=np.float64)
+    centers = camera_centers(Rn, tn)
+    cam_vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample, cos_cutoff=cfg.photo_min_cos)
+    fl_vis = vertex_visibility(Xn, model.triangles, nrm, lpos_np, sample=sample, cos_cutoff=cfg.flash_min_cos)
+    uv, _ = project(Xn[sample][None].repeat(V, 0), sm.Kimg, Rn, tn)
+    inside = inside_image(uv, w, h)
+    p, n = Xn[sample], nrm[sample]
+    vdir = centers[pv][:, None] - p[None]
+    ldir = lpos_np[pf][:, None] - p[None]
+    hvec = vdir / np.linalg.norm(vdir, axis=-1, keepdims=True) + ldir / np.linalg.norm(ldir, axis=-1,
+                                                                                      keepdims=True)
+    hvec /= np.linalg.norm(hvec, axis=-1, keepdims=True)
+    highlight = (hvec * n[None]).sum(-1) > math.cos(math.radians(cfg.flash_highlight_deg))
+    weight = cam_vis[pv] & fl_vis[pf] & inside[pv] & ~highlight
+    if sat is not None:
+        px = np.clip(np.rint(uv[pv]).astype(np.int64), 0, [w - 1, h - 1])
+        weight &= ~sat[np.arange(len(pv))[:, None], px[..., 1], px[..., 0]]
+    return weight, uv
+
+
+def _flash_stage(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 3: ``flash_rounds`` L-BFGS rounds of landmarks + priors + the point-light term
+    (:func:`.photometric.flash_loss`), visibility, shadows and highlight masks refreshed each round.
+    Returns the (V,) RMS residual per view of the last round and the (F,) relative flash gains."""
+    cfg, views, V, device = prob.cfg, prob.views, prob.V, prob.device
+    fimg = views.flash_images
+    usable = _usable_flashes(prob)
+    if len(usable) == 0:
+        return np.full(V, np.nan), np.full(fimg.shape[1], np.nan)
+    fp = _FlashPairs(prob, usable)
+    pv, pf = fp.pv, fp.pf
+    blurs = _round_blurs(cfg, cfg.flash_rounds)
     raw = np.asarray(fimg[pv, pf], dtype=np.float32)  # (P, h, w, 3)
     sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[pv, pf], dtype=bool)
-    cos_hl = math.cos(math.radians(cfg.flash_highlight_deg))
     res = np.full(V, np.nan)
     for rnd in range(cfg.flash_rounds):
         images_t = torch.as_tensor(_blur(raw, blurs[rnd]), device=device)  # (P, h, w, 3) channels last
-        with torch.no_grad():
-            X = ts.vertices(zs, ze)
-            R, t = poses()
-            lpos = flash_positions_t(R, t)
-            Xn, Rn, tn = X.cpu().numpy().astype(np.float64), R.cpu().numpy(), t.cpu().numpy()
-            lpos_np = lpos.cpu().numpy().astype(np.float64)
-        nrm = vertex_normals(Xn, model.triangles, dtype=np.float64)
-        centers = camera_centers(Rn, tn)
-        cam_vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample, cos_cutoff=cfg.photo_min_cos)
-        fl_vis = vertex_visibility(Xn, model.triangles, nrm, lpos_np, sample=sample, cos_cutoff=cfg.flash_min_cos)
-        uv, _ = project(Xn[sample][None].repeat(V, 0), Kimg, Rn, tn)
-        inside = inside_image(uv, w, h)
-        p, n = Xn[sample], nrm[sample]
-        vdir = centers[pv][:, None] - p[None]
-        ldir = lpos_np[pf][:, None] - p[None]
-        hvec = vdir / np.linalg.norm(vdir, axis=-1, keepdims=True) + ldir / np.linalg.norm(ldir, axis=-1,
-                                                                                          keepdims=True)
-        hvec /= np.linalg.norm(hvec, axis=-1, keepdims=True)
-        highlight = (hvec * n[None]).sum(-1) > cos_hl
-        weight = cam_vis[pv] & fl_vis[pf] & inside[pv] & ~highlight
-        if sat is not None:
-            px = np.clip(np.rint(uv[pv]).astype(np.int64), 0, [w - 1, h - 1])
-            weight &= ~sat[np.arange(len(pv))[:, None], px[..., 1], px[..., 0]]
-        sp, sm = np.nonzero(weight)
+        weight, uv = _flash_weights(prob, sm, fp, sat)
+        sp, sm_ = np.nonzero(weight)
         seen = gather_bilinear(images_t, torch.as_tensor(sp, device=device),
-                               torch.as_tensor(uv[pv[sp], sm], device=device)).cpu().numpy()
+                               torch.as_tensor(uv[pv[sp], sm_], device=device)).cpu().numpy()
         scale = max(float(np.median(seen)) if seen.size else 1.0, 1e-3)
-        weight_t = tt(weight.astype(np.float64))
+        weight_t = prob.tt(weight.astype(np.float64))
+
+        def flash(images, residual=True):
+            Xs, nv = sm.surface(prob)
+            R, t = prob.poses()
+            return flash_loss(Xs, nv, sm.sample_t, weight_t, sm.Kimg_t, R, t, images, fp.pv_t,
+                              fp.positions(R, t)[fp.pf_t], fp.intensities(), scale, residual=residual), R, t
 
         def stage3():
-            Xs, nv = sub_surface()
-            R, t = poses()
-            lf, _, _ = flash_loss(Xs, nv, sample_t, weight_t, Kimg_t, R, t, images_t, pv_t,
-                                  flash_positions_t(R, t)[pf_t], intensities(), scale, residual=False)
-            lml = lm_loss(ts.landmark_vertices(zs, ze), R, t, True)[0]
-            return cfg.w_landmark * lml + cfg.w_flash * lf + prior(R, t)
+            (lf, _, _), R, t = flash(images_t, residual=False)
+            return cfg.w_landmark * prob.landmark_term(R, t) + cfg.w_flash * lf + prob.prior(R, t)
 
-        gains = [log_gain] if cfg.flash_gains else []
-        run_lbfgs([zs, ze] + pose_params + gains, stage3, cfg.flash_iters, f"flash round {rnd + 1}")
+        gains = [fp.log_gain] if cfg.flash_gains else []
+        prob.run_lbfgs([prob.zs, prob.ze] + prob.pose_params + gains, stage3, cfg.flash_iters,
+                       f"flash round {rnd + 1}")
         with torch.no_grad():
-            Xs, nv = sub_surface()
-            R, t = poses()
-            raw_t = torch.as_tensor(raw, device=device)
-            _, r, _ = flash_loss(Xs, nv, sample_t, weight_t, Kimg_t, R, t, raw_t, pv_t,
-                                 flash_positions_t(R, t)[pf_t], intensities(), scale)
-            r = r.cpu().numpy()
+            r = flash(torch.as_tensor(raw, device=device))[0][1].cpu().numpy()
         for v in range(V):
             m = weight[pv == v]
             res[v] = float(np.sqrt((r[pv == v][m] ** 2).mean())) if m.any() else np.nan
-    with torch.no_grad():
-        g = torch.exp(log_gains()).cpu().numpy().astype(np.float64)
-    gain = np.full(F, np.nan)
-    gain[usable] = g[usable]
-    return res, gain
+    return res, fp.gains()
