@@ -32,7 +32,9 @@ def test_kkt_holds_on_random_problems(seed, m):
     x, info = nnls_batched(H, g)
     assert info["unconverged"] == 0
     assert np.all(np.isfinite(x)) and np.all(x >= 0)
-    assert kkt_violation(H, g, x).max() < 1e-8
+    # g spans 1e-3 … 1e3: the violation is round-off relative to the gradient's scale (1.1e-8 at |g| ~ 1e3 was
+    # found by hypothesis; an absolute 1e-8 was too tight)
+    assert kkt_violation(H, g, x).max() < 1e-8 * max(1.0, float(np.abs(g).max()))
 
 
 def test_kkt_violation_detects_wrong_answers():
