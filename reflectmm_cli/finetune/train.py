@@ -165,6 +165,8 @@ class Trainer:
         self.basis_cache: dict[int, object] = {}
         self.basis_budget = float(basis_cache_mb) * 2 ** 20
         self.basis_bytes = 0.0
+        #: a :class:`~reflectmm_cli.finetune.tensorboard_log.TensorBoardLog` that mirrors the JSONL log, or None
+        self.tensorboard = None
 
     # ------------------------------------------------------------------ optimiser / phases
     def _optimizer(self, phase):
@@ -208,19 +210,14 @@ class Trainer:
     def _forward(self, idx, train: bool):
         torch = self.torch
         from . import losses as L
-        from .render import batch_gbuffer, lighting, scatter_pixels, shade_gbuffer
+        from .render import batch_gbuffer, scatter_pixels
 
         t0 = time.perf_counter()
         b = self.shards.batch(idx)
         gb = batch_gbuffer(b, self.device)
         x = torch.as_tensor(b["images"], device=self.device).permute(0, 3, 1, 2).float() / 255.0
         t1 = time.perf_counter()
-        beta, gamma, z = self.encoder(x)
-        sh = lighting(self.light, gamma[:, :self.NL] if self.NL else gamma, z)
-        order = int(round(np.sqrt(sh.shape[-1]))) - 1
-        # no NaN scans of the shading inputs: the step refuses a non-finite loss
-        d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb, bases=self._bases(idx, gb, order), check_finite=False)
-        pred = d + s
+        beta, gamma, sh, pred = self._predict(idx, x, gb)
         cfg = self.cfg
         terms = {"photo": L.photometric(pred, gb.target, gb.skin, cfg.photometric),
                  "coef": L.coefficient_prior(beta, gamma), "light": L.light_monochrome(sh)}
@@ -246,6 +243,40 @@ class Trainer:
                 weights["norm"], weights["ortho"] = cfg.w_upd, cfg.w_ortho
         total = sum(weights[k] * v for k, v in terms.items())
         return total, terms, t1 - t0
+
+    def _predict(self, idx, x, gb):
+        """(β, γ, SH lighting, per-pixel prediction (P, 3)) of the images ``idx``: ``x`` (B,3,S,S) in [0, 1],
+        ``gb`` their G-buffer."""
+        from .render import lighting, shade_gbuffer
+
+        beta, gamma, z = self.encoder(x)
+        sh = lighting(self.light, gamma[:, :self.NL] if self.NL else gamma, z)
+        order = int(round(np.sqrt(sh.shape[-1]))) - 1
+        # no NaN scans of the shading inputs: the step refuses a non-finite loss
+        d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb, bases=self._bases(idx, gb, order), check_finite=False)
+        return beta, gamma, sh, d + s
+
+    def preview(self, n: int):
+        """(targets, reconstructions), each (n, S, S, 3) linear float32, of the first ``n`` validation images (the
+        reconstruction over the target outside the face); None without a "val" split.  Eval mode, no gradient:
+        training is not changed by it."""
+        torch = self.torch
+        from .render import batch_gbuffer, scatter_pixels
+
+        idx = self.val_idx[:n]
+        if len(idx) == 0:
+            return None
+        was_training = self.encoder.training
+        self.encoder.eval()
+        with torch.no_grad():
+            b = self.shards.batch(idx)
+            gb = batch_gbuffer(b, self.device)
+            x = torch.as_tensor(b["images"], device=self.device).permute(0, 3, 1, 2).float() / 255.0
+            pred = self._predict(idx, x, gb)[3]
+            lin = torch.as_tensor(b["linear"], device=self.device)
+            img = scatter_pixels(pred, gb, background=lin)
+        self.encoder.train(was_training)
+        return b["linear"], _np(img).astype(np.float32)
 
     def shards_landmarks(self, idx):
         lm = getattr(self.shards, "landmarks", None)
@@ -425,6 +456,8 @@ class Trainer:
         self.history.append(rec)
         with open(self.log_path, "a") as f:
             f.write(json.dumps(rec, sort_keys=True) + "\n")
+        if self.tensorboard is not None:
+            self.tensorboard.record(rec)
 
     # ------------------------------------------------------------------ the loop
     def run(self, stop_after: int | None = None) -> bool:
@@ -470,8 +503,10 @@ class Trainer:
                 rec = {"type": "step", "phase": phase, "epoch": ep, "step": k, "global_step": self.global_step,
                        "loss": float(total.detach()), **{k_: float(v.detach()) for k_, v in terms.items()}}
                 self._append_log(rec)
+                ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
+                if self.tensorboard is not None:
+                    self.tensorboard.scalar("images_per_s", ips, self.global_step)
                 if show and (tty or (k + 1) % every == 0 or k + 1 == self.steps_per_epoch):
-                    ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
                     sys.stderr.write(("\r" if tty else "")
                                      + f"finetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
                                      f"[{self.global_step}/{total_steps}] loss {rec['loss']:.4g} "
@@ -487,6 +522,8 @@ class Trainer:
             rec = {"type": "val", "phase": phase, "epoch": ep, "global_step": self.global_step,
                    **({} if val is None else {f"val_{k_}": v for k_, v in val.items()})}
             self._append_log(rec)
+            if self.tensorboard is not None:
+                self._preview_to_tensorboard()
             if tty:
                 sys.stderr.write("\n")
             el = time.perf_counter() - t_epoch
@@ -502,11 +539,22 @@ class Trainer:
         return False
 
 
+    def _preview_to_tensorboard(self):
+        """The first validation images, target | reconstruction, at the current global step."""
+        from .tensorboard_log import N_PREVIEW, preview_grid
+
+        pv = self.preview(N_PREVIEW)
+        if pv is not None:
+            self.tensorboard.image("val_reconstructions", preview_grid(*pv), self.global_step)
+        self.tensorboard.flush()
+
+
 def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: str | Path, *, device="cpu",
              identity=None, init_weights=None, resume: bool = False, stop_after: int | None = None,
              phase1_encoder=None,
              log: Callable[[str], None] | None = None, progress: bool = True,
-             threads: int | None = None, basis_cache_mb: float = BASIS_CACHE_MB) -> FinetuneResult:
+             threads: int | None = None, basis_cache_mb: float = BASIS_CACHE_MB,
+             tensorboard: str | Path | None = None) -> FinetuneResult:
     """Library entry of ``finetune``.
 
     Args:
@@ -526,11 +574,18 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
             result is the same either way).
         threads: torch CPU threads for the run (None: unchanged). Small images on a busy machine run fastest
             with 1 (thread spin-waiting in tiny BatchNorm/conv calls costs more than it gains).
+        tensorboard: folder for TensorBoard events mirroring the JSONL log, plus images/s and validation
+            reconstructions (:mod:`reflectmm_cli.finetune.tensorboard_log`; needs the ``tensorboard`` package, a
+            one-line error before anything is done without it). None: nothing is written and nothing imported.
     Returns:
         :class:`FinetuneResult`.
     """
     from reflectmm_cli.threads import torch_threads
 
+    if tensorboard is not None:
+        from .tensorboard_log import TensorBoardLog, require_tensorboard
+
+        require_tensorboard()
     with torch_threads(threads):
         tr = Trainer(shards, model, light, config, workdir, device=device, identity=identity,
                      init_weights=init_weights, log=log, progress=progress, basis_cache_mb=basis_cache_mb)
@@ -540,7 +595,13 @@ def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: st
         elif phase1_encoder is not None:
             tr.start_phase2_from(phase1_encoder)
             (log or (lambda s: None))(f"finetune: phase 1 taken from {phase1_encoder}")
-        stopped = tr.run(stop_after)
+        if tensorboard is not None:
+            tr.tensorboard = TensorBoardLog(tensorboard, purge_step=tr.global_step + 1)
+        try:
+            stopped = tr.run(stop_after)
+        finally:
+            if tr.tensorboard is not None:
+                tr.tensorboard.close()
     tr.encoder.eval()
     return FinetuneResult(params=tr.params, encoder=tr.encoder, initial=tr.initial_np, history=tr.history,
                           config=config, perceptual="off" if identity is None or config.w_per == 0 else

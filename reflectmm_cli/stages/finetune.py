@@ -96,6 +96,9 @@ PARAMS = config_params() + (
           help="Continue from the checkpoint in <output stem>_work/ (refused if made with other settings)."),
     Param("threads", "int", None, range=(1, 256), invalidates_cache=False,
           help="torch CPU threads (default: torch's; 1 is fastest for tiny problems on a busy machine)."),
+    Param("tensorboard", "path", None, invalidates_cache=False, metavar="DIR",
+          help="Also write TensorBoard events to DIR: the JSONL log's losses, images/s and validation "
+               "reconstructions (needs the 'tensorboard' package: pip install 'reflectmm[tensorboard]')."),
 ) + solver_params()
 
 
@@ -163,6 +166,10 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.workspace import find_face_model
 
     p = ctx.params
+    if p.get("tensorboard") is not None:  # a missing package is refused before anything is read or written
+        from reflectmm_cli.finetune.tensorboard_log import require_tensorboard
+
+        require_tensorboard()
     cfg = config_from_params(p)
     out = ctx.output_path()
     model, light = load_models(ctx.input("model"), ctx.input("light_model"))
@@ -183,7 +190,8 @@ def run(ctx: StageContext) -> list[Path]:
         cfg = cfg.replace(model_lr=0.0)  # the encoder is trained on the solved model, which stays fixed
     res = finetune(shards, train_model, light, cfg, output_paths(out)["workdir"], device=ctx.device,
                    identity=identity, init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")),
-                   phase1_encoder=_one(ctx, "phase1_encoder"), log=log.info, threads=p.get("threads"))
+                   phase1_encoder=_one(ctx, "phase1_encoder"), log=log.info, threads=p.get("threads"),
+                   tensorboard=p.get("tensorboard"))
     if solve_report is not None:
         from reflectmm_cli.finetune.render import ModelParams
 

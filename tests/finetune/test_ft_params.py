@@ -17,7 +17,7 @@ def test_params_are_the_config_fields():
     from reflectmm_cli.finetune.model_solve import SolveConfig
 
     solver = {"solver"} | {"ls_" + f.name for f in dataclasses.fields(SolveConfig)}
-    assert set(fields) <= set(decl) and set(decl) - set(fields) == {"samples", "resume", "threads"} | solver
+    assert set(fields) <= set(decl) and set(decl) - set(fields) == {"samples", "resume", "threads", "tensorboard"} | solver
     for name, f in fields.items():
         want = None if name in RELEASED and name != "variant" else f.default
         assert decl[name].default == (list(want) if isinstance(want, tuple) else want), name
@@ -43,11 +43,13 @@ def test_released_variant_is_a_preset_with_overrides():
         st.resolve({"betas": [0.9]})
 
 
-def test_resume_threads_device_do_not_key_the_cache(tmp_path):
+def test_resume_threads_device_tensorboard_do_not_key_the_cache(tmp_path):
     st = get_stage("finetune")
     a = st.context(workspace=tmp_path, params={"epochs1": 1})
-    b = st.context(workspace=tmp_path, params={"epochs1": 1, "resume": True, "threads": 3, "device": "cuda"})
+    b = st.context(workspace=tmp_path, params={"epochs1": 1, "resume": True, "threads": 3, "device": "cuda",
+                                               "tensorboard": str(tmp_path / "tb")})
+    assert b.params["tensorboard"] == str(tmp_path / "tb")
     assert cache_key_doc(st, a) == cache_key_doc(st, b)
-    assert "resume" not in b.resolved_params() and "threads" not in b.resolved_params()
+    assert {"resume", "threads", "tensorboard"}.isdisjoint(b.resolved_params())
     c = st.context(workspace=tmp_path, params={"epochs1": 2})
     assert cache_key_doc(st, a) != cache_key_doc(st, c)
