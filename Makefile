@@ -11,7 +11,7 @@ JOBS ?= 2
 # torch is pinned to the CPU wheel first so that nothing pulls in CUDA packages.
 install:
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[test,landmarks]'
+	$(PIP) install -q -e '.[test,landmarks,tensorboard]'
 
 demo: install
 	reflectmm run recipes/synthetic.toml --workspace $(WORKSPACE) --jobs $(JOBS)
