@@ -203,3 +203,8 @@ def test_a_resumed_run_hides_the_events_after_the_checkpoint(data, tmp_path):
     np.testing.assert_allclose([v for _, v in got["loss"]], [r["loss"] for r in log if r["type"] == "step"],
                                rtol=1e-6)
     assert [s for s, _ in got["val_total"]] == [3, 6, 9]
+    # a new run in the same folder hides the earlier run's events, as it restarts the JSONL log
+    finetune(ss, data["truth"], data["light"], cfg.replace(epochs1=1, epochs2=0), tmp_path / "w", **kw)
+    got = _scalars(_accumulator(tb))
+    assert [s for s, _ in got["loss"]] == [1, 2, 3] and [s for s, _ in got["val_total"]] == [3]
+    assert got.get("upd", []) == [] and got.get("val_upd", []) == []  # phase 2 of the earlier runs is hidden
