@@ -18,7 +18,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["TensorBoardLog", "require_tensorboard", "scalars_of_record", "N_PREVIEW", "POSITION_KEYS"]
+__all__ = ["TensorBoardLog", "require_tensorboard", "scalars_of_record", "preview_grid", "N_PREVIEW", "POSITION_KEYS"]
 
 #: Validation images shown as reconstructions next to their targets.
 N_PREVIEW = 4

@@ -459,6 +459,15 @@ class Trainer:
         if self.tensorboard is not None:
             self.tensorboard.record(rec)
 
+    def _preview_to_tensorboard(self):
+        """The first validation images, target | reconstruction, at the current global step."""
+        from .tensorboard_log import N_PREVIEW, preview_grid
+
+        pv = self.preview(N_PREVIEW)
+        if pv is not None:
+            self.tensorboard.image("val_reconstructions", preview_grid(*pv), self.global_step)
+        self.tensorboard.flush()
+
     # ------------------------------------------------------------------ the loop
     def run(self, stop_after: int | None = None) -> bool:
         """Train from the current position to the end; ``stop_after`` global steps ends early (returns True)."""
@@ -537,16 +546,6 @@ class Trainer:
             if stop_after is not None and self.global_step >= stop_after:
                 return True
         return False
-
-
-    def _preview_to_tensorboard(self):
-        """The first validation images, target | reconstruction, at the current global step."""
-        from .tensorboard_log import N_PREVIEW, preview_grid
-
-        pv = self.preview(N_PREVIEW)
-        if pv is not None:
-            self.tensorboard.image("val_reconstructions", preview_grid(*pv), self.global_step)
-        self.tensorboard.flush()
 
 
 def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: str | Path, *, device="cpu",

@@ -118,7 +118,7 @@ def test_events_hold_the_scalars_of_the_jsonl_log_and_the_reconstructions(data, 
     assert not np.array_equal(grids[0][:, SIZE:], grids[1][:, SIZE:])  # the reconstructions change with training
 
 
-def test_without_the_package_a_one_line_error_before_anything(cli, data, tmp_path, monkeypatch):
+def test_without_the_package_a_one_line_error_before_anything(data, tmp_path, monkeypatch):
     """No 'tensorboard' package: exit 1, one line saying how to install it, no output and no events folder, and
     the inputs were not even read (the check comes before any training work)."""
     from click.testing import CliRunner
