@@ -1,7 +1,9 @@
-"""Scoped thread limits for torch work on small problems or shared CPUs."""
+"""Thread helpers: scoped thread limits for torch work on small problems or shared CPUs, and an ordered map
+on a thread pool."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -22,3 +24,14 @@ def torch_threads(n: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(prev)
+
+
+def parallel_map(fn, items, threads: int, lazy: bool = False):
+    """``map(fn, items)`` on a thread pool of ``threads`` workers (in order); plain map for one thread."""
+    items = list(items)
+    if int(threads) <= 1 or len(items) <= 1:
+        out = map(fn, items)
+        return out if lazy else list(out)
+    with ThreadPoolExecutor(max_workers=int(threads)) as ex:
+        futures = [ex.submit(fn, it) for it in items]
+        return [f.result() for f in futures]

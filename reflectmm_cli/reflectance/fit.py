@@ -31,7 +31,6 @@ from __future__ import annotations
 import logging
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
@@ -39,10 +38,12 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
+from reflectmm_cli.threads import parallel_map
 
 from .design import (DEFAULT_CHUNK, check_observations, design_columns, design_rows, gram_conditioning,
                      iter_chunks, mirror_index, pair_irradiance)
 from .nnls import kkt_violation, nnls_batched
+from .normals import NormalRefinement, correction_angle_deg
 
 log = logging.getLogger("reflectmm")
 
@@ -181,17 +182,6 @@ def _check_exponents(exponents) -> np.ndarray:
     return p
 
 
-def _parallel_map(fn, items, threads: int, lazy: bool = False):
-    """``map(fn, items)`` on a thread pool of ``threads`` workers (in order); plain map for one thread."""
-    items = list(items)
-    if int(threads) <= 1 or len(items) <= 1:
-        out = map(fn, items)
-        return out if lazy else list(out)
-    with ThreadPoolExecutor(max_workers=int(threads)) as ex:
-        futures = [ex.submit(fn, it) for it in items]
-        return [f.result() for f in futures]
-
-
 def _rowsum(a: np.ndarray) -> np.ndarray:
     """Sum of the 3 columns of an (R, 3) array (faster than .sum(1) for 3 columns)."""
     return a[:, 0] + a[:, 1] + a[:, 2]
@@ -259,7 +249,7 @@ class _Problem:
             self.pair[r0:r1] = pj
             ndh[r0:r1] = h_
 
-        _parallel_map(fill, list(zip(iter_chunks(n, chunk), valid_chunks)), threads)  # disjoint slices
+        parallel_map(fill, list(zip(iter_chunks(n, chunk), valid_chunks)), threads)  # disjoint slices
         self.xm, self.nm0, self.nm = xm, nm, nm
         self.fpos, self.cpos, self.Ip, self.p = fpos, cpos, Ip, p
         self.threads = threads
@@ -306,7 +296,7 @@ class _Problem:
             self.cos[r0:r1] = c_
             ndh[r0:r1] = h_
 
-        _parallel_map(fill, list(iter_chunks(n, self.chunk)), self.threads)
+        parallel_map(fill, list(iter_chunks(n, self.chunk)), self.threads)
         self._derived(ndh)
 
     def _segsum(self, w: np.ndarray, X: np.ndarray, a: int = 0, b: int | None = None) -> np.ndarray:
@@ -640,8 +630,6 @@ def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None,
             # alternate: Gauss–Newton steps of the normals with (C, W) fixed, then the reflectance solve again
             # with the design re-evaluated at the new normals (rows, flags and mirror weights stay those of the
             # geometric normals)
-            from .normals import NormalRefinement, correction_angle_deg
-
             ref = NormalRefinement(prob, cfg.normal_sigma, cfg.loss, delta, solve, chunk=cfg.chunk, threads=threads,
                                    ridge=float(cfg.prior))
             hist = []
@@ -714,7 +702,7 @@ def _mirror_trust(prob, own_ok, has_m, mp, idx, S, m, sigma, threads=1):
     def ls_band(ab):  # weights ⟨l,n⟩ (x = None: the loss and δ do not enter)
         H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, "l2", np.zeros(n), ab[0], ab[1])[:2]
 
-    _parallel_map(ls_band, prob.bands(S), threads)
+    parallel_map(ls_band, prob.bands(S), threads)
     prob.ls_system = (H, g)  # reused by the first pass of the fast solver
     ok = own_ok & (prob.count > m)
     x = np.zeros((n, m))
@@ -792,7 +780,7 @@ def _fast(prob, pool, pool_band, solve, n, m, cfg: FitMapsConfig, delta, obsv_p,
         def ls_band(ab):
             H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, loss, delta, ab[0], ab[1])[:2]
 
-        _parallel_map(ls_band, bands, threads)
+        parallel_map(ls_band, bands, threads)
     Hp, gp = pool(H), pool(g)
     tr = np.einsum("nii->n", Hp)
     lam = PASS1_RIDGE * tr
@@ -856,7 +844,7 @@ def _fast(prob, pool, pool_band, solve, n, m, cfg: FitMapsConfig, delta, obsv_p,
     nn_iters = unconv = max_it = 0
     kkt = 0.0
     # bands are independent: numpy releases the GIL in the heavy loops, so threads use the cores
-    results = _parallel_map(band, bands, threads, lazy=True)
+    results = parallel_map(band, bands, threads, lazy=True)
     if progress is not None and bands:
         results = progress(results, desc="IRLS", total=len(bands), unit="band")
     for a, b, xb, st in results:

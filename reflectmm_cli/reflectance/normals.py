@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from reflectmm_cli.threads import parallel_map
+
 from .design import DEFAULT_CHUNK, design_rows, design_rows_grad, iter_chunks
 
 __all__ = ["tangent_basis", "offset_normal", "NormalRefinement", "correction_angle_deg"]
@@ -223,11 +225,9 @@ class NormalRefinement:
         ``self.x`` is then x moved along the eliminated linear response (clipped at 0): the start of a next
         step before the exact reflectance solve.
         """
-        from .fit import _parallel_map
-
         n = self.ng.shape[0]
         chunks = [(sl.start, sl.stop) for sl in iter_chunks(n, self.chunk)]
-        res = _parallel_map(lambda ab: self._chunk_step(ab, x), chunks, self.threads)
+        res = parallel_map(lambda ab: self._chunk_step(ab, x), chunks, self.threads)
         acc = tried = 0
         xn = np.array(x, np.float64, copy=True)
         for (a, b), (new, newx, st) in zip(chunks, res):

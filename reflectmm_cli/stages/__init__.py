@@ -1,7 +1,8 @@
 """Stages: one module per verb's unit of work (options → read artifacts → library call → write artifacts).
 
-* :mod:`.base` — :class:`Stage`, :class:`StageContext`, cache keys, :func:`run_stage`;
-* :mod:`.registry` — the explicit verb → module list (:func:`get_stage`, :func:`all_stages`);
+* :mod:`.base` — :class:`Stage`, :class:`StageContext`, cache keys, :func:`check_no_overwrite`;
+* :mod:`.registry` — the explicit verb → module list (:func:`get_stage`, :func:`all_stages`) and
+  :func:`run_stage` (which looks a verb up; registry imports base, never the reverse);
 * one module per stage (``fit_reflectance.py`` ...), each defining ``PARAMS`` and ``STAGE``.
 
 Writing a stage: docs/architecture.md.
@@ -9,8 +10,8 @@ Writing a stage: docs/architecture.md.
 
 from reflectmm_cli.stages.base import (CACHE_HASH_VERSION, NON_INVALIDATING, Stage, StageContext, cache_key_doc,
                                        check_no_overwrite, compute_cache_key, file_digest, key_of_doc, resolve_device,
-                                       run_stage, walk_files)
-from reflectmm_cli.stages.registry import STAGE_MODULES, all_stages, get_stage, register_stage
+                                       walk_files)
+from reflectmm_cli.stages.registry import STAGE_MODULES, all_stages, get_stage, register_stage, run_stage
 from reflectmm_cli.workspace import default_workspace
 
 __all__ = ["CACHE_HASH_VERSION", "NON_INVALIDATING", "STAGE_MODULES", "Stage", "StageContext", "all_stages",

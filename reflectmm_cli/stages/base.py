@@ -1,10 +1,12 @@
-"""Stage machinery: :class:`Stage`, :class:`StageContext`, cache keys, and :func:`run_stage`.
+"""Stage machinery: :class:`Stage`, :class:`StageContext`, cache keys, the no-overwrite check.
 
 A stage is the unit of work shared by the CLI verbs and recipes: options → read artifacts → library call →
 write artifacts.  The CLI command and the recipe runner both build a :class:`StageContext` through
 :meth:`Stage.context` (which validates the params against the stage's declaration and fills the defaults)
 and call ``stage.run(ctx)``, so a verb behaves the same — and gets the same cache key — from the shell and
-inside ``reflectmm run``.
+inside ``reflectmm run``.  :func:`~reflectmm_cli.stages.registry.run_stage` (run a stage given by verb or
+object) is in the registry, which imports this module; this module imports no other module of
+:mod:`reflectmm_cli.stages`.
 
 Workspace convention (docs/design.md §5, :mod:`reflectmm_cli.workspace`): ``<workspace>/<stage_name>/<identity>.npz``
 (``<workspace>/<stage_name>/<name>.npz`` for stages that are not per identity), overridable with an explicit
@@ -25,7 +27,7 @@ from reflectmm_cli import __version__
 from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param, ParamError, resolve_params
-from reflectmm_cli.workspace import check_id, default_workspace, stage_output
+from reflectmm_cli.workspace import check_id, stage_output
 
 #: Bump when the way cache keys are computed changes (invalidates every cache).
 CACHE_HASH_VERSION = 1
@@ -316,28 +318,3 @@ def resolve_device(device: str) -> str:
     except (RuntimeError, ValueError):
         raise ReflectmmError(f"--device {device}: not a torch device string") from None
     return device
-
-
-def run_stage(stage: "Stage | str", *, workspace: Path | None = None, identity: str | None = None,
-              params: Mapping[str, Any] | None = None, inputs: Mapping[str, Iterable[Path]] | None = None,
-              output: Path | None = None, device: str = "cpu", stage_name: str | None = None) -> list[Path]:
-    """Run a stage once (the command line's path, also the Python API), with the cache key a recipe computes.
-
-    ``params`` are the given values (None = not given); they are validated and completed with the declared
-    defaults before the cache key.  Every input path must exist.  Returns the paths written.
-    """
-    if isinstance(stage, str):
-        from reflectmm_cli.stages.registry import get_stage
-
-        stage = get_stage(stage)
-    ctx = stage.context(workspace=Path(workspace or default_workspace()).resolve(),
-                        stage_name=stage_name or stage.verb, identity=identity, params=dict(params or {}),
-                        inputs={k: [Path(p) for p in v] for k, v in (inputs or {}).items()},
-                        output=output, device=resolve_device(device) if device else "cpu")
-    for role, paths in ctx.inputs.items():
-        for p in paths:
-            if not Path(p).exists():
-                raise ReflectmmError(f"input '{role}' not found", p)
-    check_no_overwrite(stage, ctx)
-    ctx = ctx.with_(cache_key=compute_cache_key(stage, ctx))
-    return list(stage.run(ctx) or [])

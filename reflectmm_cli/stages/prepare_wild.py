@@ -21,6 +21,7 @@ from reflectmm_cli.finetune.data import ENCODINGS, PrepareConfig
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.registry import run_stage
 from reflectmm_cli.stages.synth_multipie import out_dir
 from reflectmm_cli.stages.synth_wild import check_split_fractions
 from reflectmm_cli.workspace import find_wild_truth, wild_face_model
@@ -163,8 +164,6 @@ def run_shards(workspace: Path, params: dict, inputs: dict, output: Path | None 
 
     Returns (paths written, one-line errors of the shards that failed); a failing shard does not stop the
     others."""
-    from reflectmm_cli.stages.base import run_stage
-
     names = list(shards) or _discover(STAGE.context(workspace=workspace, params=dict(params),
                                                     inputs={k: [Path(p) for p in v] for k, v in inputs.items()}))
     paths: list[Path] = []

@@ -1,18 +1,22 @@
-"""The explicit list of built-in stages: verb → module of :mod:`reflectmm_cli.stages`.
+"""The explicit list of built-in stages: verb → module of :mod:`reflectmm_cli.stages`, and :func:`run_stage`.
 
 Each module defines ``STAGE`` (a :class:`~reflectmm_cli.stages.base.Stage`).  Looking a verb up imports only
 that module (no click, no scanning of packages), so the recipe planner and Dask workers find a stage without
 loading the command line.  A new stage: write ``reflectmm_cli/stages/<verb>.py`` and add one line here.
+
+:func:`run_stage` lives here, not in :mod:`.base`, because it looks a verb up: the dependency goes one way,
+registry → base.
 """
 
 from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable, Mapping
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Stage, StageContext, check_no_overwrite, compute_cache_key, resolve_device
+from reflectmm_cli.workspace import default_workspace
 
 #: verb → module name under reflectmm_cli.stages (the built-in stages, in pipeline order).
 STAGE_MODULES: dict[str, str] = {
@@ -89,3 +93,26 @@ def register_stage(verb: str, version: int = 1, per_identity: bool = False, **kw
         return fn
 
     return deco
+
+
+def run_stage(stage: "Stage | str", *, workspace: Path | None = None, identity: str | None = None,
+              params: Mapping[str, Any] | None = None, inputs: Mapping[str, Iterable[Path]] | None = None,
+              output: Path | None = None, device: str = "cpu", stage_name: str | None = None) -> list[Path]:
+    """Run a stage once (the command line's path, also the Python API), with the cache key a recipe computes.
+
+    ``params`` are the given values (None = not given); they are validated and completed with the declared
+    defaults before the cache key.  Every input path must exist.  Returns the paths written.
+    """
+    if isinstance(stage, str):
+        stage = get_stage(stage)
+    ctx = stage.context(workspace=Path(workspace or default_workspace()).resolve(),
+                        stage_name=stage_name or stage.verb, identity=identity, params=dict(params or {}),
+                        inputs={k: [Path(p) for p in v] for k, v in (inputs or {}).items()},
+                        output=output, device=resolve_device(device) if device else "cpu")
+    for role, paths in ctx.inputs.items():
+        for p in paths:
+            if not Path(p).exists():
+                raise ReflectmmError(f"input '{role}' not found", p)
+    check_no_overwrite(stage, ctx)
+    ctx = ctx.with_(cache_key=compute_cache_key(stage, ctx))
+    return list(stage.run(ctx) or [])
