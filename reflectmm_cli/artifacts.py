@@ -449,11 +449,45 @@ def _meta_from_npz(npz, path: Path) -> dict[str, Any]:
     return meta
 
 
+#: The element of an HTML document (a viewer page) that holds its meta as JSON.
+HTML_META_ID = "reflectmm-meta"
+
+
+def html_meta_element(meta: Mapping[str, Any]) -> str:
+    """``<script type="application/json" id="reflectmm-meta">…</script>`` for ``meta`` (``</`` escaped)."""
+    return (f'<script type="application/json" id="{HTML_META_ID}">'
+            + canonical_json(meta).replace("</", "<\\/") + "</script>")
+
+
+def _meta_from_html(path: Path) -> dict[str, Any]:
+    if not path.exists():
+        raise ArtifactError("file not found", path)
+    try:
+        with open(path, "r", encoding="utf-8") as f:
+            head = f.read(1 << 16)  # the meta element comes first in <head>
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ArtifactError(f"cannot read HTML document ({exc})", path) from None
+    start = head.find(f'id="{HTML_META_ID}">')
+    end = head.find("</script>", start)
+    if start < 0 or end < 0:
+        raise ArtifactError("not a reflectmm document (no reflectmm-meta element)", path)
+    try:
+        meta = json.loads(head[start + len(HTML_META_ID) + 6:end].replace("<\\/", "</"))
+    except ValueError as exc:
+        raise ArtifactError(f"corrupt reflectmm-meta element ({exc})", path) from None
+    if not isinstance(meta, dict):
+        raise ArtifactError("corrupt reflectmm-meta element (not a JSON object)", path)
+    return meta
+
+
 def read_meta(path: str | Path) -> dict[str, Any]:
-    """Read only the meta of an NPZ or EXR artifact (cheap; used by planners and ``inspect``)."""
+    """Read only the meta of an NPZ or EXR artifact or an HTML document (cheap; used by planners and
+    ``inspect``)."""
     path = Path(path)
     if path.suffix.lower() == ".exr":
         return read_exr(path, meta_only=True)[1]
+    if path.suffix.lower() in (".html", ".htm"):
+        return _meta_from_html(path)
     with _open_npz(path) as npz:
         return _meta_from_npz(npz, path)
 

@@ -39,6 +39,7 @@ COMMAND_MODULES: dict[str, str] = {
     "run": "run",
     "synth": "synth",
     "unwrap-uv": "unwrap_uv",
+    "view": "view",
 }
 
 

@@ -46,6 +46,7 @@ STAGE_MODULES: dict[str, str] = {
     "evaluate-relighting": "evaluate_relighting",
     "evaluate-report": "evaluate_report",
     "checksum": "checksum",
+    "view": "view",
 }
 
 #: verb → Stage: the built-in stages loaded so far and those registered with :func:`register_stage`.
