@@ -145,6 +145,8 @@ def to_display(image: np.ndarray, exposure: float | None = None, transfer: str =
         return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     if transfer == "gamma":
         return np.power(x, 1 / 2.2)
+    if transfer == "gamma1.2":
+        return np.power(x, 1 / 1.2)
     if transfer == "linear":
         return x
-    raise ReflectmmError(f"unknown display transfer '{transfer}' (srgb, gamma, linear)")
+    raise ReflectmmError(f"unknown display transfer '{transfer}' (srgb, gamma, gamma1.2, linear)")

@@ -20,7 +20,8 @@ from reflectmm_cli.params import ParamError, parse_list
 
 log = logging.getLogger("reflectmm")
 
-__all__ = ["parse_coeffs", "parse_point_light", "load_sh", "load_reflectance", "render_face"]
+__all__ = ["parse_coeffs", "parse_point_light", "load_sh", "load_reflectance", "render_face", "layer_names",
+           "REFLECTANCE_AT"]
 
 
 def parse_coeffs(text: str | None, what: str = "coefficients") -> np.ndarray | None:
@@ -88,10 +89,17 @@ def load_sh(path: Path) -> np.ndarray:
     return a
 
 
-def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: str | None):
-    """(albedo (3,S,S), weights (K,S,S), exponents (K,)) from maps or a model at β."""
+def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: str | None, at: str = "uv",
+                     vertex_uv=None):
+    """(albedo, weights, exponents) from maps or a model at β.
+
+    ``at="uv"``: albedo (3,S,S) and weights (K,S,S); ``at="vertex"``: albedo (N,3) and weights (N,K) — the model's
+    per-vertex part, or the maps sampled bilinearly at ``vertex_uv`` (N,2).
+    """
     from reflectmm_cli.artifacts import read_artifact
 
+    if at not in REFLECTANCE_AT:
+        raise ReflectmmError(f"--reflectance must be one of {', '.join(REFLECTANCE_AT)}, got '{at}'")
     model = reflectance_model
     if (maps is None) == (model is None):
         raise ReflectmmError("give exactly one of --maps or --model")
@@ -110,14 +118,65 @@ def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: 
             beta = np.zeros(0)
         if beta.size > m:
             raise ReflectmmError(f"--coeffs: {beta.size} coefficients given, the model has {m}", model)
-        a, w = sample_model(art.arrays, beta if beta.size else np.zeros(1), "uv")
+        if at == "vertex" and "vertex_albedo_mean" not in art.arrays:
+            raise ReflectmmError("--reflectance vertex: the model has no per-vertex part", model)
+        a, w = sample_model(art.arrays, beta if beta.size else np.zeros(1), "vertex" if at == "vertex" else "uv")
         e = art["exponents"]
     a, w, e = np.asarray(a, np.float32), np.asarray(w, np.float32), np.asarray(e, np.float64).reshape(-1)
+    if at == "vertex" and a.ndim == 3:  # maps → per vertex
+        from .uv import sample_uv_map
+
+        a, w = (np.asarray(sample_uv_map(x, np.asarray(vertex_uv, np.float64)), np.float32) for x in (a, w))
+        return a, w, e
+    if at == "vertex":
+        return a, w, e
     if a.ndim != 3 or a.shape[0] != 3 or a.shape[1] != a.shape[2]:
         raise ReflectmmError(f"albedo must be (3, S, S), got {a.shape}", maps or model)
     if w.shape != (e.size,) + a.shape[1:]:
         raise ReflectmmError(f"weights must be ({e.size}, {a.shape[1]}, {a.shape[2]}), got {w.shape}", maps or model)
     return a, w, e
+
+
+#: Where reflectance is looked up: the UV maps at each hit's UV, or per vertex interpolated over the triangle.
+REFLECTANCE_AT = ("uv", "vertex")
+
+
+def layer_names(n_lobes: int) -> tuple[str, ...]:
+    """The layers of :func:`render_face` (and of the viewer): full, diffuse, specular, lobeI, albedo, sumw,
+    weightI (I = 0 … n_lobes − 1)."""
+    return (("full", "diffuse", "specular") + tuple(f"lobe{i}" for i in range(n_lobes)) + ("albedo", "sumw")
+            + tuple(f"weight{i}" for i in range(n_lobes)))
+
+
+def _layer_inputs(layer: str, albedo: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(albedo, weights) whose shading is the layer (shading is linear in both), or None for a reflectance layer."""
+    k_axis = 0 if weights.ndim == 3 else 1  # (K,S,S) maps or (N,K) per vertex
+    if layer == "full":
+        return albedo, weights
+    if layer == "diffuse":
+        return albedo, np.zeros_like(weights)
+    if layer == "specular":
+        return np.zeros_like(albedo), weights
+    if layer.startswith("lobe"):
+        keep = np.zeros_like(weights)
+        idx = [slice(None)] * weights.ndim
+        idx[k_axis] = int(layer[4:])
+        keep[tuple(idx)] = weights[tuple(idx)]
+        return np.zeros_like(albedo), keep
+    return None
+
+
+def _reflectance_image(raster, triangles, albedo, weights, uv, layer: str) -> np.ndarray:
+    """(H,W,3) image of a reflectance layer (albedo, Σw, one weight) at the raster's hits, 0 elsewhere."""
+    from .render import surface_reflectance
+
+    img = np.zeros(raster.mask.shape + (3,), np.float32)
+    if raster.mask.any():
+        c, w = surface_reflectance(raster, triangles, albedo, weights, uv)
+        val = c if layer == "albedo" else np.repeat(
+            (w.sum(1) if layer == "sumw" else w[:, int(layer[6:])])[:, None], 3, axis=1)
+        img[raster.mask] = val
+    return img
 
 
 # ------------------------------------------------------------------------------------------ library
@@ -126,8 +185,15 @@ def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model
                 coeffs: str | None = None,
                 point_light: str | None = None, envmap: Path | None = None, sh: Path | None = None,
                 sh_order: int = 8, camera: str = "frontal", shadows: bool = False, shape: str | None = None,
-                exp: str | None = None, geometry: Path | None = None) -> dict:
-    """Library entry of ``reflectmm render``: returns image (H,W,3), mask, camera, light description."""
+                exp: str | None = None, geometry: Path | None = None, layer: str = "full",
+                reflectance_at: str = "uv", env_rotation: float = 0.0) -> dict:
+    """Library entry of ``reflectmm render``: returns image (H,W,3), mask, camera, light description.
+
+    ``layer`` (:func:`layer_names`): the full shading, one part of it (diffuse, specular, one lobe alone) or a
+    reflectance map (albedo, Σw, one lobe's weight; unshaded, no light needed beyond the one given).
+    ``reflectance_at``: :data:`REFLECTANCE_AT`. ``env_rotation``: turn the environment by this many degrees
+    about +y (exactly, in SH space).
+    """
     from reflectmm_cli.artifacts import read_artifact
     from reflectmm_cli.geometry import (
         RayScene,
@@ -149,15 +215,27 @@ def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model
             raise ReflectmmError(f"geometry has {verts.shape[0]} vertices, the face model {fm.n_vertices}", geometry)
     else:
         verts = fm.vertices(parse_coeffs(shape, "--shape"), parse_coeffs(exp, "--exp"))
-    albedo, weights, exps = load_reflectance(maps, reflectance_model, coeffs)
+    albedo, weights, exps = load_reflectance(maps, reflectance_model, coeffs, reflectance_at, fm.uv)
+    layers = layer_names(exps.size)
+    if layer not in layers:
+        raise ReflectmmError(f"--layer '{layer}': one of {', '.join(layers)}")
     cam = parse_camera_spec(camera)
     scene = RayScene(verts, fm.triangles, vertex_normals(verts, fm.triangles))
+    uv = fm.uv if reflectance_at == "uv" else None
+    parts = _layer_inputs(layer, albedo, weights)
+    if parts is None:
+        from reflectmm_cli.geometry import rasterize
+
+        r = rasterize(scene, cam)
+        return {"image": _reflectance_image(r, fm.triangles, albedo, weights, uv, layer), "mask": r.mask,
+                "camera": cam, "light": {"type": "none", "layer": layer}}
+    albedo, weights = parts
     light: dict = {}
     if point_light is not None:
         pos, inten = parse_point_light(point_light)
         if inten is None:
             inten = np.array([np.pi * float(pos @ pos)])  # irradiance π at the origin
-        res = render_point_light(scene, cam, albedo, weights, exps, pos, inten, uv=fm.uv, shadows=shadows)
+        res = render_point_light(scene, cam, albedo, weights, exps, pos, inten, uv=uv, shadows=shadows)
         light = {"type": "point", "position": pos.tolist(), "intensity": np.atleast_1d(inten).tolist(),
                  "shadows": bool(shadows), "shadow_rays": res.rays}
         if shadows:
@@ -173,5 +251,12 @@ def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model
         else:
             K = load_sh(sh)
             light = {"type": "sh", "file": Path(sh).name, "sh_order": int(np.sqrt(K.shape[1])) - 1}
-        res = render_envmap(scene, cam, albedo, weights, exps, K, uv=fm.uv)
+        if env_rotation:
+            from reflectmm_cli.model.light import rotation_y
+            from reflectmm_cli.shading import sh_rotation
+
+            order = int(round(np.sqrt(K.shape[1]))) - 1
+            K = K @ sh_rotation(rotation_y(np.radians(env_rotation)), order).T
+            light["rotation_deg"] = float(env_rotation)
+        res = render_envmap(scene, cam, albedo, weights, exps, K, uv=uv)
     return {"image": res.image, "mask": res.mask, "camera": cam, "light": light}

@@ -28,8 +28,17 @@ PARAMS = (
     Param("shadows", "bool", False, help="Ray-traced cast shadows (point light)."),
     Param("shape", "str", None, help="Face-model shape coefficients (raw): 'a,b,…' or a file."),
     Param("exp", "str", None, help="Face-model expression coefficients (raw)."),
-    Param("display", "str", "srgb", choices=("srgb", "gamma", "linear"),
-          help="Transfer curve of the PNG (auto exposure, clipped)."),
+    Param("display", "str", "srgb", choices=("srgb", "gamma", "gamma1.2", "linear"),
+          help="Transfer curve of the PNG (clipped): sRGB, x^(1/2.2), x^(1/1.2) or linear."),
+    Param("exposure", "float", None, range=(0.0, None),
+          help="Scale of the radiance in the PNG (default: the 99.5th percentile of the face maps to 0.9)."),
+    Param("layer", "str", "full",
+          help="full | diffuse | specular | lobeI (one lobe alone) | albedo | sumw | weightI (I from 0; the "
+               "reflectance layers are unshaded and written with exposure 1)."),
+    Param("reflectance", "str", "uv", choices=("uv", "vertex"),
+          help="Look reflectance up in the UV maps, or per vertex interpolated over each triangle (the model's "
+               "per-vertex part, as the viewer and finetuning shade)."),
+    Param("rotate", "float", 0.0, unit="degrees", help="Turn the environment light about +y (exact, in SH space)."),
 )
 
 
@@ -59,14 +68,16 @@ def run(ctx: StageContext) -> list[Path]:
                     coeffs=p.get("coeffs"), point_light=p.get("point_light"), envmap=_one(ctx, "envmap"),
                     sh=_one(ctx, "sh"), sh_order=p["sh_order"], camera=p["camera"],
                     shadows=p["shadows"], shape=p.get("shape"), exp=p.get("exp"),
-                    geometry=_one(ctx, "geometry"))
+                    geometry=_one(ctx, "geometry"), layer=p["layer"], reflectance_at=p["reflectance"],
+                    env_rotation=p["rotate"])
     img = r["image"]
     meta = make_meta("render", params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                      producer=ctx.producer(), cache_key=ctx.cache_key,
                      extra={"camera": r["camera"].to_dict(), "light": r["light"],
                             "units": "linear radiance (pixel units)"})
     write_exr(out, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2]}, meta=meta)
-    png = write_png(out.with_suffix(".png"), to_display(img, transfer=p["display"]))
+    exposure = 1.0 if r["light"].get("type") == "none" else p.get("exposure")
+    png = write_png(out.with_suffix(".png"), to_display(img, exposure=exposure, transfer=p["display"]))
     face = img[r["mask"]]
     log.info("rendered %dx%d, %d face pixels, radiance max %.4g, median %.4g", img.shape[1], img.shape[0],
              int(r["mask"].sum()), float(face.max()) if face.size else 0.0,
@@ -74,5 +85,6 @@ def run(ctx: StageContext) -> list[Path]:
     return [out, png]
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
+# version 2: + layer, reflectance, rotate, exposure (the default render is unchanged)
+STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
               help="render a face model with reflectance under a point light or environment light")
