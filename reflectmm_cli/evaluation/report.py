@@ -45,6 +45,7 @@ def discover_inputs(workspace: Path, truth_dir: Path | None = None) -> dict[str,
             "reconstruction": list_artifacts(ws, "evaluate-reconstruction"),
             "albedo": list_artifacts(ws, "evaluate-albedo"), "relighting": list_artifacts(ws, "evaluate-relighting"),
             "finetune": list_artifacts(ws, "finetune"), "expressive": list_artifacts(ws, "evaluate-expressive"),
+            "viewer": sorted((ws / "view").glob("*.html")) if (ws / "view").is_dir() else [],
             "truth": _npz(Path(td)) if td is not None else []}
 
 
@@ -85,10 +86,11 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
                  models: Sequence[Path] = (), truth: Sequence[Path] = (), representation: Sequence[Path] = (),
                  progress: Callable = lambda it, **k: it, reconstruction: Sequence[Path] = (),
                  albedo: Sequence[Path] = (), relighting: Sequence[Path] = (), finetune: Sequence[Path] = (),
-                 expressive: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
+                 expressive: Sequence[Path] = (), viewer: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
     """Markdown text and a document of numbers. ``truth`` files are matched to identities by file stem.
     ``reconstruction`` / ``albedo`` / ``relighting``: ``evaluation`` artifacts of those stages; ``finetune``:
-    finetuned ``reflectance-model`` artifacts (their sample PNGs are shown)."""
+    finetuned ``reflectance-model`` artifacts (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
+    (linked)."""
     base = Path(out_md).parent
     truth_by_id: dict[str, Path] = {}
     for t in truth:
@@ -235,6 +237,11 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
 
     lines += paper_sections(base, reconstruction=reconstruction, albedo=albedo, relighting=relighting,
                             finetune=finetune, expressive=expressive, doc=doc)
+    pages = [Path(v) for v in viewer if Path(v).is_file()]
+    if pages:
+        lines += ["## Look at the model", "",
+                  "Interactive pages (one self-contained file each; open in a browser, docs/viewer.md): "
+                  + ", ".join(f"[{_rel(v, base)}]({_rel(v, base)})" for v in pages) + ".", ""]
     return "\n".join(lines) + "\n", doc
 
 

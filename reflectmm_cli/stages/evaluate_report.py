@@ -41,6 +41,7 @@ def run(ctx: StageContext) -> list[Path]:
                              relighting=ctx.input_list("relighting", required=False),
                              finetune=ctx.input_list("finetune", required=False),
                              expressive=ctx.input_list("expressive", required=False),
+                             viewer=ctx.input_list("viewer", required=False),
                              progress=lambda it, **k: progress(it, **k))
     flat = flatten("", doc, {})
     names = sorted(flat)
@@ -52,6 +53,6 @@ def run(ctx: StageContext) -> list[Path]:
     return [out_md, out_npz]
 
 
-# version 4: + the finetuning gains of Table 2 and the expressive-power section
-STAGE = Stage(VERB, version=4, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
+# version 4: + the finetuning gains of Table 2 and the expressive-power section; 5: + the viewer's link
+STAGE = Stage(VERB, version=5, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
               help="closing report of a run: errors of every stage against ground truth")
