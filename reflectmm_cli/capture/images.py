@@ -9,6 +9,7 @@ import numpy as np
 
 from reflectmm_cli.capture.layout import RAW_EXTS
 from reflectmm_cli.capture.transfer import Transfer
+from reflectmm_cli.color import linear_to_gamma, linear_to_srgb
 from reflectmm_cli.errors import ReflectmmError
 
 #: Allowed per-camera rotations (degrees clockwise, applied right after reading).
@@ -123,14 +124,7 @@ def rotate_points(pts: np.ndarray, rotate: int, width: int, height: int) -> np.n
 def encode_linear(linear: np.ndarray, transfer: Transfer, bits: int = 8) -> np.ndarray:
     """Inverse of decoding: linear RGB → integer codes (clipped to [0, 1], rounded to nearest)."""
     x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    if transfer.gamma is None:
-        from reflectmm_cli.capture.transfer import import_colour
-
-        colour = import_colour()
-
-        enc = np.asarray(colour.cctf_encoding(x, function="sRGB"), dtype=np.float64)
-    else:
-        enc = x ** (1.0 / transfer.gamma)
+    enc = linear_to_srgb(x) if transfer.gamma is None else linear_to_gamma(x, transfer.gamma)
     top = (1 << bits) - 1
     return np.round(enc * top).astype(np.uint8 if bits == 8 else np.uint16)
 

@@ -22,6 +22,7 @@ from reflectmm_cli.artifacts import sha256_file
 from reflectmm_cli.capture.images import ROTATIONS, read_image, rotate_points
 from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, ShotPlan, plan_identity
 from reflectmm_cli.capture.transfer import Transfer, parse_transfer
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import N_LANDMARKS, check_in_frame, read_landmarks
 from reflectmm_cli.params import parse_list
@@ -226,8 +227,7 @@ def source_refs(root: str | Path, plan: ShotPlan, relative_to: Path) -> list[dic
 
 
 def _tonemap(x: np.ndarray, scale: float) -> np.ndarray:
-    y = np.clip(np.asarray(x, dtype=np.float32) / max(scale, 1e-8), 0.0, 1.0) ** (1 / 2.2)
-    return (y * 255.0 + 0.5).astype(np.uint8)
+    return encode_display(np.asarray(x, dtype=np.float32) / max(scale, 1e-8), "gamma", nan_to_num=False, uint8=True)
 
 
 def contact_sheet(arrays: Mapping[str, np.ndarray], n_flashes: int = 3, thumb_width: int = 160) -> np.ndarray:

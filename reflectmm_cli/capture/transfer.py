@@ -1,7 +1,8 @@
 """Transfer functions: encoded pixel values in [0, 1] → linear radiance (docs/capture.md).
 
 * ``gamma1.2`` (default, the paper's): ``x ** 1.2``.  The synthetic world writes ``clip(lin, 0, 1) ** (1/1.2)``.
-* ``srgb``: the IEC 61966-2-1 sRGB EOTF, evaluated by colour-science (``colour.cctf_decoding(x, 'sRGB')``).
+* ``srgb``: the IEC 61966-2-1 sRGB EOTF (:func:`reflectmm_cli.color.srgb_to_linear` with the knee at
+  12.92 · 0.0031308, as colour-science's ``cctf_decoding(x, 'sRGB')`` evaluates it).
 * ``linear``: identity (RAW data, or already-linear 16-bit PNGs).
 * ``gamma:G``: ``x ** G`` for any G > 0.
 
@@ -16,6 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from reflectmm_cli.color import SRGB_DECODE_KNEE_EXACT, gamma_to_linear, srgb_to_linear
 from reflectmm_cli.errors import ReflectmmError
 
 TRANSFERS = ("gamma1.2", "srgb", "linear", "gamma:G")
@@ -32,10 +34,10 @@ class Transfer:
         """Encoded values in [0, 1] (float) → linear values (float32)."""
         x = np.asarray(x, dtype=np.float64)
         if self.gamma is None:
-            return srgb_decode(x).astype(np.float32)
+            return srgb_to_linear(x, threshold=SRGB_DECODE_KNEE_EXACT).astype(np.float32)
         if self.gamma == 1.0:
             return x.astype(np.float32)
-        return np.power(np.clip(x, 0.0, None), self.gamma).astype(np.float32)
+        return gamma_to_linear(np.clip(x, 0.0, None), self.gamma).astype(np.float32)
 
     def lut(self, bits: int) -> np.ndarray:
         """float32 table of ``decode(code / (2**bits − 1))`` for every integer code."""
@@ -50,23 +52,6 @@ def _lut(name: str, gamma: float | None, bits: int) -> np.ndarray:
     table = t.decode(codes)
     table.setflags(write=False)
     return table
-
-
-def import_colour():
-    """colour-science, imported without its warning that matplotlib (plotting only) is absent."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message='"Matplotlib" related API features are not available')
-        import colour
-    return colour
-
-
-def srgb_decode(x: np.ndarray) -> np.ndarray:
-    """sRGB EOTF through colour-science (encoded [0, 1] → linear [0, 1])."""
-    colour = import_colour()
-
-    return np.asarray(colour.cctf_decoding(np.asarray(x, dtype=np.float64), function="sRGB"), dtype=np.float64)
 
 
 def parse_transfer(spec: str) -> Transfer:

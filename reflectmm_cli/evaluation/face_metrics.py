@@ -27,6 +27,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from reflectmm_cli.color import linear_to_gamma
 from reflectmm_cli.errors import ReflectmmError
 
 from .lpips import lpips_image_mean
@@ -224,7 +225,7 @@ def released_protocol(preds_linear, targets_display, masks, *, batch_size: int =
     per: dict[str, list[float]] = {"psnr": [], "ssim": [], "lpips": []}
     for s in range(0, n, batch_size):
         m = M[s:s + batch_size, ..., None].astype(np.float64)
-        p = np.maximum(P[s:s + batch_size], 1e-6) ** (1.0 / gamma) * m
+        p = linear_to_gamma(np.maximum(P[s:s + batch_size], 1e-6), gamma) * m
         t = T[s:s + batch_size] * m
         mse = float(np.mean((p - t) ** 2))
         per["psnr"].append(float(min(10 * np.log10(1.0 / mse), PSNR_CAP)) if mse > 0 else PSNR_CAP)

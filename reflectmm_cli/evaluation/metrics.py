@@ -3,7 +3,7 @@
 All images are (H,W,3) (or (H,W)) float arrays; ``mask`` (H,W) bool selects the face region.
 
 * **PSNR** = ``10 log10(peak² / MSE)``, MSE over the masked pixels and all channels; ``peak`` defaults to 1
-  (images in the display encoding, see :func:`encode_display`). Identical images give ``inf``.
+  (images in the display encoding, see :func:`encode_for_metrics`). Identical images give ``inf``.
 * **SSIM** (Wang et al. 2004) through ``skimage.metrics.structural_similarity`` with Gaussian weighting
   (σ = 1.5, 11×11 window), population covariances, K1 = 0.01, K2 = 0.03, ``data_range = peak``; the full SSIM
   map is averaged over the masked pixels (per channel, then over channels). Pixels outside the mask are set to 0
@@ -21,18 +21,20 @@ from typing import Any
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.threads import torch_threads
 
-__all__ = ["encode_display", "psnr", "ssim", "LPIPS", "load_lpips", "lpips_distance", "DISPLAY_GAMMA"]
+__all__ = ["encode_for_metrics", "psnr", "ssim", "LPIPS", "load_lpips", "lpips_distance", "DISPLAY_GAMMA"]
 
 #: The Multi-PIE-style 8-bit encoding of docs/pipeline.md: stored = clip(linear, 0, 1) ** (1/1.2).
 DISPLAY_GAMMA = 1.2
 
 
-def encode_display(linear: np.ndarray, gamma: float = DISPLAY_GAMMA) -> np.ndarray:
-    """Linear radiance → the display encoding the captures are stored in: ``clip(x, 0, 1) ** (1/gamma)``."""
-    return np.clip(np.asarray(linear, np.float64), 0.0, 1.0) ** (1.0 / gamma)
+def encode_for_metrics(linear: np.ndarray, gamma: float = DISPLAY_GAMMA) -> np.ndarray:
+    """Linear radiance → the display encoding the captures are stored in: ``clip(x, 0, 1) ** (1/gamma)``,
+    float64, NaN kept (:func:`reflectmm_cli.color.encode_display`)."""
+    return encode_display(linear, "gamma", gamma=gamma, nan_to_num=False, dtype=np.float64)
 
 
 def _prep(pred, target, mask, name):

@@ -30,6 +30,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from reflectmm_cli.color import SRGB_DECODE_KNEE_EXACT, encode_display, gamma_to_linear, srgb_to_linear
 from reflectmm_cli.errors import ReflectmmError
 
 from .face_metrics import FaceMetrics, face_region_metrics, format_ci, mean_ci, released_protocol
@@ -54,26 +55,16 @@ def decode_image(codes: np.ndarray, encoding: str) -> np.ndarray:
     x = x.astype(np.float64) / 255.0 if x.dtype == np.uint8 else x.astype(np.float64)
     enc = _check_encoding(encoding)
     if enc == "gamma1.2":
-        return np.clip(x, 0, None) ** 1.2
+        return gamma_to_linear(np.clip(x, 0, None), 1.2)
     if enc == "srgb":
-        from reflectmm_cli.capture.transfer import srgb_decode
-
-        return srgb_decode(x)
+        return srgb_to_linear(x, threshold=SRGB_DECODE_KNEE_EXACT)
     return x
 
 
 def encode_like(linear: np.ndarray, encoding: str) -> np.ndarray:
     """Linear radiance → the shard's display encoding in [0, 1] (clipped), so predictions compare with
     ``image/255``."""
-    enc = _check_encoding(encoding)
-    x = np.clip(np.nan_to_num(np.asarray(linear, np.float64)), 0.0, 1.0)
-    if enc == "gamma1.2":
-        return x ** (1 / 1.2)
-    if enc == "srgb":
-        from reflectmm_cli.reflectance.previews import srgb_encode
-
-        return srgb_encode(x)
-    return x
+    return encode_display(linear, _check_encoding(encoding), dtype=np.float64)
 
 
 def spec_albedo_of(truth_weights: np.ndarray) -> np.ndarray:

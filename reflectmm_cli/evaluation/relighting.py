@@ -26,7 +26,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 from .figures import method_panels
-from .metrics import encode_display, psnr, ssim
+from .metrics import encode_for_metrics, psnr, ssim
 
 __all__ = ["RelightScene", "scene_from_artifacts", "capture_targets", "relight", "relighting_metrics",
            "relighting_rows"]
@@ -164,8 +164,8 @@ def relighting_metrics(scene: RelightScene, renders: Mapping[str, Mapping[str, n
         reg = scene.region(fid)
         if not reg.any():
             continue
-        a = encode_display(s * renders[fid]["full"], gamma)
-        b = encode_display(targets[fid], gamma)
+        a = encode_for_metrics(s * renders[fid]["full"], gamma)
+        b = encode_for_metrics(targets[fid], gamma)
         per[fid] = {"psnr": float(min(psnr(a, b, reg), 100.0)), "ssim": float(ssim(a, b, reg)),
                     "pixels": int(reg.sum())}
     if not per:
@@ -180,7 +180,7 @@ def relighting_rows(scene: RelightScene, input_display: np.ndarray, methods: Map
     """Figure rows for flash ``fid``: first row the input image and the captured OLAT (display encoded), then
     one row per method with :data:`.figures.PANELS` (relit image, diffuse / specular layers, error against the
     capture). ``methods``: name → output of :func:`relight`; ``scales``: name → the metrics' scale."""
-    tgt = encode_display(targets[fid], gamma)
+    tgt = encode_for_metrics(targets[fid], gamma)
     reg = scene.region(fid)
     inp = np.clip(np.asarray(input_display, np.float64), 0, 1)
     if inp.shape != tgt.shape:
@@ -189,8 +189,9 @@ def relighting_rows(scene: RelightScene, input_display: np.ndarray, methods: Map
     for name, rend in methods.items():
         s = 1.0 if scales is None else float(scales.get(name, 1.0))
         r = rend[fid]
-        rows.append(method_panels(tgt, encode_display(s * r["full"], gamma), encode_display(s * r["diffuse"], gamma),
-                                  encode_display(s * r["specular"], gamma), reg, err_max=err_max))
+        rows.append(method_panels(tgt, encode_for_metrics(s * r["full"], gamma),
+                                  encode_for_metrics(s * r["diffuse"], gamma),
+                                  encode_for_metrics(s * r["specular"], gamma), reg, err_max=err_max))
     return rows
 
 

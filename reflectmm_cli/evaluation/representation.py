@@ -30,7 +30,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-from .metrics import LPIPS, encode_display, psnr, ssim
+from .metrics import LPIPS, encode_for_metrics, psnr, ssim
 
 __all__ = ["Representation", "parse_exponent_sets", "default_representations", "holdout_pairs",
            "render_pairs_uv", "fit_diffuse_only", "compare_representations", "RepresentationResult",
@@ -235,7 +235,7 @@ def _metrics(pred, truth, observed, lp: LPIPS | None):
         if not m.any():
             out[:, i] = np.nan
             continue
-        a, b = encode_display(pred[i]), encode_display(truth[i])
+        a, b = encode_for_metrics(pred[i]), encode_for_metrics(truth[i])
         out[0, i] = psnr(a, b, m)
         out[1, i] = ssim(a, b, m)
         out[2, i] = lp(a, b, m) if lp is not None else np.nan
@@ -344,7 +344,7 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
             # fit quality on (a subsample of) the training pairs
             sub = tr[:: max(1, tr.size // 12)]
             pr_t = render(alb, wts, rep.exponents, sub, r + 1000 * n)
-            vals = [psnr(encode_display(pr_t[i]), encode_display(truth[j]), observed[j])
+            vals = [psnr(encode_for_metrics(pr_t[i]), encode_for_metrics(truth[j]), observed[j])
                     for i, j in enumerate(sub) if observed[j].any()]
             tp[n, r] = float(np.mean(vals)) if vals else np.nan
             if n == 0:
@@ -440,11 +440,11 @@ def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float 
     if not fig:
         raise ReflectmmError("no figure data")
     m = fig["mask"]
-    tr = encode_display(fig["truth"])
+    tr = encode_for_metrics(fig["truth"])
     tiles_top = [np.where(m[..., None], tr, 0.0)]
     tiles_bot = [np.zeros_like(tr)]
     for _name, img in fig["renders"]:
-        e = encode_display(img)
+        e = encode_for_metrics(img)
         tiles_top.append(np.where(m[..., None], e, 0.0))
         err = np.abs(e - tr).mean(-1)
         tiles_bot.append(np.where(m[..., None], _error_colormap(err, err_max), 0.0))

@@ -432,7 +432,7 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
     from reflectmm_cli.model.pca import sample_model
 
     from .figures import grid
-    from .metrics import encode_display
+    from .metrics import encode_for_metrics
     from .reconstruction_eval import markdown_table
     from .relighting import capture_targets, relight, relighting_metrics, relighting_rows, scene_from_artifacts
     from .results import evaluation_arrays, to_document
@@ -526,7 +526,7 @@ def relighting_evaluation(methods: Sequence[Method], capture: Path, geometry: Pa
     rows = [{"method": n, "coefficients from": used[n]["path"], "PSNR (dB)": f"{v['psnr']:.2f}",
              "SSIM": f"{v['ssim']:.4f}", "scale": f"{v['scale']:.3f}"} for n, v in metrics.items()]
     fid = held[0]
-    fig = relighting_rows(scene_v, encode_display(inp_lin), renders, targets, fid,
+    fig = relighting_rows(scene_v, encode_for_metrics(inp_lin), renders, targets, fid,
                           scales={n: metrics[n]["scale"] for n in metrics})
     doc = {n: {"scale": v["scale"], "psnr": v["psnr"], "ssim": v["ssim"], "per_flash": v["per_flash"],
                "beta": used[n]["beta"]} for n, v in metrics.items()}

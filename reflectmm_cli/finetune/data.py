@@ -26,6 +26,7 @@ import numpy as np
 
 from reflectmm_cli.artifacts import (CORRUPT_ERRORS, IMAGE_EXTENSIONS, META_KEY, check_schema, read_image_u8,
                                      write_artifact)
+from reflectmm_cli.color import gamma_to_linear, srgb_to_linear
 from reflectmm_cli.errors import ArtifactError, ReflectmmError
 from reflectmm_cli.geometry.gbuffer import GBUFFER_KEYS
 
@@ -60,9 +61,9 @@ PER_IMAGE_KEYS = ("names", "split") + tuple(_PER_IMAGE)
 
 def _linearize_codes(x: np.ndarray, encoding: str) -> np.ndarray:
     if encoding == "gamma1.2":
-        return x ** np.float32(1.2)
+        return gamma_to_linear(x, np.float32(1.2))
     if encoding == "srgb":
-        return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** np.float32(2.4)).astype(np.float32)
+        return srgb_to_linear(x).astype(np.float32)
     if encoding == "linear":
         return x
     raise ReflectmmError(f"unknown image encoding {encoding!r} (one of {', '.join(ENCODINGS)})")

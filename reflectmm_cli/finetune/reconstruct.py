@@ -194,17 +194,17 @@ def shards_from_images(images_dir, face_model, config=None, *, landmarks_dir=Non
 def reconstruction_png(rec: Reconstruction, i: int) -> np.ndarray:
     """One row for image i (paper Fig. 4 style): input | reconstruction | diffuse | specular | albedo |
     lobe weights ×3 (RGB = lobes 1, 2, 3) — sRGB display, grey background outside the face."""
-    from reflectmm_cli.model.preview import BG, linear_to_srgb
+    from reflectmm_cli.model.preview import BG, srgb_preview
 
     from .data import linearize
 
     m = rec.face_mask[i][..., None]
-    inp = linear_to_srgb(linearize(rec.image[i], str(rec.encoding[i])))
+    inp = srgb_preview(linearize(rec.image[i], str(rec.encoding[i])))
     w = rec.weights[i]
     wv = w[..., :3] if w.shape[-1] >= 3 else np.repeat(w.sum(-1, keepdims=True), 3, -1)
-    cells = [inp, np.where(m, linear_to_srgb(rec.full[i]), inp)]
-    cells += [np.where(m, linear_to_srgb(rec.diffuse[i]), BG), np.where(m, linear_to_srgb(rec.specular[i]), BG),
-              np.where(m, linear_to_srgb(rec.albedo[i]), BG), np.where(m, np.clip(wv * 3, 0, 1), BG)]
+    cells = [inp, np.where(m, srgb_preview(rec.full[i]), inp)]
+    cells += [np.where(m, srgb_preview(rec.diffuse[i]), BG), np.where(m, srgb_preview(rec.specular[i]), BG),
+              np.where(m, srgb_preview(rec.albedo[i]), BG), np.where(m, np.clip(wv * 3, 0, 1), BG)]
     return np.concatenate([np.pad(c, ((1, 1), (1, 1), (0, 0)), constant_values=1.0) for c in cells], 1)
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 
 from .camera import Camera
@@ -134,19 +135,7 @@ def render_envmap(scene: RayScene, camera: Camera, albedo, weights, exponents, s
 
 def to_display(image: np.ndarray, exposure: float | None = None, transfer: str = "srgb") -> np.ndarray:
     """Linear (H,W,3) → display [0,1]: scale by ``exposure`` (default: the 99.5th percentile of the non-zero
-    pixels maps to 0.9), then sRGB (``transfer='srgb'``) or a 1/2.2 power (``'gamma'``), clipped."""
-    x = np.nan_to_num(np.asarray(image, dtype=np.float64))
-    if exposure is None:
-        nz = x[x.max(-1) > 0]
-        top = float(np.percentile(nz.max(-1), 99.5)) if nz.size else 1.0
-        exposure = 0.9 / top if top > 0 else 1.0
-    x = np.clip(x * exposure, 0.0, 1.0)
-    if transfer == "srgb":
-        return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    if transfer == "gamma":
-        return np.power(x, 1 / 2.2)
-    if transfer == "gamma1.2":
-        return np.power(x, 1 / 1.2)
-    if transfer == "linear":
-        return x
-    raise ReflectmmError(f"unknown display transfer '{transfer}' (srgb, gamma, gamma1.2, linear)")
+    pixels maps to 0.9), then sRGB (``transfer='srgb'``), a 1/2.2 power (``'gamma'``) or a 1/1.2 power
+    (``'gamma1.2'``), clipped; float64.
+    :func:`reflectmm_cli.color.encode_display` with ``exposure='auto'`` by default."""
+    return encode_display(image, transfer, "auto" if exposure is None else exposure, dtype=np.float64)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.geometry.camera import camera_centers, project
 
 
@@ -48,8 +49,7 @@ def display_image(linear: np.ndarray) -> np.ndarray:
     """Linear image → uint8 for display (99.5th percentile to 1, gamma 1/2.2)."""
     x = np.nan_to_num(np.asarray(linear, dtype=np.float32))
     hi = float(np.percentile(x, 99.5)) if x.size else 1.0
-    y = np.clip(x / max(hi, 1e-6), 0.0, 1.0) ** (1.0 / 2.2)
-    return (y * 255.0 + 0.5).astype(np.uint8)
+    return encode_display(x / max(hi, 1e-6), "gamma", nan_to_num=False, uint8=True)
 
 
 def overlay(image: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, R: np.ndarray,

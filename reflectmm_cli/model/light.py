@@ -19,6 +19,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from reflectmm_cli.color import linear_to_gamma
 from reflectmm_cli.errors import ReflectmmError
 
 from reflectmm_cli.shading._array import any_torch, device_of
@@ -346,7 +347,7 @@ def light_from_coeffs(model, gamma, z=None):
 
 def _tonemap(img: np.ndarray, level: float) -> np.ndarray:
     t = np.maximum(img, 0.0) / (2.0 * level)
-    return (t / (1.0 + t)) ** (1.0 / 2.2)
+    return linear_to_gamma(t / (1.0 + t), 2.2)
 
 
 def light_model_preview(model, n_components: int = 4, width: int = 128, spread: float = 2.0) -> np.ndarray:

@@ -15,18 +15,19 @@ from __future__ import annotations
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 
 from .pca import ReflectanceModel, sample_model
 
-__all__ = ["linear_to_srgb", "weights_to_rgb", "component_grid", "render_vertex_colors", "render_samples"]
+__all__ = ["srgb_preview", "weights_to_rgb", "component_grid", "render_vertex_colors", "render_samples"]
 
 BG = 0.5
 
 
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+def srgb_preview(x: np.ndarray) -> np.ndarray:
+    """Linear (*) → float64 sRGB display values (clipped to [0, 1]; NaN stays NaN)."""
+    return encode_display(x, "srgb", nan_to_num=False, dtype=np.float64)
 
 
 def weights_to_rgb(w: np.ndarray, gain: float = 3.0) -> np.ndarray:
@@ -59,7 +60,7 @@ def component_grid(model: ReflectanceModel, n_components: int = 3, spread: float
         am, wm = sample_model(model, beta_m)
         ap, wp = sample_model(model, beta_p)
         a0, w0 = model.albedo_mean, model.weights_mean
-        cells = [linear_to_srgb(np.moveaxis(a, 0, -1)) for a in (am, a0, ap)]
+        cells = [srgb_preview(np.moveaxis(a, 0, -1)) for a in (am, a0, ap)]
         cells += [weights_to_rgb(w) for w in (wm, w0, wp)]
         rows.append(np.concatenate([tile(c) for c in cells], 1))
     if not rows:
@@ -163,13 +164,13 @@ def render_samples(model: ReflectanceModel, vertices: np.ndarray, triangles: np.
             alb, wts = sample_model(model, beta)
             res = render_point_light(scene, cam, np.clip(alb, 0, None), np.clip(wts, 0, None), model.exponents,
                                      eye, intensity, uv=uv, raster=raster)
-            img = np.where(res.mask[..., None], linear_to_srgb(res.image), BG)
+            img = np.where(res.mask[..., None], srgb_preview(res.image), BG)
         else:
             alb, wts = sample_model(model, beta, space="vertex")
             alb, wts = np.clip(alb, 0, None), np.clip(wts, 0, None)
             s = shade_directional(alb, wts, model.exponents, nrm, ld, ld, np.repeat(E[:, None], 3, -1))
             img = render_vertex_colors(V, triangles, s, width, eye, focal, centre)
-            img = np.where(np.isnan(img), BG, linear_to_srgb(np.nan_to_num(img)))
+            img = np.where(np.isnan(img), BG, srgb_preview(np.nan_to_num(img)))
         tiles.append(np.pad(img, ((1, 1), (1, 1), (0, 0)), constant_values=1.0))
     while len(tiles) % cols:
         tiles.append(np.ones_like(tiles[0]))

@@ -27,6 +27,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import project
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
@@ -365,8 +366,8 @@ def previews(arrays: Mapping[str, np.ndarray], n_radiance: int = 3, tile: int = 
     if picks.size:
         scale = float(np.percentile(rad[picks].astype(np.float32)[obs[picks]], 99.5)) if obs[picks].any() else 1.0
         for p in sorted(picks.tolist()):
-            img = np.clip(rad[p].astype(np.float32) / max(scale, 1e-8), 0, 1) ** (1 / 2.2)
-            tiles.append((img * 255 + 0.5).astype(np.uint8))
+            tiles.append(encode_display(rad[p].astype(np.float32) / max(scale, 1e-8), "gamma", nan_to_num=False,
+                                        uint8=True))
     tiles = [cv2.resize(np.ascontiguousarray(t), (tile, tile), interpolation=cv2.INTER_NEAREST)
              if S != tile else np.ascontiguousarray(t) for t in tiles]
     return np.concatenate(tiles, axis=1)

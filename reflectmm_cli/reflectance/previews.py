@@ -4,19 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["srgb_encode", "albedo_preview", "weights_preview", "residual_preview", "flagged_preview",
+from reflectmm_cli.color import encode_display
+
+__all__ = ["albedo_preview", "weights_preview", "residual_preview", "flagged_preview",
            "normal_correction_preview"]
-
-
-def srgb_encode(x: np.ndarray) -> np.ndarray:
-    """Linear [0,1] → sRGB-encoded [0,1] (IEC 61966-2-1), clipped."""
-    x = np.clip(np.nan_to_num(np.asarray(x, np.float64)), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
 def albedo_preview(albedo: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """(S,S,3) sRGB image of the (3,S,S) linear diffuse albedo (black outside the mask)."""
-    img = srgb_encode(np.moveaxis(albedo, 0, -1))
+    img = encode_display(np.moveaxis(albedo, 0, -1), "srgb", dtype=np.float64)
     if mask is not None:
         img = img * mask[..., None]
     return img

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["ENVMAP_KINDS", "make_envmap", "tonemap", "envmap_contact_sheet", "write_envmaps"]
@@ -211,7 +212,7 @@ def tonemap(img: np.ndarray, exposure: float | None = None) -> np.ndarray:
         exposure = 0.5 / p if p > 0 else 1.0
     x = img * exposure
     lx = (x @ wl)[..., None]
-    return np.clip(x / (1 + lx), 0, 1) ** (1 / 2.2)
+    return encode_display(x / (1 + lx), "gamma", nan_to_num=False)
 
 
 def envmap_contact_sheet(images: list[np.ndarray], cols: int = 4, thumb_width: int = 256) -> np.ndarray:

@@ -24,6 +24,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display, gamma_to_linear
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import format_pts as _format_pts
 from reflectmm_cli.capture.layout import camera_code
@@ -114,13 +115,12 @@ def room_light_sh(level: float = 0.15, order: int = 2) -> np.ndarray:
 
 def encode_png_values(linear: np.ndarray) -> np.ndarray:
     """Linear values → uint8 pixel codes ``round(255 · clip(x, 0, 1) ** (1/1.2))``."""
-    x = np.clip(np.nan_to_num(linear, nan=0.0), 0.0, 1.0) ** (1.0 / ENCODE_GAMMA)
-    return np.floor(x * 255.0 + 0.5).astype(np.uint8)
+    return encode_display(linear, "gamma", gamma=ENCODE_GAMMA, uint8=True)
 
 
 def decode_png_values(codes: np.ndarray) -> np.ndarray:
     """uint8 codes → linear ``(p/255) ** 1.2`` (what ``preprocess-multipie`` does by default)."""
-    return (np.asarray(codes, np.float64) / 255.0) ** ENCODE_GAMMA
+    return gamma_to_linear(np.asarray(codes, np.float64) / 255.0, ENCODE_GAMMA)
 
 
 def identity_code(i: int) -> str:

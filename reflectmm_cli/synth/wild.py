@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 
+from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_directional, ggx_specular_albedo
@@ -27,7 +28,7 @@ from reflectmm_cli.synth.wild_light import SplitMap, _hammersley, ggx_view_albed
 
 __all__ = ["WildConfig", "WildSkin", "head_pose_rotation", "sample_wild_skin", "WildScene", "sample_scene",
            "IdentityGeometry", "vertex_ambient_occlusion", "vertex_lobe_visibility", "identity_expression",
-           "render_wild", "reference_radiance", "encode_display", "synth_wild", "ENCODINGS"]
+           "render_wild", "reference_radiance", "encode_codes", "synth_wild", "ENCODINGS"]
 
 ENCODINGS = ("gamma1.2", "srgb")
 ROUGHNESS_RANGE = (0.05, 0.9)   # GGX α: p=64 ↔ α≈0.17 and p=1 ↔ α≈0.8 (α = √(2/(p+2))), so both ends lie outside
@@ -519,16 +520,12 @@ def draw_occluder(kind: str, rng: np.random.Generator, face: np.ndarray, landmar
     return m.astype(bool), img
 
 
-def encode_display(linear: np.ndarray, encoding: str) -> np.ndarray:
-    """Linear [0,1] → uint8 codes: ``gamma1.2`` x^(1/1.2) or ``srgb`` (the sRGB OETF); clipped, rounded."""
-    x = np.clip(np.nan_to_num(np.asarray(linear, np.float64)), 0.0, 1.0)
-    if encoding == "gamma1.2":
-        y = x ** (1 / 1.2)
-    elif encoding == "srgb":
-        y = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
-    else:
+def encode_codes(linear: np.ndarray, encoding: str) -> np.ndarray:
+    """Linear [0,1] → uint8 codes: ``gamma1.2`` x^(1/1.2) or ``srgb`` (the sRGB OETF); clipped, rounded
+    (:func:`reflectmm_cli.color.encode_display` in float64)."""
+    if encoding not in ENCODINGS:
         raise ReflectmmError(f"unknown encoding {encoding!r} ({', '.join(ENCODINGS)})")
-    return np.floor(y * 255 + 0.5).astype(np.uint8)
+    return encode_display(linear, encoding, dtype=np.float64, uint8=True)
 
 
 def compose_image(r: dict, sc: WildScene, cfg: WildConfig, env_scale: float, occ_mask, occ_img) -> np.ndarray:
@@ -630,7 +627,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
             occ_mask, occ_img = draw_occluder(sc.occluder, orng, face, r["landmarks"], r["sh"])
         t_w = time.perf_counter()
         lin = compose_image(r, sc, cfg, scale, occ_mask, occ_img)
-        img = encode_display(lin, cfg.encoding)
+        img = encode_codes(lin, cfg.encoding)
         write_png(out / "images" / f"{sc.name}.png", img)
         lm = r["landmarks"] + _rng(sc.seed, 12).normal(0, cfg.landmark_noise, (68, 2))
         write_pts(out / "landmarks" / f"{sc.name}.pts", lm)

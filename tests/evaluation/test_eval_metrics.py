@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.evaluation import LPIPS, encode_display, load_lpips, psnr, ssim
+from reflectmm_cli.evaluation import LPIPS, encode_for_metrics, load_lpips, psnr, ssim
 
 
 @given(st.floats(1e-3, 0.5), st.floats(0.5, 4.0))
@@ -58,9 +58,9 @@ def test_ssim_mask_region_only():
     assert ssim(a, b) < 0.9
 
 
-def test_encode_display():
+def test_encode_for_metrics():
     x = np.array([-1.0, 0.0, 0.5, 2.0])
-    np.testing.assert_allclose(encode_display(x), [0, 0, 0.5 ** (1 / 1.2), 1])
+    np.testing.assert_allclose(encode_for_metrics(x), [0, 0, 0.5 ** (1 / 1.2), 1])
 
 
 @pytest.mark.parametrize("net", ["alex", "vgg"])

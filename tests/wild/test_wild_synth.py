@@ -9,7 +9,7 @@ from reflectmm_cli.landmarks import read_landmarks
 from reflectmm_cli.shading import fibonacci_sphere
 from reflectmm_cli.synth.envmaps import make_envmap
 from reflectmm_cli.synth.ggx import ggx_directional, ggx_specular_albedo
-from reflectmm_cli.synth.wild import (WildConfig, encode_display, head_pose_rotation, identity_split,
+from reflectmm_cli.synth.wild import (WildConfig, encode_codes, head_pose_rotation, identity_split,
                                       sample_wild_skin, synth_wild)
 from reflectmm_cli.synth.wild_light import equirect_lookup, ggx_view_albedo, split_map
 
@@ -68,10 +68,10 @@ def test_head_pose_and_encodings():
     assert np.allclose(R @ R.T, np.eye(3)) and np.linalg.det(R) == pytest.approx(1)
     assert (head_pose_rotation(30) @ [0, 0, 1.0])[0] > 0.4     # yaw > 0 turns the face towards +x
     x = np.linspace(0, 1, 11)
-    assert np.array_equal(encode_display(x, "gamma1.2"), np.floor(x ** (1 / 1.2) * 255 + 0.5).astype(np.uint8))
+    assert np.array_equal(encode_codes(x, "gamma1.2"), np.floor(x ** (1 / 1.2) * 255 + 0.5).astype(np.uint8))
     from reflectmm_cli.finetune.data import linearize
     for enc in ("gamma1.2", "srgb"):
-        assert np.abs(linearize(encode_display(x, enc), enc) - x).max() < 6e-3
+        assert np.abs(linearize(encode_codes(x, enc), enc) - x).max() < 6e-3
     s = identity_split(20, 0)
     assert set(s) == {"train", "val", "test"} and (s == "train").sum() == 16
 
