@@ -51,7 +51,28 @@ def load_command(name: str) -> click.Command | None:
     if module is None:
         return None
     mod = importlib.import_module(f"reflectmm_cli.commands.{module}")
-    return next((c for c in mod.COMMANDS if c.name == name), None)
+    cmd = next((c for c in mod.COMMANDS if c.name == name), None)
+    if cmd is not None:
+        _add_inputs_help(cmd, name)
+    return cmd
+
+
+def _add_inputs_help(cmd: click.Command, verb: str) -> None:
+    """Append the stage's declared input roles (``Stage.inputs``) to ``--help``; for a group (``evaluate``,
+    ``synth``, ``face-model``) to each subcommand ``<group>-<sub>``."""
+    from reflectmm_cli.stages.registry import STAGE_MODULES, get_stage
+
+    if isinstance(cmd, click.Group):
+        for sub_name, sub in cmd.commands.items():
+            _add_inputs_help(sub, f"{verb}-{sub_name}")
+        return
+    if verb not in STAGE_MODULES or getattr(cmd, "_inputs_help", False):
+        return
+    inputs = get_stage(verb).inputs
+    if inputs:
+        lines = "\n".join(f"  {i.describe()}" for i in inputs)
+        cmd.epilog = ((cmd.epilog + "\n\n") if cmd.epilog else "") + "\b\nInput roles (recipes: inputs = { role = ... }):\n" + lines
+    cmd._inputs_help = True
 
 
 class _Group(click.Group):

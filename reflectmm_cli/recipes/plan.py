@@ -165,6 +165,10 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
         except ReflectmmError as exc:
             raise ReflectmmError(f"[stages.{name}]: {exc}", recipe.path) from None
         stage_params(spec, stages[name], recipe.path)  # validate before anything runs: one line per problem
+        try:
+            stages[name].check_roles(spec.inputs, f"[stages.{name}]")
+        except ReflectmmError as exc:
+            raise ReflectmmError(str(exc), recipe.path) from None
         if stages[name].per_identity and not spec.per_identity:
             raise ReflectmmError(f"[stages.{name}]: verb '{spec.verb}' runs per identity; give foreach "
                                  f'(a list of ids, {{ file = "ids.txt" }} or "{ALL_FOUND}")', recipe.path)

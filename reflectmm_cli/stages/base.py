@@ -122,6 +122,39 @@ class StageContext:
 
 
 @dataclass(frozen=True)
+class Input:
+    """One input role of a stage: declared once, it checks recipes and the command line and writes ``--help``.
+
+    Attributes:
+        role: the name in ``inputs = { role = ... }`` and ``StageContext.inputs``; with ``prefix`` a family of
+            roles ``<role>_<name>`` (e.g. ``model_<method>``).
+        kind: the artifact kind read (``reflectance-model`` …), or a plain description of files (``EXR/HDR maps``).
+        upstream: the stage that usually makes this input (the recipes' source; the default in the workspace
+            convention where the verb has one).
+        many: more than one path may be given (files or folders).
+        prefix: ``role`` names a family of roles (see above).
+        help: one line.
+    """
+
+    role: str
+    kind: str = ""
+    upstream: str | None = None
+    many: bool = False
+    prefix: bool = False
+    help: str = ""
+
+    def matches(self, role: str) -> bool:
+        return role.startswith(self.role + "_") and len(role) > len(self.role) + 1 if self.prefix else role == self.role
+
+    def describe(self) -> str:
+        """``role (kind; from upstream) — help`` for ``--help`` and docs."""
+        name = f"{self.role}_<name>" if self.prefix else self.role
+        what = "; ".join(x for x in (self.kind, f"made by {self.upstream}" if self.upstream else "",
+                                     "several" if self.many else "") if x)
+        return f"{name}" + (f" ({what})" if what else "") + (f": {self.help}" if self.help else "")
+
+
+@dataclass(frozen=True)
 class Stage:
     """A registered verb that can run as a recipe stage.
 
@@ -168,6 +201,22 @@ class Stage:
     cache_params: tuple[str, ...] | None = None
     complete: Callable[[dict[str, Any]], dict[str, Any]] | None = None
     help: str = ""
+    inputs: tuple[Input, ...] | None = None
+
+    def check_roles(self, roles: Iterable[str], where: str = "") -> None:
+        """Refuse an input role the stage does not declare (one line naming the valid ones; a close name is
+        suggested). A stage without a declaration (``inputs=None``, ad-hoc stages) accepts every role."""
+        if self.inputs is None:
+            return
+        for role in roles:
+            if not any(i.matches(role) for i in self.inputs):
+                from reflectmm_cli.params import closest_name
+
+                names = [f"{i.role}_<name>" if i.prefix else i.role for i in self.inputs]
+                near = closest_name(role, [i.role for i in self.inputs])
+                hint = f"did you mean '{near}'? " if near else ""
+                raise ReflectmmError(f"{where or self.verb}: unknown input '{role}' ({hint}inputs of {self.verb}: "
+                                     f"{', '.join(names) or 'none'})")
 
     def resolve(self, given: Mapping[str, Any] | None, strict: bool = True) -> dict[str, Any]:
         """Params validated against the declaration, defaults filled, canonical (what keys the cache).

@@ -15,9 +15,15 @@ from reflectmm_cli.artifacts import write_png
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "build-baseline"
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True, help='identities to build the baseline from'),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+)
 
 
 def _check_ids(ids) -> None:
@@ -96,4 +102,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="baseline reflectance model from ground truth (BFM09's or AlbedoMM's role)")
+              help="baseline reflectance model from ground truth (BFM09's or AlbedoMM's role)", inputs=INPUTS)

@@ -20,7 +20,7 @@ from reflectmm_cli.model.light import (
 )
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "build-light-pca"
 
@@ -34,6 +34,11 @@ PARAMS = (
     Param("quadrature", "str", "fejer", choices=("fejer", "area"),
           help="Projection weights: Fejér (exact for band-limited maps) or pixel solid angles."),
     Param("preview", "int", 4, range=(0, 64), option="", help="Components shown in the PNG preview."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('envmaps', 'EXR/HDR maps or folders', upstream='synth-envmaps', many=True),
 )
 
 
@@ -79,4 +84,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, input_files=_input_files,
-              params=PARAMS, help="PCA lighting model (SH of HDR environment maps)")
+              params=PARAMS, help="PCA lighting model (SH of HDR environment maps)", inputs=INPUTS)

@@ -14,7 +14,7 @@ from reflectmm_cli.model import MODEL_KIND, model_arrays
 from reflectmm_cli.model.build import build_reflectance_model
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "build-pca"
 
@@ -25,6 +25,12 @@ PARAMS = (
     Param("spread", "float", 2.0, range=(0.0, None), option="", unit="σ",
           help="± spread of the component preview."),
     Param("preview", "bool", True, option="--no-preview", help="Skip the PNG previews."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
 )
 
 
@@ -81,4 +87,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="PCA reflectance model (diffuse albedo + transferred lobe weights)")
+              help="PCA reflectance model (diffuse albedo + transferred lobe weights)", inputs=INPUTS)

@@ -17,13 +17,20 @@ from typing import Any
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 log = logging.getLogger("reflectmm")
 
 VERB = "calibrate-rig"
 
 _CFG = CalibrationConfig()
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('capture', 'capture', upstream='preprocess-multipie', many=True),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('rig', 'rig TOML', upstream='synth-multipie', help='the nominal table to start from'),
+)
 
 
 def _cfg(name: str, kind: str, **kw: Any) -> Param:
@@ -89,4 +96,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
               help="landmarks of every identity + face model + nominal rig -> one calibrated rig (rig artifact + "
-                   "rig.toml)")
+                   "rig.toml)", inputs=INPUTS)

@@ -15,7 +15,7 @@ import numpy as np
 from reflectmm_cli.artifacts import sha256_file, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
-from reflectmm_cli.stages.base import Stage, StageContext, walk_files
+from reflectmm_cli.stages.base import Input, Stage, StageContext, walk_files
 
 VERB = "checksum"
 
@@ -24,6 +24,11 @@ PARAMS = (
           help="Fail (naming the file) if an input file contains this marker (tests a failing task)."),
     Param("discover", "str", None, option="",
           help='foreach = "all found": a glob relative to the workspace whose matches\' stems are the identities.'),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('files', 'any files', many=True),
 )
 
 
@@ -79,4 +84,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, discover_ids=discover_checksum_ids, params=PARAMS,
-              open_params=True, help="sha256 manifest of input files")
+              open_params=True, help="sha256 manifest of input files", inputs=INPUTS)

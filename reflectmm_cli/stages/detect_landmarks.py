@@ -13,7 +13,7 @@ from pathlib import Path
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.synth_multipie import out_dir
 
 VERB = "detect-landmarks"
@@ -22,6 +22,11 @@ PARAMS = (
     Param("face_index", "int", None, range=(0, None),
           help="Which face when several are found (0 = largest; default the largest)."),
     Param("upsample", "int", 1, range=(0, 3), help="Detector upsampling (finds smaller faces, slower)."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('images', 'images', many=True),
 )
 
 
@@ -71,4 +76,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, input_files=_files, params=PARAMS,
-              help="68-point iBUG landmarks with dlib")
+              help="68-point iBUG landmarks with dlib", inputs=INPUTS)

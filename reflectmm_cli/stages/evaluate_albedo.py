@@ -16,7 +16,7 @@ from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "evaluate-albedo"
 
@@ -33,6 +33,13 @@ PARAMS = (
 )
 
 ROLE_OPTIONS = {"observations": "--input", "truth": "--truth"}
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True),
+    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True),
+    Input('model', 'reflectance-model', prefix=True, help='one method each'),
+)
 
 
 def _outputs(ctx: StageContext) -> list[Path]:
@@ -67,4 +74,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="the paper's Table 3: albedo of held-out identities per reflectance model")
+              help="the paper's Table 3: albedo of held-out identities per reflectance model", inputs=INPUTS)

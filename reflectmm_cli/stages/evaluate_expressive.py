@@ -24,9 +24,15 @@ from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "evaluate-expressive"
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('truth', 'synth-wild folder or ground-truth files', upstream='synth-wild', many=True),
+    Input('model', 'reflectance-model', prefix=True, help='one method each'),
+)
 
 
 def _check_gain(v) -> None:
@@ -164,4 +170,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="expressive power: held-out identities' true reflectance projected onto each model and an oracle")
+              help="expressive power: held-out identities' true reflectance projected onto each model and an oracle", inputs=INPUTS)

@@ -21,10 +21,19 @@ from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.reconstruct import refine_config, refine_params
 
 VERB = "evaluate-reconstruction"
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('data', 'wild-shard', upstream='prepare-wild', many=True),
+    Input('light_model', 'light-model', upstream='build-light-pca'),
+    Input('lpips_weights', 'LPIPS weights (safetensors)'),
+    Input('model', 'reflectance-model', prefix=True, help='one method each'),
+    Input('encoder', 'finetune-encoder', prefix=True, help='the encoder of method <name>'),
+)
 
 
 def _check_gain(v) -> None:
@@ -118,4 +127,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="the paper's Table 2: reconstruction quality and reflectance error on wild test images")
+              help="the paper's Table 2: reconstruction quality and reflectance error on wild test images", inputs=INPUTS)

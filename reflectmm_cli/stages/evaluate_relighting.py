@@ -17,7 +17,7 @@ from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.reconstruct import refine_config, refine_params
 
 VERB = "evaluate-relighting"
@@ -43,6 +43,17 @@ PARAMS = (
 
 ROLE_OPTIONS = {"capture": "--capture", "geometry": "--geometry", "face_model": "--face-model",
                 "light_model": "--light-model", "observations": "--observations"}
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('capture', 'capture', upstream='preprocess-multipie', many=True),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True),
+    Input('light_model', 'light-model', upstream='build-light-pca'),
+    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True),
+    Input('model', 'reflectance-model', prefix=True, help='one method each'),
+    Input('encoder', 'finetune-encoder', prefix=True, help='the encoder of method <name>'),
+)
 
 
 def _outputs(ctx: StageContext) -> list[Path]:
@@ -88,4 +99,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, params=PARAMS,
-              help="the paper's Fig. 7: relight one image of a held-out identity under held-out flashes")
+              help="the paper's Fig. 7: relight one image of a held-out identity under held-out flashes", inputs=INPUTS)

@@ -10,11 +10,26 @@ import numpy as np
 from reflectmm_cli.artifacts import atomic_write_text, write_artifact
 from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
 from reflectmm_cli.progress import progress
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "evaluate-report"
 
 PARAMS = ()
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True),
+    Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True),
+    Input('model', 'reflectance-model', upstream='build-pca', many=True),
+    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True),
+    Input('representation', 'evaluation', upstream='evaluate-representation', many=True),
+    Input('reconstruction', 'evaluation', upstream='evaluate-reconstruction', many=True),
+    Input('albedo', 'evaluation', upstream='evaluate-albedo', many=True),
+    Input('relighting', 'evaluation', upstream='evaluate-relighting', many=True),
+    Input('finetune', 'reflectance-model', upstream='finetune', many=True),
+    Input('expressive', 'evaluation', upstream='evaluate-expressive', many=True),
+    Input('viewer', 'viewer page', upstream='view', many=True),
+)
 
 
 def _report_outputs(ctx: StageContext) -> list[Path]:
@@ -55,4 +70,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 4: + the finetuning gains of Table 2 and the expressive-power section; 5: + the viewer's link
 STAGE = Stage(VERB, version=5, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
-              help="closing report of a run: errors of every stage against ground truth")
+              help="closing report of a run: errors of every stage against ground truth", inputs=INPUTS)

@@ -12,10 +12,19 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.params import Param, parse_list
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.fit_reflectance import SOLVER_PARAMS
 
 VERB = "evaluate-representation"
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True),
+    Input('capture', 'capture', upstream='preprocess-multipie', many=True),
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('lpips_weights', 'LPIPS weights (safetensors)'),
+)
 
 
 def _check_sets(text: str) -> None:
@@ -164,4 +173,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail version 4: adaptive
 STAGE = Stage(VERB, version=4, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
-              help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes")
+              help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes", inputs=INPUTS)

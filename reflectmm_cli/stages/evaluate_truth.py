@@ -9,11 +9,19 @@ import numpy as np
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "evaluate-truth"
 
 PARAMS = ()
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('maps', 'reflectance-maps', upstream='fit-reflectance'),
+    Input('geometry', 'geometry', upstream='fit-geometry'),
+    Input('truth', 'ground-truth NPZ', upstream='synth-multipie'),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+)
 
 
 def _is_vertex_reflectance(path: Path) -> bool:
@@ -85,4 +93,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 2: spec_ratio_median
 STAGE = Stage(VERB, version=3, run=run, per_identity=True, outputs=_truth_outputs, params=PARAMS,
-              help="errors of fitted maps / geometry against ground truth")
+              help="errors of fitted maps / geometry against ground truth", inputs=INPUTS)

@@ -17,6 +17,9 @@ PARAMS = (
     Param("no_preview", "bool", False, help="Do not write the PNG preview."),
 )
 
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS: tuple = ()
+
 
 def outputs(ctx: StageContext) -> list[Path]:
     """The artifact and (unless no_preview) its PNG preview."""
@@ -33,4 +36,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=outputs, params=PARAMS,
-              help="the built-in procedural face model")
+              help="the built-in procedural face model", inputs=INPUTS)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from reflectmm_cli.geometry.face_model_tools import import_model
 from reflectmm_cli.params import Param
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.face_model_create import outputs
 
 VERB = "face-model-import"
@@ -15,6 +15,15 @@ PARAMS = (
           help="Units of the file's coordinates: auto (from the extent), um, mm, dm or m."),
     Param("landmarks_base", "int", 1, range=(0, 1), help="Whether --landmarks indices are 0- or 1-based."),
     Param("no_preview", "bool", False, help="Do not write the PNG preview."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('model', 'BFM09 01_MorphableModel.mat or BFM_model_front.mat'),
+    Input('exp', 'expression basis (Exp_Pca.bin)'),
+    Input('exp_std', 'expression std (std_exp.txt)'),
+    Input('exp_index', 'expression vertex index'),
+    Input('landmarks', '68 landmark vertex indices'),
 )
 
 
@@ -33,4 +42,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=outputs, params=PARAMS,
-              help="convert BFM09 / Deep3DFaceRecon .mat to a face-model artifact")
+              help="convert BFM09 / Deep3DFaceRecon .mat to a face-model artifact", inputs=INPUTS)

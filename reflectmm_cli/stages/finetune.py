@@ -27,12 +27,23 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.config import RELEASED, FinetuneConfig
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "finetune"
 
 #: FinetuneConfig annotation → Param kind.
 _KINDS = {"int": "int", "float": "float", "str": "str", "int | None": "int", "tuple[float, float]": "floats"}
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('model', 'reflectance-model', upstream='build-pca'),
+    Input('light_model', 'light-model', upstream='build-light-pca'),
+    Input('data', 'wild-shard', upstream='prepare-wild', many=True),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('init_weights', 'encoder weights (safetensors)', help='ImageNet-style initial weights'),
+    Input('identity_weights', 'face-recognition weights (safetensors)'),
+    Input('phase1_encoder', 'finetune-encoder', upstream='finetune', help='take phase 1 from this encoder instead of training it'),
+)
 
 
 def _two(v: list) -> None:
@@ -224,4 +235,4 @@ def _least_squares_update(model, light, shards, scfg, ctx):
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, side_files=_side_files,
               params=PARAMS, complete=complete_params,
-              help="finetune the reflectance model on in-the-wild shards (update-by-reconstruction)")
+              help="finetune the reflectance model on in-the-wild shards (update-by-reconstruction)", inputs=INPUTS)

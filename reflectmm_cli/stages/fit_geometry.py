@@ -19,13 +19,22 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit import FitConfig
 from reflectmm_cli.geometry_fit.identity import fit_identity, geometry_from_truth
 from reflectmm_cli.params import Param
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 log = logging.getLogger("reflectmm")
 
 VERB = "fit-geometry"
 
 _CFG = FitConfig()
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('capture', 'capture', upstream='preprocess-multipie'),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('rig', 'rig TOML', upstream='calibrate-rig'),
+    Input('landmarks', 'landmark files or folder', many=True),
+    Input('truth', 'ground-truth NPZ', upstream='synth-multipie', help="only for the report's errors"),
+)
 
 
 def _cfg(name: str, kind: str, **kw: Any) -> Param:
@@ -177,4 +186,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, params=PARAMS,
-              help="capture + face model + rig -> fitted shape/expression and cameras (geometry)")
+              help="capture + face model + rig -> fitted shape/expression and cameras (geometry)", inputs=INPUTS)

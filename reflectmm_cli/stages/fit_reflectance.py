@@ -15,12 +15,17 @@ from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.reflectance.fit import FitMapsConfig
 from reflectmm_cli.shading.brdf import check_exponents
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.workspace import stage_output
 
 VERB = "fit-reflectance"
 
 _CFG = FitMapsConfig()
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('observations', 'uv-observations', upstream='unwrap-uv'),
+)
 
 
 def _cfg(name: str, kind: str, **kw: Any) -> Param:
@@ -147,4 +152,4 @@ def run(ctx: StageContext) -> list[Path]:
 # version 3: tail prior on lobe weights seen only in their lobe's tail (prior_tail)
 # version 4: adaptive mirror pooling by default (issue 13)
 STAGE = Stage(VERB, version=4, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
-              params=PARAMS, help="fit diffuse albedo and lobe-weight maps to one identity's UV observations")
+              params=PARAMS, help="fit diffuse albedo and lobe-weight maps to one identity's UV observations", inputs=INPUTS)

@@ -20,7 +20,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.data import ENCODINGS, PrepareConfig
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.registry import run_stage
 from reflectmm_cli.stages.synth_multipie import out_dir
 from reflectmm_cli.stages.synth_wild import check_split_fractions
@@ -53,6 +53,15 @@ PARAMS = (
 )
 
 _FIELDS = frozenset(f.name for f in fields(PrepareConfig))
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('images', 'images or their folder', upstream='synth-wild', many=True),
+    Input('landmarks', 'landmark files or folder', upstream='detect-landmarks', many=True),
+    Input('masks', 'face masks or folder', many=True),
+    Input('truth', 'synth-wild folder', upstream='synth-wild', many=True, help='geometry from truth (--from-truth)'),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+)
 
 
 def prepare_config(params: dict) -> PrepareConfig:
@@ -179,4 +188,4 @@ def run_shards(workspace: Path, params: dict, inputs: dict, output: Path | None 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, side_files=_side_files,
               stale=_stale, input_files=_files, discover_ids=_discover, params=PARAMS,
-              help="aligned crops, fixed geometry and G-buffers as wild-shard files")
+              help="aligned crops, fixed geometry and G-buffers as wild-shard files", inputs=INPUTS)

@@ -13,7 +13,7 @@ from reflectmm_cli.capture.preprocess import (CROP_MODES, CaptureOptions, contac
                                               preprocess_identity, source_refs)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 log = logging.getLogger("reflectmm")
 
@@ -33,6 +33,12 @@ PARAMS = (
           help="Store a face window (landmarks / lit pixels) or full frames (none)."),
     Param("crop_margin", "float", 0.6, range=(0.0, None),
           help="Margin around the landmark box, as a fraction of its larger side."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('root', 'Multi-PIE layout folder', upstream='synth-multipie'),
+    Input('landmarks', 'landmark files or folder', many=True),
 )
 
 
@@ -110,4 +116,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 2: default views add 08_1 / 19_1 when flashes 14 / 18 are used (issue 13)
 STAGE = Stage(VERB, version=2, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
-              discover_ids=_discover, params=PARAMS, help="Multi-PIE shots -> linear OLAT stack per identity")
+              discover_ids=_discover, params=PARAMS, help="Multi-PIE shots -> linear OLAT stack per identity", inputs=INPUTS)

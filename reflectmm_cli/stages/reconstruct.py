@@ -17,11 +17,21 @@ from pathlib import Path
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "reconstruct"
 
 _KINDS = {"int": "int", "float": "float", "str": "str"}
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('model', 'reflectance-model', upstream='finetune'),
+    Input('encoder', 'finetune-encoder', upstream='finetune'),
+    Input('light_model', 'light-model', upstream='build-light-pca'),
+    Input('data', 'wild-shard', upstream='prepare-wild', many=True),
+    Input('images', 'photos', many=True),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+)
 
 
 def refine_params(prefix: str = "refine_") -> tuple[Param, ...]:
@@ -133,4 +143,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="reconstruct images with a trained encoder (coefficients, layers, lobe-weight maps)")
+              help="reconstruct images with a trained encoder (coefficients, layers, lobe-weight maps)", inputs=INPUTS)

@@ -110,6 +110,7 @@ def run_stage(stage: "Stage | str", *, workspace: Path | None = None, identity: 
                         stage_name=stage_name or stage.verb, identity=identity, params=dict(params or {}),
                         inputs={k: [Path(p) for p in v] for k, v in (inputs or {}).items()},
                         output=output, device=resolve_device(device) if device else "cpu")
+    stage.check_roles(ctx.inputs)
     for role, paths in ctx.inputs.items():
         for p in paths:
             if not Path(p).exists():

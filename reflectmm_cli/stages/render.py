@@ -12,7 +12,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.render_face import render_face
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "render"
 
@@ -39,6 +39,16 @@ PARAMS = (
           help="Look reflectance up in the UV maps, or per vertex interpolated over each triangle (the model's "
                "per-vertex part, as the viewer and finetuning shade)."),
     Param("rotate", "float", 0.0, unit="degrees", help="Turn the environment light about +y (exact, in SH space)."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('maps', 'reflectance-maps'),
+    Input('model', 'reflectance-model'),
+    Input('envmap', 'EXR/HDR map'),
+    Input('sh', 'SH coefficients'),
+    Input('geometry', 'geometry'),
 )
 
 
@@ -87,4 +97,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 2: + layer, reflectance, rotate, exposure (the default render is unchanged)
 STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="render a face model with reflectance under a point light or environment light")
+              help="render a face model with reflectance under a point light or environment light", inputs=INPUTS)

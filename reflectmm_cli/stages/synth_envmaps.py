@@ -12,6 +12,9 @@ from reflectmm_cli.stages.synth_multipie import out_dir
 
 VERB = "synth-envmaps"
 
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS: tuple = ()
+
 
 def _even(width: int) -> None:
     if width % 2:
@@ -46,4 +49,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="procedural HDR environment maps (EXR)")
+              help="procedural HDR environment maps (EXR)", inputs=INPUTS)

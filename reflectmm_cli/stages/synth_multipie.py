@@ -10,7 +10,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.procedural import MIN_VERTICES
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "synth-multipie"
 
@@ -38,6 +38,12 @@ PARAMS = (
           help="Vertex count of the procedural face model (when --face-model is not given)."),
     Param("supersample", "int", 1, range=(1, 8),
           help="k x k rays per pixel, box-filtered in linear space (anti-aliased silhouettes and shadow edges)."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('face_model', 'face-model artifact or BFM .mat', help='instead of the procedural one'),
+    Input('rig', 'rig TOML', help='instead of the packaged table'),
 )
 
 
@@ -88,4 +94,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="synthetic Multi-PIE captures with ground truth")
+              help="synthetic Multi-PIE captures with ground truth", inputs=INPUTS)

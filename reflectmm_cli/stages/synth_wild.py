@@ -15,7 +15,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.procedural import MIN_VERTICES
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.synth_envmaps import _even
 from reflectmm_cli.stages.synth_multipie import out_dir
 from reflectmm_cli.synth.wild import ENCODINGS, WildConfig
@@ -23,6 +23,11 @@ from reflectmm_cli.synth.wild import ENCODINGS, WildConfig
 VERB = "synth-wild"
 
 _D = WildConfig()
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie'),
+)
 
 
 def check_split_fractions(v: list[float]) -> None:
@@ -93,4 +98,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="in-the-wild-like renders with ground truth (for finetuning)")
+              help="in-the-wild-like renders with ground truth (for finetuning)", inputs=INPUTS)

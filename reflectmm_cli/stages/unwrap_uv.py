@@ -10,7 +10,7 @@ from pathlib import Path
 from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.fit_reflectance import EXPONENTS
 from reflectmm_cli.workspace import find_face_model
 
@@ -29,6 +29,13 @@ PARAMS = (
     Param("views", "strs", None,
           help="Capture views to unwrap, comma separated, or 'all' (default: every view but the raised 08_1 / "
                "19_1, which only place flashes 14 / 18)."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('capture', 'capture', upstream='preprocess-multipie'),
+    Input('geometry', 'geometry', upstream='fit-geometry'),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
 )
 
 
@@ -89,4 +96,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 2: the raised cameras 08_1 / 19_1 are left out by default (issue 13)
 STAGE = Stage(VERB, version=2, run=run, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
-              params=PARAMS, help="capture + geometry -> per-texel OLAT observations in UV space")
+              params=PARAMS, help="capture + geometry -> per-texel OLAT observations in UV space", inputs=INPUTS)

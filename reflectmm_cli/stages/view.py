@@ -12,7 +12,7 @@ from pathlib import Path
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Stage, StageContext
+from reflectmm_cli.stages.base import Input, Stage, StageContext
 
 VERB = "view"
 
@@ -27,6 +27,15 @@ PARAMS = (
           help="Basis encoding: float16 (f2) or 8-bit with a scale per component and channel (u8)."),
     Param("title", "str", "", help="Page title (default: the model's file name)."),
     Param("names", "str", "", metavar="A[,B]", help="Display names of the model(s) (default: their file names)."),
+)
+
+#: The stage's input roles (checked in recipes and on the command line; shown in --help).
+INPUTS = (
+    Input('model', 'reflectance-model', upstream='finetune'),
+    Input('compare', 'reflectance-model', upstream='build-pca', help='shown beside the first'),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('light_model', 'light-model', upstream='build-light-pca'),
+    Input('envmap', 'EXR/HDR maps', upstream='synth-envmaps', many=True),
 )
 
 
@@ -123,4 +132,4 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, input_files=_input_files,
-              params=PARAMS, help="write a self-contained interactive HTML viewer of a reflectance model")
+              params=PARAMS, help="write a self-contained interactive HTML viewer of a reflectance model", inputs=INPUTS)
