@@ -105,7 +105,7 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.metrics import load_lpips
     from reflectmm_cli.evaluation.representation import (comparison_figure, compare_representations,
                                                          default_representations, margin_of_multilobe,
-                                                         markdown_table)
+                                                         comparison_table)
 
     p = ctx.params
     files = ctx.input_list("observations")
@@ -128,7 +128,7 @@ def run(ctx: StageContext) -> list[Path]:
     res = compare_representations(obs, ids, reps, holdout, lp, fit_kwargs=kw,
                                   progress=lambda it, **k: progress(it, unit="id", **k), image_space=isr)
     out = ctx.output_path()
-    table = markdown_table(res)
+    table = comparison_table(res)
     margin = margin_of_multilobe(res)
     arrays = {"representations": np.array([r.name for r in reps], dtype=str), "ids": np.array(ids, dtype=str),
               "psnr": res.psnr, "ssim": res.ssim, "psnr_pairs": res.psnr_pairs, "ssim_pairs": res.ssim_pairs,

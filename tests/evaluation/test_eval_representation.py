@@ -5,7 +5,7 @@ import pytest
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.representation import (compare_representations, default_representations,
                                                      fit_diffuse_only, holdout_pairs, margin_of_multilobe,
-                                                     markdown_table, parse_exponent_sets, render_pairs_uv)
+                                                     comparison_table, parse_exponent_sets, render_pairs_uv)
 from reflectmm_cli.evaluation.truth import geometry_errors, global_scale, kabsch, reflectance_errors
 from reflectmm_cli.reflectance.simulate import simulate_observations
 
@@ -99,8 +99,11 @@ def test_three_lobe_beats_global_exponents_on_three_lobe_truth(exact_obs):
     mg = margin_of_multilobe(res)
     assert mg["beats_every_global_psnr"] and mg["psnr_margin_db"] > 1.0
     assert res.lpips is None
-    table = markdown_table(res)
+    table = comparison_table(res)
     assert "LPIPS: off (no weights given)" in table and "| off |" in table
+    assert table.splitlines()[:2] == ["| representation | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train PSNR (dB) | "
+                                      "fit time (s) |", "|---|---:|---:|---:|---:|---:|"]
+    assert f"| 3-lobe (1,8,64) | **{mp[i3]:.2f}** |" in table
     assert res.psnr_pairs.shape == (2, len(names), 18)
 
 
@@ -154,7 +157,7 @@ def test_image_space_region_is_the_maps_domain(exact_obs):
               for f, o, h in zip(fakes, obs, held)]
     np.testing.assert_allclose(img.outside_domain, expect, rtol=1e-12)
     assert np.isnan(uv.outside_domain).all()
-    assert "leaves the maps' domain" in markdown_table(img)
+    assert "leaves the maps' domain" in comparison_table(img)
 
 
 def test_reflectance_errors_known_truth_and_scale():
