@@ -423,20 +423,15 @@ def margin_of_multilobe(res: RepresentationResult) -> dict[str, Any] | None:
             "identities_where_multilobe_wins_psnr": int(np.sum(np.all(per_id > 0, axis=1)))}
 
 
-def _error_colormap(err: np.ndarray, vmax: float) -> np.ndarray:
-    import cv2
-
-    x = np.clip(err / max(vmax, 1e-12), 0, 1)
-    cm = cv2.applyColorMap((x * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
-    return cm.astype(np.float64) / 255.0
-
-
 def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float = 0.05,
                       labels: Sequence[str] | None = None) -> np.ndarray:
     """Figure (H,W,3) in [0,1]: top row truth | each representation (display encoding), bottom row the absolute
-    error of each (display encoding, mean over channels; ``err_max`` → full scale, i.e. ×20 by default, inferno
-    colormap) over the observed texels; a label above each column."""
+    error of each (display encoding, mean over channels; ``err_max`` → full scale, i.e. ×20 by default, through
+    :func:`.figures.error_colormap`, the ramp of every error figure) over the observed texels; a label above each
+    column."""
     import cv2
+
+    from .figures import error_colormap
 
     fig = res.figure
     if not fig:
@@ -449,7 +444,7 @@ def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float 
         e = encode_for_metrics(img)
         tiles_top.append(np.where(m[..., None], e, 0.0))
         err = np.abs(e - tr).mean(-1)
-        tiles_bot.append(np.where(m[..., None], _error_colormap(err, err_max), 0.0))
+        tiles_bot.append(np.where(m[..., None], error_colormap(err, err_max), 0.0))
     names = ["truth"] + list(labels if labels is not None else [n for n, _ in fig["renders"]])
     S = tr.shape[0]
     size = max(S * scale, 96)

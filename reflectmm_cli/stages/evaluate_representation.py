@@ -149,7 +149,7 @@ def run(ctx: StageContext) -> list[Path]:
                                "margin": margin, "table": table})
     head = ("# Representation comparison\n\nFigure: `" + out.with_suffix(".png").name + "` — identity "
             f"{res.figure.get('identity')}, view {res.figure.get('view')}, flash {res.figure.get('flash')}: "
-            "truth | " + " | ".join(r.name for r in reps) + " (top), absolute error of the display encoding ×20, inferno colormap (bottom).\n\n")
+            "truth | " + " | ".join(r.name for r in reps) + " (top), absolute error of the display encoding ×20, black → red → yellow → white (bottom).\n\n")
     md = head + table
     if margin:
         md += (f"\n{margin['multilobe']} vs the best global exponent ({margin['best_global']}): "
@@ -163,5 +163,5 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 # version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail version 4: adaptive
-STAGE = Stage(VERB, version=4, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
+STAGE = Stage(VERB, version=5, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
               help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes")
