@@ -178,7 +178,8 @@ def _psnr(pred, truth, peak=1.0):
     return float("inf") if mse == 0 else float(10 * np.log10(peak * peak / mse))
 
 
-def _rel(pred, truth):
+def _relative_rmse(pred, truth):
+    """RMSE of ``pred`` / RMS of ``truth`` (NaN when the truth is zero)."""
     rms = float(np.sqrt(np.mean(truth ** 2)))
     return float(np.sqrt(np.mean((pred - truth) ** 2)) / rms) if rms > 0 else float("nan")
 
@@ -202,8 +203,8 @@ def albedo_errors(albedo: np.ndarray, spec_albedo: np.ndarray, truth_albedo: np.
     for mode, k in (("raw", 1.0), ("scaled", scale)):
         out[mode] = {"diffuse_psnr": _psnr(k * C[:, reg], Ct[:, reg], peak),
                      "specular_psnr": _psnr(k * s_[reg], st[reg], peak),
-                     "diffuse_rel": _rel(k * C[:, reg], Ct[:, reg]),
-                     "specular_rel": _rel(k * s_[reg], st[reg])}
+                     "diffuse_rel": _relative_rmse(k * C[:, reg], Ct[:, reg]),
+                     "specular_rel": _relative_rmse(k * s_[reg], st[reg])}
     return out
 
 

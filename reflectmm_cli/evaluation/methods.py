@@ -124,7 +124,8 @@ def method_inputs(specs: Sequence[Sequence[Any]]) -> tuple[dict[str, list[Path]]
     return inputs, names
 
 
-def _rel(p: Path, base: Path) -> str:
+def _workspace_path(p: Path, base: Path) -> str:
+    """``p`` as written in a command line run from the workspace ``base`` (absolute on another drive)."""
     try:
         return os.path.relpath(Path(p).resolve(), Path(base).resolve()).replace(os.sep, "/")
     except ValueError:  # another drive
@@ -147,16 +148,16 @@ def command_line(words: Sequence[str], params: Mapping[str, Any], inputs: Mappin
     for role in sorted(inputs):
         if role in role_options:
             for p in inputs[role]:
-                parts += [role_options[role], _rel(p, workspace)]
+                parts += [role_options[role], _workspace_path(p, workspace)]
     names = list(params.get("methods")
                  or sorted(r[len(MODEL_PREFIX):] for r in inputs if r.startswith(MODEL_PREFIX)))
     for n in names:
         m = inputs.get(MODEL_PREFIX + n)
         if not m:
             continue
-        parts += ["--method", n, _rel(m[0], workspace)]
+        parts += ["--method", n, _workspace_path(m[0], workspace)]
         e = inputs.get(ENCODER_PREFIX + n)
-        parts.append(_rel(e[0], workspace) if e else "-")
+        parts.append(_workspace_path(e[0], workspace) if e else "-")
     decl = {d.name: d for d in (declared or ())}
     for k in sorted(params):
         if k in ("methods", *skip_params):
@@ -175,5 +176,5 @@ def command_line(words: Sequence[str], params: Mapping[str, Any], inputs: Mappin
         elif v is not None:
             parts += [flag, f"{v:g}" if isinstance(v, float) else str(v)]
     if output is not None:
-        parts += ["-o", _rel(output, workspace)]
+        parts += ["-o", _workspace_path(output, workspace)]
     return " ".join(shlex.quote(p) for p in parts)

@@ -242,13 +242,19 @@ def table_row(name: str, image: Mapping[str, Any] | None = None,
     return row
 
 
-def markdown_table(rows: Sequence[Mapping[str, str]]) -> str:
-    """Rows of cells (same keys, in order of the first row) → a Markdown table."""
+def markdown_table(rows: Sequence[Mapping[str, str]], align: str | None = None) -> str:
+    """Rows of cells (same keys, in order of the first row) → a Markdown table (no trailing newline).
+
+    ``align``: one letter per column, ``l`` (the default for every column) or ``r`` (right-aligned, ``---:``).
+    """
     if not rows:
         return ""
     cols = list(rows[0].keys())
     for r in rows[1:]:
         cols += [k for k in r if k not in cols]
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    if align is not None and (len(align) != len(cols) or set(align) - {"l", "r"}):
+        raise ValueError(f"markdown_table: align {align!r} is not one of l/r per column ({len(cols)} columns)")
+    rule = "|" + "".join("---:|" if a == "r" else "---|" for a in (align or "l" * len(cols)))
+    lines = ["| " + " | ".join(cols) + " |", rule]
     lines += ["| " + " | ".join(str(r.get(c, "")) for c in cols) + " |" for r in rows]
     return "\n".join(lines)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -70,7 +70,8 @@ def pca_reconstruction(model_arrays, maps_list: Sequence[dict], ks: Sequence[int
     return out
 
 
-def _rel(p: Path, base: Path) -> str:
+def _link_path(p: Path, base: Path) -> str:
+    """``p`` relative to the report's folder ``base``, with forward slashes (a Markdown link target)."""
     return os.path.relpath(p, base).replace(os.sep, "/")
 
 
@@ -82,16 +83,8 @@ def _ident(art, path: Path) -> str:
     return str(art.meta.get("identity") or Path(path).stem)
 
 
-def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), maps: Sequence[Path] = (),
-                 models: Sequence[Path] = (), truth: Sequence[Path] = (), representation: Sequence[Path] = (),
-                 progress: Callable = lambda it, **k: it, reconstruction: Sequence[Path] = (),
-                 albedo: Sequence[Path] = (), relighting: Sequence[Path] = (), finetune: Sequence[Path] = (),
-                 expressive: Sequence[Path] = (), viewer: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
-    """Markdown text and a document of numbers. ``truth`` files are matched to identities by file stem.
-    ``reconstruction`` / ``albedo`` / ``relighting``: ``evaluation`` artifacts of those stages; ``finetune``:
-    finetuned ``reflectance-model`` artifacts (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
-    (linked)."""
-    base = Path(out_md).parent
+def _truth_files(truth: Sequence[Path]) -> dict[str, Path]:
+    """Truth files (given directly or as folders of ``.npz``) by identity (file stem)."""
     truth_by_id: dict[str, Path] = {}
     for t in truth:
         t = Path(t)
@@ -100,99 +93,113 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
                 truth_by_id[q.stem] = q
         else:
             truth_by_id[t.stem] = t
-    doc: dict[str, Any] = {}
-    lines = [f"# reflectmm report — `{Path(workspace).name}`", ""]
-    if not truth_by_id:
-        lines += ["No ground truth found: errors against truth are not available.", ""]
+    return truth_by_id
 
-    # ------------------------------------------------------------------ geometry
-    if geometry:
-        rows, vals = [], []
-        for g in progress(list(geometry), desc="geometry"):
-            art = read_artifact(g, "geometry")
-            ident = _ident(art, g)
-            tr = truth_by_id.get(ident)
-            e = geometry_errors(art.arrays, read_artifact(tr).arrays if tr else {})
-            vals.append(e)
-            doc.setdefault("geometry", {})[ident] = e
-            rows.append(f"| {ident} | {_f(e.get('landmark_rmse_px'), '{:.2f}')} | "
-                        f"{_f(e.get('vertex_mean_mm'), '{:.2f}')} | {_f(e.get('vertex_rms_mm'), '{:.2f}')} | "
-                        f"{_f(e.get('vertex_aligned_mean_mm'), '{:.2f}')} | {_f(e.get('camera_mean_mm'), '{:.2f}')} |")
-        mean = {k: float(np.mean([v[k] for v in vals if k in v])) for k in
-                ("landmark_rmse_px", "vertex_mean_mm", "vertex_rms_mm", "vertex_aligned_mean_mm", "camera_mean_mm")
-                if any(k in v for v in vals)}
-        doc.setdefault("geometry_mean", mean)
-        lines += ["## Geometry", "",
-                  "| identity | landmark RMSE (px) | vertex error, mean (mm) | vertex error, RMS (mm) | "
-                  "vertex error, rigidly aligned (mm) | camera centre error (mm) |", "|---|---:|---:|---:|---:|---:|",
-                  *rows,
-                  f"| **mean** | {_f(mean.get('landmark_rmse_px'), '{:.2f}')} | {_f(mean.get('vertex_mean_mm'), '{:.2f}')}"
-                  f" | {_f(mean.get('vertex_rms_mm'), '{:.2f}')} | {_f(mean.get('vertex_aligned_mean_mm'), '{:.2f}')}"
-                  f" | {_f(mean.get('camera_mean_mm'), '{:.2f}')} |", "",
-                  "Vertex errors are per-vertex distances to the true mesh (same topology) in model space; "
-                  "without a truth file the errors fit-geometry stored (run with --truth) are shown.", ""]
 
-    # ------------------------------------------------------------------ reflectance
-    maps_arrays = []
-    if maps:
-        rows, vals = [], []
-        previews = []
-        for mp in progress(list(maps), desc="reflectance"):
-            art = read_artifact(mp, "reflectance-maps")
-            ident = _ident(art, mp)
-            maps_arrays.append(art.arrays)
-            previews += [q for q in sorted(Path(mp).parent.glob(f"{Path(mp).stem}*.png"))]
-            tr = truth_by_id.get(ident)
-            if tr is None:
-                continue
-            e = reflectance_errors(art.arrays, read_artifact(tr).arrays)
-            doc.setdefault("reflectance", {})[ident] = e
-            vals.append(e)
-            o, fl, so = e["raw"]["observable"], e["raw"]["flagged"], e["scaled"]["observable"]
-            frac = e["texels"]["flagged"] / max(e["texels"]["all"], 1)
-            rows.append(f"| {ident} | {_f(o['albedo_rmse'])} | {_f(o['albedo_rel'], '{:.2%}')} | "
-                        f"{_f(o.get('spec_rmse'))} | {_f(o.get('spec_rel'), '{:.2%}')} | "
-                        f"{_f(fl['albedo_rel'], '{:.2%}')} | {_f(fl.get('spec_rel'), '{:.2%}')} | "
-                        f"{_f(e['scale'], '{:.3f}')} | {_f(so['albedo_rel'], '{:.2%}')} | "
-                        f"{_f(so.get('spec_rel'), '{:.2%}')} | {frac:.1%} | "
-                        f"{_f(o.get('albedo_rel_median'), '{:.2%}')} | {_f(o.get('spec_ratio_median'), '{:.2f}')} |")
-        if vals:
-            def mean_of(mode, reg, key):
-                xs = [v[mode][reg].get(key) for v in vals]
-                xs = [x for x in xs if x is not None and np.isfinite(x)]
-                return float(np.mean(xs)) if xs else float("nan")
+def _geometry_section(geometry: Sequence[Path], truth_by_id: Mapping[str, Path], progress: Callable,
+                      doc: dict[str, Any]) -> list[str]:
+    """The "Geometry" section: each fit's landmark, vertex and camera errors and their mean."""
+    lines: list[str] = []
+    if not geometry:
+        return lines
+    rows, vals = [], []
+    for g in progress(list(geometry), desc="geometry"):
+        art = read_artifact(g, "geometry")
+        ident = _ident(art, g)
+        tr = truth_by_id.get(ident)
+        e = geometry_errors(art.arrays, read_artifact(tr).arrays if tr else {})
+        vals.append(e)
+        doc.setdefault("geometry", {})[ident] = e
+        rows.append(f"| {ident} | {_f(e.get('landmark_rmse_px'), '{:.2f}')} | "
+                    f"{_f(e.get('vertex_mean_mm'), '{:.2f}')} | {_f(e.get('vertex_rms_mm'), '{:.2f}')} | "
+                    f"{_f(e.get('vertex_aligned_mean_mm'), '{:.2f}')} | {_f(e.get('camera_mean_mm'), '{:.2f}')} |")
+    mean = {k: float(np.mean([v[k] for v in vals if k in v])) for k in
+            ("landmark_rmse_px", "vertex_mean_mm", "vertex_rms_mm", "vertex_aligned_mean_mm", "camera_mean_mm")
+            if any(k in v for v in vals)}
+    doc.setdefault("geometry_mean", mean)
+    lines += ["## Geometry", "",
+              "| identity | landmark RMSE (px) | vertex error, mean (mm) | vertex error, RMS (mm) | "
+              "vertex error, rigidly aligned (mm) | camera centre error (mm) |", "|---|---:|---:|---:|---:|---:|",
+              *rows,
+              f"| **mean** | {_f(mean.get('landmark_rmse_px'), '{:.2f}')} | {_f(mean.get('vertex_mean_mm'), '{:.2f}')}"
+              f" | {_f(mean.get('vertex_rms_mm'), '{:.2f}')} | {_f(mean.get('vertex_aligned_mean_mm'), '{:.2f}')}"
+              f" | {_f(mean.get('camera_mean_mm'), '{:.2f}')} |", "",
+              "Vertex errors are per-vertex distances to the true mesh (same topology) in model space; "
+              "without a truth file the errors fit-geometry stored (run with --truth) are shown.", ""]
+    return lines
 
-            mean = {f"{mode}.{reg}.{key}": mean_of(mode, reg, key) for mode in ("raw", "scaled")
-                    for reg in ("observable", "flagged", "all")
-                    for key in ("albedo_rmse", "albedo_rel", "spec_rmse", "spec_rel", "albedo_rel_median",
-                                "spec_ratio_median")}
-            doc["reflectance_mean"] = mean
-            lines += ["## Reflectance maps", "",
-                      "Diffuse albedo: RMSE over texels and linear RGB channels, relative = RMSE / RMS(truth). "
-                      "Specular albedo: Σw against the truth's directional albedo at normal view. *Flagged* texels "
-                      "were ill-conditioned and filled from the mirror/neighbourhood. *Scaled*: after one global "
-                      "least-squares scale (flash intensity ↔ reflectance ambiguity). The RMS columns are dominated by a few "
-                      "texels (sharp highlights the lobes cannot represent, grazing-only texels at the border); the last "
-                      "two columns are the typical texel: the median per-texel relative albedo error and the median of "
-                      "Σw / true specular albedo (1 = right).", "",
-                      "| identity | albedo RMSE | albedo rel. | spec RMSE | spec rel. | albedo rel. (flagged) | "
-                      "spec rel. (flagged) | scale | albedo rel. (scaled) | spec rel. (scaled) | flagged | "
-                      "albedo rel. (median texel) | Σw / truth (median) |",
-                      "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|", *rows,
-                      f"| **mean** | {_f(mean['raw.observable.albedo_rmse'])} | "
-                      f"{_f(mean['raw.observable.albedo_rel'], '{:.2%}')} | {_f(mean['raw.observable.spec_rmse'])} | "
-                      f"{_f(mean['raw.observable.spec_rel'], '{:.2%}')} | {_f(mean['raw.flagged.albedo_rel'], '{:.2%}')}"
-                      f" | {_f(mean['raw.flagged.spec_rel'], '{:.2%}')} | | "
-                      f"{_f(mean['scaled.observable.albedo_rel'], '{:.2%}')} | "
-                      f"{_f(mean['scaled.observable.spec_rel'], '{:.2%}')} | | "
-                      f"{_f(mean['raw.observable.albedo_rel_median'], '{:.2%}')} | "
-                      f"{_f(mean['raw.observable.spec_ratio_median'], '{:.2f}')} |", ""]
-        else:
-            lines += ["## Reflectance maps", "", f"{len(maps)} fitted identities; no matching ground truth.", ""]
-        if previews:
-            lines += ["Previews: " + ", ".join(f"[{q.name}]({_rel(q, base)})" for q in previews[:60]), ""]
 
-    # ------------------------------------------------------------------ PCA
+def _reflectance_section(maps: Sequence[Path], truth_by_id: Mapping[str, Path], progress: Callable,
+                        doc: dict[str, Any], base: Path) -> tuple[list[str], list[dict]]:
+    """The "Reflectance maps" section (errors against the truth, previews) and the maps' arrays."""
+    lines: list[str] = []
+    maps_arrays: list[dict] = []
+    if not maps:
+        return lines, maps_arrays
+    rows, vals = [], []
+    previews = []
+    for mp in progress(list(maps), desc="reflectance"):
+        art = read_artifact(mp, "reflectance-maps")
+        ident = _ident(art, mp)
+        maps_arrays.append(art.arrays)
+        previews += [q for q in sorted(Path(mp).parent.glob(f"{Path(mp).stem}*.png"))]
+        tr = truth_by_id.get(ident)
+        if tr is None:
+            continue
+        e = reflectance_errors(art.arrays, read_artifact(tr).arrays)
+        doc.setdefault("reflectance", {})[ident] = e
+        vals.append(e)
+        o, fl, so = e["raw"]["observable"], e["raw"]["flagged"], e["scaled"]["observable"]
+        frac = e["texels"]["flagged"] / max(e["texels"]["all"], 1)
+        rows.append(f"| {ident} | {_f(o['albedo_rmse'])} | {_f(o['albedo_rel'], '{:.2%}')} | "
+                    f"{_f(o.get('spec_rmse'))} | {_f(o.get('spec_rel'), '{:.2%}')} | "
+                    f"{_f(fl['albedo_rel'], '{:.2%}')} | {_f(fl.get('spec_rel'), '{:.2%}')} | "
+                    f"{_f(e['scale'], '{:.3f}')} | {_f(so['albedo_rel'], '{:.2%}')} | "
+                    f"{_f(so.get('spec_rel'), '{:.2%}')} | {frac:.1%} | "
+                    f"{_f(o.get('albedo_rel_median'), '{:.2%}')} | {_f(o.get('spec_ratio_median'), '{:.2f}')} |")
+    if vals:
+        def mean_of(mode, reg, key):
+            xs = [v[mode][reg].get(key) for v in vals]
+            xs = [x for x in xs if x is not None and np.isfinite(x)]
+            return float(np.mean(xs)) if xs else float("nan")
+
+        mean = {f"{mode}.{reg}.{key}": mean_of(mode, reg, key) for mode in ("raw", "scaled")
+                for reg in ("observable", "flagged", "all")
+                for key in ("albedo_rmse", "albedo_rel", "spec_rmse", "spec_rel", "albedo_rel_median",
+                            "spec_ratio_median")}
+        doc["reflectance_mean"] = mean
+        lines += ["## Reflectance maps", "",
+                  "Diffuse albedo: RMSE over texels and linear RGB channels, relative = RMSE / RMS(truth). "
+                  "Specular albedo: Σw against the truth's directional albedo at normal view. *Flagged* texels "
+                  "were ill-conditioned and filled from the mirror/neighbourhood. *Scaled*: after one global "
+                  "least-squares scale (flash intensity ↔ reflectance ambiguity). The RMS columns are dominated by a few "
+                  "texels (sharp highlights the lobes cannot represent, grazing-only texels at the border); the last "
+                  "two columns are the typical texel: the median per-texel relative albedo error and the median of "
+                  "Σw / true specular albedo (1 = right).", "",
+                  "| identity | albedo RMSE | albedo rel. | spec RMSE | spec rel. | albedo rel. (flagged) | "
+                  "spec rel. (flagged) | scale | albedo rel. (scaled) | spec rel. (scaled) | flagged | "
+                  "albedo rel. (median texel) | Σw / truth (median) |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|", *rows,
+                  f"| **mean** | {_f(mean['raw.observable.albedo_rmse'])} | "
+                  f"{_f(mean['raw.observable.albedo_rel'], '{:.2%}')} | {_f(mean['raw.observable.spec_rmse'])} | "
+                  f"{_f(mean['raw.observable.spec_rel'], '{:.2%}')} | {_f(mean['raw.flagged.albedo_rel'], '{:.2%}')}"
+                  f" | {_f(mean['raw.flagged.spec_rel'], '{:.2%}')} | | "
+                  f"{_f(mean['scaled.observable.albedo_rel'], '{:.2%}')} | "
+                  f"{_f(mean['scaled.observable.spec_rel'], '{:.2%}')} | | "
+                  f"{_f(mean['raw.observable.albedo_rel_median'], '{:.2%}')} | "
+                  f"{_f(mean['raw.observable.spec_ratio_median'], '{:.2f}')} |", ""]
+    else:
+        lines += ["## Reflectance maps", "", f"{len(maps)} fitted identities; no matching ground truth.", ""]
+    if previews:
+        lines += ["Previews: " + ", ".join(f"[{q.name}]({_link_path(q, base)})" for q in previews[:60]), ""]
+    return lines, maps_arrays
+
+
+def _pca_sections(models: Sequence[Path], maps: Sequence[Path], maps_arrays: Sequence[dict], doc: dict[str, Any],
+                 base: Path) -> list[str]:
+    """One "PCA reflectance model" section per readable model: explained variance, reconstruction of the
+    held-in maps, previews."""
+    lines: list[str] = []
     for mpath in models:
         try:
             art = read_artifact(mpath, "reflectance-model")
@@ -203,7 +210,7 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
         ids = [str(x) for x in art["ids"]]
         entry: dict[str, Any] = {"n_components": int(ev.size), "n_identities": len(ids),
                                  "explained_variance_ratio": ev[:10].tolist()}
-        lines += [f"## PCA reflectance model (`{_rel(Path(mpath), base)}`)", "",
+        lines += [f"## PCA reflectance model (`{_link_path(Path(mpath), base)}`)", "",
                   f"{len(ids)} identities, {ev.size} components. Explained variance of the diffuse albedo "
                   "(cumulative): " + ", ".join(f"k={k + 1}: {100 * cum[k]:.1f}%" for k in range(min(10, ev.size))),
                   ""]
@@ -218,10 +225,14 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
             lines.append("")
         pngs = sorted(Path(mpath).parent.glob(f"{Path(mpath).stem}*.png"))
         if pngs:
-            lines += ["Previews: " + ", ".join(f"[{q.name}]({_rel(q, base)})" for q in pngs), ""]
+            lines += ["Previews: " + ", ".join(f"[{q.name}]({_link_path(q, base)})" for q in pngs), ""]
         doc.setdefault("pca", {})[Path(mpath).stem] = entry
+    return lines
 
-    # ------------------------------------------------------------------ representation comparison
+
+def _representation_sections(representation: Sequence[Path], doc: dict[str, Any], base: Path) -> list[str]:
+    """One "Representation comparison" section per evaluate-representation artifact."""
+    lines: list[str] = []
     for rpath in representation:
         try:
             art = read_artifact(rpath, "evaluation")
@@ -229,19 +240,42 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
             continue
         if art.meta.get("evaluation") != "representation":
             continue
-        lines += [f"## Representation comparison (`{_rel(Path(rpath), base)}`)", "", art.meta.get("table", ""), ""]
+        lines += [f"## Representation comparison (`{_link_path(Path(rpath), base)}`)", "", art.meta.get("table", ""),
+                  ""]
         png = Path(rpath).with_suffix(".png")
         if png.is_file():
-            lines += [f"![representations]({_rel(png, base)})", ""]
+            lines += [f"![representations]({_link_path(png, base)})", ""]
         doc.setdefault("representation", {})[Path(rpath).stem] = art.meta.get("margin")
+    return lines
 
+
+def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), maps: Sequence[Path] = (),
+                 models: Sequence[Path] = (), truth: Sequence[Path] = (), representation: Sequence[Path] = (),
+                 progress: Callable = lambda it, **k: it, reconstruction: Sequence[Path] = (),
+                 albedo: Sequence[Path] = (), relighting: Sequence[Path] = (), finetune: Sequence[Path] = (),
+                 expressive: Sequence[Path] = (), viewer: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
+    """Markdown text and a document of numbers. ``truth`` files are matched to identities by file stem.
+    ``reconstruction`` / ``albedo`` / ``relighting``: ``evaluation`` artifacts of those stages; ``finetune``:
+    finetuned ``reflectance-model`` artifacts (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
+    (linked)."""
+    base = Path(out_md).parent
+    truth_by_id = _truth_files(truth)
+    doc: dict[str, Any] = {}
+    lines = [f"# reflectmm report — `{Path(workspace).name}`", ""]
+    if not truth_by_id:
+        lines += ["No ground truth found: errors against truth are not available.", ""]
+    lines += _geometry_section(geometry, truth_by_id, progress, doc)
+    refl_lines, maps_arrays = _reflectance_section(maps, truth_by_id, progress, doc, base)
+    lines += refl_lines
+    lines += _pca_sections(models, maps, maps_arrays, doc, base)
+    lines += _representation_sections(representation, doc, base)
     lines += paper_sections(base, reconstruction=reconstruction, albedo=albedo, relighting=relighting,
                             finetune=finetune, expressive=expressive, doc=doc)
     pages = [Path(v) for v in viewer if Path(v).is_file()]
     if pages:
         lines += ["## Look at the model", "",
                   "Interactive pages (one self-contained file each; open in a browser, docs/viewer.md): "
-                  + ", ".join(f"[{_rel(v, base)}]({_rel(v, base)})" for v in pages) + ".", ""]
+                  + ", ".join(f"[{_link_path(v, base)}]({_link_path(v, base)})" for v in pages) + ".", ""]
     return "\n".join(lines) + "\n", doc
 
 
@@ -283,12 +317,12 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: S
 
     for path, art in _evaluations(reconstruction, "reconstruction"):
         take(art)
-        lines += [f"## Table 2: reconstruction of in-the-wild test images (`{_rel(path, base)}`)", "",
+        lines += [f"## Table 2: reconstruction of in-the-wild test images (`{_link_path(path, base)}`)", "",
                   art.meta.get("protocol", ""), "", art.meta.get("table", ""), "",
                   f"{len(art.meta.get('images', []))} images; LPIPS: {art.meta.get('lpips', 'off')}.", ""]
         png = path.with_suffix(".png")
         if png.is_file() and art.meta.get("figure_rows"):
-            lines += [f"![Table 2 figure]({_rel(png, base)})", "",
+            lines += [f"![Table 2 figure]({_link_path(png, base)})", "",
                       "Columns: input | reconstruction | diffuse | specular | error; rows: "
                       + "; ".join(art.meta["figure_rows"]) + ".", ""]
         if art.meta.get("gains_table"):
@@ -302,7 +336,7 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: S
         if art.meta.get("gains"):
             doc.setdefault("table2_gains", {})[path.stem] = art.meta["gains"]
     for path, art in _evaluations(expressive, "expressive"):
-        lines += [f"## Expressive power on held-out identities (`{_rel(path, base)}`)", "",
+        lines += [f"## Expressive power on held-out identities (`{_link_path(path, base)}`)", "",
                   art.meta.get("protocol", ""), "", art.meta.get("table", ""), ""]
         gap = art.meta.get("gap_closed") or {}
         if gap:
@@ -312,7 +346,7 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: S
         doc.setdefault("expressive", {})[path.stem] = {"means": art.meta.get("means"), "gap_closed": gap}
     for path, art in _evaluations(albedo, "albedo"):
         take(art)
-        lines += [f"## Table 3: albedo of held-out identities (`{_rel(path, base)}`)", "",
+        lines += [f"## Table 3: albedo of held-out identities (`{_link_path(path, base)}`)", "",
                   art.meta.get("protocol", ""), "", "Identities: " + ", ".join(art.meta.get("identities", [])) + ".",
                   "", art.meta.get("table", ""), ""] + _command(art)
         doc.setdefault("table3", {})[path.stem] = art.meta.get("summary")
@@ -322,11 +356,11 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: S
         for path, art in rel:
             ident = art.meta.get("identity", path.stem)
             lines += [f"### Identity {ident}: view {art.meta.get('view')}, input {art.meta.get('input')}, held-out "
-                      f"flashes {', '.join(art.meta.get('holdout', []))} (`{_rel(path, base)}`)", "",
+                      f"flashes {', '.join(art.meta.get('holdout', []))} (`{_link_path(path, base)}`)", "",
                       art.meta.get("table", ""), ""]
             png = path.with_suffix(".png")
             if png.is_file():
-                lines += [f"![relighting {ident}]({_rel(png, base)})", ""]
+                lines += [f"![relighting {ident}]({_link_path(png, base)})", ""]
             lines += _command(art)
             doc.setdefault("relighting", {})[str(ident)] = art.meta.get("summary")
     shown = []
@@ -340,8 +374,8 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: S
                   "Random samples (β ~ N(0, 1)) of the initial and the finetuned per-vertex model under a white frontal "
                   "point light (the paper's supp. Figs 8–9), written by `reflectmm finetune`.", ""]
         for mp, (b, a) in shown:
-            lines += [f"`{_rel(mp, base)}`:", "", "| before | after |", "|---|---|",
-                      "| " + " | ".join(f"![{w}]({_rel(q, base)})" if q.is_file() else "missing"
+            lines += [f"`{_link_path(mp, base)}`:", "", "| before | after |", "|---|---|",
+                      "| " + " | ".join(f"![{w}]({_link_path(q, base)})" if q.is_file() else "missing"
                                         for w, q in (("before", b), ("after", a))) + " |", ""]
     if reconstruction or albedo:
         rows = paper_vs_ours_rows(ours, {k: f"`{v}`" if v else "" for k, v in commands.items()})

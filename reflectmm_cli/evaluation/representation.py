@@ -34,7 +34,7 @@ from .metrics import LPIPS, encode_for_metrics, psnr, ssim
 
 __all__ = ["Representation", "parse_exponent_sets", "default_representations", "holdout_pairs",
            "render_pairs_uv", "fit_diffuse_only", "compare_representations", "RepresentationResult",
-           "markdown_table", "comparison_figure", "DEFAULT_HOLDOUT"]
+           "comparison_table", "comparison_figure", "DEFAULT_HOLDOUT"]
 
 DEFAULT_HOLDOUT = ("05", "09")
 
@@ -375,21 +375,23 @@ def _figure_pair_index(obs, hp, figure_pair):
     return cand[int(np.argmax(counts))]
 
 
-def markdown_table(res: RepresentationResult) -> str:
-    """The comparison as a markdown table (mean over identities; best value per column in bold)."""
+def comparison_table(res: RepresentationResult) -> str:
+    """The comparison as a markdown table (mean over identities; best value per column in bold) and its footnote."""
+    from .reconstruction_eval import markdown_table
+
     has_lp = res.lpips is not None
     mp, ms = res.mean("psnr"), res.mean("ssim")
     ml = res.mean("lpips") if has_lp else None
     mt, sec = res.mean("train_psnr"), res.mean("fit_seconds")
-    head = "| representation | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train PSNR (dB) | fit time (s) |"
-    lines = [head, "|---|---:|---:|---:|---:|---:|"]
     bp, bs = np.nanargmax(mp), np.nanargmax(ms)
     bl = int(np.nanargmin(ml)) if has_lp else -1
+    rows = []
     for r, rep in enumerate(res.representations):
         b = lambda s, ok: f"**{s}**" if ok else s  # noqa: E731
-        lp_s = b(f"{ml[r]:.4f}", r == bl) if has_lp else "off"
-        lines.append(f"| {rep.name} | {b(f'{mp[r]:.2f}', r == bp)} | {b(f'{ms[r]:.4f}', r == bs)} | {lp_s} | "
-                     f"{mt[r]:.2f} | {sec[r]:.2f} |")
+        rows.append({"representation": rep.name, "PSNR (dB) ↑": b(f"{mp[r]:.2f}", r == bp),
+                     "SSIM ↑": b(f"{ms[r]:.4f}", r == bs),
+                     "LPIPS ↓": b(f"{ml[r]:.4f}", r == bl) if has_lp else "off",
+                     "train PSNR (dB)": f"{mt[r]:.2f}", "fit time (s)": f"{sec[r]:.2f}"})
     where = ("re-rendered in UV space over the texels observed in each held-out pair" if res.space == "uv" else
              "re-rendered in image space (fitted mesh ray cast into the capture windows) against the captured OLAT "
              "images over face ∧ inside the maps' UV domain ∧ lit ∧ unsaturated pixels")
@@ -400,7 +402,7 @@ def markdown_table(res: RepresentationResult) -> str:
                  f"{100 * np.nanmean(res.outside_domain):.2f} % (mean over identities).")
     if not has_lp:
         foot += " LPIPS: off (no weights given)."
-    return "\n".join(lines) + "\n" + foot + "\n"
+    return markdown_table(rows, align="lrrrrr") + "\n" + foot + "\n"
 
 
 def margin_of_multilobe(res: RepresentationResult) -> dict[str, Any] | None:
@@ -421,20 +423,15 @@ def margin_of_multilobe(res: RepresentationResult) -> dict[str, Any] | None:
             "identities_where_multilobe_wins_psnr": int(np.sum(np.all(per_id > 0, axis=1)))}
 
 
-def _error_colormap(err: np.ndarray, vmax: float) -> np.ndarray:
-    import cv2
-
-    x = np.clip(err / max(vmax, 1e-12), 0, 1)
-    cm = cv2.applyColorMap((x * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
-    return cm.astype(np.float64) / 255.0
-
-
 def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float = 0.05,
                       labels: Sequence[str] | None = None) -> np.ndarray:
     """Figure (H,W,3) in [0,1]: top row truth | each representation (display encoding), bottom row the absolute
-    error of each (display encoding, mean over channels; ``err_max`` → full scale, i.e. ×20 by default, inferno
-    colormap) over the observed texels; a label above each column."""
+    error of each (display encoding, mean over channels; ``err_max`` → full scale, i.e. ×20 by default, through
+    :func:`.figures.error_colormap`, the ramp of every error figure) over the observed texels; a label above each
+    column."""
     import cv2
+
+    from .figures import error_colormap
 
     fig = res.figure
     if not fig:
@@ -447,7 +444,7 @@ def comparison_figure(res: RepresentationResult, scale: int = 2, err_max: float 
         e = encode_for_metrics(img)
         tiles_top.append(np.where(m[..., None], e, 0.0))
         err = np.abs(e - tr).mean(-1)
-        tiles_bot.append(np.where(m[..., None], _error_colormap(err, err_max), 0.0))
+        tiles_bot.append(np.where(m[..., None], error_colormap(err, err_max), 0.0))
     names = ["truth"] + list(labels if labels is not None else [n for n, _ in fig["renders"]])
     S = tr.shape[0]
     size = max(S * scale, 96)

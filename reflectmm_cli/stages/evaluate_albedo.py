@@ -1,6 +1,7 @@
 """Stage ``evaluate-albedo``: the paper's Table 3 on held-out synthetic identities — each method's coefficients
 fitted to the identity's OLAT observations, diffuse and specular albedo PSNR / relative errors against the truth
-(library: :mod:`reflectmm_cli.evaluation.albedo_eval`, :mod:`reflectmm_cli.evaluation.tables`).
+(library: :mod:`reflectmm_cli.evaluation.albedo_eval`, :mod:`reflectmm_cli.evaluation.tables`; the inputs are read
+by :func:`reflectmm_cli.stages.evaluation_inputs.albedo_inputs`).
 
 Inputs: ``observations`` (uv-observations of the held-out identities), ``truth`` (their synth-truth files or
 the folder holding them, matched by identity), ``model_<name>`` per method (:mod:`.methods`). Outputs: an
@@ -50,6 +51,7 @@ def _outputs(ctx: StageContext) -> list[Path]:
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.methods import command_line, methods_from_inputs
     from reflectmm_cli.evaluation.tables import albedo_evaluation
+    from reflectmm_cli.stages.evaluation_inputs import albedo_inputs
 
     p = ctx.params
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), stage=VERB)
@@ -57,7 +59,8 @@ def run(ctx: StageContext) -> list[Path]:
     if int(p["max_identities"]) > 0:
         obs = obs[: int(p["max_identities"])]
     out = ctx.output_path()
-    res = albedo_evaluation(methods, obs, ctx.input_list("truth"), prior=float(p["prior"]), oracle=bool(p["oracle"]),
+    models, identities = albedo_inputs(methods, obs, ctx.input_list("truth"))
+    res = albedo_evaluation(models, identities, prior=float(p["prior"]), oracle=bool(p["oracle"]),
                             ours=str(p["ours"]), progress_fn=lambda it: progress(it, desc="albedo", unit="fit"))
     cmd = command_line(["evaluate", "albedo"], p, ctx.inputs, workspace=ctx.workspace, output=out,
                        role_options=ROLE_OPTIONS, declared=PARAMS)

@@ -94,7 +94,7 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.methods import command_line, methods_from_inputs
     from reflectmm_cli.evaluation.reconstruction_eval import markdown_table
     from reflectmm_cli.evaluation.results import evaluation_arrays
-    from reflectmm_cli.evaluation.tables import load_model
+    from reflectmm_cli.stages.evaluation_inputs import load_model
 
     p = ctx.params
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), stage=VERB)

@@ -1,7 +1,8 @@
 """Stage ``evaluate-reconstruction``: the paper's Table 2 on the test split of wild shards — each method's encoder
 reconstructs the images; face-region PSNR / SSIM / LPIPS (per image, mean ± 95 % CI, and the released code's
 protocol) and the reconstructed per-vertex reflectance against the truth (library:
-:func:`reflectmm_cli.evaluation.tables.reconstruction_evaluation`).
+:func:`reflectmm_cli.evaluation.tables.reconstruction_evaluation`; the shards are read and the encoders run by
+:mod:`reflectmm_cli.stages.evaluation_inputs`).
 
 Inputs: ``data`` (wild-shard files), ``light_model`` (the light PCA the encoders were trained with),
 ``model_<name>`` + ``encoder_<name>`` per method (:mod:`reflectmm_cli.evaluation.methods`), optional
@@ -73,6 +74,8 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.metrics import load_lpips
     from reflectmm_cli.evaluation.methods import command_line, methods_from_inputs
     from reflectmm_cli.evaluation.tables import reconstruction_evaluation
+    from reflectmm_cli.stages.evaluation_inputs import (load_light_model, reconstruction_predictions,
+                                                        select_wild_images, shard_arrays)
 
     p = ctx.params
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), need_encoder=True, stage=VERB)
@@ -83,15 +86,19 @@ def run(ctx: StageContext) -> list[Path]:
                              f"({', '.join(names)})")
     lw = ctx.input_list("lpips_weights", required=False)
     lp = load_lpips(lw[0] if lw else None, p["lpips_net"])
-    res = reconstruction_evaluation(methods, ctx.input_list("data"), ctx.input("light_model"), split=p["split"],
-                                    region=p["region"], lpips=lp,
+    shards, idx, encoding = select_wild_images(ctx.input_list("data"), p["split"], int(p["max_images"]))
+    light = load_light_model(ctx.input("light_model"))
+    sarr = shard_arrays(shards)
+    if "truth_vertex_albedo" not in sarr:
+        log.info("evaluate reconstruction: the shards carry no truth_vertex_albedo: image metrics only")
+    predictions = reconstruction_predictions(methods, shards, idx, light, batch_size=int(p["batch_size"]),
+                                             device=ctx.device, allow_other_model=p["allow_other_model"],
+                                             refine=refine_config(p), log=log.info)
+    res = reconstruction_evaluation(predictions, sarr, idx, encoding=encoding, region=p["region"], lpips=lp,
                                     lpips_name=(f"on ({p['lpips_net']})" if lp is not None
                                                 else "off (no weights given)"),
-                                    batch_size=int(p["batch_size"]), released_batch=int(p["released_batch"]),
-                                    ci=p["ci"], figure_images=int(p["figure_images"]),
-                                    max_images=int(p["max_images"]), gain=p["gain"], device=ctx.device,
-                                    allow_other_model=p["allow_other_model"], refine=refine_config(p),
-                                    log=log.info)
+                                    released_batch=int(p["released_batch"]), ci=p["ci"],
+                                    figure_images=int(p["figure_images"]), gain=p["gain"])
     out = ctx.output_path()
     png = out.with_suffix(".png")
     cmd = command_line(["evaluate", "reconstruction"], p, ctx.inputs, workspace=ctx.workspace, output=out,

@@ -1,6 +1,7 @@
 """Stage ``evaluate-relighting``: the paper's Fig. 7 on a held-out synthetic Multi-PIE identity — reconstruct
 from one image with each method, re-render under held-out flashes, compare with the captured OLAT images
-(library: :func:`reflectmm_cli.evaluation.tables.relighting_evaluation`).
+(library: :func:`reflectmm_cli.evaluation.tables.relighting_evaluation`; the artifacts are read and the encoders
+run by :mod:`reflectmm_cli.stages.evaluation_inputs`).
 
 Per identity. Inputs: ``capture`` (preprocess-multipie), ``geometry`` (fit-geometry), ``face_model``,
 ``light_model`` (for methods with an encoder), ``model_<name>`` [+ ``encoder_<name>``] per method, optional
@@ -63,19 +64,24 @@ def _outputs(ctx: StageContext) -> list[Path]:
 
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.methods import command_line, methods_from_inputs
-    from reflectmm_cli.evaluation.tables import relighting_evaluation
+    from reflectmm_cli.evaluation.tables import relighting_evaluation, relighting_selection
+    from reflectmm_cli.stages.evaluation_inputs import relighting_inputs, relighting_reflectances
 
     p = ctx.params
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), stage=VERB)
     lm = ctx.input_list("light_model", required=False)
     ob = ctx.input_list("observations", required=False)
-    res = relighting_evaluation(methods, ctx.input("capture"), ctx.input("geometry"), ctx.input("face_model"),
-                                light_model=lm[0] if lm else None, observations=ob[0] if ob else None,
-                                view=p["view"], input_light=p["input"], holdout=p.get("holdout"), size=int(p["size"]),
-                                encoding=p["encoding"], exposure=float(p["exposure"]), scale=p["scale"],
-                                prior=float(p["prior"]), device=ctx.device,
-                                allow_other_model=p["allow_other_model"], refine=refine_config(p),
-                                log=log.info)
+    cap, geo, fm = relighting_inputs(ctx.input("capture"), ctx.input("geometry"), ctx.input("face_model"))
+    sel = relighting_selection(cap, geo, view=p["view"], input_light=p["input"], holdout=p.get("holdout"),
+                               source=ctx.input("capture"))
+    reflectances = relighting_reflectances(methods, cap, geo, fm, sel, light_model=lm[0] if lm else None,
+                                           observations=ob[0] if ob else None, view=p["view"],
+                                           input_light=p["input"], size=int(p["size"]), encoding=p["encoding"],
+                                           exposure=float(p["exposure"]), prior=float(p["prior"]),
+                                           device=ctx.device, allow_other_model=p["allow_other_model"],
+                                           refine=refine_config(p))
+    res = relighting_evaluation(reflectances, cap, geo, fm, sel, view=p["view"], input_light=p["input"],
+                                scale=p["scale"], log=log.info)
     out = ctx.output_path()
     png = out.with_suffix(".png")
     cmd = command_line(["evaluate", "relighting"], p, ctx.inputs, workspace=ctx.workspace, output=out,

@@ -114,7 +114,7 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.metrics import load_lpips
     from reflectmm_cli.evaluation.representation import (comparison_figure, compare_representations,
                                                          default_representations, margin_of_multilobe,
-                                                         markdown_table)
+                                                         comparison_table)
 
     p = ctx.params
     files = ctx.input_list("observations")
@@ -137,7 +137,7 @@ def run(ctx: StageContext) -> list[Path]:
     res = compare_representations(obs, ids, reps, holdout, lp, fit_kwargs=kw,
                                   progress=lambda it, **k: progress(it, unit="id", **k), image_space=isr)
     out = ctx.output_path()
-    table = markdown_table(res)
+    table = comparison_table(res)
     margin = margin_of_multilobe(res)
     arrays = {"representations": np.array([r.name for r in reps], dtype=str), "ids": np.array(ids, dtype=str),
               "psnr": res.psnr, "ssim": res.ssim, "psnr_pairs": res.psnr_pairs, "ssim_pairs": res.ssim_pairs,
@@ -158,7 +158,7 @@ def run(ctx: StageContext) -> list[Path]:
                                "margin": margin, "table": table})
     head = ("# Representation comparison\n\nFigure: `" + out.with_suffix(".png").name + "` — identity "
             f"{res.figure.get('identity')}, view {res.figure.get('view')}, flash {res.figure.get('flash')}: "
-            "truth | " + " | ".join(r.name for r in reps) + " (top), absolute error of the display encoding ×20, inferno colormap (bottom).\n\n")
+            "truth | " + " | ".join(r.name for r in reps) + " (top), absolute error of the display encoding ×20, black → red → yellow → white (bottom).\n\n")
     md = head + table
     if margin:
         md += (f"\n{margin['multilobe']} vs the best global exponent ({margin['best_global']}): "
@@ -172,5 +172,5 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 # version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail version 4: adaptive
-STAGE = Stage(VERB, version=4, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
+STAGE = Stage(VERB, version=5, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
               help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes", inputs=INPUTS)

@@ -84,6 +84,11 @@ def test_image_metrics_table_on_shard_like_arrays():
     assert row["LPIPS"] == "off" and "albedo rel (scaled)" in row and "±" in row["PSNR"]
     md = markdown_table([row, {"method": "w/o finetune"}])
     assert md.count("\n") == 3 and md.startswith("| method |")
+    assert md.splitlines()[1] == "|" + "---|" * len(row)
+    right = markdown_table([{"a": "x", "b": "1"}], align="lr")
+    assert right == "| a | b |\n|---|---:|\n| x | 1 |"
+    with pytest.raises(ValueError, match="align"):
+        markdown_table([{"a": "x", "b": "1"}], align="l")
 
 
 def test_figure_panels_and_error_ramp(tmp_path):

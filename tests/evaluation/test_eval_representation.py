@@ -3,9 +3,11 @@ import numpy as np
 import pytest
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.evaluation.representation import (compare_representations, default_representations,
-                                                     fit_diffuse_only, holdout_pairs, margin_of_multilobe,
-                                                     markdown_table, parse_exponent_sets, render_pairs_uv)
+from reflectmm_cli.evaluation.figures import error_colormap
+from reflectmm_cli.evaluation.metrics import encode_for_metrics
+from reflectmm_cli.evaluation.representation import (comparison_figure, comparison_table, compare_representations,
+                                                     default_representations, fit_diffuse_only, holdout_pairs,
+                                                     margin_of_multilobe, parse_exponent_sets, render_pairs_uv)
 from reflectmm_cli.evaluation.truth import geometry_errors, global_scale, kabsch, reflectance_errors
 from reflectmm_cli.reflectance.simulate import simulate_observations
 
@@ -99,8 +101,23 @@ def test_three_lobe_beats_global_exponents_on_three_lobe_truth(exact_obs):
     mg = margin_of_multilobe(res)
     assert mg["beats_every_global_psnr"] and mg["psnr_margin_db"] > 1.0
     assert res.lpips is None
-    table = markdown_table(res)
+    table = comparison_table(res)
     assert "LPIPS: off (no weights given)" in table and "| off |" in table
+    assert table.splitlines()[:2] == ["| representation | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train PSNR (dB) | "
+                                      "fit time (s) |", "|---|---:|---:|---:|---:|---:|"]
+    assert f"| 3-lobe (1,8,64) | **{mp[i3]:.2f}** |" in table
+    # the error row of the figure is the ramp of every error figure (figures.error_colormap), ×20
+    fig, f = comparison_figure(res), res.figure
+    S = f["truth"].shape[0]
+    size, pad, lab_h = max(2 * S, 96), 2, 16
+    m = f["mask"][..., None]
+    tr = encode_for_metrics(f["truth"])
+    for j, (_name, img) in enumerate(f["renders"], start=1):
+        want = np.where(m, error_colormap(np.abs(encode_for_metrics(img) - tr).mean(-1), 0.05), 0.0)
+        want = np.repeat(np.repeat(want, size // S, 0), size // S, 1)
+        y, x = pad + lab_h + size + pad, j * (size + 2 * pad) + pad
+        np.testing.assert_allclose(fig[y:y + size, x:x + size], want, atol=1e-6)
+        assert j > 1 or np.any((want > 0) & (want < 1))  # a real ramp value is compared, not only black/white
     assert res.psnr_pairs.shape == (2, len(names), 18)
 
 
@@ -154,7 +171,7 @@ def test_image_space_region_is_the_maps_domain(exact_obs):
               for f, o, h in zip(fakes, obs, held)]
     np.testing.assert_allclose(img.outside_domain, expect, rtol=1e-12)
     assert np.isnan(uv.outside_domain).all()
-    assert "leaves the maps' domain" in markdown_table(img)
+    assert "leaves the maps' domain" in comparison_table(img)
 
 
 def test_reflectance_errors_known_truth_and_scale():

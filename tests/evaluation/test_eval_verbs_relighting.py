@@ -130,7 +130,7 @@ def test_evaluate_relighting_cli(world, cli):
 def test_input_crop_gbuffer_lines_up_with_the_aligned_image(world):
     """The crop's G-buffer (fitted geometry seen by the composed crop camera) covers the pixels where the warped
     image shows the face — also with noisy landmarks (they move the crop, and the G-buffer moves with it)."""
-    from reflectmm_cli.evaluation.tables import input_crop
+    from reflectmm_cli.stages.evaluation_inputs import input_crop
 
     cap, geo = world["capture"], world["geometry"]
     noisy = cap["landmarks"][0] + np.random.default_rng(1).normal(0, 1.5, (68, 2))  # a detector's landmarks
