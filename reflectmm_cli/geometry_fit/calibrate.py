@@ -975,7 +975,9 @@ def simulate_landmarks(model: ShapeModel, rig: Rig, camera_names: Sequence[str],
 
 
 def align_to(cal_centers: np.ndarray, true_centers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rigid (no scale) alignment of fitted camera centres to true ones: returns (R, t, residual mm (C,))."""
+    """Rigid (no scale) alignment of fitted camera centres to true ones: returns (R, t, residual mm (C,))
+    (:func:`reflectmm_cli.geometry_fit.init.rigid_align`, i.e. :func:`reflectmm_cli.geometry.align.rigid_align`
+    plus the residuals)."""
     return rigid_align(cal_centers, true_centers)
 
 
