@@ -784,7 +784,8 @@ def _calibration_report(prob: _Problem, st: _State, setup: _RigSetup, res: _Resi
         "cost_final": history[-1]["cost"] if history else None, "history": history,
         "seconds": round(time.perf_counter() - t_start, 3),
         "camera_shift_mm": {n: round(float(np.linalg.norm(c[k] - setup.c0[k])), 3) for k, n in enumerate(names)},
-        "camera_turn_deg": {n: round(float(np.degrees(rotation_angle(R[k], setup.R0[k]))), 4) for k, n in enumerate(names)},
+        "camera_turn_deg": {n: round(float(np.degrees(rotation_angle(R[k], setup.R0[k]))), 4)
+                            for k, n in enumerate(names)},
         "focal_px": [round(float(v), 3) for v in f],
         "config": cfg.as_dict(), "scale_anchor": anchor,
     }
