@@ -1,11 +1,27 @@
-"""Thread helpers: scoped thread limits for torch work on small problems or shared CPUs, and an ordered map
-on a thread pool."""
+"""Thread helpers: the one rule for default thread counts, scoped thread limits for torch work on small
+problems or shared CPUs, and an ordered map on a thread pool."""
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (≥ 1): its affinity mask where the OS has one (so ``taskset`` and cgroup
+    cpusets are honoured), else ``os.cpu_count()``."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def default_threads(cap: int) -> int:
+    """The toolkit's default worker/thread count when the caller gives none: :func:`available_cpus` capped at
+    ``cap`` (the most the site's work gains from; ≥ 1)."""
+    return max(1, min(available_cpus(), int(cap)))
 
 
 @contextmanager

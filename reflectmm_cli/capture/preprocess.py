@@ -26,6 +26,7 @@ from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import N_LANDMARKS, check_in_frame, read_landmarks
 from reflectmm_cli.params import parse_list
+from reflectmm_cli.threads import default_threads
 
 log = logging.getLogger("reflectmm")
 
@@ -166,7 +167,7 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
     olat = np.empty((V, F, ch, cw, 3), dtype=np.float16)
     sat = np.empty((V, F, ch, cw), dtype=bool)
     room = np.empty((V, ch, cw, 3), dtype=np.float16)
-    with ThreadPoolExecutor(max_workers=max(1, min(4, os.cpu_count() or 1))) as pool:  # PNG decoding releases the GIL
+    with ThreadPoolExecutor(max_workers=default_threads(4)) as pool:  # PNG decoding releases the GIL
         for vi in range(V):
             win = None if origins is None else (int(origins[vi][0]), int(origins[vi][1]), cw, ch)
             r = rooms[vi]

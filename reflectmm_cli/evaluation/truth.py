@@ -25,6 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.align import rigid_align
 
 __all__ = ["reflectance_errors", "geometry_errors", "global_scale", "kabsch"]
 
@@ -94,13 +95,10 @@ def reflectance_errors(maps: Mapping[str, np.ndarray], truth: Mapping[str, np.nd
 
 
 def kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R and translation t minimising Σ ‖R a_i + t − b_i‖² (proper rotation)."""
-    ca, cb = a.mean(0), b.mean(0)
-    H = (a - ca).T @ (b - cb)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, cb - R @ ca
+    """Rotation R and translation t minimising Σ ‖R a_i + t − b_i‖² (proper rotation;
+    :func:`reflectmm_cli.geometry.align.rigid_align` without scale)."""
+    R, t, _ = rigid_align(a, b)
+    return R, t
 
 
 def geometry_errors(geometry: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray]) -> dict[str, Any]:

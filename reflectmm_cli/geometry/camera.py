@@ -1,5 +1,5 @@
-"""Pinhole cameras in the OpenCV convention (docs/pipeline.md): the one home of projection, intrinsics,
-look-at and rotations (numpy and torch).
+"""Pinhole cameras in the OpenCV convention (docs/pipeline.md): the one home of projection, intrinsics and
+look-at; the rotations (numpy and torch) live in :mod:`reflectmm_cli.geometry.rotations` and are re-exported here.
 
 ``x_cam = R @ x_model + t``; ``u = fx·X/Z + s·Y/Z + cx``, ``v = fy·Y/Z + cy``; ``Z > 0`` in front of the
 camera, image ``y`` down, the centre of the top-left pixel is ``(0, 0)``.  Camera centre ``c = −Rᵀt``.
@@ -11,18 +11,15 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
+from .rotations import _is_torch, axis_angle_to_matrix, look_at_rotation, matrix_to_axis_angle, skew
+
 __all__ = ["Camera", "look_at", "look_at_rotation", "deep3d_camera", "orbit_camera", "parse_camera_spec", "project",
            "camera_centers", "intrinsics", "skew", "axis_angle_to_matrix", "matrix_to_axis_angle"]
-
-
-def _is_torch(x) -> bool:
-    return type(x).__module__.startswith("torch")
 
 
 @dataclass
@@ -159,75 +156,12 @@ def camera_centers(R, t):
     return -np.einsum("...ji,...j->...i", R, t)
 
 
-def skew(w):
-    """(..., 3) → (..., 3, 3) cross-product matrices ``[w]×`` with ``[w]× v = w × v``."""
-    import torch
-
-    z = torch.zeros_like(w[..., 0])
-    return torch.stack([
-        torch.stack([z, -w[..., 2], w[..., 1]], -1),
-        torch.stack([w[..., 2], z, -w[..., 0]], -1),
-        torch.stack([-w[..., 1], w[..., 0], z], -1),
-    ], -2)
-
-
-def axis_angle_to_matrix(w):
-    """Rodrigues: (..., 3) axis-angle (radians, |w| = angle) → (..., 3, 3) rotation matrices.
-
-    ``R = I + sin θ/θ [w]× + (1 − cos θ)/θ² [w]×²``; for θ < 1e-4 the Taylor series is used so the value and
-    the gradient are exact at and near zero (the fit starts every update at exactly zero).
-    """
-    import torch
-
-    theta2 = (w * w).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
-    small = theta2 < 1e-8
-    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
-    theta = torch.sqrt(theta2_safe)
-    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, (1.0 - torch.cos(theta)) / theta2_safe)
-    K = skew(w)
-    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(K.shape)
-    return eye + a * K + b * (K @ K)
-
-
-def matrix_to_axis_angle(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices → (..., 3) axis-angle vectors (numpy, robust near 0 and π)."""
-    from scipy.spatial.transform import Rotation
-
-    R = np.asarray(R, dtype=np.float64)
-    flat = R.reshape(-1, 3, 3)
-    out = Rotation.from_matrix(flat).as_rotvec()
-    return out.reshape(R.shape[:-2] + (3,))
-
-
 def intrinsics(focal_px: float, width: int, height: int, cx: float | None = None, cy: float | None = None,
                fy: float | None = None) -> np.ndarray:
     """K with the principal point at the image centre ``((W−1)/2, (H−1)/2)`` unless given."""
     cx = (width - 1) / 2.0 if cx is None else cx
     cy = (height - 1) / 2.0 if cy is None else cy
     return np.array([[focal_px, 0, cx], [0, focal_px if fy is None else fy, cy], [0, 0, 1]], dtype=np.float64)
-
-
-def look_at_rotation(position: Sequence[float], target: Sequence[float], up: Sequence[float]) -> np.ndarray:
-    """World-to-camera rotation R (rows = camera x, y, z axes in world coordinates).
-
-    Camera +z points from ``position`` to ``target``; camera +y is image-down, i.e. opposite to ``up``
-    projected onto the image plane; camera +x = y × z (image right).  Raises ValueError when degenerate.
-    """
-    c = np.asarray(position, np.float64)
-    z = np.asarray(target, np.float64) - c
-    nz = np.linalg.norm(z)
-    if nz <= 0:
-        raise ValueError("look_at equals position")
-    z = z / nz
-    u = np.asarray(up, np.float64)
-    y = -(u - np.dot(u, z) * z)
-    ny = np.linalg.norm(y)
-    if ny <= 1e-9 * max(np.linalg.norm(u), 1e-300):
-        raise ValueError("up is parallel to the viewing direction")
-    y = y / ny
-    x = np.cross(y, z)
-    return np.stack([x, y, z])
 
 
 def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), focal_px: float = 1500.0, width: int = 640,

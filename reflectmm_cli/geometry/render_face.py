@@ -252,7 +252,7 @@ def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model
             K = load_sh(sh)
             light = {"type": "sh", "file": Path(sh).name, "sh_order": int(np.sqrt(K.shape[1])) - 1}
         if env_rotation:
-            from reflectmm_cli.model.light import rotation_y
+            from reflectmm_cli.geometry.rotations import rotation_y
             from reflectmm_cli.shading import sh_rotation
 
             order = int(round(np.sqrt(K.shape[1]))) - 1

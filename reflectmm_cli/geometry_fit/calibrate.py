@@ -43,6 +43,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.rotations import nearest_rotation, rodrigues, rotation_angle, skew
 from reflectmm_cli.geometry_fit.init import rigid_align
 from reflectmm_cli.geometry_fit.landmarks import landmark_weights
 from reflectmm_cli.geometry_fit.model import ShapeModel
@@ -184,38 +185,7 @@ class RigCalibration:
         return Rig(cams, fls)
 
 
-# --------------------------------------------------------------------------- small maths
-
-def rodrigues(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of axis-angle vectors (..., 3) (radians); exact near 0."""
-    w = np.asarray(w, np.float64)
-    th2 = (w * w).sum(-1)[..., None, None]
-    th = np.sqrt(th2)
-    small = th2 < 1e-16
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    Kx = np.zeros(w.shape[:-1] + (3, 3))
-    Kx[..., 0, 1], Kx[..., 0, 2] = -w[..., 2], w[..., 1]
-    Kx[..., 1, 0], Kx[..., 1, 2] = w[..., 2], -w[..., 0]
-    Kx[..., 2, 0], Kx[..., 2, 1] = -w[..., 1], w[..., 0]
-    return np.eye(3) + a * Kx + b * (Kx @ Kx)
-
-
-def _rot_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
-    c = (np.einsum("...ij,...ij->...", Ra, Rb) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
-
-
 # --------------------------------------------------------------------------- the problem
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """[v]× (..., 3, 3) of vectors (..., 3)."""
-    K = np.zeros(v.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
-    return K
-
 
 class _State:
     """Current estimate: cameras (R, c, log f), heads (R_h, t_h), σ-unit shape/expression coefficients z."""
@@ -346,14 +316,14 @@ class _Problem:
             r = sw[..., None] * (uv - self.obs[sl])                                     # (n, C, 68, 2)
             Ds = D * sw[..., None, None]
             # camera blocks
-            Jc_rot = -np.einsum("nclab,nclbd->nclad", Ds, _skew(Xc)) * self.ROT_UNIT
+            Jc_rot = -np.einsum("nclab,nclbd->nclad", Ds, skew(Xc)) * self.ROT_UNIT
             Jc_pos = -np.einsum("nclab,cbd->nclad", Ds, s.R) * self.POS_UNIT
             parts = [Jc_rot, Jc_pos]
             if self.nf:
                 parts.append((sw[..., None] * (uv - self.pp[None, :, None, :]) * self.F_UNIT)[..., None])
             Jc = np.concatenate(parts, -1)                                              # (n, C, 68, 2, nl)
             DR = np.einsum("nclab,cbd->nclad", Ds, s.R)                                  # (n, C, 68, 2, 3)
-            Jh_rot = -np.einsum("nclab,nlbd->nclad", DR, _skew(RhL)) * self.ROT_UNIT
+            Jh_rot = -np.einsum("nclab,nlbd->nclad", DR, skew(RhL)) * self.ROT_UNIT
             Jh_pos = DR * self.POS_UNIT
             DRR = np.einsum("nclab,nbd->nclad", DR, s.Rh[sl])
             Jz = np.einsum("nclab,lbk->nclak", DRR, self.Bl)
@@ -707,9 +677,7 @@ def _reframe(st: _State) -> None:
     """Express ``st`` (in place) in the rig table's convention: origin at the identities' mean head position, axes
     along their mean head orientation (x' = R̄ᵀ (x − t̄), R̄ the rotation nearest the mean of the R_h).  The
     landmarks fix the scene only up to a rigid motion, so every projection is unchanged."""
-    Mh = st.Rh.mean(0)
-    U, _, Vt = np.linalg.svd(Mh)
-    Rbar = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    Rbar = nearest_rotation(st.Rh.mean(0))
     tbar = st.th.mean(0)
     st.R = np.einsum("cij,jk->cik", st.R, Rbar)
     st.c = (st.c - tbar) @ Rbar
@@ -816,7 +784,8 @@ def _calibration_report(prob: _Problem, st: _State, setup: _RigSetup, res: _Resi
         "cost_final": history[-1]["cost"] if history else None, "history": history,
         "seconds": round(time.perf_counter() - t_start, 3),
         "camera_shift_mm": {n: round(float(np.linalg.norm(c[k] - setup.c0[k])), 3) for k, n in enumerate(names)},
-        "camera_turn_deg": {n: round(float(_rot_angle_deg(R[k], setup.R0[k])), 4) for k, n in enumerate(names)},
+        "camera_turn_deg": {n: round(float(np.degrees(rotation_angle(R[k], setup.R0[k]))), 4)
+                            for k, n in enumerate(names)},
         "focal_px": [round(float(v), 3) for v in f],
         "config": cfg.as_dict(), "scale_anchor": anchor,
     }
@@ -1007,7 +976,9 @@ def simulate_landmarks(model: ShapeModel, rig: Rig, camera_names: Sequence[str],
 
 
 def align_to(cal_centers: np.ndarray, true_centers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rigid (no scale) alignment of fitted camera centres to true ones: returns (R, t, residual mm (C,))."""
+    """Rigid (no scale) alignment of fitted camera centres to true ones: returns (R, t, residual mm (C,))
+    (:func:`reflectmm_cli.geometry_fit.init.rigid_align`, i.e. :func:`reflectmm_cli.geometry.align.rigid_align`
+    plus the residuals)."""
     return rigid_align(cal_centers, true_centers)
 
 

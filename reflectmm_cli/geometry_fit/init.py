@@ -6,6 +6,7 @@ import logging
 
 import numpy as np
 
+from reflectmm_cli.geometry import align
 from reflectmm_cli.geometry.camera import camera_centers, project
 
 log = logging.getLogger("reflectmm")
@@ -67,19 +68,14 @@ def initial_poses(landmarks3d: np.ndarray, landmarks2d: np.ndarray, K: np.ndarra
 
 
 def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least-squares rigid transform (Kabsch, no scale) with ``dst ≈ src @ Rᵀ + t``.
+    """Least-squares rigid transform (Kabsch, no scale) with ``dst ≈ src @ Rᵀ + t``
+    (:func:`reflectmm_cli.geometry.align.rigid_align`, plus the residuals).
 
     Returns (R (3, 3), t (3,), residual (n,) distances after alignment).  Needs ≥ 3 non-collinear points.
     """
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
-    ms, md = src.mean(0), dst.mean(0)
-    H = (src - ms).T @ (dst - md)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    D = np.diag([1.0, 1.0, d])
-    R = Vt.T @ D @ U.T
-    t = md - R @ ms
+    R, t, _ = align.rigid_align(src, dst)
     res = np.linalg.norm(src @ R.T + t - dst, axis=-1)
     return R, t, res
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from reflectmm_cli.color import linear_to_gamma
 from reflectmm_cli.errors import ReflectmmError
-
+from reflectmm_cli.geometry.rotations import rotation_x, rotation_y  # re-exported (public names of this module)
 from reflectmm_cli.shading._array import any_torch, device_of
 from reflectmm_cli.shading.envmap import envmap_from_sh, envmap_rgb, project_envmap
 from reflectmm_cli.shading.sh import sh_rotation
@@ -83,18 +83,6 @@ def find_envmaps(inputs: Iterable[str | Path]) -> list[Path]:
         else:
             files.append(p)
     return files
-
-
-def rotation_y(angle: float) -> np.ndarray:
-    """Rotation by ``angle`` radians about +y (right-handed; +z goes towards +x)."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rotation_x(angle: float) -> np.ndarray:
-    """Rotation by ``angle`` radians about +x (right-handed; +y goes towards +z)."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def augmentation_rotations(rotations: int = 1, tilt_deg: float = 0.0) -> list[np.ndarray]:

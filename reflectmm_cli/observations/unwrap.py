@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
@@ -31,6 +30,7 @@ from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import project
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
+from reflectmm_cli.threads import default_threads
 
 log = logging.getLogger("reflectmm")
 
@@ -316,7 +316,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         # texels without observations are 0 anyway; the texels are independent, so interleaved rows run in
         # threads (numpy releases the GIL in the per-texel linear algebra)
         need = g.mask & (obs_count > 0)
-        workers = max(1, min(2, os.cpu_count() or 1))
+        workers = default_threads(2)
         rows = np.arange(S)[:, None]
         masks = [need & (rows % workers == k) for k in range(workers)]
 

@@ -16,7 +16,7 @@ from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_d
 from .sh import blinn_phong_norm
 
 __all__ = ["blinn_phong_norm", "shade_directional", "DEFAULT_EXPONENTS", "MAX_EXPONENT", "LOBE_RCOND_MIN",
-           "lobe_similarity", "check_exponents", "check_distinct_exponents"]
+           "lobe_similarity", "check_exponents", "check_distinct_exponents", "ExponentError"]
 
 #: The paper's three lobes: the one default set of Blinn-Phong exponents (fit, unwrap, simulate, synth).
 DEFAULT_EXPONENTS = (1.0, 8.0, 64.0)
@@ -52,47 +52,70 @@ def _collinear_pair(ps: list[float]) -> tuple[float, float] | None:
     return None
 
 
-def check_exponents(exponents) -> None:
-    """Refuse a lobe-exponent set that no fit can use (raises ValueError with one line saying why).
+class ExponentError(ValueError):
+    """A lobe-exponent set :func:`check_exponents` refused.  ``kind`` says which rule: ``"empty"``,
+    ``"nonpositive"``, ``"too_large"`` or ``"collinear"``; ``values`` the offending exponent(s) (the pair for
+    ``"collinear"``), so a caller can word its own one-line error."""
 
-    Every p must be finite, in (0, :data:`MAX_EXPONENT`], and no two lobes may be numerically collinear
+    def __init__(self, message: str, kind: str, values: tuple[float, ...] = ()):
+        super().__init__(message)
+        self.kind, self.values = kind, values
+
+
+def check_exponents(exponents, *, positive: bool = True, max_exponent: float | None = MAX_EXPONENT,
+                    distinct: bool = True, nonempty: bool = True) -> None:
+    """Refuse a lobe-exponent set that no fit can use (raises :class:`ExponentError`, a ValueError, with one line
+    saying why): the one exponent check of the toolkit.
+
+    Every p must be finite and > 0, at most :data:`MAX_EXPONENT`, and no two lobes may be numerically collinear
     (:data:`LOBE_RCOND_MIN`): duplicates such as ``1,1,8`` or ``1,1.0000001,8`` would make every texel's
-    design rank-deficient.  The parameter check of every stage that takes exponents.
+    design rank-deficient.  The parameter check of every stage that takes exponents; the library guards
+    (:func:`check_distinct_exponents`, the shading functions' argument check) call it with only their rules
+    switched on: ``positive`` (finite and > 0), ``max_exponent`` (None = no bound), ``distinct`` (no collinear
+    pair), ``nonempty`` (at least one exponent).  Rules are applied exponent by exponent in order (positivity,
+    then bound), then the collinearity of the first offending pair.
     """
     ps = [float(p) for p in exponents]
-    if not ps:
-        raise ValueError("no exponents")
+    if nonempty and not ps:
+        raise ExponentError("no exponents", "empty")
     for p in ps:
-        if not math.isfinite(p) or p <= 0:
-            raise ValueError(f"exponent {p:g} must be > 0")
-        if p > MAX_EXPONENT:
-            raise ValueError(f"exponent {p:g} is above the maximum {MAX_EXPONENT:g} (a lobe that sharp is "
-                             "narrower than a capture resolves)")
-    pair = _collinear_pair(ps)
+        if positive and (not math.isfinite(p) or p <= 0):
+            raise ExponentError(f"exponent {p:g} must be > 0", "nonpositive", (p,))
+        if max_exponent is not None and p > max_exponent:
+            raise ExponentError(f"exponent {p:g} is above the maximum {max_exponent:g} (a lobe that sharp is "
+                                "narrower than a capture resolves)", "too_large", (p,))
+    pair = _collinear_pair(ps) if distinct else None
     if pair is not None:
         what = "duplicate" if pair[0] == pair[1] else "near-duplicate"
-        raise ValueError(f"{what} exponents {pair[0]:.10g} and {pair[1]:.10g}: their lobes are numerically "
-                         "collinear (give distinct exponents, e.g. 1,8,64)")
+        raise ExponentError(f"{what} exponents {pair[0]:.10g} and {pair[1]:.10g}: their lobes are numerically "
+                            "collinear (give distinct exponents, e.g. 1,8,64)", "collinear", pair)
 
 
 def check_distinct_exponents(exponents, what: str = "exponents") -> None:
     """The library's own guard (fit_maps, build-pca), whatever the caller validated: a one-line ReflectmmError if
-    two exponents give numerically collinear lobes (the same rule as :func:`check_exponents`; large p are
+    two exponents give numerically collinear lobes (:func:`check_exponents` with only that rule; large p are
     allowed here, the shading core handles them cheaply)."""
-    pair = _collinear_pair([float(p) for p in np.asarray(exponents, dtype=np.float64).reshape(-1)])
-    if pair is not None:
-        s = lobe_similarity(*pair)
+    try:
+        check_exponents(np.asarray(exponents, dtype=np.float64).reshape(-1), positive=False, max_exponent=None,
+                        nonempty=False)
+    except ExponentError as exc:
+        s = lobe_similarity(*exc.values)
         raise ReflectmmError(
-            f"{what}: {pair[0]:.10g} and {pair[1]:.10g} give numerically collinear lobes (similarity 1 − "
-            f"{max(1.0 - s, 0.0):.1e}); their weights cannot be told apart — drop one or separate them further")
+            f"{what}: {exc.values[0]:.10g} and {exc.values[1]:.10g} give numerically collinear lobes (similarity 1 − "
+            f"{max(1.0 - s, 0.0):.1e}); their weights cannot be told apart — drop one or separate them further"
+        ) from None
 
 
 def _check_exponents(p, tm):
+    """The shading functions' argument check of (K,) ``exponents`` (numpy or torch, already finite): the shape,
+    then :func:`check_exponents`' positivity rule on the smallest exponent, as a ReflectmmError."""
     if p.ndim != 1 or p.shape[0] < 1:
         raise ReflectmmError(f"shading: argument 'exponents' must have shape (K,), got {tuple(p.shape)}")
     pmin = float((p.detach() if tm else p).min())
-    if pmin <= 0:
-        raise ReflectmmError(f"shading: argument 'exponents' must be > 0, got min {pmin}")
+    try:
+        check_exponents([pmin], max_exponent=None, distinct=False)
+    except ExponentError:
+        raise ReflectmmError(f"shading: argument 'exponents' must be > 0, got min {pmin}") from None
 
 
 def shade_directional(albedo, weights, exponents, normal, light_dir, view_dir, irradiance, *,

@@ -21,6 +21,7 @@ import numpy as np
 
 from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.rotations import euler_yxz_to_matrix
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_directional, ggx_specular_albedo
 from reflectmm_cli.synth.skin import region_masks
@@ -74,10 +75,7 @@ def head_pose_rotation(yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float =
     +z out of the face).  Yaw > 0 turns the face towards the model's +x, pitch > 0 tilts the chin up.
     The model → OpenCV camera rotation of the Deep3D camera is ``diag(1, −1, −1) · head_pose_rotation(...)``."""
     y, p, r = (math.radians(float(a)) for a in (yaw_deg, pitch_deg, roll_deg))
-    Ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
-    Rx = np.array([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]])
-    Rz = np.array([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]])
-    return Rz @ Rx @ Ry
+    return euler_yxz_to_matrix(y, p, r)
 
 
 # --------------------------------------------------------------------------- identities

@@ -174,3 +174,33 @@ def test_property_nonfinite_rejected_naming_the_argument(name, bad, pos, use_tor
         args = {k: torch.tensor(v) for k, v in args.items()}
     with pytest.raises(ReflectmmError, match=f"'{name}'.*NaN or inf"):
         shade_directional(**args)
+
+
+def test_one_exponent_rule_behind_every_guard():
+    """check_exponents holds the rules; check_distinct_exponents and the shading argument check apply only
+    their own subset through it and keep their wording."""
+    import torch
+
+    from reflectmm_cli.shading.brdf import (ExponentError, _check_exponents, check_distinct_exponents,
+                                            check_exponents)
+
+    for bad, kind, values in (([], "empty", ()), ([8, -1], "nonpositive", (-1.0,)), ([1, 2e4], "too_large", (2e4,)),
+                              ([1, 8, 8.0000001], "collinear", (8.0, 8.0000001))):
+        with pytest.raises(ExponentError) as exc:
+            check_exponents(bad)
+        assert exc.value.kind == kind and exc.value.values == values and isinstance(exc.value, ValueError)
+    check_exponents([1, 2e4], max_exponent=None)
+    check_exponents([1, 1], distinct=False)
+    check_exponents([], nonempty=False)
+    # the library guard: collinearity only (huge p allowed), a ReflectmmError in its own words
+    check_distinct_exponents([1, 8, 2e5])
+    check_distinct_exponents([])
+    with pytest.raises(ReflectmmError, match=r"^build-pca: 8 and 8 give numerically collinear lobes \(similarity 1 − "):
+        check_distinct_exponents([1, 8, 8], "build-pca")
+    # the shading argument check: shape, then positivity of the smallest exponent (numpy and torch)
+    for tm, arr in ((False, np.array), (True, torch.tensor)):
+        _check_exponents(arr([1.0, 1.0, 2e5]), tm)
+        with pytest.raises(ReflectmmError, match=r"must be > 0, got min -2\.0$"):
+            _check_exponents(arr([3.0, -2.0, 0.0]), tm)
+        with pytest.raises(ReflectmmError, match="shape"):
+            _check_exponents(arr([[1.0]]), tm)
