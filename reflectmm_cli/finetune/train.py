@@ -116,7 +116,6 @@ class Trainer:
         from .render import ModelParams
 
         check_inputs(shards, model, light)
-        self.torch = torch
         self.shards, self.model, self.light, self.cfg = shards, model, light, config
         self.workdir = Path(workdir)
         self.device = torch.device(device)
@@ -170,7 +169,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ optimiser / phases
     def _optimizer(self, phase):
-        torch = self.torch
+        import torch
+
         cfg = self.cfg
         groups = [{"params": list(self.encoder.parameters()), "lr": cfg.lr1 if phase == 1 else cfg.lr2}]
         if phase == 2:
@@ -182,9 +182,7 @@ class Trainer:
 
         if self.phase == 2:
             return
-        cur = self.params
         self.params = ModelParams(self.model, self.device, trainable=self.cfg.trainable, n_components=self.M)
-        assert cur is not None
         self.phase = 2
         self.opt = self._optimizer(2)
 
@@ -207,8 +205,9 @@ class Trainer:
             out.append(basis)
         return out
 
-    def _forward(self, idx, train: bool):
-        torch = self.torch
+    def _forward(self, idx):
+        import torch
+
         from . import losses as L
         from .render import batch_gbuffer, scatter_pixels
 
@@ -260,7 +259,8 @@ class Trainer:
         """(targets, reconstructions), each (n, S, S, 3) linear float32, of the first ``n`` validation images (the
         reconstruction over the target outside the face); None without a "val" split.  Eval mode, no gradient:
         training is not changed by it."""
-        torch = self.torch
+        import torch
+
         from .render import batch_gbuffer, scatter_pixels
 
         idx = self.val_idx[:n]
@@ -285,7 +285,8 @@ class Trainer:
         return lm[np.asarray(idx)]
 
     def _target_features(self, idx, lin, lms):
-        torch = self.torch
+        import torch
+
         missing = [j for j, i in enumerate(idx) if str(self.shards.names[i]) not in self.feat_cache]
         if missing:
             with torch.no_grad():
@@ -295,7 +296,8 @@ class Trainer:
         return torch.stack([self.feat_cache[str(self.shards.names[i])] for i in idx])
 
     def _validate(self):
-        torch = self.torch
+        import torch
+
         if len(self.val_idx) == 0:
             return None
         self.encoder.eval()
@@ -303,7 +305,7 @@ class Trainer:
         with torch.no_grad():
             for s0 in range(0, len(self.val_idx), self.B):
                 idx = self.val_idx[s0:s0 + self.B]
-                total, terms, _ = self._forward(idx, train=False)
+                total, terms, _ = self._forward(idx)
                 for k, v in {"total": total, **terms}.items():
                     sums[k] = sums.get(k, 0.0) + float(v) * len(idx)
                 n += len(idx)
@@ -379,6 +381,7 @@ class Trainer:
         return self.workdir / LOG_NAME
 
     def save_checkpoint(self):
+        import torch
         from safetensors.torch import save
 
         from reflectmm_cli.artifacts import atomic_write_bytes, canonical_json
@@ -390,7 +393,7 @@ class Trainer:
         sd = self.opt.state_dict()
         for pi, st in sd["state"].items():
             for k, v in st.items():
-                tensors[f"opt/{pi}/{k}"] = (v if self.torch.is_tensor(v) else self.torch.tensor(v)).detach().cpu()
+                tensors[f"opt/{pi}/{k}"] = (v if torch.is_tensor(v) else torch.tensor(v)).detach().cpu()
         meta = {"schema": CHECKPOINT_SCHEMA, "phase": self.phase, "plan_index": self.pos[0], "step": self.pos[1],
                 "global_step": self.global_step, "config": self.cfg.to_dict(),
                 "param_groups": [{k: v for k, v in g.items() if k != "params"} | {"params": g["params"]}
@@ -401,6 +404,7 @@ class Trainer:
 
     def load_checkpoint(self) -> bool:
         """Restore the last checkpoint if there is one (returns False if none). Refuses a different config/data."""
+        import torch
         from safetensors import safe_open
 
         p = self.ckpt_path
@@ -424,7 +428,7 @@ class Trainer:
         if meta["phase"] == 2:
             self._enter_phase2()
             for k, v in self.params.named_parameters().items():
-                with self.torch.no_grad():
+                with torch.no_grad():
                     v.copy_(tensors[f"model/{k}"])
         enc = {k[len("encoder/"):]: v for k, v in tensors.items() if k.startswith("encoder/")}
         self.encoder.load_state_dict(enc)
@@ -471,7 +475,8 @@ class Trainer:
     # ------------------------------------------------------------------ the loop
     def run(self, stop_after: int | None = None) -> bool:
         """Train from the current position to the end; ``stop_after`` global steps ends early (returns True)."""
-        torch = self.torch
+        import torch
+
         from reflectmm_cli.progress import log as plog
         import logging
         import sys
@@ -499,7 +504,7 @@ class Trainer:
                 if len(idx) < 2:  # a last batch of one image: BatchNorm needs 2, take the epoch's first too
                     idx = np.concatenate([idx, perm[:1]])
                 ts = time.perf_counter()
-                total, terms, _ = self._forward(idx, train=True)
+                total, terms, _ = self._forward(idx)
                 if not torch.isfinite(total):
                     raise ReflectmmError(f"finetune: the loss became {float(total)} at step {self.global_step} "
                                          f"(phase {phase}, epoch {ep}); lower the learning rate")
