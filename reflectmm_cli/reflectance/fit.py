@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -60,7 +60,8 @@ NORMAL_STEPS = 2
 #: Default σ (degrees) of the normal refinement's prior towards the geometric normal.
 DEFAULT_NORMAL_SIGMA = 5.0
 
-__all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution"]
+__all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution", "FitMapsConfig",
+           "SolverConfig", "SymmetryConfig", "PriorConfig", "AdamConfig", "NormalRefinementConfig"]
 
 
 @dataclass
@@ -421,52 +422,29 @@ def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, sym
 
 # --------------------------------------------------------------------------- public API
 
-@dataclass(frozen=True)
-class FitMapsConfig:
-    """Settings of :func:`fit_maps`, declared once (the fit-reflectance stage takes its defaults from here).
+def _flat(name: str, default: Any) -> Any:
+    """A settings field whose flat name (stage parameter, ``fit_maps(**settings)``) is ``name``, not its own."""
+    return field(default=default, metadata={"flat": name})
 
-    Fields:
-        exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
-        solver: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
-        symmetry: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
-        symmetry_mode: ``adaptive`` (default): pool a texel whose own data are ill-posed with its mirror at
-            weight s, and a well-posed one at weight s · (mirror trust), the trust being 1 where the face is as
-            symmetric as the noise can tell and → 0 where it measurably is not (:func:`_mirror_trust`);
-            ``ill-posed``: pool only texels whose own data cannot determine their unknowns (fewer than
-            ``min_obs`` observations or conditioning < ``cond_min``); ``all``: pool every texel (the minimiser of
-            the paper's random-flip objective). Fast solver only; the Adam solver always flips whole maps (the
-            paper).
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """The solver and the fast solver's settings.
+
+    Fields (flat name in brackets where it differs):
+        kind [solver]: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
         loss: ``l1`` (cos-weighted L1, IRLS) or ``l2`` (cos-weighted least squares); Adam always uses L1.
-        prior: Tikhonov strength relative to the trace of each texel's data term (fast solver; 0 = off).
-        prior_tail, prior_tail_obs: extra prior on lobe weight W_i where the lobe is seen only in its tail:
-            ``+ λ_t · prior_tail · (1 − o_i / prior_tail_obs)₊² · (W_i − x0_i)²`` (λ_t = prior · trace(H_t), so
-            it scales with ``prior``; default 100 × 1e-4 = 1e-2 × trace at o_i = 0) with o_i the lobe's pooled
-            observability (the largest fraction of its peak any fitted observation reaches). A weight fitted
-            from the tail of its lobe extrapolates badly to views that see the peak, and the tail is where a
-            Blinn-Phong lobe matches a real (GGX) lobe least. 0 = off; off also when ``prior`` is 0.
         irls_iterations, irls_delta, irls_tol, irls_obj_tol: IRLS settings (l1): at most ``irls_iterations``
             reweighted solves per band of UV rows, stopping when the largest change of any unknown is below
             ``irls_tol`` × max |x| or the band's L1 objective changes by less than ``irls_obj_tol`` (relative).
         cond_min, min_obs: flagging thresholds (default min_obs = 1 + K pooled observations).
         observable_min: lobe observability needed to count a texel as observable for a lobe.
-        prior_sigma: σ (texels) of the neighbourhood prior (default S/16).
-        steps, lr, w_reg, init, device, seed: Adam settings (init = (C, W) constant start, default 0.3, 0.1).
         chunk: texels per design block (memory).
         threads: worker threads of the fast solver (default min(cpu count, 4)); results do not depend on it.
-        refine_normals: photometric normal refinement (fast solver): this many alternations of
-            ``NORMAL_STEPS`` damped Gauss–Newton steps of each solved texel's normal (reflectance fixed) and the
-            reflectance solve (normals fixed); 0 = off (:mod:`.normals`).
-        normal_sigma: σ (degrees) of the Gaussian prior of the refined normal towards the geometric one.
     """
 
-    exponents: tuple[float, ...] = tuple(DEFAULT_EXPONENTS)
-    solver: str = "fast"
-    symmetry: float = 1.0
-    symmetry_mode: str = "adaptive"
+    kind: str = _flat("solver", "fast")
     loss: str = "l1"
-    prior: float = 1e-4
-    prior_tail: float = 100.0
-    prior_tail_obs: float = 0.5
     irls_iterations: int = 10
     irls_delta: float = 1e-3
     irls_tol: float = 1e-3
@@ -474,41 +452,171 @@ class FitMapsConfig:
     cond_min: float = 1e-4
     min_obs: int | None = None
     observable_min: float = 0.1
-    prior_sigma: float | None = None
-    refine_normals: int = 0
-    normal_sigma: float = DEFAULT_NORMAL_SIGMA
+    chunk: int = DEFAULT_CHUNK
+    threads: int | None = None
+
+
+@dataclass(frozen=True)
+class SymmetryConfig:
+    """Mirror pooling.
+
+    Fields (flat name in brackets):
+        weight [symmetry]: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
+        mode [symmetry_mode]: ``adaptive`` (default): pool a texel whose own data are ill-posed with its mirror
+            at weight s, and a well-posed one at weight s · (mirror trust), the trust being 1 where the face is as
+            symmetric as the noise can tell and → 0 where it measurably is not (:func:`_mirror_trust`);
+            ``ill-posed``: pool only texels whose own data cannot determine their unknowns (fewer than
+            ``min_obs`` observations or conditioning < ``cond_min``); ``all``: pool every texel (the minimiser of
+            the paper's random-flip objective). Fast solver only; the Adam solver always flips whole maps (the
+            paper).
+    """
+
+    weight: float = _flat("symmetry", 1.0)
+    mode: str = _flat("symmetry_mode", "adaptive")
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """The fast solver's prior.
+
+    Fields (flat name in brackets):
+        strength [prior]: Tikhonov strength relative to the trace of each texel's data term (0 = off).
+        tail, tail_obs [prior_tail, prior_tail_obs]: extra prior on lobe weight W_i where the lobe is seen only in
+            its tail: ``+ λ_t · tail · (1 − o_i / tail_obs)₊² · (W_i − x0_i)²`` (λ_t = strength · trace(H_t), so
+            it scales with ``strength``; default 100 × 1e-4 = 1e-2 × trace at o_i = 0) with o_i the lobe's pooled
+            observability (the largest fraction of its peak any fitted observation reaches). A weight fitted
+            from the tail of its lobe extrapolates badly to views that see the peak, and the tail is where a
+            Blinn-Phong lobe matches a real (GGX) lobe least. 0 = off; off also when ``strength`` is 0.
+        sigma [prior_sigma]: σ (texels) of the neighbourhood prior (default S/16).
+    """
+
+    strength: float = _flat("prior", 1e-4)
+    tail: float = _flat("prior_tail", 100.0)
+    tail_obs: float = _flat("prior_tail_obs", 0.5)
+    sigma: float | None = _flat("prior_sigma", None)
+
+
+@dataclass(frozen=True)
+class AdamConfig:
+    """The Adam reference solver: steps, lr, w_reg, init (the constant (C, W) start, default 0.3, 0.1), device,
+    seed (of the random flips). Flat names are the field names."""
+
     steps: int = 1000
     lr: float = 5e-3
     w_reg: float = 100.0
     init: tuple[float, float] | None = None
     device: str = "cpu"
     seed: int = 0
-    chunk: int = DEFAULT_CHUNK
-    threads: int | None = None
+
+
+@dataclass(frozen=True)
+class NormalRefinementConfig:
+    """Photometric normal refinement (fast solver; :mod:`.normals`).
+
+    Fields (flat name in brackets):
+        iterations [refine_normals]: this many alternations of ``NORMAL_STEPS`` damped Gauss–Newton steps of each
+            solved texel's normal (reflectance fixed) and the reflectance solve (normals fixed); 0 = off.
+        sigma [normal_sigma]: σ (degrees) of the Gaussian prior of the refined normal towards the geometric one.
+    """
+
+    iterations: int = _flat("refine_normals", 0)
+    sigma: float = _flat("normal_sigma", DEFAULT_NORMAL_SIGMA)
+
+
+#: The nested settings of :class:`FitMapsConfig`: field name → its class.
+_GROUPS = {"solver": SolverConfig, "symmetry": SymmetryConfig, "prior": PriorConfig, "adam": AdamConfig,
+           "normals": NormalRefinementConfig}
+
+
+@dataclass(frozen=True)
+class FitMapsConfig:
+    """Settings of :func:`fit_maps`, declared once and nested by concern (the fit-reflectance stage takes its
+    defaults from here).
+
+    Fields:
+        exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
+        solver: :class:`SolverConfig`; symmetry: :class:`SymmetryConfig`; prior: :class:`PriorConfig`;
+        adam: :class:`AdamConfig`; normals: :class:`NormalRefinementConfig`.
+
+    Every setting also has one flat name (:meth:`flat_names`: the stage parameters and CLI options, and
+    ``fit_maps(obs, loss="l2")``): :meth:`from_flat` and :meth:`with_flat` build a config from flat settings,
+    :meth:`flat` gives them back.
+    """
+
+    exponents: tuple[float, ...] = tuple(DEFAULT_EXPONENTS)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    symmetry: SymmetryConfig = field(default_factory=SymmetryConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    adam: AdamConfig = field(default_factory=AdamConfig)
+    normals: NormalRefinementConfig = field(default_factory=NormalRefinementConfig)
+
+    def __post_init__(self) -> None:
+        for name, cls in _GROUPS.items():
+            if not isinstance(getattr(self, name), cls):
+                raise TypeError(f"FitMapsConfig.{name} must be a {cls.__name__}, got {getattr(self, name)!r} "
+                                f"(flat settings: FitMapsConfig.from_flat({name}=...))")
+
+    @staticmethod
+    def flat_names() -> dict[str, tuple[str | None, str]]:
+        """Flat name → (nested settings field or None for a top-level one, field name), in declaration order."""
+        out: dict[str, tuple[str | None, str]] = {}
+        for f in fields(FitMapsConfig):
+            if f.name in _GROUPS:
+                for g in fields(_GROUPS[f.name]):
+                    out[g.metadata.get("flat", g.name)] = (f.name, g.name)
+            else:
+                out[f.name] = (None, f.name)
+        return out
+
+    @classmethod
+    def from_flat(cls, **settings: Any) -> "FitMapsConfig":
+        """The defaults with flat settings (``FitMapsConfig.from_flat(loss="l2", symmetry=0.5)``)."""
+        return cls().with_flat(**settings)
+
+    def with_flat(self, **settings: Any) -> "FitMapsConfig":
+        """A copy with flat settings replaced; an unknown name is a TypeError naming it."""
+        names = self.flat_names()
+        top: dict[str, Any] = {}
+        nested: dict[str, dict[str, Any]] = {}
+        for k, v in settings.items():
+            if k not in names:
+                raise TypeError(f"unknown setting {k!r}")
+            group, name = names[k]
+            if group is None:
+                top[name] = v
+            else:
+                nested.setdefault(group, {})[name] = v
+        return replace(self, **top, **{g: replace(getattr(self, g), **kw) for g, kw in nested.items()})
+
+    def flat(self) -> dict[str, Any]:
+        """Flat name → value of every setting."""
+        return {k: getattr(self, name) if group is None else getattr(getattr(self, group), name)
+                for k, (group, name) in self.flat_names().items()}
 
     def check(self) -> None:
-        """Raise ReflectmmError naming the first bad setting."""
+        """Raise ReflectmmError naming the first bad setting (by its flat name)."""
+        s, sym, pr, nr = self.solver, self.symmetry, self.prior, self.normals
         _check_exponents(self.exponents)
-        if self.solver not in ("fast", "adam"):
-            raise ReflectmmError(f"solver must be 'fast' or 'adam', got {self.solver!r}")
-        if self.loss not in ("l1", "l2"):
-            raise ReflectmmError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
-        if not (0.0 <= float(self.symmetry) <= 1.0):
-            raise ReflectmmError(f"symmetry must be in [0, 1], got {self.symmetry}")
-        if self.symmetry_mode not in SYMMETRY_MODES:
+        if s.kind not in ("fast", "adam"):
+            raise ReflectmmError(f"solver must be 'fast' or 'adam', got {s.kind!r}")
+        if s.loss not in ("l1", "l2"):
+            raise ReflectmmError(f"loss must be 'l1' or 'l2', got {s.loss!r}")
+        if not (0.0 <= float(sym.weight) <= 1.0):
+            raise ReflectmmError(f"symmetry must be in [0, 1], got {sym.weight}")
+        if sym.mode not in SYMMETRY_MODES:
             raise ReflectmmError(f"symmetry_mode must be one of {', '.join(SYMMETRY_MODES)}, "
-                                 f"got {self.symmetry_mode!r}")
-        if not (np.isfinite(self.prior) and self.prior >= 0):
-            raise ReflectmmError(f"prior must be finite and >= 0, got {self.prior}")
-        if not (np.isfinite(self.prior_tail) and self.prior_tail >= 0):
-            raise ReflectmmError(f"prior_tail must be finite and >= 0, got {self.prior_tail}")
-        if not (np.isfinite(self.prior_tail_obs) and 0 < self.prior_tail_obs <= 1):
-            raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {self.prior_tail_obs}")
-        if int(self.refine_normals) != self.refine_normals or self.refine_normals < 0:
-            raise ReflectmmError(f"refine_normals must be an integer >= 0, got {self.refine_normals}")
-        if not (np.isfinite(self.normal_sigma) and self.normal_sigma > 0):
-            raise ReflectmmError(f"normal_sigma must be finite and > 0 (degrees), got {self.normal_sigma}")
-        if self.refine_normals > 0 and self.solver != "fast":
+                                 f"got {sym.mode!r}")
+        if not (np.isfinite(pr.strength) and pr.strength >= 0):
+            raise ReflectmmError(f"prior must be finite and >= 0, got {pr.strength}")
+        if not (np.isfinite(pr.tail) and pr.tail >= 0):
+            raise ReflectmmError(f"prior_tail must be finite and >= 0, got {pr.tail}")
+        if not (np.isfinite(pr.tail_obs) and 0 < pr.tail_obs <= 1):
+            raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {pr.tail_obs}")
+        if int(nr.iterations) != nr.iterations or nr.iterations < 0:
+            raise ReflectmmError(f"refine_normals must be an integer >= 0, got {nr.iterations}")
+        if not (np.isfinite(nr.sigma) and nr.sigma > 0):
+            raise ReflectmmError(f"normal_sigma must be finite and > 0 (degrees), got {nr.sigma}")
+        if nr.iterations > 0 and s.kind != "fast":
             raise ReflectmmError("normal refinement (refine_normals > 0) needs the fast solver; use "
                                  "refine_normals=0 with solver='adam'")
 
@@ -520,7 +628,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None,
     Args:
         obs: uv-observations arrays (docs/pipeline.md); ``radiance`` may be float16.
         config: the solver's settings (:class:`FitMapsConfig`; default: its defaults).
-        settings: single settings overriding ``config`` by name (``fit_maps(obs, loss="l2", prior=0)``).
+        settings: single settings overriding ``config`` by their flat names (``fit_maps(obs, loss="l2", prior=0)``;
+            :meth:`FitMapsConfig.flat_names`).
         pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
         flash_intensity: scalar or (F,) radiant intensity replacing the artifact's (global scale ambiguity:
             multiplying it by k divides C and W by k).
@@ -533,17 +642,17 @@ def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None,
     """
     t0 = time.perf_counter()
     cfg = _settings(config, settings)
-    threads = cfg.threads if cfg.threads is not None else min(os.cpu_count() or 1, 4)
+    threads = cfg.solver.threads if cfg.solver.threads is not None else min(os.cpu_count() or 1, 4)
     obs = _as_arrays(obs)
     S = check_observations(obs, path)
     p = _check_exponents(cfg.exponents)
-    prob, pm = _observations_problem(obs, p, pair_mask, flash_intensity, cfg.chunk, threads)
+    prob, pm = _observations_problem(obs, p, pair_mask, flash_intensity, cfg.solver.chunk, threads)
     tp = _texel_problem(prob, S, cfg, progress, threads)
     stats = _setup_stats(tp, cfg, n_pairs_used=int(pm.sum()))
     normal_map = correction_map = None
-    if cfg.solver == "fast":
+    if cfg.solver.kind == "fast":
         x, prior_map, info = _fast(tp)
-        if cfg.refine_normals > 0:
+        if cfg.normals.iterations > 0:
             x, prior_map, info, tp, ref = _refine_normals(tp, x)
             normal_map, correction_map = ref.normal_map, ref.correction_map
             stats["normal_refinement"] = ref.stats
@@ -570,9 +679,9 @@ def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None,
 def _settings(config: FitMapsConfig | None, settings: dict) -> FitMapsConfig:
     """``config`` (default: the defaults) with the single ``settings`` overriding it by name, checked."""
     try:
-        cfg = replace(config or FitMapsConfig(), **settings)
+        cfg = (config or FitMapsConfig()).with_flat(**settings)
     except TypeError as e:
-        raise TypeError(f"fit_maps: unknown setting ({e}); the settings are the fields of FitMapsConfig") from None
+        raise TypeError(f"fit_maps: {e}; the settings are FitMapsConfig.flat_names()") from None
     cfg.check()
     return cfg
 
@@ -660,7 +769,7 @@ def _mirror(prob: _Problem, S: int, cfg: FitMapsConfig, min_obs: int, threads: i
     ``cond_min``), or s × the mirror trust where they can ("adaptive"); 0 where the mirror is not masked."""
     idx = prob.idx
     n = idx.size
-    sym = float(cfg.symmetry)
+    sym = float(cfg.symmetry.weight)
     mirror = mirror_index(S)
     pos_of = -np.ones(S * S, np.int64)
     pos_of[idx] = np.arange(n)
@@ -669,10 +778,10 @@ def _mirror(prob: _Problem, S: int, cfg: FitMapsConfig, min_obs: int, threads: i
     mp = np.where(has_m, mpos, 0)
     symv = np.full(n, sym)
     sym_info: dict[str, Any] = {}
-    if sym > 0 and cfg.symmetry_mode in ("ill-posed", "adaptive") and cfg.solver == "fast":
+    if sym > 0 and cfg.symmetry.mode in ("ill-posed", "adaptive") and cfg.solver.kind == "fast":
         own_cond = gram_conditioning(prob.G) if n else np.zeros(0)
-        ill = (prob.count < min_obs) | (own_cond < cfg.cond_min)
-        if cfg.symmetry_mode == "adaptive" and n:
+        ill = (prob.count < min_obs) | (own_cond < cfg.solver.cond_min)
+        if cfg.symmetry.mode == "adaptive" and n:
             wt, sym_info = _mirror_trust(prob, ~ill, has_m, mp, idx=idx, S=S, m=3 + prob.K,
                                          sigma=max(S / 16.0, 1.0), threads=threads)
             symv = np.where(ill, sym, sym * wt)
@@ -708,28 +817,29 @@ def _texel_problem(prob: _Problem, S: int, cfg: FitMapsConfig, progress, threads
     """Mirror pooling, then flag the texels whose pooled data cannot be solved (fewer than ``min_obs`` pooled
     observations or pooled conditioning < ``cond_min``)."""
     n = prob.idx.size
-    min_obs = 1 + prob.K if cfg.min_obs is None else int(cfg.min_obs)
+    min_obs = 1 + prob.K if cfg.solver.min_obs is None else int(cfg.solver.min_obs)
     mirror = _mirror(prob, S, cfg, min_obs, threads)
     Gp = mirror.pool(prob.G)
     cnt_p = prob.count + np.where(mirror.pooled, prob.count[mirror.mp], 0)
     cond = gram_conditioning(Gp) if n else np.zeros(0)
-    flag = (cnt_p < min_obs) | (cond < cfg.cond_min)
+    flag = (cnt_p < min_obs) | (cond < cfg.solver.cond_min)
     return _TexelProblem(prob=prob, texels=_Texels(S, prob.idx), mirror=mirror, solve=~flag, flag=flag,
                          obsv=mirror.pooled_observability(prob.obsv), cond=cond,
-                         delta=cfg.irls_delta * np.maximum(prob.rms, 1e-30), min_obs=min_obs,
-                         prior_sigma=cfg.prior_sigma if cfg.prior_sigma is not None else max(S / 16.0, 1.0),
+                         delta=cfg.solver.irls_delta * np.maximum(prob.rms, 1e-30), min_obs=min_obs,
+                         prior_sigma=cfg.prior.sigma if cfg.prior.sigma is not None else max(S / 16.0, 1.0),
                          cfg=cfg, progress=progress, threads=threads)
 
 
 def _setup_stats(tp: _TexelProblem, cfg: FitMapsConfig, n_pairs_used: int) -> dict[str, Any]:
     """The statistics of the settings and the problem, before solving."""
-    return {"solver": cfg.solver, "loss": cfg.loss if cfg.solver == "fast" else "l1", "symmetry": tp.mirror.sym,
-            "symmetry_mode": cfg.symmetry_mode if cfg.solver == "fast" else "all",
+    fast = cfg.solver.kind == "fast"
+    return {"solver": cfg.solver.kind, "loss": cfg.solver.loss if fast else "l1", "symmetry": tp.mirror.sym,
+            "symmetry_mode": cfg.symmetry.mode if fast else "all",
             "n_pooled": int((tp.mirror.symv > 0).sum()), **tp.mirror.info,
-            "prior": float(cfg.prior), "prior_tail": float(cfg.prior_tail),
-            "prior_tail_obs": float(cfg.prior_tail_obs), "n_texels": int(tp.prob.idx.size),
+            "prior": float(cfg.prior.strength), "prior_tail": float(cfg.prior.tail),
+            "prior_tail_obs": float(cfg.prior.tail_obs), "n_texels": int(tp.prob.idx.size),
             "n_pairs_used": n_pairs_used,
-            "n_flagged": int(tp.flag.sum()), "cond_min": cfg.cond_min, "min_obs": tp.min_obs}
+            "n_flagged": int(tp.flag.sum()), "cond_min": cfg.solver.cond_min, "min_obs": tp.min_obs}
 
 
 @dataclass(frozen=True)
@@ -749,10 +859,10 @@ def _refine_normals(tp: _TexelProblem, x: np.ndarray):
     Returns (x, prior map, solver info, the problem at the refined normals (its observability and conditioning
     re-evaluated), :class:`_RefinedNormals`)."""
     cfg, prob, solve, to_map = tp.cfg, tp.prob, tp.solve, tp.texels.to_map
-    ref = NormalRefinement(prob, cfg.normal_sigma, cfg.loss, tp.delta, solve, chunk=cfg.chunk, threads=tp.threads,
-                           ridge=float(cfg.prior))
+    ref = NormalRefinement(prob, cfg.normals.sigma, cfg.solver.loss, tp.delta, solve, chunk=cfg.solver.chunk,
+                           threads=tp.threads, ridge=float(cfg.prior.strength))
     hist = []
-    for _ in range(int(cfg.refine_normals)):
+    for _ in range(int(cfg.normals.iterations)):
         xs = x
         for _ in range(NORMAL_STEPS):
             st = ref.step(xs)
@@ -763,8 +873,8 @@ def _refine_normals(tp: _TexelProblem, x: np.ndarray):
         hist.append(st)
     tp = replace(tp, cond=gram_conditioning(tp.mirror.pool(prob.G)) if prob.idx.size else np.zeros(0))
     ang = correction_angle_deg(ref.delta)
-    stats = {"iterations": int(cfg.refine_normals), "gn_steps": NORMAL_STEPS,
-             "sigma_deg": float(cfg.normal_sigma), "history": hist,
+    stats = {"iterations": int(cfg.normals.iterations), "gn_steps": NORMAL_STEPS,
+             "sigma_deg": float(cfg.normals.sigma), "history": hist,
              "angle_median_deg": float(np.median(ang[solve])) if solve.any() else 0.0,
              "angle_p90_deg": float(np.percentile(ang[solve], 90))
              if solve.any() else 0.0}
@@ -777,9 +887,9 @@ def _adam(tp: _TexelProblem) -> tuple[np.ndarray, dict]:
     """The paper's Adam reference solver (:mod:`.adam`) on the same problem: (x (n, 3+K), info)."""
     from .adam import fit_adam
 
-    cfg = tp.cfg
-    return fit_adam(tp.prob, tp.texels.idx, tp.texels.S, tp.prob.K, steps=cfg.steps, lr=cfg.lr, w_reg=cfg.w_reg,
-                    symmetry=tp.mirror.sym, init=cfg.init, device=cfg.device, seed=cfg.seed, progress=tp.progress)
+    a = tp.cfg.adam
+    return fit_adam(tp.prob, tp.texels.idx, tp.texels.S, tp.prob.K, steps=a.steps, lr=a.lr, w_reg=a.w_reg,
+                    symmetry=tp.mirror.sym, init=a.init, device=a.device, seed=a.seed, progress=tp.progress)
 
 
 def _filled_maps(tp: _TexelProblem, x: np.ndarray, prior_map: np.ndarray | None) -> tuple[np.ndarray, dict]:
@@ -803,7 +913,7 @@ def _residual_rms(prob: _Problem, xfill: np.ndarray, texels: _Texels) -> np.ndar
 
 def _observable_stats(tp: _TexelProblem) -> dict[str, Any]:
     """Solved texels where every lobe is observable, and per lobe the solved texels where it is not."""
-    omin = tp.cfg.observable_min
+    omin = tp.cfg.solver.observable_min
     obs_ok = tp.solve & np.all(tp.obsv >= omin, axis=1)
     return {"n_observable": int(obs_ok.sum()),
             "n_unobservable_lobe": [int((~(tp.obsv[:, k] >= omin) & tp.solve).sum()) for k in range(tp.prob.K)]}
@@ -898,7 +1008,7 @@ def _fast(tp: _TexelProblem):
     x, Hp, gp = _first_pass(tp, bands)
     x0m, x0, glob = _neighbourhood_prior(tp, x)
     info["prior_global"] = glob.tolist()
-    if float(tp.cfg.prior) == 0:
+    if float(tp.cfg.prior.strength) == 0:
         x0 = np.zeros_like(x0)
     nn_iters = unconv = max_it = 0
     kkt = 0.0
@@ -910,7 +1020,7 @@ def _fast(tp: _TexelProblem):
         x[a:b] = xb
         nn_iters, unconv = max(nn_iters, st[0]), unconv + st[1]
         kkt, max_it = max(kkt, st[2]), max(max_it, st[3])
-    info.update({"irls_iterations": max_it if tp.cfg.loss == "l1" else 0, "n_bands": len(bands),
+    info.update({"irls_iterations": max_it if tp.cfg.solver.loss == "l1" else 0, "n_bands": len(bands),
                  "nnls_iterations_max": nn_iters,
                  "nnls_unconverged": unconv, "kkt_violation_max": kkt})
     return x, x0m, info
@@ -931,7 +1041,7 @@ def _first_pass(tp: _TexelProblem, bands: list[tuple[int, int]]):
         H[:], g[:] = cached
     else:
         def ls_band(ab):
-            H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, tp.cfg.loss, tp.delta, ab[0], ab[1])[:2]
+            H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, tp.cfg.solver.loss, tp.delta, ab[0], ab[1])[:2]
 
         parallel_map(ls_band, bands, tp.threads)
     Hp, gp = tp.mirror.pool(H), tp.mirror.pool(g)
@@ -952,7 +1062,7 @@ def _neighbourhood_prior(tp: _TexelProblem, x: np.ndarray):
     sel = np.flatnonzero(tp.solve)
     conf = np.zeros_like(x)
     conf[sel, :3] = 1.0
-    conf[sel, 3:] = (tp.obsv[sel] >= tp.cfg.observable_min).astype(float)
+    conf[sel, 3:] = (tp.obsv[sel] >= tp.cfg.solver.observable_min).astype(float)
     xm = tp.texels.to_map(x)
     cm = tp.texels.to_map(conf)
     x0m, den = normalized_convolution(xm, cm, tp.prior_sigma)
@@ -969,9 +1079,9 @@ def _irls_band(tp: _TexelProblem, Hp: np.ndarray, gp: np.ndarray, x: np.ndarray,
     and solution ``x``. Returns (a, b, the band's x (b−a, m), [NNLS iterations, unconverged, KKT violation,
     IRLS iterations])."""
     cfg, prob, solve, delta = tp.cfg, tp.prob, tp.solve, tp.delta
-    loss, prior = cfg.loss, float(cfg.prior)
-    prior_tail, prior_tail_obs = float(cfg.prior_tail), float(cfg.prior_tail_obs)
-    n_it = 1 if loss == "l2" else max(int(cfg.irls_iterations), 1)
+    loss, prior = cfg.solver.loss, float(cfg.prior.strength)
+    prior_tail, prior_tail_obs = float(cfg.prior.tail), float(cfg.prior.tail_obs)
+    n_it = 1 if loss == "l2" else max(int(cfg.solver.irls_iterations), 1)
     a, b = ab
     sl = slice(a, b)
     loc = np.flatnonzero(solve[sl])
@@ -1002,8 +1112,8 @@ def _irls_band(tp: _TexelProblem, Hp: np.ndarray, gp: np.ndarray, x: np.ndarray,
         stat[3] = it + 1
         if it > 0:
             tot = float(obj[loc].sum())
-            small = last_obj is not None and abs(last_obj - tot) <= cfg.irls_obj_tol * max(abs(tot), 1e-300)
-            if change < cfg.irls_tol or small:
+            small = last_obj is not None and abs(last_obj - tot) <= cfg.solver.irls_obj_tol * max(abs(tot), 1e-300)
+            if change < cfg.solver.irls_tol or small:
                 break
             last_obj = tot
     return a, b, xb, stat

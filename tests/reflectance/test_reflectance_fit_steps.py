@@ -32,6 +32,52 @@ def test_settings_override_the_config_by_name_and_are_checked():
         F._settings(None, {"symmetry": 2.0})
 
 
+def test_config_is_nested_by_concern_with_one_flat_name_per_setting():
+    from reflectmm_cli.reflectance import (AdamConfig, FitMapsConfig, NormalRefinementConfig, PriorConfig,
+                                           SolverConfig, SymmetryConfig)
+
+    cfg = FitMapsConfig.from_flat(solver="adam", loss="l2", symmetry=0.5, symmetry_mode="all", prior=0.0,
+                                  prior_tail=3.0, prior_sigma=2.0, steps=7, device="cuda", refine_normals=0,
+                                  normal_sigma=2.5, exponents=(1.0, 4.0), threads=2)
+    assert cfg == FitMapsConfig(exponents=(1.0, 4.0), solver=SolverConfig(kind="adam", loss="l2", threads=2),
+                                symmetry=SymmetryConfig(weight=0.5, mode="all"),
+                                prior=PriorConfig(strength=0.0, tail=3.0, sigma=2.0),
+                                adam=AdamConfig(steps=7, device="cuda"),
+                                normals=NormalRefinementConfig(sigma=2.5))
+    names = FitMapsConfig.flat_names()
+    assert names["solver"] == ("solver", "kind") and names["refine_normals"] == ("normals", "iterations")
+    assert names["exponents"] == (None, "exponents") and names["seed"] == ("adam", "seed")
+    assert len(names) == 26  # every setting once (exponents and the 25 nested ones)
+    flat = cfg.flat()
+    assert list(flat) == list(names) and flat["symmetry"] == 0.5 and flat["steps"] == 7 and flat["loss"] == "l2"
+    assert FitMapsConfig.from_flat(**flat) == cfg  # the flat view round-trips
+    assert cfg.with_flat(symmetry=1.0).symmetry == SymmetryConfig(weight=1.0, mode="all")
+    with pytest.raises(TypeError, match="unknown setting 'kind'"):
+        FitMapsConfig.from_flat(kind="fast")  # nested field names are not flat names
+    with pytest.raises(TypeError, match=r"FitMapsConfig.symmetry must be a SymmetryConfig.*from_flat\(symmetry="):
+        FitMapsConfig(symmetry=0.5)
+    # checks name the flat setting
+    for bad, msg in ((dict(solver="newton"), "solver must be"), (dict(prior_tail_obs=0.0), "prior_tail_obs"),
+                     (dict(refine_normals=1, solver="adam"), "needs the fast solver"),
+                     (dict(normal_sigma=0.0), "normal_sigma")):
+        with pytest.raises(F.ReflectmmError, match=msg):
+            FitMapsConfig.from_flat(**bad).check()
+
+
+def test_stage_params_map_into_the_nested_config():
+    from reflectmm_cli.stages import fit_reflectance as stage
+
+    defaults = F.FitMapsConfig().flat()
+    for q in stage.PARAMS:
+        if q.name in defaults:
+            want = defaults[q.name]
+            assert q.default == (list(want) if isinstance(want, tuple) else want), q.name
+    assert set(stage._SETTINGS) == {q.name for q in stage.PARAMS} - {"flash_intensity"}
+    p = {q.name: q.default for q in stage.PARAMS} | {"symmetry_mode": "all", "refine_normals": 2, "steps": 9}
+    cfg = F.FitMapsConfig.from_flat(**{k: p[k] for k in stage._SETTINGS})
+    assert cfg.symmetry.mode == "all" and cfg.normals.iterations == 2 and cfg.adam.steps == 9
+
+
 def test_observations_problem_keeps_only_the_pairs_asked_for(sim):
     obs, _ = sim
     P = obs["pair_view"].shape[0]
@@ -169,7 +215,7 @@ def test_irls_band_converges_on_its_band_and_reports(sim):
     rel = np.abs(xb - want[a:b]) / want[a:b]
     ok = tp.obsv[a:b] >= 0.1
     assert rel[:, :3].max() < 1e-3 and all(rel[ok[:, k], 3 + k].max() < 1e-2 for k in range(3))
-    assert 1 <= stat[3] <= tp.cfg.irls_iterations and stat[1] == 0 and stat[2] < 1e-6
+    assert 1 <= stat[3] <= tp.cfg.solver.irls_iterations and stat[1] == 0 and stat[2] < 1e-6
     # a strong prior pulls the band towards x0
     strong = _problem(obs, symmetry=0.0, prior=1e3)
     xs = F._irls_band(strong, Hp, gp, x, np.full_like(x, 0.05), (a, b))[2]
