@@ -79,7 +79,8 @@ class TensorBoardLog:
 def preview_grid(targets: np.ndarray, recons: np.ndarray) -> np.ndarray:
     """(N, S, S, 3) linear targets and reconstructions → one (N·S, 2·S, 3) sRGB image, a row per image:
     target | reconstruction."""
-    from reflectmm_cli.model.preview import linear_to_srgb
+    from reflectmm_cli.color import encode_display
 
-    rows = [np.concatenate([linear_to_srgb(t), linear_to_srgb(r)], axis=1) for t, r in zip(targets, recons)]
+    rows = [np.concatenate([encode_display(t, dtype=np.float64), encode_display(r, dtype=np.float64)], axis=1)
+            for t, r in zip(targets, recons)]
     return np.concatenate(rows, axis=0).astype(np.float32)

@@ -116,7 +116,6 @@ class Trainer:
         from .render import ModelParams
 
         check_inputs(shards, model, light)
-        self.torch = torch
         self.shards, self.model, self.light, self.cfg = shards, model, light, config
         self.workdir = Path(workdir)
         self.device = torch.device(device)
@@ -170,7 +169,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ optimiser / phases
     def _optimizer(self, phase):
-        torch = self.torch
+        import torch
+
         cfg = self.cfg
         groups = [{"params": list(self.encoder.parameters()), "lr": cfg.lr1 if phase == 1 else cfg.lr2}]
         if phase == 2:
@@ -182,9 +182,7 @@ class Trainer:
 
         if self.phase == 2:
             return
-        cur = self.params
         self.params = ModelParams(self.model, self.device, trainable=self.cfg.trainable, n_components=self.M)
-        assert cur is not None
         self.phase = 2
         self.opt = self._optimizer(2)
 
@@ -207,8 +205,9 @@ class Trainer:
             out.append(basis)
         return out
 
-    def _forward(self, idx, train: bool):
-        torch = self.torch
+    def _forward(self, idx):
+        import torch
+
         from . import losses as L
         from .render import batch_gbuffer, scatter_pixels
 
@@ -260,7 +259,8 @@ class Trainer:
         """(targets, reconstructions), each (n, S, S, 3) linear float32, of the first ``n`` validation images (the
         reconstruction over the target outside the face); None without a "val" split.  Eval mode, no gradient:
         training is not changed by it."""
-        torch = self.torch
+        import torch
+
         from .render import batch_gbuffer, scatter_pixels
 
         idx = self.val_idx[:n]
@@ -285,7 +285,8 @@ class Trainer:
         return lm[np.asarray(idx)]
 
     def _target_features(self, idx, lin, lms):
-        torch = self.torch
+        import torch
+
         missing = [j for j, i in enumerate(idx) if str(self.shards.names[i]) not in self.feat_cache]
         if missing:
             with torch.no_grad():
@@ -295,7 +296,8 @@ class Trainer:
         return torch.stack([self.feat_cache[str(self.shards.names[i])] for i in idx])
 
     def _validate(self):
-        torch = self.torch
+        import torch
+
         if len(self.val_idx) == 0:
             return None
         self.encoder.eval()
@@ -303,7 +305,7 @@ class Trainer:
         with torch.no_grad():
             for s0 in range(0, len(self.val_idx), self.B):
                 idx = self.val_idx[s0:s0 + self.B]
-                total, terms, _ = self._forward(idx, train=False)
+                total, terms, _ = self._forward(idx)
                 for k, v in {"total": total, **terms}.items():
                     sums[k] = sums.get(k, 0.0) + float(v) * len(idx)
                 n += len(idx)
@@ -379,6 +381,7 @@ class Trainer:
         return self.workdir / LOG_NAME
 
     def save_checkpoint(self):
+        import torch
         from safetensors.torch import save
 
         from reflectmm_cli.artifacts import atomic_write_bytes, canonical_json
@@ -390,7 +393,7 @@ class Trainer:
         sd = self.opt.state_dict()
         for pi, st in sd["state"].items():
             for k, v in st.items():
-                tensors[f"opt/{pi}/{k}"] = (v if self.torch.is_tensor(v) else self.torch.tensor(v)).detach().cpu()
+                tensors[f"opt/{pi}/{k}"] = (v if torch.is_tensor(v) else torch.tensor(v)).detach().cpu()
         meta = {"schema": CHECKPOINT_SCHEMA, "phase": self.phase, "plan_index": self.pos[0], "step": self.pos[1],
                 "global_step": self.global_step, "config": self.cfg.to_dict(),
                 "param_groups": [{k: v for k, v in g.items() if k != "params"} | {"params": g["params"]}
@@ -401,6 +404,7 @@ class Trainer:
 
     def load_checkpoint(self) -> bool:
         """Restore the last checkpoint if there is one (returns False if none). Refuses a different config/data."""
+        import torch
         from safetensors import safe_open
 
         p = self.ckpt_path
@@ -424,7 +428,7 @@ class Trainer:
         if meta["phase"] == 2:
             self._enter_phase2()
             for k, v in self.params.named_parameters().items():
-                with self.torch.no_grad():
+                with torch.no_grad():
                     v.copy_(tensors[f"model/{k}"])
         enc = {k[len("encoder/"):]: v for k, v in tensors.items() if k.startswith("encoder/")}
         self.encoder.load_state_dict(enc)
@@ -471,81 +475,162 @@ class Trainer:
     # ------------------------------------------------------------------ the loop
     def run(self, stop_after: int | None = None) -> bool:
         """Train from the current position to the end; ``stop_after`` global steps ends early (returns True)."""
-        torch = self.torch
-        from reflectmm_cli.progress import log as plog
-        import logging
-        import sys
-
-        self.workdir.mkdir(parents=True, exist_ok=True)
-        if self.global_step == 0 and self.pos == (0, 0) and self.log_path.exists():
-            self.log_path.unlink()
+        self._start_log()
         self.encoder.train()
-        show = self.show_progress and plog.getEffectiveLevel() <= logging.INFO
-        # a terminal gets one line redrawn in place; a log file or a captured stderr gets plain lines, one per
-        # ~10 % of an epoch, and never a carriage return
-        tty = show and bool(getattr(sys.stderr, "isatty", lambda: False)())
-        every = max(1, self.steps_per_epoch // 10)
-        total_steps = len(self.plan) * self.steps_per_epoch
+        progress = _Progress.for_run(self.show_progress, self.steps_per_epoch, len(self.plan) * self.steps_per_epoch)
         while self.pos[0] < len(self.plan):
             pi, k0 = self.pos
             phase, ep = self.plan[pi]
             if phase == 2:
                 self._enter_phase2()
-            rng = np.random.default_rng([self.cfg.seed, phase, ep])
-            perm = self.train_idx[rng.permutation(len(self.train_idx))]
-            t_epoch, n_img = time.perf_counter(), 0
-            for k in range(k0, self.steps_per_epoch):
-                idx = perm[k * self.B:(k + 1) * self.B]
-                if len(idx) < 2:  # a last batch of one image: BatchNorm needs 2, take the epoch's first too
-                    idx = np.concatenate([idx, perm[:1]])
-                ts = time.perf_counter()
-                total, terms, _ = self._forward(idx, train=True)
-                if not torch.isfinite(total):
-                    raise ReflectmmError(f"finetune: the loss became {float(total)} at step {self.global_step} "
-                                         f"(phase {phase}, epoch {ep}); lower the learning rate")
-                self.opt.zero_grad(set_to_none=True)
-                total.backward()
-                self.opt.step()
-                self.global_step += 1
-                self.pos = (pi, k + 1)
-                n_img += len(idx)
-                rec = {"type": "step", "phase": phase, "epoch": ep, "step": k, "global_step": self.global_step,
-                       "loss": float(total.detach()), **{k_: float(v.detach()) for k_, v in terms.items()}}
-                self._append_log(rec)
-                ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
-                if self.tensorboard is not None:
-                    self.tensorboard.scalar("images_per_s", ips, self.global_step)
-                if show and (tty or (k + 1) % every == 0 or k + 1 == self.steps_per_epoch):
-                    sys.stderr.write(("\r" if tty else "")
-                                     + f"finetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
-                                     f"[{self.global_step}/{total_steps}] loss {rec['loss']:.4g} "
-                                     + " ".join(f"{k_} {rec[k_]:.3g}" for k_ in terms)
-                                     + f" {ips:.1f} img/s" + (" " if tty else "\n"))
-                    sys.stderr.flush()
-                last = k + 1 == self.steps_per_epoch
-                if not last and self.global_step % self.cfg.checkpoint_every == 0:
-                    self.save_checkpoint()
-                if stop_after is not None and self.global_step >= stop_after and not last:
-                    return True
-            val = self._validate()
-            rec = {"type": "val", "phase": phase, "epoch": ep, "global_step": self.global_step,
-                   **({} if val is None else {f"val_{k_}": v for k_, v in val.items()})}
-            self._append_log(rec)
-            if self.tensorboard is not None:
-                self._preview_to_tensorboard()
-            if tty:
-                sys.stderr.write("\n")
+            t_epoch = time.perf_counter()
+            n_img = self._train_epoch(k0, progress, stop_after)
+            if n_img is None:
+                return True
+            val = self._log_validation(phase, ep)
+            progress.end_epoch()
             el = time.perf_counter() - t_epoch
             self.log(f"finetune: phase {phase} epoch {ep + 1}: {n_img / max(el, 1e-9):.1f} images/s"
                      + ("" if val is None else f", validation loss {val['total']:.4g} (photometric "
                                                f"{val['photo']:.4g})"))
-            self.pos = (pi + 1, 0)
-            self.save_checkpoint()
-            if phase == 1 and self.pos[0] < len(self.plan) and self.plan[self.pos[0]][0] == 2:
-                self.save_phase1_encoder()
+            self._end_epoch_checkpoint()
             if stop_after is not None and self.global_step >= stop_after:
                 return True
         return False
+
+    def _start_log(self) -> None:
+        """A run from the very start begins a new JSONL log (a resumed one appends to the kept part)."""
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        if self.global_step == 0 and self.pos == (0, 0) and self.log_path.exists():
+            self.log_path.unlink()
+
+    def _epoch_order(self, phase: int, ep: int) -> np.ndarray:
+        """The training images of epoch ``ep`` of ``phase`` in their shuffled order (a function of seed, phase and
+        epoch only, so a resumed run sees the same batches)."""
+        rng = np.random.default_rng([self.cfg.seed, phase, ep])
+        return self.train_idx[rng.permutation(len(self.train_idx))]
+
+    def _batch(self, perm: np.ndarray, k: int) -> np.ndarray:
+        """Step ``k``'s images of the epoch order ``perm``; a last batch of one image gets the epoch's first too
+        (BatchNorm needs 2)."""
+        idx = perm[k * self.B:(k + 1) * self.B]
+        if len(idx) < 2:
+            idx = np.concatenate([idx, perm[:1]])
+        return idx
+
+    def _train_epoch(self, k0: int, progress: "_Progress", stop_after: int | None) -> int | None:
+        """Steps ``k0``.. of the epoch at ``self.pos``: one optimiser step, its log record, progress and the
+        periodic checkpoint each. Returns the number of images trained on, or None when ``stop_after`` ended the
+        run inside the epoch."""
+        pi = self.pos[0]
+        phase, ep = self.plan[pi]
+        perm = self._epoch_order(phase, ep)
+        n_img = 0
+        for k in range(k0, self.steps_per_epoch):
+            idx = self._batch(perm, k)
+            ts = time.perf_counter()
+            total, terms = self._train_step(idx, phase, ep)
+            self.pos = (pi, k + 1)
+            n_img += len(idx)
+            rec = self._log_step(phase, ep, k, total, terms)
+            ips = len(idx) / max(time.perf_counter() - ts, 1e-9)
+            if self.tensorboard is not None:
+                self.tensorboard.scalar("images_per_s", ips, self.global_step)
+            progress.step(phase, ep, k, self.global_step, rec, terms, ips)
+            last = k + 1 == self.steps_per_epoch
+            if not last:
+                self._checkpoint_step()
+                if stop_after is not None and self.global_step >= stop_after:
+                    return None
+        return n_img
+
+    def _train_step(self, idx, phase: int, ep: int):
+        """One Adam step on the images ``idx``: (total loss, loss terms); refuses a non-finite loss."""
+        import torch
+
+        total, terms, _ = self._forward(idx)
+        if not torch.isfinite(total):
+            raise ReflectmmError(f"finetune: the loss became {float(total)} at step {self.global_step} "
+                                 f"(phase {phase}, epoch {ep}); lower the learning rate")
+        self.opt.zero_grad(set_to_none=True)
+        total.backward()
+        self.opt.step()
+        self.global_step += 1
+        return total, terms
+
+    def _log_step(self, phase: int, ep: int, k: int, total, terms: dict) -> dict:
+        """The step record (loss and every term) appended to the history, the JSONL log and TensorBoard."""
+        rec = {"type": "step", "phase": phase, "epoch": ep, "step": k, "global_step": self.global_step,
+               "loss": float(total.detach()), **{k_: float(v.detach()) for k_, v in terms.items()}}
+        self._append_log(rec)
+        return rec
+
+    def _checkpoint_step(self) -> None:
+        """The periodic checkpoint inside an epoch: every ``checkpoint_every`` global steps."""
+        if self.global_step % self.cfg.checkpoint_every == 0:
+            self.save_checkpoint()
+
+    def _log_validation(self, phase: int, ep: int) -> dict | None:
+        """The epoch-end validation: its record (``val_*`` losses; none without a "val" split) appended to the
+        logs, and the reconstructions to TensorBoard. Returns the validation losses or None."""
+        val = self._validate()
+        rec = {"type": "val", "phase": phase, "epoch": ep, "global_step": self.global_step,
+               **({} if val is None else {f"val_{k_}": v for k_, v in val.items()})}
+        self._append_log(rec)
+        if self.tensorboard is not None:
+            self._preview_to_tensorboard()
+        return val
+
+    def _end_epoch_checkpoint(self) -> None:
+        """The epoch is done: move to the next one, checkpoint, and keep phase 1's encoder where phase 2 starts."""
+        pi = self.pos[0]
+        phase = self.plan[pi][0]
+        self.pos = (pi + 1, 0)
+        self.save_checkpoint()
+        if phase == 1 and self.pos[0] < len(self.plan) and self.plan[self.pos[0]][0] == 2:
+            self.save_phase1_encoder()
+
+
+class _Progress:
+    """Progress lines of the training loop on stderr: a terminal gets one line redrawn in place; a log file or a
+    captured stderr gets plain lines, one per ~10 % of an epoch, and never a carriage return."""
+
+    def __init__(self, show: bool, tty: bool, steps_per_epoch: int, total_steps: int):
+        self.show, self.tty = show, tty
+        self.steps_per_epoch, self.total_steps = steps_per_epoch, total_steps
+        self.every = max(1, steps_per_epoch // 10)
+
+    @classmethod
+    def for_run(cls, wanted: bool, steps_per_epoch: int, total_steps: int) -> "_Progress":
+        """Shown when ``wanted`` and the reflectmm logger shows INFO; redrawn when stderr is a terminal."""
+        import logging
+        import sys
+
+        from reflectmm_cli.progress import log as plog
+
+        show = wanted and plog.getEffectiveLevel() <= logging.INFO
+        tty = show and bool(getattr(sys.stderr, "isatty", lambda: False)())
+        return cls(show, tty, steps_per_epoch, total_steps)
+
+    def step(self, phase: int, ep: int, k: int, global_step: int, rec: dict, terms, ips: float) -> None:
+        """The line of step ``k`` of epoch ``ep`` (every step on a terminal)."""
+        import sys
+
+        if not (self.show and (self.tty or (k + 1) % self.every == 0 or k + 1 == self.steps_per_epoch)):
+            return
+        sys.stderr.write(("\r" if self.tty else "")
+                         + f"finetune phase {phase} epoch {ep + 1} step {k + 1}/{self.steps_per_epoch} "
+                         f"[{global_step}/{self.total_steps}] loss {rec['loss']:.4g} "
+                         + " ".join(f"{k_} {rec[k_]:.3g}" for k_ in terms)
+                         + f" {ips:.1f} img/s" + (" " if self.tty else "\n"))
+        sys.stderr.flush()
+
+    def end_epoch(self) -> None:
+        """A terminal's redrawn line is ended."""
+        import sys
+
+        if self.tty:
+            sys.stderr.write("\n")
 
 
 def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: str | Path, *, device="cpu",

@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -60,7 +60,8 @@ NORMAL_STEPS = 2
 #: Default σ (degrees) of the normal refinement's prior towards the geometric normal.
 DEFAULT_NORMAL_SIGMA = 5.0
 
-__all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution"]
+__all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution", "FitMapsConfig",
+           "SolverConfig", "SymmetryConfig", "PriorConfig", "AdamConfig", "NormalRefinementConfig"]
 
 
 @dataclass
@@ -421,52 +422,29 @@ def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, sym
 
 # --------------------------------------------------------------------------- public API
 
-@dataclass(frozen=True)
-class FitMapsConfig:
-    """Settings of :func:`fit_maps`, declared once (the fit-reflectance stage takes its defaults from here).
+def _flat(name: str, default: Any) -> Any:
+    """A settings field whose flat name (stage parameter, ``fit_maps(**settings)``) is ``name``, not its own."""
+    return field(default=default, metadata={"flat": name})
 
-    Fields:
-        exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
-        solver: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
-        symmetry: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
-        symmetry_mode: ``adaptive`` (default): pool a texel whose own data are ill-posed with its mirror at
-            weight s, and a well-posed one at weight s · (mirror trust), the trust being 1 where the face is as
-            symmetric as the noise can tell and → 0 where it measurably is not (:func:`_mirror_trust`);
-            ``ill-posed``: pool only texels whose own data cannot determine their unknowns (fewer than
-            ``min_obs`` observations or conditioning < ``cond_min``); ``all``: pool every texel (the minimiser of
-            the paper's random-flip objective). Fast solver only; the Adam solver always flips whole maps (the
-            paper).
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """The solver and the fast solver's settings.
+
+    Fields (flat name in brackets where it differs):
+        kind [solver]: ``fast`` (exact batched, default) or ``adam`` (the paper's reference, torch).
         loss: ``l1`` (cos-weighted L1, IRLS) or ``l2`` (cos-weighted least squares); Adam always uses L1.
-        prior: Tikhonov strength relative to the trace of each texel's data term (fast solver; 0 = off).
-        prior_tail, prior_tail_obs: extra prior on lobe weight W_i where the lobe is seen only in its tail:
-            ``+ λ_t · prior_tail · (1 − o_i / prior_tail_obs)₊² · (W_i − x0_i)²`` (λ_t = prior · trace(H_t), so
-            it scales with ``prior``; default 100 × 1e-4 = 1e-2 × trace at o_i = 0) with o_i the lobe's pooled
-            observability (the largest fraction of its peak any fitted observation reaches). A weight fitted
-            from the tail of its lobe extrapolates badly to views that see the peak, and the tail is where a
-            Blinn-Phong lobe matches a real (GGX) lobe least. 0 = off; off also when ``prior`` is 0.
         irls_iterations, irls_delta, irls_tol, irls_obj_tol: IRLS settings (l1): at most ``irls_iterations``
             reweighted solves per band of UV rows, stopping when the largest change of any unknown is below
             ``irls_tol`` × max |x| or the band's L1 objective changes by less than ``irls_obj_tol`` (relative).
         cond_min, min_obs: flagging thresholds (default min_obs = 1 + K pooled observations).
         observable_min: lobe observability needed to count a texel as observable for a lobe.
-        prior_sigma: σ (texels) of the neighbourhood prior (default S/16).
-        steps, lr, w_reg, init, device, seed: Adam settings (init = (C, W) constant start, default 0.3, 0.1).
         chunk: texels per design block (memory).
         threads: worker threads of the fast solver (default min(cpu count, 4)); results do not depend on it.
-        refine_normals: photometric normal refinement (fast solver): this many alternations of
-            ``NORMAL_STEPS`` damped Gauss–Newton steps of each solved texel's normal (reflectance fixed) and the
-            reflectance solve (normals fixed); 0 = off (:mod:`.normals`).
-        normal_sigma: σ (degrees) of the Gaussian prior of the refined normal towards the geometric one.
     """
 
-    exponents: tuple[float, ...] = tuple(DEFAULT_EXPONENTS)
-    solver: str = "fast"
-    symmetry: float = 1.0
-    symmetry_mode: str = "adaptive"
+    kind: str = _flat("solver", "fast")
     loss: str = "l1"
-    prior: float = 1e-4
-    prior_tail: float = 100.0
-    prior_tail_obs: float = 0.5
     irls_iterations: int = 10
     irls_delta: float = 1e-3
     irls_tol: float = 1e-3
@@ -474,41 +452,171 @@ class FitMapsConfig:
     cond_min: float = 1e-4
     min_obs: int | None = None
     observable_min: float = 0.1
-    prior_sigma: float | None = None
-    refine_normals: int = 0
-    normal_sigma: float = DEFAULT_NORMAL_SIGMA
+    chunk: int = DEFAULT_CHUNK
+    threads: int | None = None
+
+
+@dataclass(frozen=True)
+class SymmetryConfig:
+    """Mirror pooling.
+
+    Fields (flat name in brackets):
+        weight [symmetry]: mirror pooling weight s ∈ [0, 1] (fast); Adam uses random flips when s > 0.
+        mode [symmetry_mode]: ``adaptive`` (default): pool a texel whose own data are ill-posed with its mirror
+            at weight s, and a well-posed one at weight s · (mirror trust), the trust being 1 where the face is as
+            symmetric as the noise can tell and → 0 where it measurably is not (:func:`_mirror_trust`);
+            ``ill-posed``: pool only texels whose own data cannot determine their unknowns (fewer than
+            ``min_obs`` observations or conditioning < ``cond_min``); ``all``: pool every texel (the minimiser of
+            the paper's random-flip objective). Fast solver only; the Adam solver always flips whole maps (the
+            paper).
+    """
+
+    weight: float = _flat("symmetry", 1.0)
+    mode: str = _flat("symmetry_mode", "adaptive")
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """The fast solver's prior.
+
+    Fields (flat name in brackets):
+        strength [prior]: Tikhonov strength relative to the trace of each texel's data term (0 = off).
+        tail, tail_obs [prior_tail, prior_tail_obs]: extra prior on lobe weight W_i where the lobe is seen only in
+            its tail: ``+ λ_t · tail · (1 − o_i / tail_obs)₊² · (W_i − x0_i)²`` (λ_t = strength · trace(H_t), so
+            it scales with ``strength``; default 100 × 1e-4 = 1e-2 × trace at o_i = 0) with o_i the lobe's pooled
+            observability (the largest fraction of its peak any fitted observation reaches). A weight fitted
+            from the tail of its lobe extrapolates badly to views that see the peak, and the tail is where a
+            Blinn-Phong lobe matches a real (GGX) lobe least. 0 = off; off also when ``strength`` is 0.
+        sigma [prior_sigma]: σ (texels) of the neighbourhood prior (default S/16).
+    """
+
+    strength: float = _flat("prior", 1e-4)
+    tail: float = _flat("prior_tail", 100.0)
+    tail_obs: float = _flat("prior_tail_obs", 0.5)
+    sigma: float | None = _flat("prior_sigma", None)
+
+
+@dataclass(frozen=True)
+class AdamConfig:
+    """The Adam reference solver: steps, lr, w_reg, init (the constant (C, W) start, default 0.3, 0.1), device,
+    seed (of the random flips). Flat names are the field names."""
+
     steps: int = 1000
     lr: float = 5e-3
     w_reg: float = 100.0
     init: tuple[float, float] | None = None
     device: str = "cpu"
     seed: int = 0
-    chunk: int = DEFAULT_CHUNK
-    threads: int | None = None
+
+
+@dataclass(frozen=True)
+class NormalRefinementConfig:
+    """Photometric normal refinement (fast solver; :mod:`.normals`).
+
+    Fields (flat name in brackets):
+        iterations [refine_normals]: this many alternations of ``NORMAL_STEPS`` damped Gauss–Newton steps of each
+            solved texel's normal (reflectance fixed) and the reflectance solve (normals fixed); 0 = off.
+        sigma [normal_sigma]: σ (degrees) of the Gaussian prior of the refined normal towards the geometric one.
+    """
+
+    iterations: int = _flat("refine_normals", 0)
+    sigma: float = _flat("normal_sigma", DEFAULT_NORMAL_SIGMA)
+
+
+#: The nested settings of :class:`FitMapsConfig`: field name → its class.
+_GROUPS = {"solver": SolverConfig, "symmetry": SymmetryConfig, "prior": PriorConfig, "adam": AdamConfig,
+           "normals": NormalRefinementConfig}
+
+
+@dataclass(frozen=True)
+class FitMapsConfig:
+    """Settings of :func:`fit_maps`, declared once and nested by concern (the fit-reflectance stage takes its
+    defaults from here).
+
+    Fields:
+        exponents: (K,) lobe exponents (K = 1 is the global-exponent representation).
+        solver: :class:`SolverConfig`; symmetry: :class:`SymmetryConfig`; prior: :class:`PriorConfig`;
+        adam: :class:`AdamConfig`; normals: :class:`NormalRefinementConfig`.
+
+    Every setting also has one flat name (:meth:`flat_names`: the stage parameters and CLI options, and
+    ``fit_maps(obs, loss="l2")``): :meth:`from_flat` and :meth:`with_flat` build a config from flat settings,
+    :meth:`flat` gives them back.
+    """
+
+    exponents: tuple[float, ...] = tuple(DEFAULT_EXPONENTS)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    symmetry: SymmetryConfig = field(default_factory=SymmetryConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    adam: AdamConfig = field(default_factory=AdamConfig)
+    normals: NormalRefinementConfig = field(default_factory=NormalRefinementConfig)
+
+    def __post_init__(self) -> None:
+        for name, cls in _GROUPS.items():
+            if not isinstance(getattr(self, name), cls):
+                raise TypeError(f"FitMapsConfig.{name} must be a {cls.__name__}, got {getattr(self, name)!r} "
+                                f"(flat settings: FitMapsConfig.from_flat({name}=...))")
+
+    @staticmethod
+    def flat_names() -> dict[str, tuple[str | None, str]]:
+        """Flat name → (nested settings field or None for a top-level one, field name), in declaration order."""
+        out: dict[str, tuple[str | None, str]] = {}
+        for f in fields(FitMapsConfig):
+            if f.name in _GROUPS:
+                for g in fields(_GROUPS[f.name]):
+                    out[g.metadata.get("flat", g.name)] = (f.name, g.name)
+            else:
+                out[f.name] = (None, f.name)
+        return out
+
+    @classmethod
+    def from_flat(cls, **settings: Any) -> "FitMapsConfig":
+        """The defaults with flat settings (``FitMapsConfig.from_flat(loss="l2", symmetry=0.5)``)."""
+        return cls().with_flat(**settings)
+
+    def with_flat(self, **settings: Any) -> "FitMapsConfig":
+        """A copy with flat settings replaced; an unknown name is a TypeError naming it."""
+        names = self.flat_names()
+        top: dict[str, Any] = {}
+        nested: dict[str, dict[str, Any]] = {}
+        for k, v in settings.items():
+            if k not in names:
+                raise TypeError(f"unknown setting {k!r}")
+            group, name = names[k]
+            if group is None:
+                top[name] = v
+            else:
+                nested.setdefault(group, {})[name] = v
+        return replace(self, **top, **{g: replace(getattr(self, g), **kw) for g, kw in nested.items()})
+
+    def flat(self) -> dict[str, Any]:
+        """Flat name → value of every setting."""
+        return {k: getattr(self, name) if group is None else getattr(getattr(self, group), name)
+                for k, (group, name) in self.flat_names().items()}
 
     def check(self) -> None:
-        """Raise ReflectmmError naming the first bad setting."""
+        """Raise ReflectmmError naming the first bad setting (by its flat name)."""
+        s, sym, pr, nr = self.solver, self.symmetry, self.prior, self.normals
         _check_exponents(self.exponents)
-        if self.solver not in ("fast", "adam"):
-            raise ReflectmmError(f"solver must be 'fast' or 'adam', got {self.solver!r}")
-        if self.loss not in ("l1", "l2"):
-            raise ReflectmmError(f"loss must be 'l1' or 'l2', got {self.loss!r}")
-        if not (0.0 <= float(self.symmetry) <= 1.0):
-            raise ReflectmmError(f"symmetry must be in [0, 1], got {self.symmetry}")
-        if self.symmetry_mode not in SYMMETRY_MODES:
+        if s.kind not in ("fast", "adam"):
+            raise ReflectmmError(f"solver must be 'fast' or 'adam', got {s.kind!r}")
+        if s.loss not in ("l1", "l2"):
+            raise ReflectmmError(f"loss must be 'l1' or 'l2', got {s.loss!r}")
+        if not (0.0 <= float(sym.weight) <= 1.0):
+            raise ReflectmmError(f"symmetry must be in [0, 1], got {sym.weight}")
+        if sym.mode not in SYMMETRY_MODES:
             raise ReflectmmError(f"symmetry_mode must be one of {', '.join(SYMMETRY_MODES)}, "
-                                 f"got {self.symmetry_mode!r}")
-        if not (np.isfinite(self.prior) and self.prior >= 0):
-            raise ReflectmmError(f"prior must be finite and >= 0, got {self.prior}")
-        if not (np.isfinite(self.prior_tail) and self.prior_tail >= 0):
-            raise ReflectmmError(f"prior_tail must be finite and >= 0, got {self.prior_tail}")
-        if not (np.isfinite(self.prior_tail_obs) and 0 < self.prior_tail_obs <= 1):
-            raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {self.prior_tail_obs}")
-        if int(self.refine_normals) != self.refine_normals or self.refine_normals < 0:
-            raise ReflectmmError(f"refine_normals must be an integer >= 0, got {self.refine_normals}")
-        if not (np.isfinite(self.normal_sigma) and self.normal_sigma > 0):
-            raise ReflectmmError(f"normal_sigma must be finite and > 0 (degrees), got {self.normal_sigma}")
-        if self.refine_normals > 0 and self.solver != "fast":
+                                 f"got {sym.mode!r}")
+        if not (np.isfinite(pr.strength) and pr.strength >= 0):
+            raise ReflectmmError(f"prior must be finite and >= 0, got {pr.strength}")
+        if not (np.isfinite(pr.tail) and pr.tail >= 0):
+            raise ReflectmmError(f"prior_tail must be finite and >= 0, got {pr.tail}")
+        if not (np.isfinite(pr.tail_obs) and 0 < pr.tail_obs <= 1):
+            raise ReflectmmError(f"prior_tail_obs must be in (0, 1], got {pr.tail_obs}")
+        if int(nr.iterations) != nr.iterations or nr.iterations < 0:
+            raise ReflectmmError(f"refine_normals must be an integer >= 0, got {nr.iterations}")
+        if not (np.isfinite(nr.sigma) and nr.sigma > 0):
+            raise ReflectmmError(f"normal_sigma must be finite and > 0 (degrees), got {nr.sigma}")
+        if nr.iterations > 0 and s.kind != "fast":
             raise ReflectmmError("normal refinement (refine_normals > 0) needs the fast solver; use "
                                  "refine_normals=0 with solver='adam'")
 
@@ -520,7 +628,8 @@ def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None,
     Args:
         obs: uv-observations arrays (docs/pipeline.md); ``radiance`` may be float16.
         config: the solver's settings (:class:`FitMapsConfig`; default: its defaults).
-        settings: single settings overriding ``config`` by name (``fit_maps(obs, loss="l2", prior=0)``).
+        settings: single settings overriding ``config`` by their flat names (``fit_maps(obs, loss="l2", prior=0)``;
+            :meth:`FitMapsConfig.flat_names`).
         pair_mask: (P,) bool or indices of the (view, flash) pairs used for fitting (default all).
         flash_intensity: scalar or (F,) radiant intensity replacing the artifact's (global scale ambiguity:
             multiplying it by k divides C and W by k).
@@ -532,154 +641,282 @@ def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None,
         ReflectmmError on malformed observations (shapes, NaN/inf radiance in observed texels), bad settings.
     """
     t0 = time.perf_counter()
-    try:
-        cfg = replace(config or FitMapsConfig(), **settings)
-    except TypeError as e:
-        raise TypeError(f"fit_maps: unknown setting ({e}); the settings are the fields of FitMapsConfig") from None
-    cfg.check()
-    threads = cfg.threads if cfg.threads is not None else min(os.cpu_count() or 1, 4)
+    cfg = _settings(config, settings)
+    threads = cfg.solver.threads if cfg.solver.threads is not None else min(os.cpu_count() or 1, 4)
     obs = _as_arrays(obs)
     S = check_observations(obs, path)
     p = _check_exponents(cfg.exponents)
-    K = p.size
+    prob, pm = _observations_problem(obs, p, pair_mask, flash_intensity, cfg.solver.chunk, threads)
+    tp = _texel_problem(prob, S, cfg, progress, threads)
+    stats = _setup_stats(tp, cfg, n_pairs_used=int(pm.sum()))
+    normal_map = correction_map = None
+    if cfg.solver.kind == "fast":
+        x, prior_map, info = _fast(tp)
+        if cfg.normals.iterations > 0:
+            x, prior_map, info, tp, ref = _refine_normals(tp, x)
+            normal_map, correction_map = ref.normal_map, ref.correction_map
+            stats["normal_refinement"] = ref.stats
+        stats.update(info)
+    else:
+        x, info = _adam(tp)
+        prior_map = None
+        stats.update(info)
+        # flagged texels (a property of the data, not of the solver) are filled as for the fast solver
+    xfill, finfo = _filled_maps(tp, x, prior_map)
+    stats.update(finfo)
+    resid = _residual_rms(tp.prob, xfill, tp.texels)
+    stats["residual_rms_median"] = float(np.median(resid[prob.count > 0])) if np.any(prob.count > 0) else 0.0
+    stats["time_s"] = time.perf_counter() - t0
+    stats.update(_observable_stats(tp))
+    to_map = tp.texels.to_map
+    return ReflectanceMaps(
+        albedo=xfill[:3], weights=xfill[3:], exponents=p, mask=tp.texels.mask, residual=to_map(resid),
+        conditioning=to_map(tp.cond), flagged=to_map(tp.flag.astype(float)) > 0,
+        obs_count=to_map(prob.count).astype(np.int32), observability=to_map(tp.obsv), prior=prior_map,
+        normal=normal_map, normal_correction=correction_map, stats=stats)
+
+
+def _settings(config: FitMapsConfig | None, settings: dict) -> FitMapsConfig:
+    """``config`` (default: the defaults) with the single ``settings`` overriding it by name, checked."""
+    try:
+        cfg = (config or FitMapsConfig()).with_flat(**settings)
+    except TypeError as e:
+        raise TypeError(f"fit_maps: {e}; the settings are FitMapsConfig.flat_names()") from None
+    cfg.check()
+    return cfg
+
+
+def _observations_problem(obs, p: np.ndarray, pair_mask, flash_intensity, chunk: int, threads: int):
+    """(:class:`_Problem` of the fitted (texel, pair) entries, (P,) bool mask of the pairs used)."""
     P = np.asarray(obs["pair_view"]).shape[0]
     pm = _parse_pair_mask(pair_mask, P)
     used = np.asarray(obs["observed"], bool) & pm[:, None, None]
     F = np.asarray(obs["flash_pos"]).shape[0]
     I = pair_irradiance(obs["flash_intensity"], F, flash_intensity)
-    mask = np.asarray(obs["mask"], bool)
-    min_obs = 1 + K if cfg.min_obs is None else int(cfg.min_obs)
-    sym = float(cfg.symmetry)
-    m = 3 + K
+    return _Problem(obs, p, used, I, chunk, threads), pm
 
-    prob = _Problem(obs, p, used, I, cfg.chunk, threads)
+
+@dataclass(frozen=True)
+class _Texels:
+    """The masked texels of an S×S map: ``idx`` (n,) their positions in the flattened map, in order."""
+
+    S: int
+    idx: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(S, S) bool."""
+        m = np.zeros(self.S * self.S, bool)
+        m[self.idx] = True
+        return m.reshape(self.S, self.S)
+
+    def to_map(self, v: np.ndarray, fill=0.0) -> np.ndarray:
+        """Per-texel values (n, ...) as a float64 map (..., S, S); ``fill`` outside the mask."""
+        S = self.S
+        v = np.asarray(v)
+        out = np.full((S * S,) + v.shape[1:], fill, dtype=np.float64)
+        out[self.idx] = v
+        return np.moveaxis(out.reshape((S, S) + v.shape[1:]), (0, 1), (-2, -1)) if v.ndim > 1 else out.reshape(S, S)
+
+    def from_map(self, a: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`to_map` for a (m, S, S) map: (n, m)."""
+        return np.moveaxis(a.reshape(a.shape[0], -1), 0, 1)[self.idx]
+
+
+@dataclass(frozen=True)
+class _Mirror:
+    """Mirror pooling of per-texel quantities: texel t gets its own plus s_t × its mirror's.
+
+    ``symv`` (n,) s_t (0 where the mirror is not a masked texel), ``mp`` (n,) the mirror's position among the
+    masked texels (0 where there is none), ``has_m`` (n,) whether there is one, ``sym`` the symmetry setting
+    (0: pooling is the identity), ``info`` the mirror-trust statistics.
+    """
+
+    symv: np.ndarray
+    mp: np.ndarray
+    has_m: np.ndarray
+    sym: float
+    info: dict = field(default_factory=dict)
+
+    def pool(self, a: np.ndarray) -> np.ndarray:
+        """``a`` (n, ...) pooled over every masked texel."""
+        if self.sym == 0:
+            return a
+        sh = (-1,) + (1,) * (a.ndim - 1)
+        return a + self.symv.reshape(sh) * a[self.mp]
+
+    def pool_band(self, a_: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        """:meth:`pool` for the texels lo..hi−1 of a band closed under mirroring (a_ holds that band only)."""
+        if self.sym == 0:
+            return a_
+        hm = self.has_m[lo:hi]
+        loc = np.where(hm, self.mp[lo:hi] - lo, 0)
+        return a_ + self.symv[lo:hi].reshape((-1,) + (1,) * (a_.ndim - 1)) * a_[loc]
+
+    @property
+    def pooled(self) -> np.ndarray:
+        """(n,) texels pooled with their mirror."""
+        return self.symv > 0
+
+    def pooled_observability(self, obsv: np.ndarray) -> np.ndarray:
+        """(n, K) the better of a pooled texel's and its mirror's lobe observability."""
+        return np.where(self.pooled[:, None], np.maximum(obsv, obsv[self.mp]), obsv)
+
+
+def _mirror(prob: _Problem, S: int, cfg: FitMapsConfig, min_obs: int, threads: int) -> _Mirror:
+    """The mirror pooling of ``cfg``: weight s everywhere ("all", the paper's flip), s only where the texel's own
+    data cannot determine its unknowns ("ill-posed": fewer than ``min_obs`` observations or conditioning <
+    ``cond_min``), or s × the mirror trust where they can ("adaptive"); 0 where the mirror is not masked."""
     idx = prob.idx
     n = idx.size
-    # full-size per-texel quantities and mirror pooling
+    sym = float(cfg.symmetry.weight)
     mirror = mirror_index(S)
     pos_of = -np.ones(S * S, np.int64)
     pos_of[idx] = np.arange(n)
     mpos = pos_of[mirror[idx]]  # position of each masked texel's mirror among the masked texels (-1: none)
     has_m = mpos >= 0
     mp = np.where(has_m, mpos, 0)
-
-    # per-texel mirror weight: s everywhere ("all", the paper's flip), or s only where the texel's own data
-    # cannot determine its unknowns ("ill-posed": fewer than min_obs observations or conditioning < cond_min)
     symv = np.full(n, sym)
     sym_info: dict[str, Any] = {}
-    if sym > 0 and cfg.symmetry_mode in ("ill-posed", "adaptive") and cfg.solver == "fast":
+    if sym > 0 and cfg.symmetry.mode in ("ill-posed", "adaptive") and cfg.solver.kind == "fast":
         own_cond = gram_conditioning(prob.G) if n else np.zeros(0)
-        ill = (prob.count < min_obs) | (own_cond < cfg.cond_min)
-        if cfg.symmetry_mode == "adaptive" and n:
-            wt, sym_info = _mirror_trust(prob, ~ill, has_m, mp, idx=idx, S=S, m=3 + K, sigma=max(S / 16.0, 1.0),
-                                         threads=threads)
+        ill = (prob.count < min_obs) | (own_cond < cfg.solver.cond_min)
+        if cfg.symmetry.mode == "adaptive" and n:
+            wt, sym_info = _mirror_trust(prob, ~ill, has_m, mp, idx=idx, S=S, m=3 + prob.K,
+                                         sigma=max(S / 16.0, 1.0), threads=threads)
             symv = np.where(ill, sym, sym * wt)
         else:
             symv = np.where(ill, sym, 0.0)
     symv = np.where(has_m, symv, 0.0)
+    return _Mirror(symv=symv, mp=mp, has_m=has_m, sym=sym, info=sym_info)
 
-    def pool(a: np.ndarray) -> np.ndarray:
-        if sym == 0:
-            return a
-        sh = (-1,) + (1,) * (a.ndim - 1)
-        return a + symv.reshape(sh) * a[mp]
 
-    def pool_band(a_: np.ndarray, lo: int, hi: int) -> np.ndarray:
-        """pool() for the texels lo..hi−1 of a band closed under mirroring (a_ holds that band only)."""
-        if sym == 0:
-            return a_
-        hm = has_m[lo:hi]
-        loc = np.where(hm, mp[lo:hi] - lo, 0)
-        return a_ + symv[lo:hi].reshape((-1,) + (1,) * (a_.ndim - 1)) * a_[loc]
+@dataclass(frozen=True)
+class _TexelProblem:
+    """What the solvers of :func:`fit_maps` share: the observations' problem, the mirror pooling, the texels
+    solved (``solve``; the others are flagged: ``flag``), the pooled lobe observability ``obsv`` (n, K) and
+    conditioning ``cond`` (n,), the IRLS δ per texel, the neighbourhood prior's σ, the settings and the execution
+    details (progress wrapper, threads)."""
 
-    Gp = pool(prob.G)
-    pooled = symv > 0
-    cnt_p = prob.count + np.where(pooled, prob.count[mp], 0)
-    obsv_p = np.where(pooled[:, None], np.maximum(prob.obsv, prob.obsv[mp]), prob.obsv)
+    prob: _Problem
+    texels: _Texels
+    mirror: _Mirror
+    solve: np.ndarray
+    flag: np.ndarray
+    obsv: np.ndarray
+    cond: np.ndarray
+    delta: np.ndarray
+    min_obs: int
+    prior_sigma: float
+    cfg: FitMapsConfig
+    progress: Callable | None = None
+    threads: int = 1
+
+
+def _texel_problem(prob: _Problem, S: int, cfg: FitMapsConfig, progress, threads: int) -> _TexelProblem:
+    """Mirror pooling, then flag the texels whose pooled data cannot be solved (fewer than ``min_obs`` pooled
+    observations or pooled conditioning < ``cond_min``)."""
+    n = prob.idx.size
+    min_obs = 1 + prob.K if cfg.solver.min_obs is None else int(cfg.solver.min_obs)
+    mirror = _mirror(prob, S, cfg, min_obs, threads)
+    Gp = mirror.pool(prob.G)
+    cnt_p = prob.count + np.where(mirror.pooled, prob.count[mirror.mp], 0)
     cond = gram_conditioning(Gp) if n else np.zeros(0)
-    flag = (cnt_p < min_obs) | (cond < cfg.cond_min)
-    solve = ~flag
-    stats: dict[str, Any] = {"solver": cfg.solver, "loss": cfg.loss if cfg.solver == "fast" else "l1", "symmetry": sym,
-                             "symmetry_mode": cfg.symmetry_mode if cfg.solver == "fast" else "all",
-                             "n_pooled": int((symv > 0).sum()), **sym_info,
-                             "prior": float(cfg.prior), "prior_tail": float(cfg.prior_tail),
-                             "prior_tail_obs": float(cfg.prior_tail_obs), "n_texels": int(n),
-                             "n_pairs_used": int(pm.sum()),
-                             "n_flagged": int(flag.sum()), "cond_min": cfg.cond_min, "min_obs": min_obs}
+    flag = (cnt_p < min_obs) | (cond < cfg.solver.cond_min)
+    return _TexelProblem(prob=prob, texels=_Texels(S, prob.idx), mirror=mirror, solve=~flag, flag=flag,
+                         obsv=mirror.pooled_observability(prob.obsv), cond=cond,
+                         delta=cfg.solver.irls_delta * np.maximum(prob.rms, 1e-30), min_obs=min_obs,
+                         prior_sigma=cfg.prior.sigma if cfg.prior.sigma is not None else max(S / 16.0, 1.0),
+                         cfg=cfg, progress=progress, threads=threads)
 
-    def to_map(v: np.ndarray, fill=0.0) -> np.ndarray:
-        v = np.asarray(v)
-        out = np.full((S * S,) + v.shape[1:], fill, dtype=np.float64)
-        out[idx] = v
-        return np.moveaxis(out.reshape((S, S) + v.shape[1:]), (0, 1), (-2, -1)) if v.ndim > 1 else out.reshape(S, S)
 
-    delta = cfg.irls_delta * np.maximum(prob.rms, 1e-30)
-    solved_map = to_map(solve.astype(float)) > 0
-    flagged_map = to_map(flag.astype(float)) > 0
-    obsv_map = to_map(obsv_p)
-    prior_sigma = cfg.prior_sigma if cfg.prior_sigma is not None else max(S / 16.0, 1.0)
+def _setup_stats(tp: _TexelProblem, cfg: FitMapsConfig, n_pairs_used: int) -> dict[str, Any]:
+    """The statistics of the settings and the problem, before solving."""
+    fast = cfg.solver.kind == "fast"
+    return {"solver": cfg.solver.kind, "loss": cfg.solver.loss if fast else "l1", "symmetry": tp.mirror.sym,
+            "symmetry_mode": cfg.symmetry.mode if fast else "all",
+            "n_pooled": int((tp.mirror.symv > 0).sum()), **tp.mirror.info,
+            "prior": float(cfg.prior.strength), "prior_tail": float(cfg.prior.tail),
+            "prior_tail_obs": float(cfg.prior.tail_obs), "n_texels": int(tp.prob.idx.size),
+            "n_pairs_used": n_pairs_used,
+            "n_flagged": int(tp.flag.sum()), "cond_min": cfg.solver.cond_min, "min_obs": tp.min_obs}
 
-    normal_map = correction_map = None
-    if cfg.solver == "fast":
-        def fast(obsv_p):
-            return _fast(prob, pool, pool_band, solve, n, m, cfg, delta, obsv_p, prior_sigma, to_map, idx, S,
-                         progress, threads)
 
-        x, prior_map, info = fast(obsv_p)
-        if cfg.refine_normals > 0:
-            # alternate: Gauss–Newton steps of the normals with (C, W) fixed, then the reflectance solve again
-            # with the design re-evaluated at the new normals (rows, flags and mirror weights stay those of the
-            # geometric normals)
-            ref = NormalRefinement(prob, cfg.normal_sigma, cfg.loss, delta, solve, chunk=cfg.chunk, threads=threads,
-                                   ridge=float(cfg.prior))
-            hist = []
-            for _ in range(int(cfg.refine_normals)):
-                xs = x
-                for _ in range(NORMAL_STEPS):
-                    st = ref.step(xs)
-                    xs = ref.x
-                prob.set_normals(ref.normals)
-                obsv_p = np.where(pooled[:, None], np.maximum(prob.obsv, prob.obsv[mp]), prob.obsv)
-                x, prior_map, info = fast(obsv_p)
-                hist.append(st)
-            obsv_map = to_map(obsv_p)
-            cond = gram_conditioning(pool(prob.G)) if n else np.zeros(0)
-            ang = correction_angle_deg(ref.delta)
-            normal_map = np.where(mask[None], to_map(prob.nm), 0.0)
-            correction_map = to_map(ang)
-            stats["normal_refinement"] = {"iterations": int(cfg.refine_normals), "gn_steps": NORMAL_STEPS,
-                                          "sigma_deg": float(cfg.normal_sigma), "history": hist,
-                                          "angle_median_deg": float(np.median(ang[solve])) if solve.any() else 0.0,
-                                          "angle_p90_deg": float(np.percentile(ang[solve], 90))
-                                          if solve.any() else 0.0}
-        stats.update(info)
-    else:
-        from .adam import fit_adam
+@dataclass(frozen=True)
+class _RefinedNormals:
+    """The normal refinement's maps: refined unit normals (3,S,S), their angle to the geometric ones (S,S) in
+    degrees, and its statistics."""
 
-        x, info = fit_adam(prob, idx, S, K, steps=cfg.steps, lr=cfg.lr, w_reg=cfg.w_reg, symmetry=sym, init=cfg.init,
-                           device=cfg.device, seed=cfg.seed, progress=progress)
-        prior_map = None
-        stats.update(info)
-        # flagged texels (a property of the data, not of the solver) are filled as for the fast solver
+    normal_map: np.ndarray
+    correction_map: np.ndarray
+    stats: dict
+
+
+def _refine_normals(tp: _TexelProblem, x: np.ndarray):
+    """Alternate Gauss–Newton steps of the normals with (C, W) fixed and the reflectance solve again with the
+    design re-evaluated at the new normals (rows, flags and mirror weights stay those of the geometric normals).
+
+    Returns (x, prior map, solver info, the problem at the refined normals (its observability and conditioning
+    re-evaluated), :class:`_RefinedNormals`)."""
+    cfg, prob, solve, to_map = tp.cfg, tp.prob, tp.solve, tp.texels.to_map
+    ref = NormalRefinement(prob, cfg.normals.sigma, cfg.solver.loss, tp.delta, solve, chunk=cfg.solver.chunk,
+                           threads=tp.threads, ridge=float(cfg.prior.strength))
+    hist = []
+    for _ in range(int(cfg.normals.iterations)):
+        xs = x
+        for _ in range(NORMAL_STEPS):
+            st = ref.step(xs)
+            xs = ref.x
+        prob.set_normals(ref.normals)
+        tp = replace(tp, obsv=tp.mirror.pooled_observability(prob.obsv))
+        x, prior_map, info = _fast(tp)
+        hist.append(st)
+    tp = replace(tp, cond=gram_conditioning(tp.mirror.pool(prob.G)) if prob.idx.size else np.zeros(0))
+    ang = correction_angle_deg(ref.delta)
+    stats = {"iterations": int(cfg.normals.iterations), "gn_steps": NORMAL_STEPS,
+             "sigma_deg": float(cfg.normals.sigma), "history": hist,
+             "angle_median_deg": float(np.median(ang[solve])) if solve.any() else 0.0,
+             "angle_p90_deg": float(np.percentile(ang[solve], 90))
+             if solve.any() else 0.0}
+    refined = _RefinedNormals(normal_map=np.where(tp.texels.mask[None], to_map(prob.nm), 0.0),
+                              correction_map=to_map(ang), stats=stats)
+    return x, prior_map, info, tp, refined
+
+
+def _adam(tp: _TexelProblem) -> tuple[np.ndarray, dict]:
+    """The paper's Adam reference solver (:mod:`.adam`) on the same problem: (x (n, 3+K), info)."""
+    from .adam import fit_adam
+
+    a = tp.cfg.adam
+    return fit_adam(tp.prob, tp.texels.idx, tp.texels.S, tp.prob.K, steps=a.steps, lr=a.lr, w_reg=a.w_reg,
+                    symmetry=tp.mirror.sym, init=a.init, device=a.device, seed=a.seed, progress=tp.progress)
+
+
+def _filled_maps(tp: _TexelProblem, x: np.ndarray, prior_map: np.ndarray | None) -> tuple[np.ndarray, dict]:
+    """The solution (m, S, S) with the flagged texels filled (:func:`_fill_flagged`; the fallback is the prior
+    map, else the median solution), clipped at 0, zero outside the mask; and the fill statistics."""
+    to_map, mask = tp.texels.to_map, tp.texels.mask
+    m = x.shape[1]
     xmap = to_map(x)  # (m,S,S)
     fallback = prior_map if prior_map is not None else np.broadcast_to(
-        np.median(x[solve], axis=0)[:, None, None] if solve.any() else np.zeros((m, 1, 1)), xmap.shape)
-    xfill, finfo = _fill_flagged(xmap, solved_map, flagged_map, sym, fallback)
-    stats.update(finfo)
-    xfill = np.where(mask[None], np.maximum(xfill, 0.0), 0.0)
-    # residual over the texel's own fitted observations
-    xf = np.moveaxis(xfill.reshape(m, -1), 0, 1)[idx]
-    rss = prob.rss(xf)
-    resid = np.sqrt(rss / np.maximum(3 * prob.count, 1))
-    stats["residual_rms_median"] = float(np.median(resid[prob.count > 0])) if np.any(prob.count > 0) else 0.0
-    stats["time_s"] = time.perf_counter() - t0
-    obs_ok = solve & np.all(obsv_p >= cfg.observable_min, axis=1)
-    stats["n_observable"] = int(obs_ok.sum())
-    stats["n_unobservable_lobe"] = [int((~(obsv_p[:, k] >= cfg.observable_min) & solve).sum()) for k in range(K)]
-    return ReflectanceMaps(
-        albedo=xfill[:3], weights=xfill[3:], exponents=p, mask=mask, residual=to_map(resid),
-        conditioning=to_map(cond), flagged=flagged_map, obs_count=to_map(prob.count).astype(np.int32),
-        observability=obsv_map, prior=prior_map, normal=normal_map, normal_correction=correction_map, stats=stats)
+        np.median(x[tp.solve], axis=0)[:, None, None] if tp.solve.any() else np.zeros((m, 1, 1)), xmap.shape)
+    xfill, finfo = _fill_flagged(xmap, to_map(tp.solve.astype(float)) > 0, to_map(tp.flag.astype(float)) > 0,
+                                 tp.mirror.sym, fallback)
+    return np.where(mask[None], np.maximum(xfill, 0.0), 0.0), finfo
+
+
+def _residual_rms(prob: _Problem, xfill: np.ndarray, texels: _Texels) -> np.ndarray:
+    """(n,) RMS radiance residual of the filled maps over each texel's own fitted observations."""
+    rss = prob.rss(texels.from_map(xfill))
+    return np.sqrt(rss / np.maximum(3 * prob.count, 1))
+
+
+def _observable_stats(tp: _TexelProblem) -> dict[str, Any]:
+    """Solved texels where every lobe is observable, and per lobe the solved texels where it is not."""
+    omin = tp.cfg.solver.observable_min
+    obs_ok = tp.solve & np.all(tp.obsv >= omin, axis=1)
+    return {"n_observable": int(obs_ok.sum()),
+            "n_unobservable_lobe": [int((~(tp.obsv[:, k] >= omin) & tp.solve).sum()) for k in range(tp.prob.K)]}
 
 
 def _mirror_trust(prob, own_ok, has_m, mp, idx, S, m, sigma, threads=1):
@@ -759,102 +996,127 @@ def _solve_system(H, g, lam, x0):
     return x, info, Hr, gr
 
 
-def _fast(prob, pool, pool_band, solve, n, m, cfg: FitMapsConfig, delta, obsv_p, prior_sigma, to_map, idx, S,
-          progress, threads):
-    loss, prior, iters = cfg.loss, float(cfg.prior), cfg.irls_iterations
-    prior_tail, prior_tail_obs = float(cfg.prior_tail), float(cfg.prior_tail_obs)
-    observable_min, irls_tol, irls_obj_tol = cfg.observable_min, cfg.irls_tol, cfg.irls_obj_tol
+def _fast(tp: _TexelProblem):
+    """The fast solver on the problem ``tp``: (x (n, m), prior map x0 (m, S, S), info).
+
+    Pass 1 (:func:`_first_pass`) builds the neighbourhood prior (:func:`_neighbourhood_prior`); pass 2 solves the
+    real objective towards it band by band (:func:`_irls_band`: whole UV rows, closed under mirroring, so each
+    band's IRLS runs on cache-sized data and converges on its own).
+    """
     info: dict[str, Any] = {}
-    sel = np.flatnonzero(solve)
+    bands = tp.prob.bands(tp.texels.S)
+    x, Hp, gp = _first_pass(tp, bands)
+    x0m, x0, glob = _neighbourhood_prior(tp, x)
+    info["prior_global"] = glob.tolist()
+    if float(tp.cfg.prior.strength) == 0:
+        x0 = np.zeros_like(x0)
+    nn_iters = unconv = max_it = 0
+    kkt = 0.0
+    # bands are independent: numpy releases the GIL in the heavy loops, so threads use the cores
+    results = parallel_map(lambda ab: _irls_band(tp, Hp, gp, x, x0, ab), bands, tp.threads, lazy=True)
+    if tp.progress is not None and bands:
+        results = tp.progress(results, desc="IRLS", total=len(bands), unit="band")
+    for a, b, xb, st in results:
+        x[a:b] = xb
+        nn_iters, unconv = max(nn_iters, st[0]), unconv + st[1]
+        kkt, max_it = max(kkt, st[2]), max(max_it, st[3])
+    info.update({"irls_iterations": max_it if tp.cfg.solver.loss == "l1" else 0, "n_bands": len(bands),
+                 "nnls_iterations_max": nn_iters,
+                 "nnls_unconverged": unconv, "kkt_violation_max": kkt})
+    return x, x0m, info
+
+
+def _first_pass(tp: _TexelProblem, bands: list[tuple[int, int]]):
+    """Weighted least squares (weights ⟨l,n⟩) with a negligible ridge, only to build the neighbourhood prior from
+    the observable unknowns (unobservable ones never enter it): (x (n, m), pooled H (n, m, m), pooled g (n, m));
+    x is 0 on the flagged texels."""
+    prob = tp.prob
+    n, m = prob.idx.size, 3 + prob.K
+    sel = np.flatnonzero(tp.solve)
     x = np.zeros((n, m))
-    # pass 1: weighted least squares with a negligible ridge (only to build the neighbourhood prior from
-    # the observable unknowns; unobservable ones never enter it)
-    bands = prob.bands(S)
     H = np.zeros((n, m, m))
     g = np.zeros((n, m))
-
     cached = getattr(prob, "ls_system", None)  # the ⟨l,n⟩-weighted system, if the mirror trust built it already
     if cached is not None:
         H[:], g[:] = cached
     else:
         def ls_band(ab):
-            H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, loss, delta, ab[0], ab[1])[:2]
+            H[ab[0]:ab[1]], g[ab[0]:ab[1]] = prob.normal_equations(None, tp.cfg.solver.loss, tp.delta, ab[0], ab[1])[:2]
 
-        parallel_map(ls_band, bands, threads)
-    Hp, gp = pool(H), pool(g)
+        parallel_map(ls_band, bands, tp.threads)
+    Hp, gp = tp.mirror.pool(H), tp.mirror.pool(g)
     tr = np.einsum("nii->n", Hp)
     lam = PASS1_RIDGE * tr
     if sel.size:
         x1, _, _, _ = _solve_system(Hp[sel], gp[sel], lam[sel], np.zeros((sel.size, m)))
         x[sel] = x1
-    # neighbourhood prior x0 from the observable unknowns of pass 1
-    conf = np.zeros((n, m))
+    return x, Hp, gp
+
+
+def _neighbourhood_prior(tp: _TexelProblem, x: np.ndarray):
+    """The prior target x0 from pass 1's solution ``x``: normalised convolution (σ = ``prior_sigma``) over the
+    texels where each unknown is observable (C: every solved texel; W_i: lobe observability ≥
+    ``observable_min``), the median of those texels where none is near. Returns (x0 map (m, S, S), x0 (n, m),
+    the medians (m,))."""
+    m = x.shape[1]
+    sel = np.flatnonzero(tp.solve)
+    conf = np.zeros_like(x)
     conf[sel, :3] = 1.0
-    conf[sel, 3:] = (obsv_p[sel] >= observable_min).astype(float)
-    xm = to_map(x)
-    cm = to_map(conf)
-    x0m, den = normalized_convolution(xm, cm, prior_sigma)
+    conf[sel, 3:] = (tp.obsv[sel] >= tp.cfg.solver.observable_min).astype(float)
+    xm = tp.texels.to_map(x)
+    cm = tp.texels.to_map(conf)
+    x0m, den = normalized_convolution(xm, cm, tp.prior_sigma)
     glob = np.array([np.median(x[:, j][conf[:, j] > 0]) if np.any(conf[:, j] > 0) else 0.0 for j in range(m)])
     x0m = np.where(den > 1e-3, x0m, glob[:, None, None])
-    x0 = np.moveaxis(x0m.reshape(m, -1), 0, 1)[idx]
-    info["prior_global"] = glob.tolist()
-    if prior == 0:
-        x0 = np.zeros_like(x0)
-    # pass 2: the real objective, towards x0 — band by band (whole UV rows, closed under mirroring), so each
-    # band's IRLS runs on cache-sized data and converges on its own
-    n_it = 1 if loss == "l2" else max(int(iters), 1)
+    return x0m, tp.texels.from_map(x0m), glob
 
-    def band(ab):
-        a, b = ab
-        sl = slice(a, b)
-        loc = np.flatnonzero(solve[sl])
-        stat = [0, 0, 0.0, 0]  # NNLS iterations, unconverged, KKT violation, IRLS iterations
-        xb = x[sl].copy()
-        if loc.size == 0:
-            return a, b, xb, stat
-        Hb, gb = Hp[sl], gp[sl]
-        x0b = x0[sl]
-        last_obj = None
-        for it in range(n_it):
-            if it > 0:
-                H, g, obj, _ = prob.normal_equations(xb, loss, delta, a, b)
-                Hb, gb = pool_band(H, a, b), pool_band(g, a, b)
-            # (it = 0: the ⟨l,n⟩-weighted system of pass 1 is reused as is)
-            tr = np.einsum("nii->n", Hb[loc])
-            lam = prior * tr
-            if prior > 0 and prior_tail > 0:  # per unknown: lobes seen only in their tail lean on the prior
-                short = np.clip(1.0 - obsv_p[a:b][loc] / prior_tail_obs, 0.0, 1.0) ** 2
-                lam = np.concatenate([np.repeat(lam[:, None], 3, axis=1),
-                                      lam[:, None] * (1.0 + prior_tail * short)], axis=1)
-            xs, nfo, Hr, gr = _solve_system(Hb[loc], gb[loc], lam, x0b[loc])
-            stat[0] = max(stat[0], nfo["iterations"])
-            stat[1] += nfo["unconverged"]
-            stat[2] = max(stat[2], float(kkt_violation(Hr, gr, xs).max()))
-            change = np.abs(xs - xb[loc]).max() / max(np.abs(xs).max(), 1e-30)
-            xb[loc] = xs
-            stat[3] = it + 1
-            if it > 0:
-                tot = float(obj[loc].sum())
-                small = last_obj is not None and abs(last_obj - tot) <= irls_obj_tol * max(abs(tot), 1e-300)
-                if change < irls_tol or small:
-                    break
-                last_obj = tot
+
+def _irls_band(tp: _TexelProblem, Hp: np.ndarray, gp: np.ndarray, x: np.ndarray, x0: np.ndarray,
+               ab: tuple[int, int]):
+    """Pass 2 on the texels a..b−1 (a band closed under mirroring): the real objective towards ``x0`` (Tikhonov
+    λ_t = prior · trace(H_t), plus the tail prior on lobes seen only in their tail), non-negative, reweighted
+    (l1) until the solution or the objective stops changing. Starts from pass 1's pooled system (``Hp``, ``gp``)
+    and solution ``x``. Returns (a, b, the band's x (b−a, m), [NNLS iterations, unconverged, KKT violation,
+    IRLS iterations])."""
+    cfg, prob, solve, delta = tp.cfg, tp.prob, tp.solve, tp.delta
+    loss, prior = cfg.solver.loss, float(cfg.prior.strength)
+    prior_tail, prior_tail_obs = float(cfg.prior.tail), float(cfg.prior.tail_obs)
+    n_it = 1 if loss == "l2" else max(int(cfg.solver.irls_iterations), 1)
+    a, b = ab
+    sl = slice(a, b)
+    loc = np.flatnonzero(solve[sl])
+    stat = [0, 0, 0.0, 0]  # NNLS iterations, unconverged, KKT violation, IRLS iterations
+    xb = x[sl].copy()
+    if loc.size == 0:
         return a, b, xb, stat
-
-    nn_iters = unconv = max_it = 0
-    kkt = 0.0
-    # bands are independent: numpy releases the GIL in the heavy loops, so threads use the cores
-    results = parallel_map(band, bands, threads, lazy=True)
-    if progress is not None and bands:
-        results = progress(results, desc="IRLS", total=len(bands), unit="band")
-    for a, b, xb, st in results:
-        x[a:b] = xb
-        nn_iters, unconv = max(nn_iters, st[0]), unconv + st[1]
-        kkt, max_it = max(kkt, st[2]), max(max_it, st[3])
-    info.update({"irls_iterations": max_it if loss == "l1" else 0, "n_bands": len(bands),
-                 "nnls_iterations_max": nn_iters,
-                 "nnls_unconverged": unconv, "kkt_violation_max": kkt})
-    return x, x0m, info
+    Hb, gb = Hp[sl], gp[sl]
+    x0b = x0[sl]
+    last_obj = None
+    for it in range(n_it):
+        if it > 0:
+            H, g, obj, _ = prob.normal_equations(xb, loss, delta, a, b)
+            Hb, gb = tp.mirror.pool_band(H, a, b), tp.mirror.pool_band(g, a, b)
+        # (it = 0: the ⟨l,n⟩-weighted system of pass 1 is reused as is)
+        tr = np.einsum("nii->n", Hb[loc])
+        lam = prior * tr
+        if prior > 0 and prior_tail > 0:  # per unknown: lobes seen only in their tail lean on the prior
+            short = np.clip(1.0 - tp.obsv[a:b][loc] / prior_tail_obs, 0.0, 1.0) ** 2
+            lam = np.concatenate([np.repeat(lam[:, None], 3, axis=1),
+                                  lam[:, None] * (1.0 + prior_tail * short)], axis=1)
+        xs, nfo, Hr, gr = _solve_system(Hb[loc], gb[loc], lam, x0b[loc])
+        stat[0] = max(stat[0], nfo["iterations"])
+        stat[1] += nfo["unconverged"]
+        stat[2] = max(stat[2], float(kkt_violation(Hr, gr, xs).max()))
+        change = np.abs(xs - xb[loc]).max() / max(np.abs(xs).max(), 1e-30)
+        xb[loc] = xs
+        stat[3] = it + 1
+        if it > 0:
+            tot = float(obj[loc].sum())
+            small = last_obj is not None and abs(last_obj - tot) <= cfg.solver.irls_obj_tol * max(abs(tot), 1e-300)
+            if change < cfg.solver.irls_tol or small:
+                break
+            last_obj = tot
+    return a, b, xb, stat
 
 
 def render_uv(maps: ReflectanceMaps | Mapping[str, np.ndarray], obs: Mapping[str, np.ndarray], pairs=None,

@@ -7,6 +7,7 @@ Reads a ``uv-observations`` artifact, calls :func:`reflectmm_cli.reflectance.fit
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from reflectmm_cli.artifacts import make_meta, read_artifact, write_artifact, write_exr, write_png
@@ -20,7 +21,8 @@ from reflectmm_cli.workspace import stage_output
 
 VERB = "fit-reflectance"
 
-_CFG = FitMapsConfig()
+#: FitMapsConfig's defaults by flat name (the nested config's settings are flat parameters and options here)
+_CFG = SimpleNamespace(**FitMapsConfig().flat())
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
@@ -29,7 +31,7 @@ INPUTS = (
 
 
 def _cfg(name: str, kind: str, **kw: Any) -> Param:
-    """A Param for a FitMapsConfig field, its default declared once, there."""
+    """A Param for a FitMapsConfig setting (by its flat name), its default declared once, there."""
     return Param.of_field(_CFG, name, kind, **kw)
 
 
@@ -71,7 +73,7 @@ PARAMS = (EXPONENTS,) + SOLVER_PARAMS + (
 )
 
 #: the params that are FitMapsConfig settings (flash_intensity is an input of the fit, not a setting)
-_SETTINGS = tuple(q.name for q in PARAMS if q.name in FitMapsConfig.__dataclass_fields__)
+_SETTINGS = tuple(q.name for q in PARAMS if q.name in FitMapsConfig.flat_names())
 
 PREVIEWS = ("albedo", "weights", "residual", "flagged")
 
@@ -113,7 +115,7 @@ def run(ctx: StageContext) -> list[Path]:
         raise ReflectmmError("uv-observations input not found (run unwrap-uv first or give --input)", src)
     obs = read_artifact(src, "uv-observations")
     fi = p.get("flash_intensity")
-    cfg = FitMapsConfig(**{k: p[k] for k in _SETTINGS}, device=ctx.device)
+    cfg = FitMapsConfig.from_flat(**{k: p[k] for k in _SETTINGS}, device=ctx.device)
     maps = fit_maps(obs.arrays, cfg, flash_intensity=fi, progress=progress, path=src)
     stats = {k: v for k, v in maps.stats.items() if k != "time_s"}  # no timings in artifacts (byte-identical reruns)
     out = ctx.output_path()

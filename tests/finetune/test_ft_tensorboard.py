@@ -99,13 +99,13 @@ def test_events_hold_the_scalars_of_the_jsonl_log_and_the_reconstructions(data, 
     from PIL import Image
 
     from reflectmm_cli.finetune.shards import load_shards
-    from reflectmm_cli.model.preview import linear_to_srgb
+    from reflectmm_cli.color import encode_display
 
     grids = [np.asarray(Image.open(io.BytesIO(e.encoded_image_string)).convert("RGB"), np.float64) / 255
              for e in ims]
     ss = load_shards(data["shards"])
     for row, i in enumerate(ss.indices("val")[:N_VAL]):
-        target = linear_to_srgb(ss.linear_image(int(i)))
+        target = encode_display(ss.linear_image(int(i)), dtype=np.float64)
         yx = ss.batch([int(i)], with_target=False)["pix_yx"]
         face = np.zeros((SIZE, SIZE), bool)
         face[yx[:, 0], yx[:, 1]] = True

@@ -147,14 +147,15 @@ def test_bad_options_rejected():
     bad["normal"] = obs["normal"][:, :3]
     with pytest.raises(ReflectmmError, match="normal"):
         fit_maps(bad)
-    # settings are FitMapsConfig's fields: a config object, single overrides of it, and no unknown names
-    from reflectmm_cli.reflectance.fit import FitMapsConfig
+    # settings are FitMapsConfig's (by their flat names): a config object, single overrides of it, and no unknown
+    # names
+    from reflectmm_cli.reflectance.fit import FitMapsConfig, SymmetryConfig
 
     with pytest.raises(ReflectmmError, match="symmetry_mode"):
-        fit_maps(obs, FitMapsConfig(symmetry_mode="some"))
-    with pytest.raises(TypeError, match="unknown setting"):
+        fit_maps(obs, FitMapsConfig(symmetry=SymmetryConfig(mode="some")))
+    with pytest.raises(TypeError, match="unknown setting 'symetry'"):
         fit_maps(obs, symetry=0.5)
-    a = fit_maps(obs, FitMapsConfig(loss="l2", prior=1e-3), symmetry=0.0)
+    a = fit_maps(obs, FitMapsConfig.from_flat(loss="l2", prior=1e-3), symmetry=0.0)
     b = fit_maps(obs, loss="l2", prior=1e-3, symmetry=0.0)
     assert np.array_equal(a.albedo, b.albedo) and a.stats["symmetry"] == 0.0 and a.stats["loss"] == "l2"
 
