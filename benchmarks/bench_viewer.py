@@ -55,8 +55,9 @@ def main() -> int:
             B.screenshot(blank, "", (W, H))
             starts.append(time.perf_counter() - t0)
         print(f"browser start + screenshot of an empty page: {statistics.median(starts):.2f} s (median)\n")
-        print("| lobes | encoding | page MB | build s (median) | first frame s (median, incl. browser start) |")
-        print("|---|---|---|---|---|")
+        print("| lobes | encoding | page MB | build s (median) | first frame s (median, incl. browser start) "
+              "| ms per redraw (β changed), software WebGL |")
+        print("|---|---|---|---|---|---|")
         pages = {}
         for k in (1, 3, 5):
             m = D.reflectance_model(t / f"m{k}.npz", fm, k, n_ids=a.components + 1, seed=k)
@@ -74,8 +75,12 @@ def main() -> int:
                     B.screenshot(out, f"size={W}x{H}&ui=0", (W, H))
                     frames.append(time.perf_counter() - t0)
                 pages[k, enc] = out
+                import re
+
+                d = B.dom(out, f"size={W}x{H}&ui=0&beta=1,1,1", query="frames=10", size=(W, H))
+                ms = re.search(r'data-ms-per-frame="([0-9.]+)"', d)
                 print(f"| {k} | {enc} | {out.stat().st_size / 1e6:.2f} | {statistics.median(builds):.2f} | "
-                      f"{statistics.median(frames):.2f} |")
+                      f"{statistics.median(frames):.2f} | {ms.group(1) if ms else 'n/a'} |")
         print("\n| lobes | encoding | light | layer | PSNR dB over the face |")
         print("|---|---|---|---|---|")
         beta = [1.2, -0.8, 0.6]

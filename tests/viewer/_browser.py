@@ -54,8 +54,14 @@ def screenshot(page: Path, hash_: str, size: tuple[int, int], *, offline: bool =
         return np.asarray(Image.open(out).convert("RGB"))
 
 
-def dom(page: Path, hash_: str = "", *, offline: bool = True, timeout: float = 240) -> str:
+def dom(page: Path, hash_: str = "", *, offline: bool = True, timeout: float = 240, query: str = "",
+        size: tuple[int, int] | None = None) -> str:
     """The page's DOM after load (``--dump-dom``), e.g. to read ``<body data-ready data-error>``."""
-    url = Path(page).absolute().as_uri() + ("#" + hash_.lstrip("#") if hash_ else "")
+    url = (Path(page).absolute().as_uri() + (f"?{query}" if query else "")
+           + ("#" + hash_.lstrip("#") if hash_ else ""))
+    if size is not None:
+        r = _run([*(NO_NETWORK if offline else ()), f"--window-size={size[0]},{size[1]}", "--virtual-time-budget=60000",
+                  "--dump-dom", url], timeout)
+        return r.stdout
     r = _run([*(NO_NETWORK if offline else ()), "--virtual-time-budget=60000", "--dump-dom", url], timeout)
     return r.stdout

@@ -543,7 +543,18 @@
 
   buildPanel();
   applyUi();
-  try { draw(); document.body.setAttribute('data-ready', '1'); } catch (err) {
+  // ?frames=N (a query, not state): time N redraws to the end of the GPU work; the result goes to data-ms-per-frame
+  function timeFrames(n) {
+    var t0 = performance.now();
+    for (var i = 0; i < n; i++) { dirty.refl = true; draw(); gl.finish(); }
+    var px = new Uint8Array(4); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    document.body.setAttribute('data-ms-per-frame', ((performance.now() - t0) / n).toFixed(2));
+  }
+  try {
+    draw(); document.body.setAttribute('data-ready', '1');
+    var fq = /[?&]frames=(\d+)/.exec(location.search);
+    if (fq) timeFrames(+fq[1]);
+  } catch (err) {
     document.body.setAttribute('data-error', String(err)); $('status').textContent = String(err); throw err;
   }
 })();
