@@ -61,6 +61,7 @@ SCHEMA_MAJOR: dict[str, int] = {
     "wild-shard": 1,
     "wild-truth": 1,
     "wild-manifest": 1,
+    "viewer": 1,
 }
 
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)

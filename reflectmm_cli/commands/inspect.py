@@ -17,7 +17,8 @@ from typing import Any
 import click
 import numpy as np
 
-from reflectmm_cli.artifacts import (META_KEY, SCHEMA_MAJOR, _meta_from_npz, _open_npz, parse_schema, read_exr)
+from reflectmm_cli.artifacts import (META_KEY, SCHEMA_MAJOR, _meta_from_npz, _open_npz, parse_schema, read_exr,
+                                     read_meta)
 from reflectmm_cli.commands._common import json_option, silence_stdout
 from reflectmm_cli.errors import ArtifactError, ReflectmmError
 
@@ -53,6 +54,37 @@ def array_summary(name: str, arr: np.ndarray) -> dict[str, Any]:
     return out
 
 
+def _page_arrays(path: Path) -> list[dict[str, Any]]:
+    """The arrays of a viewer page's bundle (``reflectmm-data``), named by their place in it."""
+    import json
+    import re
+
+    from reflectmm_cli.viewer import decode_blob
+
+    m = re.search(r'<script type="application/json" id="reflectmm-data">(.*?)</script>', path.read_text("utf-8"),
+                  re.S)
+    if m is None:
+        return []
+    try:
+        doc = json.loads(m.group(1))
+    except ValueError as exc:
+        raise ArtifactError(f"corrupt reflectmm-data element ({exc})", path) from None
+    out: list[dict[str, Any]] = []
+
+    def walk(x: Any, name: str) -> None:
+        if isinstance(x, dict) and "dtype" in x and "data" in x:
+            out.append(array_summary(name, decode_blob(x)))
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                walk(v, f"{name}.{k}" if name else k)
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                walk(v, f"{name}[{i}]")
+
+    walk(doc, "")
+    return out
+
+
 def inspect_artifact(path: str | Path) -> dict[str, Any]:
     """Library function: a JSON-able description of one artifact; raises ReflectmmError if it is not one."""
     path = Path(path)
@@ -68,6 +100,10 @@ def inspect_artifact(path: str | Path) -> dict[str, Any]:
         fmt = "exr"
         for name, ch in channels.items():
             arrays.append(array_summary(name, ch))
+    elif path.suffix.lower() in (".html", ".htm"):
+        fmt = "html"
+        meta = read_meta(path)
+        arrays = _page_arrays(path)
     else:
         fmt = "npz"
         with _open_npz(path) as npz:

@@ -109,6 +109,8 @@ def test_view_command_writes_one_offline_page_with_meta(small, cli):
     alb = decode_blob(doc["models"][0]["albedo_basis"])
     art = read_artifact(small["model"], "reflectance-model")
     np.testing.assert_allclose(alb, art["vertex_albedo_basis"][:3], rtol=2 ** -10, atol=1e-7)
+    r = cli("inspect", out)
+    assert r.exit_code == 0 and "kind:      viewer" in r.output and "models[0].albedo_basis" in r.output
     # a rerun gives the same bytes
     before = out.read_bytes()
     cli("-q", "view", small["model"], "--face-model", small["fm_path"], "--envmap", small["env"],
