@@ -65,3 +65,13 @@ def dom(page: Path, hash_: str = "", *, offline: bool = True, timeout: float = 2
         return r.stdout
     r = _run([*(NO_NETWORK if offline else ()), "--virtual-time-budget=60000", "--dump-dom", url], timeout)
     return r.stdout
+
+
+if __name__ == "__main__":  # python tests/viewer/_browser.py PAGE.html 'HASH' WxH OUT.png
+    import sys
+
+    from PIL import Image
+
+    page, state, size, out = sys.argv[1:5]
+    w, h = (int(x) for x in size.split("x"))
+    Image.fromarray(screenshot(Path(page), state, (w, h))).save(out, optimize=True)
