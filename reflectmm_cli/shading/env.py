@@ -147,7 +147,7 @@ def sh_sum(rows, Y, coeff_major: bool = False, out=None):
             return rows @ Y if out is None else np.matmul(rows, Y, out=out)
         return (torch_einsum() if torch_mode else np.einsum)("pcn,np->cp", rows, Y)
     if rows.ndim == 2:
-        return Y @ rows.T
+        return Y @ rows.T if out is None else np.matmul(Y, rows.T, out=out)
     return (torch_einsum() if torch_mode else np.einsum)("...cn,...n->...c", rows, Y)
 
 
@@ -161,7 +161,7 @@ def diffuse_term(albedo, rows, Yn, coeff_major: bool = False, out=None):
     """``c/π Σ_l A_l Σ_m K_lm Y_lm(n)`` with ``rows = diffuse_rows(K, ·)`` and Yn the basis of the unit normals.
 
     Texel-major: albedo (..., 3), Yn (..., n) → (..., 3). Coefficient-major: albedo (3, N), Yn (n, N) →
-    (3, N). numpy ``out`` (3, N): written in place.
+    (3, N). numpy ``out`` ((..., 3) or (3, N), one lighting): written in place.
     """
     E = sh_sum(rows, Yn, coeff_major, out)
     if out is not None:
@@ -480,34 +480,41 @@ def _cheb_plan(order: int, bands: tuple) -> _ChebPlan:
 
 def _cheb_basis_into(x, y, z, plan: _ChebPlan, out, scratch):
     """Φ (see :class:`_ChebPlan`) of unit vectors (x, y, z) (1-D, length N) into ``out`` (plan.n_rows, N), with
-    ``scratch`` (≥ 5, N) of the same dtype. In-place ufuncs only; returns ``out``."""
+    ``scratch`` (≥ 5, N) of the same dtype (row 0 for 2z, then the product y·s, y·c; rows 1–4 two (c, s) pairs). In-place ufuncs only; returns ``out``."""
     T = out
     T[0].fill(1)
     if plan.jmax >= 1:
         np.copyto(T[1], z)
-    z2, c0, s0, c1, s1 = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4]
+    z2 = scratch[0]
     if plan.jmax >= 2:
         np.add(z, z, out=z2)
         for j in range(2, plan.jmax + 1):  # T_j = 2z T_(j−1) − T_(j−2)
             np.multiply(z2, T[j - 1], out=T[j])
             T[j] -= T[j - 2]
+    # (x + iy)^m = (x + iy)^(m−1) (x + iy), written straight into the j = 0 rows when the plan has them (they are
+    # Re/Im (x + iy)^m themselves), else into one of two alternating scratch pairs
+    tmp, pairs, free = scratch[0], ((scratch[1], scratch[2]), (scratch[3], scratch[4])), 0
     cm, sm = x, y
-    m_prev = 1
+    m_cur = 1
     for m, js, rc, rs in plan.m_rows:
-        while m_prev < m:  # (x + iy)^m = (x + iy)^(m−1) (x + iy)
-            np.multiply(x, cm, out=c1)
-            np.multiply(y, sm, out=z2)
-            c1 -= z2
-            np.multiply(x, sm, out=s1)
-            np.multiply(y, cm, out=z2)
-            s1 += z2
-            cm, sm = c1, s1
-            c0, s0, c1, s1 = c1, s1, c0, s0
-            m_prev += 1
+        while m_cur < m:
+            if m_cur + 1 == m and js[0] == 0:
+                dc, ds = out[rc], out[rs]
+            else:
+                (dc, ds), free = pairs[free], 1 - free
+            np.multiply(x, cm, out=dc)
+            np.multiply(y, sm, out=tmp)
+            dc -= tmp
+            np.multiply(x, sm, out=ds)
+            np.multiply(y, cm, out=tmp)
+            ds += tmp
+            cm, sm = dc, ds
+            m_cur += 1
         for k, j in enumerate(js):
             if j == 0:
-                np.copyto(out[rc + k], cm)
-                np.copyto(out[rs + k], sm)
+                if m == 1:
+                    np.copyto(out[rc], x)
+                    np.copyto(out[rs], y)
             else:
                 np.multiply(T[j], cm, out=out[rc + k])
                 np.multiply(T[j], sm, out=out[rs + k])
@@ -558,7 +565,11 @@ def _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, thre
         Y, scratch, prod = buffers(m)
         nT = unit(np.ascontiguousarray(n2[rows].T), 0)  # (3, m)
         Yn = _cheb_basis_into(nT[0], nT[1], nT[2], plan_d, Y[:plan_d.n_rows], scratch)
-        diffuse[rows] = diffuse_term(c2[rows].T, terms.diffuse, Yn, True, prod[:3]).T
+        # texel-major product straight into the output rows (BLAS takes the transposed basis as it is)
+        if idx is None:
+            diffuse_term(c2[rows], terms.diffuse, Yn.T, False, diffuse[rows])
+        else:
+            diffuse[rows] = diffuse_term(c2[rows], terms.diffuse, Yn.T)
         if not active:
             return
         vT = unit(np.ascontiguousarray(v2[rows].T), 0)
