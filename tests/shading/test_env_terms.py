@@ -126,21 +126,26 @@ def test_chebyshev_basis_spans_the_sh(order, which):
         assert np.all(Y[:, ~used] == 0)
 
 
-def _inputs(seed, N=400):
+def _inputs(seed, mostly_front, N=400):
     rng = np.random.default_rng(seed)
     c, w, n, v = rng.random((N, 3)), rng.random((N, 3)), rng.normal(size=(N, 3)), rng.normal(size=(N, 3))
+    if mostly_front:  # ~90 % facing the viewer: the blocked kernel shades whole blocks and zeroes the rest
+        n = v / np.linalg.norm(v, axis=1, keepdims=True) + 0.6 * rng.normal(size=(N, 3))
     w[:, 1] = 0  # an all-zero lobe
     n[:7] = -v[:7]  # some texels facing away
     return c, w, n, v, rng.random(N) < 0.5
 
 
+@pytest.mark.parametrize("mostly_front", [False, True])
 @pytest.mark.parametrize("kw", [{}, {"band_tol": 1e-2}, {"view_correction": True}, {"mask": True}])
-def test_execution_paths_agree(kw):
+def test_execution_paths_agree(kw, mostly_front):
     # the blocked numpy kernel, the numpy broadcasting path (per-texel lighting), torch with and without geometry
     # gradients, torch's masked gather and the EnvBasis path (global and per-texel lighting) on the same inputs
     order = 6
     K = _lighting(7, order)
-    c, w, n, v, mask = _inputs(8)
+    c, w, n, v, mask = _inputs(8, mostly_front)
+    front = (n * v).sum(1) > 0
+    assert (front.mean() > 0.8) == mostly_front
     N = len(c)
     kw = dict(kw)
     if kw.pop("mask", False):
