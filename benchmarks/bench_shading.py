@@ -350,23 +350,25 @@ def compare_old(path, quick, repeat=7):
             f"Old: `{path}`; new: the current `reflectmm_cli/shading/env.py`. {N} texels; each case runs old, "
             f"new, old, new, … ({repeat} repeats each after one warm-up); medians of wall time. Load average at "
             f"the start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs.\n",
-            "| case | old median | new median | old M texels/s | new M texels/s | new/old (speed) | "
-            "max abs(new − old) / max abs(old) |", "|---|---|---|---|---|---|---|"]
+            "| case | old median wall | new median wall | old M texels/s | new M texels/s | new/old (wall) | "
+            "M texels per CPU-s, old / new (ratio) | max abs(new − old) / max abs(old) |",
+            "|---|---|---|---|---|---|---|---|"]
     for name, f in cases.items():
         ro, rn = f(old), f(new)  # warm-up, and the agreement check
         diff = max(float(np.abs(a.astype(np.float64) - b).max() / max(np.abs(b).max(), 1e-30))
                    for a, b in zip(rn, ro))
-        to, tn = [], []
+        to, tn, co, cn = [], [], [], []
         for _ in range(repeat):
-            t = time.perf_counter()
-            f(old)
-            to.append(time.perf_counter() - t)
-            t = time.perf_counter()
-            f(new)
-            tn.append(time.perf_counter() - t)
+            for mod, tl, cl in ((old, to, co), (new, tn, cn)):
+                c0 = time.process_time()
+                t = time.perf_counter()
+                f(mod)
+                tl.append(time.perf_counter() - t)
+                cl.append(time.process_time() - c0)
         mo, mn = statistics.median(to), statistics.median(tn)
+        qo, qn = statistics.median(co), statistics.median(cn)
         rows.append(f"| {name} | {1e3 * mo:.0f} ms | {1e3 * mn:.0f} ms | {N / mo / 1e6:.2f} | {N / mn / 1e6:.2f} "
-                    f"| {mo / mn:.2f}× | {diff:.1e} |")
+                    f"| {mo / mn:.2f}× | {N / qo / 1e6:.2f} / {N / qn / 1e6:.2f} ({qo / qn:.2f}×) | {diff:.1e} |")
     rows.append(f"\nLoad average at the end: {os.getloadavg()[0]:.1f}.")
     return "\n".join(rows)
 
