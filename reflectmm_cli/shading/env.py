@@ -288,8 +288,14 @@ def specular_view_albedo(p, cos_view):
         i0 = x.detach().floor().clamp(0, _VIEW_NODES - 2).long()
         fr = x - i0.to(x.dtype)
         return T[i0] * (1 - fr) + T[i0 + 1] * fr
-    return np.interp(np.clip(cos_view, 0.0, 1.0), np.linspace(0.0, 1.0, _VIEW_NODES), tab).astype(
-        np.asarray(cos_view).dtype if np.asarray(cos_view).dtype.kind == "f" else np.float64, copy=False)
+    # the nodes are uniform: the interval is an index, not a search (np.interp), in the input's float type
+    cv = np.asarray(cos_view)
+    dt = cv.dtype if cv.dtype.kind == "f" else np.dtype(np.float64)
+    x = np.clip(cv, 0.0, 1.0).astype(dt, copy=False) * dt.type(_VIEW_NODES - 1)
+    i0 = np.minimum(x.astype(np.intp), _VIEW_NODES - 2)
+    fr = x - i0.astype(dt)
+    T = tab.astype(dt)
+    return T[i0] * (1 - fr) + T[i0 + 1] * fr
 
 
 def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask, check_finite=True, geometry_checked=False):
