@@ -7,6 +7,10 @@ other view angles — see docs/shading.md and benchmarks/bench_shading.py for it
 Work that a scene does not need is skipped: bands where every active lobe has ``|B_l| ≤ band_tol`` (and where
 ``|A_l|/π ≤ band_tol`` for the diffuse part), lobes whose weights are all zero, texels outside ``mask``, and the
 specular part of texels facing away from the viewer (n·v ≤ 0, where it is 0 by definition).
+
+The two terms are written once (:func:`diffuse_term`, :func:`lobe_term` on the rows of :func:`diffuse_rows` and
+:func:`lobe_rows`); the execution paths — blocked numpy, :class:`EnvBasis`, generic broadcasting, masked gather —
+only arrange the data (blocks, masks, gathers, layouts, devices) and pass one :class:`EnvTerms` record.
 """
 from __future__ import annotations
 
@@ -23,7 +27,10 @@ from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_d
 from .brdf import _check_exponents
 from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, sh_basis, sh_basis_into
 
-__all__ = ["shade_env", "band_limits", "specular_view_albedo", "EnvBasis"]
+__all__ = ["shade_env", "band_limits", "specular_view_albedo", "EnvBasis",
+           # the two terms, written once for every execution path
+           "EnvTerms", "env_terms", "diffuse_rows", "lobe_rows", "sh_sum", "diffuse_term", "lobe_term", "unit",
+           "reflect"]
 
 DEFAULT_CHUNK = 1 << 14
 #: the blocked kernel gathers the front-facing texels of a block for the specular part only when fewer than this
@@ -148,13 +155,13 @@ def sh_sum(rows, Y, coeff_major: bool = False, out=None):
     if coeff_major:
         if rows.ndim == 2:
             return rows @ Y if out is None else np.matmul(rows, Y, out=out)
-        return (torch_einsum() if torch_mode else np.einsum)("pcn,np->cp", rows, Y)
+        return (_torch_einsum() if torch_mode else np.einsum)("pcn,np->cp", rows, Y)
     if rows.ndim == 2:
         return Y @ rows.T if out is None else np.matmul(Y, rows.T, out=out)
-    return (torch_einsum() if torch_mode else np.einsum)("...cn,...n->...c", rows, Y)
+    return (_torch_einsum() if torch_mode else np.einsum)("...cn,...n->...c", rows, Y)
 
 
-def torch_einsum():
+def _torch_einsum():
     import torch
 
     return torch.einsum
@@ -489,7 +496,8 @@ def _cheb_plan(order: int, bands: tuple) -> _ChebPlan:
 
 def _cheb_basis_into(x, y, z, plan: _ChebPlan, out, scratch):
     """Φ (see :class:`_ChebPlan`) of unit vectors (x, y, z) (1-D, length N) into ``out`` (plan.n_rows, N), with
-    ``scratch`` (≥ 5, N) of the same dtype (row 0 for 2z, then the product y·s, y·c; rows 1–4 two (c, s) pairs). In-place ufuncs only; returns ``out``."""
+    ``scratch`` (≥ 5, N) of the same dtype (row 0: 2z, then the products y·s, y·c; rows 1–4: two (c, s) pairs).
+    In-place ufuncs only; returns ``out``."""
     T = out
     T[0].fill(1)
     if plan.jmax >= 1:
@@ -548,8 +556,7 @@ def _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, thre
     wsel = w2 if idx is None else w2[idx]
     active = [i for i in range(Kn) if np.any(wsel[:, i] != 0)] if Ntex else []
     terms = env_terms(K.astype(np.float64), p, active, band_tol, vc)
-    order = K.shape[-1]
-    order = _order_from_count(order)
+    order = _order_from_count(K.shape[-1])
     A = lambert_sh_coeffs(order)
     plan_d = _cheb_plan(order, tuple(l for l in range(terms.diffuse_order + 1) if A[l] != 0))
     rows_d = (terms.diffuse @ plan_d.M[:terms.diffuse.shape[-1]]).astype(dt)
