@@ -2,11 +2,15 @@
 
     python benchmarks/bench_shading.py            # full run (~1–2 min on 2 cores)
     python benchmarks/bench_shading.py --quick    # smaller sizes, for a smoke test
+    python benchmarks/bench_shading.py --only speed --compare-old /tmp/env_old.py   # old vs new, same run
 
 Sections:
 1. accuracy of ``shade_env`` (SH order × lobe exponent × view angle) against brute-force integration of the
    *true* half-vector Blinn-Phong lobe over procedural HDR environment maps;
-2. throughput of ``shade_env`` (order 8, 3 lobes, float32) against a roofline of this machine;
+2. throughput of ``shade_env`` (order 8, 3 lobes, float32) against a roofline of this machine (the kernel's own
+   operation counts and the measured rate of each operation at the kernel's block size); with
+   ``--compare-old FILE`` also a copy of an earlier ``reflectmm_cli/shading/env.py`` (imported from its path),
+   timed interleaved with the current one in the same process;
 3. what skipping buys (band truncation, zero-weight lobes, masks, back-facing texels);
 4. equirectangular projection (2048×1024) against ducc0.
 All timings are medians of repeated runs.
@@ -265,28 +269,129 @@ def throughput(quick):
     return N, order, res
 
 
-def speed_report(quick):
+def kernel_roofline(order=8, lobes=3, block=None, repeat=7):
+    """Best texels/s of the blocked numpy kernel on one core, from its operation counts and the measured rate of
+    each operation at the sizes the kernel uses (single-threaded BLAS, one block of texels).
+
+    Per texel: ``ew`` elementwise float32 operations (the two bases — T_j recurrence, azimuthal factors, one
+    product per basis row — and ~30 for normalising, reflecting, weighting and scattering), one (3 × n_d) @
+    (n_d × m) and one (3·lobes × n_s) @ (n_s × m) product, and 72 B of input/output from memory.
+    """
+    from threadpoolctl import threadpool_limits
+
+    from reflectmm_cli.shading import env as E
+    from reflectmm_cli.shading.sh import lambert_sh_coeffs
+
+    m = block or E.DEFAULT_CHUNK
+    A = lambert_sh_coeffs(order)
+    pd = E._cheb_plan(order, tuple(l for l in range(order + 1) if A[l] != 0))
+    ps = E._cheb_plan(order, tuple(range(order + 1)))
+
+    def basis_ops(p):
+        return 2 + 2 * max(0, p.jmax - 1) + 6 * max(0, order - 1) + (p.n_rows - p.jmax - 1)
+
+    ew_ops = basis_ops(pd) + basis_ops(ps) + 30
+    rng = np.random.default_rng(0)
+    Yd = rng.random((pd.n_rows, m), dtype=np.float32)
+    Ys = rng.random((ps.n_rows, m), dtype=np.float32)
+    Rd = rng.random((3, pd.n_rows), dtype=np.float32)
+    Rs = rng.random((3 * lobes, ps.n_rows), dtype=np.float32)
+    od, os_ = np.empty((3, m), np.float32), np.empty((3 * lobes, m), np.float32)
+    x, y, z = (rng.random(m, dtype=np.float32) for _ in range(3))
+    with threadpool_limits(limits=1, user_api="blas"):
+        t_md = median_time(lambda: [np.matmul(Rd, Yd, out=od) for _ in range(20)], repeat) / 20 / m
+        t_ms = median_time(lambda: [np.matmul(Rs, Ys, out=os_) for _ in range(20)], repeat) / 20 / m
+    t_ew = median_time(lambda: [np.multiply(x, y, out=z) for _ in range(200)], repeat) / 200 / m
+    big = np.ones(1 << 25, np.float32)
+    dst = np.empty_like(big)
+    gbs = 2 * big.nbytes / median_time(lambda: np.copyto(dst, big), 3) / 1e9
+    bytes_io = 4 * 6 * 3
+    parts = {"elementwise": ew_ops * t_ew, "diffuse product": t_md, "lobe product": t_ms,
+             "memory": bytes_io / (gbs * 1e9)}
+    return dict(block=m, ew_ops=ew_ops, t_ew=t_ew, rows=(pd.n_rows, ps.n_rows),
+                flops_d=2 * 3 * pd.n_rows, flops_s=2 * 3 * lobes * ps.n_rows,
+                gflops_d=2 * 3 * pd.n_rows / t_md / 1e9, gflops_s=2 * 3 * lobes * ps.n_rows / t_ms / 1e9,
+                gbs=gbs, bytes_io=bytes_io, parts=parts, per_core=1.0 / sum(parts.values()))
+
+
+def load_module_from(path):
+    """A copy of reflectmm_cli/shading/env.py at another path, imported as a sibling module of the package (its
+    relative imports resolve against the installed reflectmm_cli.shading)."""
+    import importlib.util
+
+    name = "reflectmm_cli.shading._env_compare"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def compare_old(path, quick, repeat=7):
+    """Old (module at ``path``) against current ``shade_env``, interleaved repeats in this process."""
+    from reflectmm_cli.shading import env as new
+
+    old = load_module_from(path)
+    N = (1 << 18) if quick else (1 << 20)
+    K = (np.random.default_rng(1).normal(size=(3, 81)) * 0.3).astype(np.float32)
+    K[:, 0] = 3
+    c, w, n, v = texels(N)
+    P = np.array(EXPONENTS, np.float32)
+    mask = np.random.default_rng(2).random(N) < 0.3
+    c64, w64, P64, n64, v64, K64 = (a.astype(np.float64) for a in (c, w, P, n, v, K))
+    cases = {
+        "order 8, 3 lobes, float32, 2 threads": (lambda m: m.shade_env(c, w, P, n, v, K, threads=2)),
+        "same, 1 thread": (lambda m: m.shade_env(c, w, P, n, v, K, threads=1)),
+        "float64, 2 threads": (lambda m: m.shade_env(c64, w64, P64, n64, v64, K64, threads=2)),
+        "mask 30 %, 2 threads": (lambda m: m.shade_env(c, w, P, n, v, K, mask=mask, threads=2)),
+        "view_correction, 2 threads": (lambda m: m.shade_env(c, w, P, n, v, K, view_correction=True, threads=2)),
+    }
+    rows = ["### 2b. Old against new kernel, same run\n",
+            f"Old: `{path}`; new: the current `reflectmm_cli/shading/env.py`. {N} texels; each case runs old, "
+            f"new, old, new, … ({repeat} repeats each after one warm-up); medians of wall time. Load average at "
+            f"the start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs.\n",
+            "| case | old median wall | new median wall | old M texels/s | new M texels/s | new/old (wall) | "
+            "M texels per CPU-s, old / new (ratio) | max abs(new − old) / max abs(old) |",
+            "|---|---|---|---|---|---|---|---|"]
+    for name, f in cases.items():
+        ro, rn = f(old), f(new)  # warm-up, and the agreement check
+        diff = max(float(np.abs(a.astype(np.float64) - b).max() / max(np.abs(b).max(), 1e-30))
+                   for a, b in zip(rn, ro))
+        to, tn, co, cn = [], [], [], []
+        for _ in range(repeat):
+            for mod, tl, cl in ((old, to, co), (new, tn, cn)):
+                c0 = time.process_time()
+                t = time.perf_counter()
+                f(mod)
+                tl.append(time.perf_counter() - t)
+                cl.append(time.process_time() - c0)
+        mo, mn = statistics.median(to), statistics.median(tn)
+        qo, qn = statistics.median(co), statistics.median(cn)
+        rows.append(f"| {name} | {1e3 * mo:.0f} ms | {1e3 * mn:.0f} ms | {N / mo / 1e6:.2f} | {N / mn / 1e6:.2f} "
+                    f"| {mo / mn:.2f}× | {N / qo / 1e6:.2f} / {N / qn / 1e6:.2f} ({qo / qn:.2f}×) | {diff:.1e} |")
+    rows.append(f"\nLoad average at the end: {os.getloadavg()[0]:.1f}.")
+    return "\n".join(rows)
+
+
+def speed_report(quick, compare=None):
     gflops, gbs, ew = machine_roofline()
+    rl = kernel_roofline()
     N, order, res = throughput(quick)
-    n = (order + 1) ** 2
-    # work per texel (fast path): two basis evaluations (~5 flops per coefficient each, elementwise) and the
-    # lighting matmuls: 2·n·3 (diffuse) + 3 lobes · 2·n·3 (specular)
-    ew_ops = 2 * 5 * n
-    mm_flops = 2 * n * 3 * (1 + len(EXPONENTS))
-    bytes_io = 4 * (3 + 3 + 3 + 3 + 3 + 3)
-    t_ew = ew_ops / (ew * 1e9)
-    t_mm = mm_flops / (gflops * 1e9)
-    t_mem = bytes_io / (gbs * 1e9)
-    roof = 1.0 / (t_ew + t_mm + t_mem)
+    p = rl["parts"]
     out = ["### 2. Throughput of `shade_env` (order 8, 3 lobes, float32)\n",
-           f"Machine (measured now, {os.cpu_count()} CPUs visible, shared): sgemm {gflops:.1f} GFLOP/s, "
+           f"Machine (measured now, {os.cpu_count()} CPUs visible, shared): sgemm 2048² {gflops:.1f} GFLOP/s, "
            f"memory copy {gbs:.1f} GB/s, L2-resident float32 elementwise multiply {ew:.2f} G elem/s.\n",
-           f"Roofline estimate per texel: {ew_ops} elementwise basis ops ({1e9 * t_ew:.0f} ns) + "
-           f"{mm_flops} matmul flops ({1e9 * t_mm:.0f} ns) + {bytes_io} B of input/output ({1e9 * t_mem:.1f} ns) "
-           f"→ **{roof / 1e6:.1f} M texels per core-second** (the elementwise rate is one core's; "
-           f"≈ {2 * roof / 1e6:.0f} M texels/s on 2 idle cores) upper bound for this algorithm.\n",
+           f"Roofline of the blocked kernel (one core, blocks of {rl['block']} texels, each operation timed at "
+           f"that size with single-threaded BLAS): {rl['ew_ops']} elementwise operations "
+           f"({1e9 * rl['t_ew']:.3f} ns per element and operation → {1e9 * p['elementwise']:.0f} ns), the "
+           f"diffuse product (3 × {rl['rows'][0]}) @ ({rl['rows'][0]} × m), {rl['flops_d']} flops at "
+           f"{rl['gflops_d']:.1f} GFLOP/s ({1e9 * p['diffuse product']:.0f} ns), the lobe product "
+           f"(9 × {rl['rows'][1]}) @ ({rl['rows'][1]} × m), {rl['flops_s']} flops at {rl['gflops_s']:.1f} "
+           f"GFLOP/s ({1e9 * p['lobe product']:.0f} ns), {rl['bytes_io']} B of input/output "
+           f"({1e9 * p['memory']:.1f} ns) → **{rl['per_core'] / 1e6:.1f} M texels per core-second, "
+           f"≈ {2 * rl['per_core'] / 1e6:.0f} M texels/s on 2 idle cores**.\n",
            f"\nLoad average when measured: {os.getloadavg()[0]:.1f} (the machine is shared; wall times vary with "
-           f"it, CPU times much less). *texels per CPU-second* = N / CPU time of all threads; on 2 idle cores the "
+           f"it, CPU times much less). *texels per CPU-s* = N / CPU time of all threads; on 2 idle cores the "
            f"wall throughput of the threaded path approaches twice that.\n",
            f"\n| case ({N} texels) | median wall | texels/s (wall) | median CPU | texels per CPU-s | CPU vs full |"
            f"\n|---|---|---|---|---|---|"]
@@ -295,6 +400,8 @@ def speed_report(quick):
         cpu = CPU_TIMES.get(k, float("nan"))
         out.append(f"| {k} | {1e3 * t:.0f} ms | {N / t / 1e6:.2f} M | {1e3 * cpu:.0f} ms | {N / cpu / 1e6:.2f} M "
                    f"| {cfull / cpu:.2f}× |")
+    if compare:
+        out.append("\n" + compare_old(compare, quick))
     return "\n".join(out)
 
 
@@ -363,10 +470,12 @@ def main():
     ap.add_argument("--only", choices=["accuracy", "speed", "projection"], default=None)
     ap.add_argument("--maps", nargs="*", default=None,
                     help="real equirectangular HDR maps (files or folders) for the accuracy section")
+    ap.add_argument("--compare-old", default=None, metavar="FILE",
+                    help="a copy of an earlier reflectmm_cli/shading/env.py: time it against the current one")
     args = ap.parse_args()
     parts = []
     if args.only in (None, "speed"):
-        parts.append(speed_report(args.quick))
+        parts.append(speed_report(args.quick, args.compare_old))
     if args.only in (None, "projection"):
         parts.append(projection_report(args.quick))
     if args.only in (None, "accuracy"):

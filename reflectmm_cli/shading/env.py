@@ -7,12 +7,17 @@ other view angles — see docs/shading.md and benchmarks/bench_shading.py for it
 Work that a scene does not need is skipped: bands where every active lobe has ``|B_l| ≤ band_tol`` (and where
 ``|A_l|/π ≤ band_tol`` for the diffuse part), lobes whose weights are all zero, texels outside ``mask``, and the
 specular part of texels facing away from the viewer (n·v ≤ 0, where it is 0 by definition).
+
+The two terms are written once (:func:`diffuse_term`, :func:`lobe_term` on the rows of :func:`diffuse_rows` and
+:func:`lobe_rows`); the execution paths — blocked numpy, :class:`EnvBasis`, generic broadcasting, masked gather —
+only arrange the data (blocks, masks, gathers, layouts, devices) and pass one :class:`EnvTerms` record.
 """
 from __future__ import annotations
 
 import math
 import os
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,9 +27,15 @@ from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_d
 from .brdf import _check_exponents
 from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, sh_basis, sh_basis_into
 
-__all__ = ["shade_env", "band_limits", "specular_view_albedo", "EnvBasis"]
+__all__ = ["shade_env", "band_limits", "specular_view_albedo", "EnvBasis",
+           # the two terms, written once for every execution path
+           "EnvTerms", "env_terms", "diffuse_rows", "lobe_rows", "sh_sum", "diffuse_term", "lobe_term", "unit",
+           "reflect"]
 
 DEFAULT_CHUNK = 1 << 14
+#: the blocked kernel gathers the front-facing texels of a block for the specular part only when fewer than this
+#: fraction of them face the viewer; above it, shading every texel and zeroing the others is cheaper (measured)
+COMPACT_BELOW = 0.75
 
 
 def _order_from_count(n: int) -> int:
@@ -67,16 +78,176 @@ def _active_lobes(w, torch_mode: bool) -> list[int]:
     return [i for i in range(Kn) if bool((wz[..., i] != 0).any())]
 
 
-def _stacked_lobe_coeffs(K, Bs, Ls, active, lvl, zeros):
-    """One lighting's coefficient rows of several lobes stacked lobe-major, ``(3·lobes, n_max)``: rows
-    ``3j..3j+2`` are ``K · B_l^i`` of lobe ``active[j]``, bands beyond its limit exact zeros; one product with the
-    basis of r then shades every lobe (the basis is read once, and once more in the backward)."""
-    nmax = (max(Ls[i] for i in active) + 1) ** 2
-    Kst = zeros((3 * len(active), nmax))
+# ---------------------------------------------------------------------------------------------------------------
+# The two terms, written once (numpy or torch). Every execution path below only arranges the data — blocks,
+# masks, gathers, layouts, devices — and calls these with one EnvTerms record.
+
+
+def unit(x, axis: int = -1):
+    """``x / |x|`` along ``axis`` (length 3), the length clamped at 1e-15 so a zero vector stays 0."""
+    if any_torch(x):
+        import torch
+
+        return x * torch.rsqrt((x * x).sum(axis, keepdim=True).clamp_min(1e-30))
+    return x / np.sqrt(np.maximum((x * x).sum(axis, keepdims=True), x.dtype.type(1e-30)))
+
+
+def reflect(n, v, axis: int = -1):
+    """Mirror direction and cosine of unit normals/views along ``axis``: ``(r, n·v)``, ``r = 2(n·v)n − v``.
+
+    Shapes: n, v (..., 3) → r (..., 3), n·v (...) (or (3, N) → (3, N), (N,) with ``axis=0``).
+    """
+    ndv = (n * v).sum(axis)
+    e = ndv.unsqueeze(axis) if any_torch(ndv) else np.expand_dims(ndv, axis)
+    return (2.0 * e) * n - v, ndv
+
+
+def diffuse_rows(K, order_d: int):
+    """Coefficient rows of the diffuse term: ``K_lm A_l / π`` for the bands l ≤ order_d.
+
+    K (..., 3, (L+1)²) → (..., 3, (order_d+1)²); dtype/device of K.
+    """
+    nd = (order_d + 1) ** 2
+    L = _order_from_count(K.shape[-1])
+    a = lambert_sh_coeffs(L)[_band_of_coeff(L)[:nd]] / math.pi
+    if any_torch(K):
+        import torch
+
+        return K[..., :nd] * torch.as_tensor(a, dtype=K.dtype, device=K.device)
+    return (K[..., :nd] * a).astype(K.dtype, copy=False)
+
+
+def lobe_rows(K, B, orders, active):
+    """Coefficient rows of the specular term, lobe-major: rows ``3j..3j+2`` are ``K_lm B_l^i`` of lobe
+    ``i = active[j]`` for l ≤ orders[i], exact zeros beyond it (one product with the basis of r shades every lobe).
+
+    K (..., 3, (L+1)²), B (lobes, L+1) float64 → (..., 3·len(active), (max_j orders[active[j]] + 1)²).
+    """
+    L = _order_from_count(K.shape[-1])
+    lvl = _band_of_coeff(L)
+    ns = (max(orders[i] for i in active) + 1) ** 2
+    if any_torch(K):
+        import torch
+
+        parts = []
+        for i in active:
+            ni = (orders[i] + 1) ** 2
+            Ki = K[..., :ni] * torch.as_tensor(B[i][lvl[:ni]], dtype=K.dtype, device=K.device)
+            parts.append(torch.nn.functional.pad(Ki, (0, ns - ni)))
+        return torch.cat(parts, -2)
+    out = np.zeros(K.shape[:-2] + (3 * len(active), ns), K.dtype)
     for j, i in enumerate(active):
-        ni = (Ls[i] + 1) ** 2
-        Kst[3 * j:3 * j + 3, :ni] = K[..., :ni] * Bs[i][lvl[:ni]]
-    return Kst
+        ni = (orders[i] + 1) ** 2
+        out[..., 3 * j:3 * j + 3, :ni] = K[..., :ni] * B[i][lvl[:ni]]
+    return out
+
+
+def sh_sum(rows, Y, coeff_major: bool = False, out=None):
+    """``Σ_k rows[..., c, k] Y[..., k]``: SH rows applied to a basis.
+
+    Texel-major: rows (C, n) or (..., C, n), Y (..., n) → (..., C).
+    Coefficient-major (basis rows contiguous along the texels): rows (C, n), Y (n, N) → (C, N) (into ``out``
+    if given, numpy); per-texel rows (N, C, n), Y (n, N) → (C, N).
+    """
+    torch_mode = any_torch(rows, Y)
+    if torch_mode and Y.dtype != rows.dtype:
+        Y = Y.to(rows.dtype)
+    if coeff_major:
+        if rows.ndim == 2:
+            return rows @ Y if out is None else np.matmul(rows, Y, out=out)
+        return (_torch_einsum() if torch_mode else np.einsum)("pcn,np->cp", rows, Y)
+    if rows.ndim == 2:
+        return Y @ rows.T if out is None else np.matmul(Y, rows.T, out=out)
+    return (_torch_einsum() if torch_mode else np.einsum)("...cn,...n->...c", rows, Y)
+
+
+def _torch_einsum():
+    import torch
+
+    return torch.einsum
+
+
+def diffuse_term(albedo, rows, Yn, coeff_major: bool = False, out=None):
+    """``c/π Σ_l A_l Σ_m K_lm Y_lm(n)`` with ``rows = diffuse_rows(K, ·)`` and Yn the basis of the unit normals.
+
+    Texel-major: albedo (..., 3), Yn (..., n) → (..., 3). Coefficient-major: albedo (3, N), Yn (n, N) →
+    (3, N). numpy ``out`` ((..., 3) or (3, N), one lighting): written in place.
+    """
+    E = sh_sum(rows, Yn, coeff_major, out)
+    if out is not None:
+        E *= albedo
+        return E
+    return albedo * E
+
+
+def lobe_term(weights, rows, Yr, coeff_major: bool = False, out=None):
+    """``Σ_j w_j Σ_l B_l^j Σ_m K_lm Y_lm(r)`` with ``rows = lobe_rows(K, B, ·, active)`` (J lobes) and Yr the
+    basis of the mirror directions; ``weights`` are those of the J lobes (times ρ(n·v) for the view correction).
+
+    Texel-major: weights (..., J), Yr (..., n) → (..., 3). Coefficient-major: weights (J, N), Yr (n, N) →
+    (3, N). numpy ``out`` (3J, N): scratch for the per-lobe products.
+    """
+    S = sh_sum(rows, Yr, coeff_major, out)
+    if coeff_major:
+        J = weights.shape[0]
+        S = S.reshape(J, 3, S.shape[-1])
+        if out is not None:
+            S *= weights[:, None, :]
+            return S.sum(0)
+        return (S * weights[:, None, :]).sum(0)
+    J = weights.shape[-1]
+    S = S.reshape(S.shape[:-1] + (J, 3))
+    return (S * weights[..., None]).sum(-2)
+
+
+class EnvTerms(NamedTuple):
+    """Per-call constants of the two terms: what every execution path passes around instead of the loose arrays.
+
+    ``diffuse``: (..., 3, (diffuse_order+1)²) rows of :func:`diffuse_rows`; ``lobes``: (..., 3·J, (lobe_order+1)²)
+    rows of :func:`lobe_rows` (None when no lobe is active); ``active``: the J lobes shaded, in row order;
+    ``view_exponents``: their exponents when the view correction is on, else None.
+    """
+
+    diffuse: object
+    lobes: object
+    active: tuple
+    diffuse_order: int
+    lobe_order: int
+    view_exponents: tuple | None = None
+
+    def lobe_weights(self, w, ndv, axis: int = -1):
+        """Weights of the active lobes, (..., J) (``axis=-1``, w (..., K)) or (J, N) (``axis=0``, w (K, N)), times
+        the view correction ρ_p(n·v) when it is on."""
+        torch_mode = any_torch(w)
+        idx = list(self.active)
+        if axis == 0:
+            wa = w[idx] if len(idx) != w.shape[0] else w
+        else:
+            wa = w[..., idx] if len(idx) != w.shape[-1] else w
+        if self.view_exponents is None:
+            return wa
+        cols = [(wa[j] if axis == 0 else wa[..., j]) * specular_view_albedo(p, ndv)
+                for j, p in enumerate(self.view_exponents)]
+        if torch_mode:
+            import torch
+
+            return torch.stack(cols, 0 if axis == 0 else -1)
+        return np.stack(cols, 0 if axis == 0 else -1)
+
+
+def env_terms(K, exponents, active, band_tol: float = 0.0, view_correction: bool = False) -> EnvTerms:
+    """The :class:`EnvTerms` of lighting K (..., 3, (L+1)²) (numpy or torch) for lobes of ``exponents`` (float64,
+    (lobes,)), shading the lobes ``active``, bands dropped by :func:`band_limits` at ``band_tol``."""
+    order = _order_from_count(K.shape[-1])
+    Ld, Ls = band_limits(exponents, order, band_tol)
+    active = tuple(active)
+    lobes, Lsmax = None, -1
+    if active:
+        B = blinn_phong_sh_coeffs(exponents, order)
+        lobes = lobe_rows(K, B, Ls, active)
+        Lsmax = max(Ls[i] for i in active)
+    vc = tuple(float(exponents[i]) for i in active) if view_correction else None
+    return EnvTerms(diffuse_rows(K, Ld), lobes, active, Ld, Lsmax, vc)
 
 
 _VIEW_NODES = 65
@@ -124,8 +295,14 @@ def specular_view_albedo(p, cos_view):
         i0 = x.detach().floor().clamp(0, _VIEW_NODES - 2).long()
         fr = x - i0.to(x.dtype)
         return T[i0] * (1 - fr) + T[i0 + 1] * fr
-    return np.interp(np.clip(cos_view, 0.0, 1.0), np.linspace(0.0, 1.0, _VIEW_NODES), tab).astype(
-        np.asarray(cos_view).dtype if np.asarray(cos_view).dtype.kind == "f" else np.float64, copy=False)
+    # the nodes are uniform: the interval is an index, not a search (np.interp), in the input's float type
+    cv = np.asarray(cos_view)
+    dt = cv.dtype if cv.dtype.kind == "f" else np.dtype(np.float64)
+    x = np.clip(cv, 0.0, 1.0).astype(dt, copy=False) * dt.type(_VIEW_NODES - 1)
+    i0 = np.minimum(x.astype(np.intp), _VIEW_NODES - 2)
+    fr = x - i0.astype(dt)
+    T = tab.astype(dt)
+    return T[i0] * (1 - fr) + T[i0 + 1] * fr
 
 
 def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask, check_finite=True, geometry_checked=False):
@@ -199,14 +376,11 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         raise ReflectmmError(f"shading: lighting of order {order} but the EnvBasis was built for order {basis.order}")
     if band_tol < 0 or not math.isfinite(band_tol):
         raise ReflectmmError(f"shading: band_tol must be finite and ≥ 0, got {band_tol}")
-    Ld, Ls = band_limits(p, order, band_tol)
-    A = lambert_sh_coeffs(order)
-    B = blinn_phong_sh_coeffs(p, order)
+    vc = bool(view_correction)
     if not tm and K.ndim == 2:
-        return _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads,
-                                p if view_correction else None)
+        return _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, threads)
     if basis is not None:
-        return _shade_env_pre(c, w, K, A, B, Ld, Ls, lead, mask, dt, basis, p if view_correction else None)
+        return _shade_env_pre(c, w, K, env_terms(K, p, _active_lobes(w, True), band_tol, vc), lead, mask, dt, basis)
     if tm and mask is not None and K.ndim == 2:
         # gather the masked texels, shade only those, scatter back (differentiable)
         import torch
@@ -216,13 +390,14 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         def sel(a):
             return a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1])[idx]
 
-        d_m, s_m = _shade_env_generic(tm, sel(c), sel(w), sel(n), sel(v), K, A, B, Ld, Ls,
-                                      (int(idx.numel()),), None, dt, p if view_correction else None)
+        ws = sel(w)
+        d_m, s_m = _shade_env_generic(tm, sel(c), ws, sel(n), sel(v), env_terms(K, p, _active_lobes(ws, tm),
+                                      band_tol, vc), (int(idx.numel()),), None, dt)
         N = int(np.prod(lead)) if lead else 1
         zero = torch.zeros((N, 3), dtype=d_m.dtype, device=d_m.device)
         return (zero.index_put((idx,), d_m).reshape(lead + (3,)),
                 zero.index_put((idx,), s_m).reshape(lead + (3,)))
-    return _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, p if view_correction else None)
+    return _shade_env_generic(tm, c, w, n, v, env_terms(K, p, _active_lobes(w, tm), band_tol, vc), lead, mask, dt)
 
 
 def _flat(a, lead, k):
@@ -254,7 +429,120 @@ def _default_threads() -> int:
         return max(1, min(os.cpu_count() or 1, 8))
 
 
-def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads, vc_exponents=None):
+class _ChebPlan(NamedTuple):
+    """Basis of the blocked numpy kernel: Chebyshev polynomials in z times the azimuthal factors.
+
+    Every real SH is ``Y_lm(d) = Q_l^|m|(z) · (√2) Re/Im (x + iy)^|m|`` with Q_l^m a polynomial of degree l − m
+    in z, so ``Y = M Φ`` for the functions ``Φ = T_j(z) · Re/Im (x + iy)^m`` (T_j the Chebyshev polynomials,
+    j ≡ l − m mod 2, j ≤ l − m) and a constant matrix M (float64, exact to rounding). The kernel evaluates Φ —
+    one multiplication per row after the T_j and the azimuthal factors, against five or six per row for the
+    Legendre recurrence — and the coefficient rows become ``rows @ M``, so the product with the basis is unchanged.
+    In Chebyshev form there is no cancellation (|T_j| ≤ 1 and M has small entries), so the values agree with the
+    Legendre recurrence to rounding.
+
+    ``jmax``: rows 0..jmax of Φ are T_0..T_jmax (the m = 0 functions); ``m_rows``: (m, js, first row of the
+    cosine rows, first row of the sine rows) for m ≥ 1; ``M``: ((order+1)², rows).
+    """
+
+    order: int
+    jmax: int
+    m_rows: tuple
+    M: np.ndarray
+
+    @property
+    def n_rows(self) -> int:
+        return self.M.shape[1]
+
+
+@lru_cache(maxsize=64)
+def _cheb_plan(order: int, bands: tuple) -> _ChebPlan:
+    """Plan for the SH coefficients of the bands ``bands`` (ascending, ≤ order); coefficients of other bands map
+    to nothing (their rows of M are 0)."""
+    from .sh import _sh_columns
+
+    def js(m):
+        out = set()
+        for l in bands:  # noqa: E741
+            if l >= m:
+                out.update(range((l - m) % 2, l - m + 1, 2))
+        return sorted(out)
+
+    jmax = max(js(0), default=0)
+    m_rows, r = [], jmax + 1
+    for m in range(1, order + 1):
+        j = js(m)
+        if j:
+            m_rows.append((m, tuple(j), r, r + len(j)))
+            r += 2 * len(j)
+    # Q_l^m(z) (√2 for m > 0) at Chebyshev nodes: the SH columns at (x, y) = (1, 0), where (x + iy)^m = 1
+    nodes = np.cos(math.pi * (np.arange(order + 1) + 0.5) / (order + 1))
+    cols = _sh_columns(np.ones_like(nodes), np.zeros_like(nodes), nodes, order, np.ones_like(nodes))
+    M = np.zeros(((order + 1) ** 2, r))
+    where = {m: (jj, rc, rs) for m, jj, rc, rs in m_rows}
+    for l in bands:  # noqa: E741
+        for m in range(l + 1):
+            cheb = np.polynomial.chebyshev.chebfit(nodes, cols[l * l + l + m], l - m)
+            if m == 0:
+                M[l * l + l, :l + 1] = cheb
+                continue
+            jj, rc, rs = where[m]
+            for k, j in enumerate(jj):
+                if j <= l - m:
+                    M[l * l + l + m, rc + k] = cheb[j]
+                    M[l * l + l - m, rs + k] = cheb[j]
+    M[np.abs(M) < 1e-15 * np.abs(M).max()] = 0.0  # parity zeros of the fit
+    return _ChebPlan(order, jmax, tuple(m_rows), M)
+
+
+def _cheb_basis_into(x, y, z, plan: _ChebPlan, out, scratch):
+    """Φ (see :class:`_ChebPlan`) of unit vectors (x, y, z) (1-D, length N) into ``out`` (plan.n_rows, N), with
+    ``scratch`` (≥ 5, N) of the same dtype (row 0: 2z, then the products y·s, y·c; rows 1–4: two (c, s) pairs).
+    In-place ufuncs only; returns ``out``."""
+    T = out
+    T[0].fill(1)
+    if plan.jmax >= 1:
+        np.copyto(T[1], z)
+    z2 = scratch[0]
+    if plan.jmax >= 2:
+        np.add(z, z, out=z2)
+        for j in range(2, plan.jmax + 1):  # T_j = 2z T_(j−1) − T_(j−2)
+            np.multiply(z2, T[j - 1], out=T[j])
+            T[j] -= T[j - 2]
+    # (x + iy)^m = (x + iy)^(m−1) (x + iy), written straight into the j = 0 rows when the plan has them (they are
+    # Re/Im (x + iy)^m themselves), else into one of two alternating scratch pairs
+    tmp, pairs, free = scratch[0], ((scratch[1], scratch[2]), (scratch[3], scratch[4])), 0
+    cm, sm = x, y
+    m_cur = 1
+    for m, js, rc, rs in plan.m_rows:
+        while m_cur < m:
+            if m_cur + 1 == m and js[0] == 0:
+                dc, ds = out[rc], out[rs]
+            else:
+                (dc, ds), free = pairs[free], 1 - free
+            np.multiply(x, cm, out=dc)
+            np.multiply(y, sm, out=tmp)
+            dc -= tmp
+            np.multiply(x, sm, out=ds)
+            np.multiply(y, cm, out=tmp)
+            ds += tmp
+            cm, sm = dc, ds
+            m_cur += 1
+        for k, j in enumerate(js):
+            if j == 0:
+                if m == 1:
+                    np.copyto(out[rc], x)
+                    np.copyto(out[rs], y)
+            else:
+                np.multiply(T[j], cm, out=out[rc + k])
+                np.multiply(T[j], sm, out=out[rs + k])
+    return out
+
+
+def _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, threads):
+    """Blocked numpy kernel for one lighting (3, n): blocks of ``chunk`` texels in threads, everything
+    coefficient-major ((3, m) geometry, (rows, m) bases) in per-thread buffers reused from block to block."""
+    import threading
+
     N = int(np.prod(lead)) if lead else 1
     Kn = w.shape[-1]
     c2, w2, n2, v2 = _flat(c, lead, 3), _flat(w, lead, Kn), _flat(n, lead, 3), _flat(v, lead, 3)
@@ -267,59 +555,59 @@ def _shade_env_numpy(c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, chunk, threads
     # Lobes that carry weight somewhere in the (masked) texels.
     wsel = w2 if idx is None else w2[idx]
     active = [i for i in range(Kn) if np.any(wsel[:, i] != 0)] if Ntex else []
-    nd = (Ld + 1) ** 2
-    lvl = _band_of_coeff(len(A) - 1)
-    KA = (K[:, :nd] * A[lvl[:nd]] / math.pi).astype(dt)  # (3, nd), 1/π folded in
-    Lsmax = max([Ls[i] for i in active], default=-1)
-    ns = (Lsmax + 1) ** 2
-    # Lobes with the same band limit share one matmul: rows (3·lobes) × coefficients.
-    groups = {}
-    for i in active:
-        groups.setdefault(Ls[i], []).append(i)
-    KBg = [(lobes, (Lg + 1) ** 2,
-            np.concatenate([K[:, :(Lg + 1) ** 2] * B[i][lvl[:(Lg + 1) ** 2]] for i in lobes]).astype(dt))
-           for Lg, lobes in sorted(groups.items())]
-    tiny = dt(1e-30)
+    terms = env_terms(K.astype(np.float64), p, active, band_tol, vc)
+    order = _order_from_count(K.shape[-1])
+    A = lambert_sh_coeffs(order)
+    plan_d = _cheb_plan(order, tuple(l for l in range(terms.diffuse_order + 1) if A[l] != 0))
+    rows_d = (terms.diffuse @ plan_d.M[:terms.diffuse.shape[-1]]).astype(dt)
+    if active:
+        plan_s = _cheb_plan(order, tuple(range(terms.lobe_order + 1)))
+        rows_s = (terms.lobes @ plan_s.M[:terms.lobes.shape[-1]]).astype(dt)
+        terms = terms._replace(lobes=rows_s)
+    terms = terms._replace(diffuse=rows_d)
+    nb = max(plan_d.n_rows, plan_s.n_rows if active else 0)
+    local = threading.local()
+
+    def buffers(m):
+        b = getattr(local, "b", None)
+        if b is None:
+            b = local.b = (np.empty((nb, chunk), dt), np.empty((5, chunk), dt), np.empty((3 * max(1, len(active)),
+                           chunk), dt))
+        return b[0][:, :m], b[1][:, :m], b[2][:, :m]
 
     def block(s0, s1):
-        buf_d = np.empty((nd, s1 - s0), dt)
         rows = slice(s0, s1) if idx is None else idx[s0:s1]
-        nn = n2[rows]
-        nn = nn / np.sqrt(np.maximum((nn * nn).sum(1, keepdims=True), tiny))
-        nT = np.ascontiguousarray(nn.T)
-        Yn = sh_basis_into(nT[0], nT[1], nT[2], Ld, buf_d)
-        # Skinny (3…9 × n) @ (n × m) products: einsum's C loop; OpenBLAS's threaded path for this shape
-        # spin-waits and is 10–50× slower on a busy machine (measured), and the blocks are already parallel.
-        D = KA @ Yn  # (3, m)
-        D *= c2[rows].T
-        diffuse[rows] = D.T
+        m = s1 - s0
+        Y, scratch, prod = buffers(m)
+        nT = unit(np.ascontiguousarray(n2[rows].T), 0)  # (3, m)
+        Yn = _cheb_basis_into(nT[0], nT[1], nT[2], plan_d, Y[:plan_d.n_rows], scratch)
+        # texel-major product straight into the output rows (BLAS takes the transposed basis as it is)
+        if idx is None:
+            diffuse_term(c2[rows], terms.diffuse, Yn.T, False, diffuse[rows])
+        else:
+            diffuse[rows] = diffuse_term(c2[rows], terms.diffuse, Yn.T)
         if not active:
             return
-        vv = v2[rows]
-        vv = vv / np.sqrt(np.maximum((vv * vv).sum(1, keepdims=True), tiny))
-        ndv = (nn * vv).sum(1)
+        vT = unit(np.ascontiguousarray(v2[rows].T), 0)
+        r, ndv = reflect(nT, vT, 0)
         front = ndv > 0
-        if not front.all():
+        nfront = int(np.count_nonzero(front))
+        if nfront == 0:
+            return
+        back = None
+        if nfront >= COMPACT_BELOW * m:  # shade all, then zero the few facing away (cheaper than gathering)
+            rows_s, back = rows, (None if nfront == m else ~front)
+        else:  # the specular part is 0 where n·v ≤ 0: shade the front-facing texels only
             sub = np.flatnonzero(front)
-            if sub.size == 0:
-                return
-            nn, vv, ndv = nn[sub], vv[sub], ndv[sub]
+            r, ndv = np.ascontiguousarray(r[:, sub]), ndv[sub]
             rows_s = (np.arange(s0, s1) if idx is None else idx[s0:s1])[sub]
-        else:
-            rows_s = rows
-        r = (2.0 * ndv)[:, None] * nn - vv
-        rT = np.ascontiguousarray(r.T)
-        ms = rT.shape[1]
-        Yr = sh_basis_into(rT[0], rT[1], rT[2], Lsmax, np.empty((ns, ms), dt))
-        wT = np.ascontiguousarray(w2[rows_s].T)  # (K, ms)
-        acc = np.zeros((3, ms), dt)
-        for lobes, ng, KB in KBg:
-            S = KB @ Yr[:ng]  # (3·len(lobes), ms)
-            for j, i in enumerate(lobes):
-                Sj = S[3 * j:3 * j + 3]
-                Sj *= wT[i] if vc_exponents is None else wT[i] * specular_view_albedo(vc_exponents[i], ndv)
-                acc += Sj
-        specular[rows_s] = acc.T
+            m = sub.size
+        Yr = _cheb_basis_into(r[0], r[1], r[2], plan_s, Y[:plan_s.n_rows, :m], scratch[:, :m])
+        wT = terms.lobe_weights(np.ascontiguousarray(w2[rows_s].T), ndv, axis=0)  # (J, m)
+        S = lobe_term(wT, terms.lobes, Yr, True, prod[:, :m])  # (3, m)
+        if back is not None:
+            S[:, back] = 0
+        specular[rows_s] = S.T
 
     starts = list(range(0, Ntex, chunk))
     nthreads = min(threads if threads else _default_threads(), len(starts))
@@ -409,61 +697,32 @@ class EnvBasis:
         return int(self.Yr.shape[1])
 
 
-def _shade_env_pre(c, w, K, A, B, Ld, Ls, lead, mask, dt, pre, vc_exponents=None):
-    """``shade_env`` on an :class:`EnvBasis` (torch): the same sums as :func:`_shade_env_generic`, with texels
-    along the last axis of every product (``(3, n) @ (n, N)`` for the diffuse part, one ``(3·lobes, n) @ (n, N)``
-    for all lobes, the lobe weighting as a sum over the leading axis of ``(lobes, 3, N)``)."""
+def _shade_env_pre(c, w, K, terms: EnvTerms, lead, mask, dt, pre):
+    """``shade_env`` on an :class:`EnvBasis` (torch), coefficient-major: texels along the last axis of every
+    product (``(3, n) @ (n, N)`` for the diffuse part, one ``(3·lobes, n) @ (n, N)`` for all lobes); a per-texel
+    lighting (N, 3, n) is applied by one einsum per part."""
     import torch
 
     N = pre.n_texels
     dev = pre.Yr.device
-    order = len(A) - 1
-    lvl = _band_of_coeff(order)
-    nd = (Ld + 1) ** 2
-    cols = pre.n_cols[pre.n_cols < nd]
-    glob = K.ndim == 2
+    nd = (terms.diffuse_order + 1) ** 2
+    cols = pre.n_cols[pre.n_cols < nd]  # the stored rows of the basis of n (A_l ≠ 0)
     Kn = w.shape[-1]
-    active = _active_lobes(w, True)
-    c2 = c.expand(lead + (3,)).reshape(N, 3)
-    w2 = w.expand(lead + (Kn,)).reshape(N, Kn)
-    Acols = torch.as_tensor(A[lvl[cols]] / math.pi, dtype=dt, device=dev)
-    cols_t = torch.as_tensor(cols, device=dev)
-    Yn = pre.Yn[:len(cols)]
-    Yn = Yn if Yn.dtype == dt else Yn.to(dt)
-    Yr = pre.Yr if pre.Yr.dtype == dt else pre.Yr.to(dt)
-    ndv = pre.ndv.reshape(-1).to(dt)
-    if not glob:
-        # per-texel lighting (..., 3, n) broadcasting against the texels: texel-major einsum
-        Kx = K.expand(lead + K.shape[-2:]).reshape(N, 3, K.shape[-1])
-        diffuse = c2 * torch.einsum("pcn,np->pc", Kx[..., cols_t] * Acols, Yn)
-        spec = None
-        for i in active:
-            ni = (Ls[i] + 1) ** 2
-            Bi = torch.as_tensor(B[i][lvl[:ni]], dtype=dt, device=dev)
-            Si = torch.einsum("pcn,np->pc", Kx[..., :ni] * Bi, Yr[:ni]) * w2[:, i:i + 1]
-            if vc_exponents is not None:
-                Si = Si * specular_view_albedo(vc_exponents[i], ndv)[:, None]
-            spec = Si if spec is None else spec + Si
-        spec = torch.zeros_like(diffuse) if spec is None else spec
+    rows_d = terms.diffuse[..., torch.as_tensor(cols, device=dev)]
+    if K.ndim > 2:
+        rows_d = rows_d.expand(lead + rows_d.shape[-2:]).reshape(N, 3, len(cols))
+    diffuse = diffuse_term(c.expand(lead + (3,)).reshape(N, 3).T, rows_d, pre.Yn[:len(cols)], True)
+    spec = None
+    if terms.active:
+        rows_s = terms.lobes
+        if K.ndim > 2:
+            rows_s = rows_s.expand(lead + rows_s.shape[-2:]).reshape(N, *rows_s.shape[-2:])
+        wT = terms.lobe_weights(w.expand(lead + (Kn,)).reshape(N, Kn).T, pre.ndv.reshape(-1).to(dt), axis=0)
+        spec = lobe_term(wT, rows_s, pre.Yr[:rows_s.shape[-1]], True)
         if not pre.all_front:
-            spec = torch.where(pre.front[:, None], spec, torch.zeros_like(spec))
-    else:
-        diffuse = ((K[:, cols_t] * Acols) @ Yn) * c2.T  # (3, N)
-        spec = None
-        if active:
-            Kst = _stacked_lobe_coeffs(K, torch.as_tensor(B, dtype=dt, device=dev), Ls, active, lvl, K.new_zeros)
-            S = (Kst @ Yr[:Kst.shape[1]]).view(len(active), 3, N)  # lobe-major rows
-            wa = w2 if len(active) == Kn else w2[:, active]
-            wT = wa.T.contiguous()  # (lobes, N): the weighting below then runs along contiguous rows
-            if vc_exponents is not None:
-                wT = torch.stack([wT[j] * specular_view_albedo(vc_exponents[i], ndv) for j, i in enumerate(active)])
-            spec = (S * wT[:, None, :]).sum(0)  # (3, N)
-            if not pre.all_front:
-                spec = torch.where(pre.front[None, :], spec, torch.zeros_like(spec))
-        diffuse = diffuse.T
-        spec = torch.zeros_like(diffuse) if spec is None else spec.T
-    diffuse = diffuse.reshape(lead + (3,))
-    spec = spec.reshape(lead + (3,))
+            spec = torch.where(pre.front[None, :], spec, torch.zeros_like(spec))
+    diffuse = diffuse.T.reshape(lead + (3,))
+    spec = torch.zeros_like(diffuse) if spec is None else spec.T.reshape(lead + (3,))
     if mask is not None:
         mt = torch.as_tensor(np.broadcast_to(mask, lead).copy(), device=dev)[..., None]
         diffuse = torch.where(mt, diffuse, torch.zeros_like(diffuse))
@@ -471,33 +730,13 @@ def _shade_env_pre(c, w, K, A, B, Ld, Ls, lead, mask, dt, pre, vc_exponents=None
     return diffuse, spec
 
 
-def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_exponents=None):
-    """Broadcasting path: torch (differentiable) or per-texel lighting in numpy."""
+def _shade_env_generic(tm, c, w, n, v, terms: EnvTerms, lead, mask, dt):
+    """Broadcasting path, texel-major: torch (differentiable) or per-texel lighting in numpy."""
     if tm:
         import torch
 
-        xp_where = torch.where
-        einsum = torch.einsum
-        As = torch.as_tensor(A, dtype=dt, device=n.device)
-        Bs = torch.as_tensor(B, dtype=dt, device=n.device)
-
-        def norm(x):
-            return x * torch.rsqrt((x * x).sum(-1, keepdim=True).clamp_min(1e-30))
-    else:
-        xp_where = np.where
-        einsum = np.einsum
-        As, Bs = A.astype(dt), B.astype(dt)
-
-        def norm(x):
-            return x / np.sqrt(np.maximum((x * x).sum(-1, keepdims=True), dt(1e-30)))
-
-    Kn = w.shape[-1]
-    active = _active_lobes(w, tm)  # an all-zero lobe costs nothing
-    order = len(A) - 1
-    lvl = _band_of_coeff(order)
-    nd = (Ld + 1) ** 2
-    nn = norm(n)
-    vv = norm(v)
+    nn = unit(n)
+    vv = unit(v)
     # Geometry without gradients: evaluate the basis with the blocked numpy kernel and keep only the cheap linear
     # part in the autograd graph.
     fixed_geom = tm and nn.device.type == "cpu" and not (nn.requires_grad or vv.requires_grad)
@@ -507,40 +746,12 @@ def _shade_env_generic(tm, c, w, n, v, K, A, B, Ld, Ls, lead, mask, dt, vc_expon
     else:
         def basis(d, L):
             return sh_basis(d, L, normalize=False)
-    Yn = basis(nn, Ld)
-    KA = K[..., :nd] * As[lvl[:nd]]
-    glob = K.ndim == 2
-
-    def apply(Kx, Y):  # Σ_n Kx[c, n] Y[..., n]
-        if tm and Y.dtype != Kx.dtype:
-            Y = Y.to(Kx.dtype)
-        return Y @ Kx.T if glob else einsum("...cn,...n->...c", Kx, Y)
-
-    diffuse = c * apply(KA, Yn) * (1.0 / math.pi)
-    ndv = (nn * vv).sum(-1)
-    r = (2.0 * ndv)[..., None] * nn - vv
+    diffuse = diffuse_term(c, terms.diffuse, basis(nn, terms.diffuse_order))
     spec = None
-    if active:
-        Lsmax = max(Ls[i] for i in active)
-        Yr = basis(r, Lsmax)
-        if glob and len(active) > 1 and vc_exponents is None:
-            # one lighting, several lobes: one product of the stacked coefficient rows with the basis of r
-            A_ = len(active)
-            Kst = _stacked_lobe_coeffs(K, Bs, Ls, active, lvl,
-                                       K.new_zeros if tm else (lambda shape: np.zeros(shape, K.dtype)))
-            nmax = Kst.shape[1]
-            S_all = apply(Kst, Yr[..., :nmax])  # (*lead, 3·A), lobe-major
-            S_all = S_all.reshape(S_all.shape[:-1] + (A_, 3))
-            wa = w if A_ == Kn else w[..., active]
-            spec = (S_all * wa[..., None]).sum(-2)
-            active = []
-        for i in active:
-            ni = (Ls[i] + 1) ** 2
-            Si = apply(K[..., :ni] * Bs[i][lvl[:ni]], Yr[..., :ni]) * w[..., i:i + 1]
-            if vc_exponents is not None:
-                Si = Si * specular_view_albedo(vc_exponents[i], ndv)[..., None]
-            spec = Si if spec is None else spec + Si
-        spec = xp_where((ndv > 0)[..., None], spec, spec * 0)
+    if terms.active:
+        r, ndv = reflect(nn, vv)
+        spec = lobe_term(terms.lobe_weights(w, ndv), terms.lobes, basis(r, terms.lobe_order))
+        spec = (torch.where if tm else np.where)((ndv > 0)[..., None], spec, spec * 0)
     if tm:
         diffuse = diffuse.expand(lead + (3,))
         spec = torch.zeros_like(diffuse) if spec is None else spec.expand(lead + (3,))
