@@ -29,7 +29,6 @@ Fast solver (``solver="fast"``), per texel, exact and batched over texels:
 from __future__ import annotations
 
 import logging
-import os
 import time
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable, Mapping
@@ -38,7 +37,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
-from reflectmm_cli.threads import parallel_map
+from reflectmm_cli.threads import default_threads, parallel_map
 
 from .design import (DEFAULT_CHUNK, check_observations, design_columns, design_rows, gram_conditioning,
                      iter_chunks, mirror_index, pair_irradiance)
@@ -642,7 +641,7 @@ def fit_maps(obs: Mapping[str, np.ndarray], config: FitMapsConfig | None = None,
     """
     t0 = time.perf_counter()
     cfg = _settings(config, settings)
-    threads = cfg.solver.threads if cfg.solver.threads is not None else min(os.cpu_count() or 1, 4)
+    threads = cfg.solver.threads if cfg.solver.threads is not None else default_threads(4)
     obs = _as_arrays(obs)
     S = check_observations(obs, path)
     p = _check_exponents(cfg.exponents)

@@ -15,13 +15,14 @@ only arrange the data (blocks, masks, gathers, layouts, devices) and pass one :c
 from __future__ import annotations
 
 import math
-import os
 from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+
+from reflectmm_cli.threads import default_threads
 
 from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_dtype, device_of
 from .brdf import _check_exponents
@@ -423,10 +424,8 @@ def _single_threaded_blas(enable: bool):
 
 
 def _default_threads() -> int:
-    try:
-        return max(1, min(len(os.sched_getaffinity(0)), 8))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, min(os.cpu_count() or 1, 8))
+    """Worker threads of the blocked numpy path: the process's CPUs, at most 8 (:func:`threads.default_threads`)."""
+    return default_threads(8)
 
 
 class _ChebPlan(NamedTuple):

@@ -40,14 +40,12 @@ def test_default_threads_is_the_available_cpus_capped(monkeypatch):
 
 
 def test_no_site_derives_its_own_default_thread_count():
-    """threads.default_threads is the one rule: no other module reads the CPU count (the two modules listed are
-    the ones still to move: shading/env.py and reflectance/fit.py)."""
+    """threads.default_threads is the one rule: no other module reads the CPU count."""
     import re
     from pathlib import Path
 
     pkg = Path(__file__).resolve().parents[2] / "reflectmm_cli"
-    pending = {"shading/env.py", "reflectance/fit.py"}
     offenders = sorted(str(p.relative_to(pkg)) for p in pkg.rglob("*.py")
                        if re.search(r"cpu_count\(|sched_getaffinity\(", p.read_text())
-                       and str(p.relative_to(pkg)) not in pending | {"threads.py"})
+                       and str(p.relative_to(pkg)) != "threads.py")
     assert offenders == []
