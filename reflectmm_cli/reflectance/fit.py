@@ -173,11 +173,15 @@ def _parse_pair_mask(pair_mask, P: int) -> np.ndarray:
 
 
 def _check_exponents(exponents) -> np.ndarray:
-    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
-    if p.size < 1 or not np.all(np.isfinite(p)) or np.any(p <= 0):
-        raise ReflectmmError(f"exponents must be finite and > 0, got {p.tolist()}")
-    from reflectmm_cli.shading.brdf import check_distinct_exponents
+    """The fit's guard: :func:`shading.brdf.check_exponents` with the positivity and non-empty rules (one line
+    that names the exponents), then its collinearity rule (:func:`check_distinct_exponents`)."""
+    from reflectmm_cli.shading.brdf import ExponentError, check_distinct_exponents, check_exponents
 
+    p = np.asarray(exponents, dtype=np.float64).reshape(-1)
+    try:
+        check_exponents(p, max_exponent=None, distinct=False)
+    except ExponentError:
+        raise ReflectmmError(f"exponents must be finite and > 0, got {p.tolist()}") from None
     check_distinct_exponents(p)
     return p
 
