@@ -78,7 +78,24 @@ def report(paths, labels) -> str:
             dsim = t_interval(1000 * (ss[:, m] - ss[:, gg]))
             lines.append(f"| {name} | {_fmt(dp)} | {_fmt(dsim)} |")
         lines.append("")
+    margins = [_margin(r) for r in runs]
+    if len(runs) == 2 and all(m is not None for m in margins) and runs[0][2] == runs[1][2]:
+        d = margins[1][0] - margins[0][0]
+        lines.append(f"Change of the 3-lobe margin over each run's best global exponent ({margins[0][1]} → "
+                     f"{margins[1][1]}), {labels[1]} − {labels[0]}, paired by identity: PSNR {_fmt(t_interval(d))} dB.")
+        lines.append("")
     return "\n".join(lines)
+
+
+def _margin(run):
+    """Per-identity PSNR of the multi-lobe representation minus that of the best (on the mean) single-exponent one."""
+    reps_i, exps, _, ps, _ = run
+    multi = [r for r in reps_i if len(exps.get(r, [])) > 1]
+    gi = [reps_i.index(r) for r in reps_i if len(exps.get(r, [])) == 1]
+    if not multi or not gi:
+        return None
+    best = gi[int(np.argmax(ps[:, gi].mean(0)))]
+    return ps[:, reps_i.index(multi[0])] - ps[:, best], reps_i[best]
 
 
 def main(argv=None) -> int:
