@@ -61,19 +61,18 @@ class WildConfig:
     expression_per_identity: bool = True   # one expression per identity: geometry, Embree scene and ambient
                                            # occlusion are then computed once per identity
     split: tuple = (0.8, 0.1, 0.1)   # train/val/test fractions of the identities
-    skin: str = "single"             # "single" (one GGX lobe) or "two-lobe" (sharp + broad GGX; synth/skin.py)
+    skin: str | None = None          # None = "single" (one GGX lobe) or "two-lobe" (sharp + broad GGX; synth/skin.py);
+                                     # None, as the stage's param, so that the default stays out of params and keys
 
     def __post_init__(self) -> None:
         self.split = tuple(float(x) for x in self.split)
-        if self.skin is None:
-            self.skin = "single"
-        if self.skin not in SKIN_MODELS:
+        if self.skin is not None and self.skin not in SKIN_MODELS:
             raise ReflectmmError(f"--skin must be one of {', '.join(SKIN_MODELS)}, got {self.skin!r}")
 
     def to_params(self) -> dict:
         d = asdict(self)
         d["split"] = list(self.split)
-        if self.skin == "single":  # the default is not recorded: data sets made before --skin stay byte-identical
+        if self.skin in (None, "single"):  # the default is not recorded: data sets made before --skin stay byte-identical
             d.pop("skin")
         return d
 
@@ -657,7 +656,7 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
         if sc.identity not in skins:
             skins.clear()
             skins[sc.identity] = sk = sample_wild_skin(model, _rng(cfg.seed, sc.identity, 4), cfg.uv_size,
-                                                       skin_model=cfg.skin)
+                                                       skin_model=cfg.skin or "single")
             two_lobe = {} if sk.lobe_mix is None else {"vertex_roughness_broad": sk.roughness_broad,
                                                        "vertex_lobe_mix": sk.lobe_mix}
             write_artifact(out / "identities" / f"id{sc.identity:05d}.npz", "wild-truth", {
