@@ -19,6 +19,9 @@ PARAMS = (
     Param("seed", "int", 0, help="Random seed (identity k depends on seed, k)."),
     Param("brdf", "str", "ggx", choices=("ggx", "model"),
           help="Ground-truth BRDF: GGX microfacet (honest) or the 3-lobe model (exact-recovery tests)."),
+    Param("skin", "str", None, choices=("single", "two-lobe"),
+          help="Skin specular: single (one GGX lobe per texel; the default) or two-lobe (a sharp and a broad GGX "
+               "lobe, mixed per region; docs/synthetic.md)."),
     Param("image_size", "size", "640x480", range=(16, 16384), unit="px", metavar="WxH",
           help="WxH; the framing is kept."),
     Param("uv_size", "int", 256, range=(16, 4096), unit="texels", help="Resolution of the ground-truth UV maps."),
@@ -64,7 +67,7 @@ def multipie_config(params: dict):
                        flashes=tuple(p["flashes"]) if p.get("flashes") else None,
                        noise=p["noise"], landmark_noise=p["landmark_noise"], expression=p["expression"],
                        shape_scale=p["shape_scale"], first_id=p["first_id"], face_vertices=p["face_vertices"],
-                       supersample=p["supersample"])
+                       supersample=p["supersample"], skin=p.get("skin") or "single")
 
 
 def _outputs(ctx: StageContext) -> list[Path]:
@@ -89,7 +92,7 @@ def run(ctx: StageContext) -> list[Path]:
     paths = synth_multipie(out, cfg, face_model=fm[0] if fm else None, rig=rg[0] if rg else None,
                            meta_params=params, producer=ctx.producer(), cache_key=ctx.cache_key,
                            inputs=ctx.input_refs(out))
-    log.info(f"synth multipie: {cfg.identities} identities ({cfg.brdf}) in {out}")
+    log.info(f"synth multipie: {cfg.identities} identities ({cfg.brdf}, {cfg.skin} skin) in {out}")
     return paths
 
 

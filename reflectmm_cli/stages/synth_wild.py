@@ -64,6 +64,9 @@ PARAMS = (
     Param("expression_per_identity", "bool", _D.expression_per_identity, option="--no-expression-per-identity",
           help="One expression per identity (geometry and occlusion computed once per identity); "
                "--no-expression-per-identity draws one per image."),
+    Param("skin", "str", None, choices=("single", "two-lobe"),
+          help="Skin specular: single (one GGX lobe; the default) or two-lobe (a sharp and a broad GGX lobe mixed "
+               "per region; docs/synthetic.md)."),
     Param("split", "floats", list(_D.split), range=(0.0, None), check=check_split_fractions, option="",
           help="Train/val/test fractions of the identities (recipe only)."),
 )

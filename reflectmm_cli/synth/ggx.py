@@ -29,7 +29,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 
-__all__ = ["SKIN_F0", "ggx_ndf", "smith_g2", "schlick_fresnel", "ggx_brdf", "ggx_directional",
+__all__ = ["SKIN_F0", "ggx_ndf", "smith_g2", "schlick_fresnel", "ggx_brdf", "ggx_directional", "ggx_two_lobe_directional",
            "ggx_specular_albedo", "fit_lobes_to_ggx", "ggx_lobe_weights"]
 
 #: Fresnel reflectance at normal incidence of skin (n ≈ 1.4): ((n−1)/(n+1))² = 0.0278.
@@ -146,6 +146,22 @@ def ggx_directional(albedo, spec_intensity, roughness, normal, light_dir, view_d
     diffuse = E * np.where(ok, ndl, 0.0)[..., None] * c / math.pi
     spec = np.asarray(spec_intensity, np.float64) * _spec_cos_weighted(ndl, ndv, ndh, vdh, roughness, f0)
     specular = E * spec[..., None]
+    total = diffuse + specular
+    return (total, diffuse, specular) if return_parts else total
+
+
+def ggx_two_lobe_directional(albedo, spec_intensity, roughness, roughness_broad, lobe_mix, normal, light_dir,
+                             view_dir, irradiance, *, f0: float = SKIN_F0, return_parts: bool = False):
+    """:func:`ggx_directional` of the two-lobe skin: the specular is ``ρ ((1 − m) GGX(α_sharp) + m GGX(α_broad))``
+    (each lobe with its own D, G2 and the shared Fresnel), ``roughness`` = α_sharp, ``roughness_broad`` = α_broad,
+    ``lobe_mix`` = m (...)."""
+    m = np.asarray(lobe_mix, np.float64)
+    rho = np.asarray(spec_intensity, np.float64)
+    _, diffuse, s1 = ggx_directional(albedo, rho * (1.0 - m), roughness, normal, light_dir, view_dir, irradiance,
+                                     f0=f0, return_parts=True)
+    _, _, s2 = ggx_directional(np.zeros_like(np.asarray(albedo, np.float64)), rho * m, roughness_broad, normal,
+                               light_dir, view_dir, irradiance, f0=f0, return_parts=True)
+    specular = s1 + s2
     total = diffuse + specular
     return (total, diffuse, specular) if return_parts else total
 

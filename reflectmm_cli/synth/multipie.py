@@ -30,7 +30,7 @@ from reflectmm_cli.landmarks import format_pts as _format_pts
 from reflectmm_cli.capture.layout import camera_code
 from reflectmm_cli.rig import ALL_FLASHES, Rig, load_rig, rig_to_toml
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
-from reflectmm_cli.synth.skin import SkinMaps, sample_skin_params, skin_maps
+from reflectmm_cli.synth.skin import SKIN_MODELS, SkinMaps, sample_skin_params, skin_maps
 
 __all__ = ["SynthConfig", "room_light_sh", "encode_png_values", "decode_png_values", "image_path",
            "landmark_path", "Identity", "make_identity", "render_identity", "synth_multipie", "format_pts",
@@ -62,10 +62,13 @@ class SynthConfig:
     face_vertices: int = 35000               # resolution of the procedural face model (if none is given)
     supersample: int = 1                     # k×k rays per pixel, box-filtered in linear space
     exponents: tuple[float, ...] = field(default=DEFAULT_EXPONENTS)
+    skin: str = "single"                     # "single" (one GGX lobe) or "two-lobe" (sharp + broad GGX)
 
     def __post_init__(self) -> None:
         if self.brdf not in ("ggx", "model"):
             raise ReflectmmError(f"--brdf must be 'ggx' or 'model', got {self.brdf!r}")
+        if self.skin not in SKIN_MODELS:
+            raise ReflectmmError(f"--skin must be one of {', '.join(SKIN_MODELS)}, got {self.skin!r}")
         if int(self.identities) < 1:
             raise ReflectmmError(f"--identities must be ≥ 1, got {self.identities}")
         if not (1 <= int(self.first_id) and int(self.first_id) + int(self.identities) - 1 <= 999):
@@ -90,6 +93,8 @@ class SynthConfig:
         d["cameras"] = None if self.cameras is None else list(self.cameras)
         d["flashes"] = None if self.flashes is None else list(self.flashes)
         d["exponents"] = list(self.exponents)
+        if self.skin == "single":  # the default is not recorded: data sets made before --skin stay byte-identical
+            d.pop("skin")
         return d
 
 
@@ -171,7 +176,8 @@ def make_identity(model, cfg: SynthConfig, index: int) -> Identity:
     verts = model.vertices(shape, exp).astype(np.float64)
     normals = vertex_normals(verts, model.triangles).astype(np.float64)
     lm_uv = model.uv[model.landmarks].astype(np.float64)
-    maps = skin_maps(lm_uv, sample_skin_params(rng), cfg.uv_size, exponents=cfg.exponents, brdf=cfg.brdf)
+    maps = skin_maps(lm_uv, sample_skin_params(rng), cfg.uv_size, exponents=cfg.exponents, brdf=cfg.brdf,
+                     skin=cfg.skin)
     return Identity(identity_code(index), shape, exp, verts, normals, maps)
 
 
@@ -197,7 +203,7 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
     from reflectmm_cli.geometry.raycast import RayScene, rasterize, shadow_mask
     from reflectmm_cli.geometry.uv import sample_uv_map
     from reflectmm_cli.shading import shade_directional, shade_env
-    from reflectmm_cli.synth.ggx import ggx_directional
+    from reflectmm_cli.synth.ggx import ggx_directional, ggx_two_lobe_directional
 
     scene = RayScene(ident.vertices, model.triangles, ident.normals)
     maps = ident.maps
@@ -234,6 +240,9 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
         if cfg.brdf == "ggx":
             rough = sample_uv_map(maps.roughness, uv)
             rho = sample_uv_map(maps.spec_intensity, uv)
+            if maps.skin == "two-lobe":
+                rough_b = sample_uv_map(maps.roughness_broad, uv)
+                mix = sample_uv_map(maps.lobe_mix, uv)
         vdir = cam.center[None, :] - p
         vdir /= np.linalg.norm(vdir, axis=1, keepdims=True)
         # room light: SH environment (GGX mode: its specular part through the 3-lobe fit of the GGX lobe)
@@ -279,6 +288,9 @@ def render_identity(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh:
                 if cfg.brdf == "model":
                     s[lit] = shade_directional(alb[lit], w[lit], exps, n[lit], ldir[lit], vdir[lit],
                                                E[lit, None] * np.ones(3))
+                elif maps.skin == "two-lobe":
+                    s[lit] = ggx_two_lobe_directional(alb[lit], rho[lit], rough[lit], rough_b[lit], mix[lit], n[lit],
+                                                      ldir[lit], vdir[lit], E[lit, None] * np.ones(3))
                 else:
                     s[lit] = ggx_directional(alb[lit], rho[lit], rough[lit], n[lit], ldir[lit], vdir[lit],
                                              E[lit, None] * np.ones(3))
@@ -338,6 +350,11 @@ def truth_arrays(model, ident: Identity, rig: Rig, cfg: SynthConfig, room_sh: np
         arrays["vertex_roughness"] = sample_uv_map(mp.roughness, uv).astype(np.float32)
         arrays["vertex_spec_intensity"] = sample_uv_map(mp.spec_intensity, uv).astype(np.float32)
         arrays["f0"] = np.array(0.028)
+        if mp.skin == "two-lobe":
+            arrays["roughness_broad"] = mp.roughness_broad
+            arrays["lobe_mix"] = mp.lobe_mix
+            arrays["vertex_roughness_broad"] = sample_uv_map(mp.roughness_broad, uv).astype(np.float32)
+            arrays["vertex_lobe_mix"] = sample_uv_map(mp.lobe_mix, uv).astype(np.float32)
     return arrays
 
 
@@ -440,6 +457,8 @@ def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, ri
         write_artifact(tpath, "synth-truth", truth_arrays(model, ident, the_rig, cfg, room_sh, landmarks, uv_mask),
                        params=params, producer=producer, cache_key=cache_key, inputs=inputs,
                        extra_meta={"identity": ident.code, "skin": ident.maps.params.to_dict(),
+                                   **({"skin_model": "two-lobe", "skin_two_lobe": ident.maps.two_lobe.to_dict()}
+                                      if cfg.skin == "two-lobe" else {}),
                                    "views": cams, "flashes": fls, "session": SESSION, "recording": RECORDING,
                                    "units": "mm; linear pixel value = radiance; PNG = clip(x,0,1)**(1/1.2)",
                                    "weights_note": ("exact rendering BRDF" if cfg.brdf == "model" else

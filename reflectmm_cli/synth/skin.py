@@ -18,6 +18,15 @@ forehead; docs/pipeline.md):
 
 Regions are soft masks in UV space built from the landmarks' UV coordinates (polygons and thickened polylines,
 blurred), so any face model with UVs and iBUG landmarks works.
+
+Two skin models (``skin=``): ``"single"`` (the default, one GGX lobe per texel, as above) and ``"two-lobe"``: per
+texel a mix of a sharp and a broad GGX lobe, ``ρ · ((1 − m) · GGX(α_sharp) + m · GGX(α_broad))``, the structure of
+the dual-lobe skin specular of production skin shaders (docs/synthetic.md, "Two-lobe skin", for the sources).  The
+base width α of the single model sets both lobes (``α_sharp = k_s · α``, ``α_broad = k_b · α``), the broad-lobe
+weight ``m`` is lower on the oily T-zone and nose tip and higher on the cheeks, and ``k_s``, ``k_b`` and the mean
+``m`` vary per identity (:class:`TwoLobeParams`).  ρ is rescaled per texel so that the mix has the single model's
+specular albedo at normal view (only the lobe's shape changes, not how much it reflects).  In that model ``roughness`` holds α_sharp, ``roughness_broad``
+α_broad and ``lobe_mix`` m; ``spec_albedo`` and the 3-lobe ``weights`` are those of the mix.
 """
 
 from __future__ import annotations
@@ -31,7 +40,11 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_specular_albedo
 
-__all__ = ["SkinParams", "SkinMaps", "region_masks", "sample_skin_params", "skin_maps"]
+__all__ = ["SKIN_MODELS", "SkinParams", "TwoLobeParams", "SkinMaps", "region_masks", "sample_skin_params",
+           "sample_two_lobe_params", "skin_maps", "two_lobe_specular_albedo"]
+
+#: The skin models of ``synth multipie --skin`` / ``synth wild --skin`` (the first is the default).
+SKIN_MODELS = ("single", "two-lobe")
 
 
 # absorption per unit pigment (R, G, B): melanin absorbs more towards blue, haemoglobin mostly green/blue
@@ -55,15 +68,44 @@ class SkinParams:
         return dict(self.__dict__)
 
 
+#: Two-lobe skin: ranges of the per-identity draws (docs/synthetic.md, "Two-lobe skin").  The centres are the
+#: defaults of Unreal Engine's subsurface-profile dual specular (perceptual roughness × 0.75 and × 1.30, i.e. GGX
+#: α × 0.5625 and × 1.69, broad-lobe weight ("lobe mix") 0.85).
+SHARP_SCALE_RANGE = (0.45, 0.70)
+BROAD_SCALE_RANGE = (1.40, 2.00)
+BROAD_WEIGHT_RANGE = (0.75, 0.92)
+#: Clip ranges of the two widths and of the broad-lobe weight in every texel.
+SHARP_ALPHA_RANGE = (0.08, 0.45)
+BROAD_ALPHA_RANGE = (0.30, 1.0)
+LOBE_MIX_RANGE = (0.30, 0.97)
+
+
+@dataclass
+class TwoLobeParams:
+    """Per-identity parameters of the two-lobe skin (drawn by :func:`sample_two_lobe_params`)."""
+
+    sharp_scale: float   # α_sharp = sharp_scale · α (α: the single model's width map)
+    broad_scale: float   # α_broad = broad_scale · α
+    broad_weight: float  # weight m of the broad lobe on plain skin (lower on the T-zone, higher on the cheeks)
+    seed: int            # seed of the low-frequency variation of m
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
 @dataclass
 class SkinMaps:
     albedo: np.ndarray          # (3, S, S) float32
-    roughness: np.ndarray       # (S, S) float32, GGX α
+    roughness: np.ndarray       # (S, S) float32, GGX α (two-lobe: α of the sharp lobe)
     spec_intensity: np.ndarray  # (S, S) float32, ρ
     spec_albedo: np.ndarray     # (S, S) float32
     weights: np.ndarray         # (3, S, S) float32 for DEFAULT_EXPONENTS
     regions: dict[str, np.ndarray]
     params: SkinParams
+    skin: str = "single"
+    roughness_broad: np.ndarray | None = None  # (S, S) float32, two-lobe only: α of the broad lobe
+    lobe_mix: np.ndarray | None = None         # (S, S) float32, two-lobe only: weight m of the broad lobe
+    two_lobe: TwoLobeParams | None = None
 
 
 def sample_skin_params(rng: np.random.Generator, tone: float | None = None) -> SkinParams:
@@ -73,6 +115,46 @@ def sample_skin_params(rng: np.random.Generator, tone: float | None = None) -> S
     return SkinParams(melanin=float(melanin), haemoglobin=float(rng.uniform(0.04, 0.14)),
                       oiliness=float(rng.uniform(0.7, 1.4)), roughness_scale=float(rng.uniform(0.85, 1.15)),
                       brow_darkness=float(rng.uniform(0.25, 0.6)), seed=int(rng.integers(0, 2**31 - 1)))
+
+
+def sample_two_lobe_params(rng: np.random.Generator) -> TwoLobeParams:
+    """Draw one identity's two-lobe parameters (uniform in the ranges above)."""
+    return TwoLobeParams(sharp_scale=float(rng.uniform(*SHARP_SCALE_RANGE)),
+                         broad_scale=float(rng.uniform(*BROAD_SCALE_RANGE)),
+                         broad_weight=float(rng.uniform(*BROAD_WEIGHT_RANGE)), seed=int(rng.integers(0, 2**31 - 1)))
+
+
+def two_lobe_params_for(params: SkinParams) -> TwoLobeParams:
+    """The two-lobe parameters of an identity, from its own stream (seeded by ``params.seed``), so that drawing
+    them changes none of the draws of the single model."""
+    return sample_two_lobe_params(np.random.default_rng([int(params.seed), 0x2B0B]))
+
+
+def two_lobe_specular_albedo(alpha_sharp, alpha_broad, lobe_mix, spec_intensity=1.0, f0: float = SKIN_F0):
+    """Directional albedo at normal view of the two-lobe specular: ``ρ ((1 − m) A(α_sharp) + m A(α_broad))`` with
+    ``A`` the single GGX lobe's (:func:`reflectmm_cli.synth.ggx.ggx_specular_albedo`) — the BRDF is linear in
+    its lobes, so the closed form of the mix is the mix of the closed forms."""
+    m = np.asarray(lobe_mix, np.float64)
+    return np.asarray(spec_intensity, np.float64) * ((1.0 - m) * ggx_specular_albedo(alpha_sharp, 1.0, f0)
+                                                     + m * ggx_specular_albedo(alpha_broad, 1.0, f0))
+
+
+def two_lobe_maps(R: dict[str, np.ndarray], alpha: np.ndarray, tl: TwoLobeParams, iod: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(α_sharp, α_broad, m) of the two-lobe skin from the single model's width map ``alpha`` and the regions.
+
+    The broad-lobe weight ``m`` drops on the oily, sharp T-zone (nose tip −0.35, nose −0.2, forehead −0.15, chin
+    −0.05) and rises on the cheeks (+0.08) and brows (+0.1), around the identity's ``broad_weight``, with a
+    low-frequency variation (±0.04); every value is clipped to the ranges above.
+    """
+    size = alpha.shape[-1]
+    rng = np.random.default_rng(tl.seed)
+    n = _low_freq(rng, size, 0.3 * iod)
+    a_s = np.clip(tl.sharp_scale * alpha, *SHARP_ALPHA_RANGE)
+    a_b = np.clip(tl.broad_scale * alpha, *BROAD_ALPHA_RANGE)
+    m = tl.broad_weight - 0.35 * R["nose_tip"] - 0.2 * R["nose"] - 0.15 * R["forehead"] - 0.05 * R["chin"] \
+        + 0.08 * R["cheeks"] + 0.1 * R["brows"] + 0.04 * n
+    return a_s, a_b, np.clip(m, *LOBE_MIX_RANGE)
 
 
 def _px(uv: np.ndarray, size: int) -> np.ndarray:
@@ -159,7 +241,7 @@ def _low_freq(rng: np.random.Generator, size: int, scale_px: float) -> np.ndarra
 
 
 def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f0: float = SKIN_F0,
-              exponents=DEFAULT_EXPONENTS, brdf: str = "ggx") -> SkinMaps:
+              exponents=DEFAULT_EXPONENTS, brdf: str = "ggx", skin: str = "single") -> SkinMaps:
     """The reflectance maps of one identity (see the module docstring); deterministic in (landmarks, params).
 
     ``brdf="model"``: the weights are the rendering BRDF; on top of the GGX fit they get a broad-lobe "sheen"
@@ -168,6 +250,8 @@ def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f
     """
     if brdf not in ("ggx", "model"):
         raise ReflectmmError(f"brdf must be 'ggx' or 'model', got {brdf!r}")
+    if skin not in SKIN_MODELS:
+        raise ReflectmmError(f"skin must be one of {', '.join(SKIN_MODELS)}, got {skin!r}")
     if size < 16:
         raise ReflectmmError(f"--uv-size must be ≥ 16, got {size}")
     R = region_masks(landmark_uv, size)
@@ -194,12 +278,24 @@ def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f
         + 0.2 * R["lips"] - 0.6 * R["brows"] + 0.2 * R["chin"] + 0.8 * R["eyes"]
     rho = np.clip(1.5 * rho * params.oiliness * np.exp(0.1 * n1), 0.05, 6.0)
 
-    spec_alb = ggx_specular_albedo(rough, rho, f0)
-    w = np.moveaxis(fit_lobes_to_ggx(rough, rho, exponents, f0), -1, 0)
+    extra: dict = {}
+    if skin == "two-lobe":
+        tl = two_lobe_params_for(params)
+        a_s, a_b, mix = two_lobe_maps(R, rough, tl, iod)
+        # same specular albedo at normal view as the single model's lobe: only the lobe's shape changes
+        rho = rho * ggx_specular_albedo(rough, 1.0, f0) / two_lobe_specular_albedo(a_s, a_b, mix, 1.0, f0)
+        spec_alb = two_lobe_specular_albedo(a_s, a_b, mix, rho, f0)
+        w = np.moveaxis((1.0 - mix)[..., None] * fit_lobes_to_ggx(a_s, rho, exponents, f0)
+                        + mix[..., None] * fit_lobes_to_ggx(a_b, rho, exponents, f0), -1, 0)
+        rough = a_s
+        extra = dict(skin=skin, roughness_broad=a_b.astype(np.float32), lobe_mix=mix.astype(np.float32), two_lobe=tl)
+    else:
+        spec_alb = ggx_specular_albedo(rough, rho, f0)
+        w = np.moveaxis(fit_lobes_to_ggx(rough, rho, exponents, f0), -1, 0)
     if brdf == "model":
         broad = int(np.argmin(np.asarray(exponents, np.float64)))
         w[broad] += 0.01 * (1 + R["cheeks"] + 0.5 * R["chin"]) * params.oiliness
         spec_alb = w.sum(0)
     return SkinMaps(albedo=alb.astype(np.float32), roughness=rough.astype(np.float32),
                     spec_intensity=rho.astype(np.float32), spec_albedo=spec_alb.astype(np.float32),
-                    weights=w.astype(np.float32), regions=R, params=params)
+                    weights=w.astype(np.float32), regions=R, params=params, **extra)

@@ -23,8 +23,10 @@ from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.rotations import euler_yxz_to_matrix
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
-from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_directional, ggx_specular_albedo
-from reflectmm_cli.synth.skin import region_masks
+from reflectmm_cli.synth.ggx import (SKIN_F0, fit_lobes_to_ggx, ggx_directional, ggx_specular_albedo,
+                                     ggx_two_lobe_directional)
+from reflectmm_cli.synth.skin import (SKIN_MODELS, region_masks, sample_two_lobe_params, two_lobe_maps,
+                                      two_lobe_specular_albedo)
 from reflectmm_cli.synth.wild_light import SplitMap, _hammersley, ggx_view_albedo, sample_ggx_h, split_map
 
 __all__ = ["WildConfig", "WildSkin", "head_pose_rotation", "sample_wild_skin", "WildScene", "sample_scene",
@@ -60,13 +62,19 @@ class WildConfig:
     expression_per_identity: bool = True   # one expression per identity: geometry, Embree scene and ambient
                                            # occlusion are then computed once per identity
     split: tuple = (0.8, 0.1, 0.1)   # train/val/test fractions of the identities
+    skin: str | None = None          # None = "single" (one GGX lobe) or "two-lobe" (sharp + broad GGX; synth/skin.py);
+                                     # None, as the stage's param, so that the default stays out of params and keys
 
     def __post_init__(self) -> None:
         self.split = tuple(float(x) for x in self.split)
+        if self.skin is not None and self.skin not in SKIN_MODELS:
+            raise ReflectmmError(f"--skin must be one of {', '.join(SKIN_MODELS)}, got {self.skin!r}")
 
     def to_params(self) -> dict:
         d = asdict(self)
         d["split"] = list(self.split)
+        if self.skin in (None, "single"):  # the default is not recorded: data sets made before --skin stay byte-identical
+            d.pop("skin")
         return d
 
 
@@ -87,6 +95,8 @@ class WildSkin:
     albedo (V,3) linear diffuse; roughness (V,) GGX α; spec_intensity (V,) ρ; spec_albedo (V,) the GGX
     directional albedo at normal view (comparable to Σw); weights (V,3) the 3-lobe (1, 8, 64) NNLS equivalent;
     skin (V,) bool (skin vertices: the model's skin region minus eyes and brows); params: the scalar draws.
+    Two-lobe skin: ``roughness`` is α of the sharp lobe, ``roughness_broad`` (V,) α of the broad one and
+    ``lobe_mix`` (V,) the broad lobe's weight m (None for the single-lobe skin).
     """
 
     albedo: np.ndarray
@@ -96,6 +106,8 @@ class WildSkin:
     weights: np.ndarray
     skin: np.ndarray
     params: dict
+    roughness_broad: np.ndarray | None = None
+    lobe_mix: np.ndarray | None = None
 
 
 def _blur(x, s):
@@ -120,11 +132,16 @@ def _spots(rng, size, centres_mask, n, r_lo, r_hi):
     return np.clip(_blur(out, 0.8), 0, 1)
 
 
-def sample_wild_skin(model, rng: np.random.Generator, uv_size: int = 256, f0: float = SKIN_F0) -> WildSkin:
+def sample_wild_skin(model, rng: np.random.Generator, uv_size: int = 256, f0: float = SKIN_F0,
+                     skin_model: str = "single") -> WildSkin:
     """One identity of the wild population, per vertex.  Differs from ``synth multipie`` (synth/skin.py) on
     purpose: melanin 0.01–1.6 (multipie 0.03–1.0), haemoglobin 0.02–0.2, freckles (30 %) and moles, make-up
     lips (40 %: a saturated colour, glossier), stubble shadow (30 %), a global oily/dry state scaling ρ by
     0.3–2.5 and α by 0.55–1.8, α clipped to [0.05, 0.9] (sharper and broader than the 1/8/64 basis).
+
+    ``skin_model="two-lobe"``: that α sets a sharp and a broad GGX lobe mixed per region
+    (:func:`reflectmm_cli.synth.skin.two_lobe_maps`, the identity's two-lobe draws taken after every other draw),
+    ρ rescaled to keep the specular albedo at normal view.
     """
     from reflectmm_cli.geometry.uv import sample_uv_map
 
@@ -185,10 +202,27 @@ def sample_wild_skin(model, rng: np.random.Generator, uv_size: int = 256, f0: fl
     rho = np.clip(1.4 * rho * oily * np.exp(0.15 * n1), 0.03, 8.0)
     uv = model.uv.astype(np.float64)
     v_alb = np.clip(sample_uv_map(alb.astype(np.float32), uv), 0.0, 1.0)
-    v_rough = sample_uv_map(rough.astype(np.float32), uv)
-    v_rho = sample_uv_map(rho.astype(np.float32), uv)
     non_skin = sample_uv_map(np.maximum(R["eyes"], R["brows"]).astype(np.float32), uv)
     skin = np.asarray(model.skin_mask, bool) & (non_skin < 0.5)
+    if skin_model == "two-lobe":
+        tl = sample_two_lobe_params(rng)
+        p = lm_uv * S - 0.5
+        a_s, a_b, mix = two_lobe_maps(R, rough, tl, float(np.linalg.norm(p[36] - p[45])))
+        params["two_lobe"] = tl.to_dict()
+        v_as, v_ab = sample_uv_map(a_s.astype(np.float32), uv), sample_uv_map(a_b.astype(np.float32), uv)
+        v_mix = sample_uv_map(mix.astype(np.float32), uv)
+        # the specular albedo of the single lobe of width α, redistributed into the two lobes
+        v_rho = sample_uv_map(rho.astype(np.float32), uv) * ggx_specular_albedo(
+            sample_uv_map(rough.astype(np.float32), uv), 1.0, f0) / two_lobe_specular_albedo(v_as, v_ab, v_mix, 1.0, f0)
+        w = (1.0 - v_mix)[:, None] * fit_lobes_to_ggx(v_as, v_rho, DEFAULT_EXPONENTS, f0) \
+            + v_mix[:, None] * fit_lobes_to_ggx(v_ab, v_rho, DEFAULT_EXPONENTS, f0)
+        return WildSkin(albedo=v_alb.astype(np.float32), roughness=v_as.astype(np.float32),
+                        spec_intensity=v_rho.astype(np.float32),
+                        spec_albedo=two_lobe_specular_albedo(v_as, v_ab, v_mix, v_rho, f0).astype(np.float32),
+                        weights=w.astype(np.float32), skin=skin, params=params,
+                        roughness_broad=v_ab.astype(np.float32), lobe_mix=v_mix.astype(np.float32))
+    v_rough = sample_uv_map(rough.astype(np.float32), uv)
+    v_rho = sample_uv_map(rho.astype(np.float32), uv)
     return WildSkin(albedo=v_alb.astype(np.float32), roughness=v_rough.astype(np.float32),
                     spec_intensity=v_rho.astype(np.float32),
                     spec_albedo=ggx_specular_albedo(v_rough, v_rho, f0).astype(np.float32),
@@ -388,6 +422,14 @@ def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildCo
     inv = inv.reshape(ids.shape)
     ao = (b * ao_v[inv]).sum(1)
     vspec = (b * vs_v[inv]).sum(1)
+    two = skin.lobe_mix is not None
+    if two:  # the broad lobe: its own width, weight and lobe visibility
+        alpha_b = np.einsum("pk,pk->p", b, skin.roughness_broad[ids].astype(np.float64))
+        mix = np.einsum("pk,pk->p", b, skin.lobe_mix[ids].astype(np.float64))
+        vs_b = vertex_lobe_visibility(scene, verts, normals, cam.center,
+                                      skin.roughness_broad[uid].astype(np.float64), uid, cfg.spec_rays,
+                                      _rng(sc.seed, 13))
+        vspec_b = (b * vs_b[inv]).sum(1)
     st["visibility_s"] = st.get("visibility_s", 0) + time.perf_counter() - t1
     # residual: SH irradiance × AO, split-sum specular × lobe visibility
     t2 = time.perf_counter()
@@ -399,7 +441,11 @@ def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildCo
     diffuse = alb / math.pi * np.maximum(E_res, 0.0) * ao[:, None]
     ndv = np.clip((n_l * v_l).sum(1), 1e-4, 1.0)
     spec_pref = env.specular(r_l @ Q, alpha)                   # rows: Qᵀ r
-    specular = (rho * ggx_view_albedo(alpha, ndv) * vspec)[:, None] * spec_pref
+    if two:
+        specular = (rho * (1.0 - mix) * ggx_view_albedo(alpha, ndv) * vspec)[:, None] * spec_pref \
+            + (rho * mix * ggx_view_albedo(alpha_b, ndv) * vspec_b)[:, None] * env.specular(r_l @ Q, alpha_b)
+    else:
+        specular = (rho * ggx_view_albedo(alpha, ndv) * vspec)[:, None] * spec_pref
     # sources: GGX with a shadow ray per pixel and source
     x_model = ras.position[ras.mask][vis].astype(np.float64)
     n_model = ras.normal[ras.mask][vis].astype(np.float64)
@@ -412,8 +458,13 @@ def render_wild(model, skin: WildSkin, sc: WildScene, env: SplitMap, cfg: WildCo
             lit_idx = np.flatnonzero(lit)
             ok = shadow_mask(scene, x_model[lit], n_model[lit], far)
             li = lit_idx[ok]
-            _, dd, ss = ggx_directional(alb[li], rho[li], alpha[li], n_l[li], np.broadcast_to(d_l, (len(li), 3)),
-                                        v_l[li], np.broadcast_to(E, (len(li), 3)), return_parts=True)
+            if two:
+                _, dd, ss = ggx_two_lobe_directional(alb[li], rho[li], alpha[li], alpha_b[li], mix[li], n_l[li],
+                                                     np.broadcast_to(d_l, (len(li), 3)), v_l[li],
+                                                     np.broadcast_to(E, (len(li), 3)), return_parts=True)
+            else:
+                _, dd, ss = ggx_directional(alb[li], rho[li], alpha[li], n_l[li], np.broadcast_to(d_l, (len(li), 3)),
+                                            v_l[li], np.broadcast_to(E, (len(li), 3)), return_parts=True)
             diffuse[li] += dd
             specular[li] += ss
     st["shading_s"] = st.get("shading_s", 0) + time.perf_counter() - t2
@@ -602,11 +653,15 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
         t_sk = time.perf_counter()
         if sc.identity not in skins:
             skins.clear()
-            skins[sc.identity] = sk = sample_wild_skin(model, _rng(cfg.seed, sc.identity, 4), cfg.uv_size)
+            skins[sc.identity] = sk = sample_wild_skin(model, _rng(cfg.seed, sc.identity, 4), cfg.uv_size,
+                                                       skin_model=cfg.skin or "single")
+            two_lobe = {} if sk.lobe_mix is None else {"vertex_roughness_broad": sk.roughness_broad,
+                                                       "vertex_lobe_mix": sk.lobe_mix}
             write_artifact(out / "identities" / f"id{sc.identity:05d}.npz", "wild-truth", {
                 "vertex_albedo": sk.albedo, "vertex_roughness": sk.roughness,
                 "vertex_spec_intensity": sk.spec_intensity, "vertex_spec_albedo": sk.spec_albedo,
-                "vertex_weights": sk.weights, "vertex_skin": sk.skin, "shape": sc.shape.astype(np.float32)},
+                "vertex_weights": sk.weights, "vertex_skin": sk.skin, "shape": sc.shape.astype(np.float32),
+                **two_lobe},
                 params=params, producer=prod, cache_key=cache_key,
                 extra_meta={"content": "identity", "identity": sc.identity, "skin_params": sk.params,
                             "exponents": list(DEFAULT_EXPONENTS), "split": str(splits[sc.identity])})

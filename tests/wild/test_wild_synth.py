@@ -148,3 +148,18 @@ def test_synth_wild_command_with_shards(tmp_path, cli):
     man = read_artifact(tmp_path / "w" / "manifest.npz", "wild-manifest")
     assert sorted(np.concatenate([open_shard(p)["split"] for p in shards]).tolist()) == sorted(man["split"].tolist())
     assert sum(len(b["names"]) for b in iter_batches(shards, 4, split=None)) == 3
+
+
+def test_wild_two_lobe_skin_keeps_the_specular_albedo(small_face):
+    from reflectmm_cli.synth.skin import two_lobe_specular_albedo
+
+    one = sample_wild_skin(small_face, np.random.default_rng(3), 64)
+    two = sample_wild_skin(small_face, np.random.default_rng(3), 64, skin_model="two-lobe")
+    assert one.lobe_mix is None and two.lobe_mix is not None
+    np.testing.assert_array_equal(one.albedo, two.albedo)      # the two-lobe draws come after every other draw
+    np.testing.assert_allclose(two.spec_albedo[two.skin], one.spec_albedo[two.skin], rtol=1e-4)
+    np.testing.assert_allclose(two.spec_albedo, two_lobe_specular_albedo(two.roughness, two.roughness_broad,
+                                                                         two.lobe_mix, two.spec_intensity), rtol=1e-5)
+    assert np.all(two.roughness[two.skin] < one.roughness[two.skin] + 1e-6)
+    assert np.all(two.roughness_broad[two.skin] > one.roughness[two.skin] - 1e-6)
+    assert 0.3 <= two.lobe_mix.min() and two.lobe_mix.max() <= 0.97 and "two_lobe" in two.params
