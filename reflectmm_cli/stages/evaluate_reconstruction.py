@@ -60,7 +60,10 @@ PARAMS = (
     Param("batch_size", "int", 8, range=(1, 4096), invalidates_cache=False, help="Encoder batch size."),
     Param("allow_other_model", "bool", False, invalidates_cache=False,
           help="Use an encoder with a model it was not trained for (a warning instead of an error)."),
-) + refine_params()
+) + refine_params() + (
+    Param("refine_methods", "strs", None, check=check_method_names,
+          help="With --refine: refine only these methods' rows (default: every method)."),
+)
 
 ROLE_OPTIONS = {"data": "--data", "light_model": "--light-model", "lpips_weights": "--lpips-weights"}
 
@@ -84,6 +87,10 @@ def run(ctx: StageContext) -> list[Path]:
     if missing and list(p["gain"]) != ["finetuned", "initial"]:  # the default applies when both are present
         raise ReflectmmError(f"{VERB}: --gain names {', '.join(missing)}, not among the methods "
                              f"({', '.join(names)})")
+    unknown = [m for m in (p.get("refine_methods") or []) if m not in names]
+    if unknown:
+        raise ReflectmmError(f"{VERB}: --refine-methods names {', '.join(unknown)}, not among the methods "
+                             f"({', '.join(names)})")
     lw = ctx.input_list("lpips_weights", required=False)
     lp = load_lpips(lw[0] if lw else None, p["lpips_net"])
     shards, idx, encoding = select_wild_images(ctx.input_list("data"), p["split"], int(p["max_images"]))
@@ -93,7 +100,8 @@ def run(ctx: StageContext) -> list[Path]:
         log.info("evaluate reconstruction: the shards carry no truth_vertex_albedo: image metrics only")
     predictions = reconstruction_predictions(methods, shards, idx, light, batch_size=int(p["batch_size"]),
                                              device=ctx.device, allow_other_model=p["allow_other_model"],
-                                             refine=refine_config(p), log=log.info)
+                                             refine=refine_config(p), refine_methods=p.get("refine_methods"),
+                                             log=log.info)
     res = reconstruction_evaluation(predictions, sarr, idx, encoding=encoding, region=p["region"], lpips=lp,
                                     lpips_name=(f"on ({p['lpips_net']})" if lp is not None
                                                 else "off (no weights given)"),

@@ -145,11 +145,13 @@ def _vertex_prediction(name: str, model, rec, figure: bool = False) -> Predictio
 
 def reconstruction_predictions(methods: Sequence[Method], shards, idx: np.ndarray, light, *, batch_size: int = 8,
                                device: str = "cpu", allow_other_model: bool = False, refine=None,
+                               refine_methods: Sequence[str] | None = None,
                                log: Callable[[str], Any] | None = None) -> Iterator[Prediction]:
     """Table 2's rows, one method at a time: each method's encoder reconstructs the images ``idx`` of
     ``shards`` (:func:`reflectmm_cli.finetune.reconstruct.reconstruct`) → the row ``<name>`` (with its figure
-    layers) and, with ``refine``, ``<name>-refined``; then, with ``refine`` and the true per-vertex reflectance
-    in the shards, the ``ceiling`` row (the same refinement with each image's true reflectance)."""
+    layers) and, with ``refine``, ``<name>-refined`` (only for ``refine_methods`` when given); then, with
+    ``refine`` and the true per-vertex reflectance in the shards, the ``ceiling`` row (the same refinement with each
+    image's true reflectance)."""
     from reflectmm_cli.finetune.encoder import load_encoder
     from reflectmm_cli.finetune.reconstruct import reconstruct
 
@@ -163,7 +165,7 @@ def reconstruction_predictions(methods: Sequence[Method], shards, idx: np.ndarra
         say(f"evaluate reconstruction: {m.name}: {len(idx)} images")
         rec = reconstruct(shards, enc, model, light, indices=idx, batch_size=batch_size, device=device)
         refined = None
-        if refine is not None:
+        if refine is not None and (refine_methods is None or m.name in refine_methods):
             say(f"evaluate reconstruction: {m.name}: refining {len(idx)} images")
             refined = reconstruct(shards, enc, model, light, indices=idx, batch_size=batch_size, device=device,
                                   refine=refine)
