@@ -185,3 +185,19 @@ def test_evaluate_reconstruction_refined_rows_ceiling_and_paired_gains(data, cli
     assert "finetuned-refined - initial-refined" in art.meta["gains"]
     md = out.with_suffix(".md").read_text()
     assert "| ceiling |" in md and "The finetuning gain" in md
+
+
+def test_refine_methods_refines_only_the_named_rows(data, cli, tmp_path):
+    """--refine-methods limits the refined rows to the named methods (the ceiling stays); a name that is not a
+    method is a one-line error."""
+    out = tmp_path / "t2m.npz"
+    args = ("--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_oracle"], "--refine", "--refine-iterations", "3",
+            "--figure-images", "0", "-w", tmp_path)
+    r = cli("-q", "evaluate", "reconstruction", *args, "--refine-methods", "finetuned", "-o", out)
+    assert r.exit_code == 0, r.stderr
+    s = read_artifact(out, "evaluation").meta["summary"]
+    assert set(s) == {"initial", "finetuned", "finetuned-refined", "ceiling"}
+    r = cli("evaluate", "reconstruction", *args, "--refine-methods", "finetuned,nope", "-o", tmp_path / "x.npz")
+    assert r.exit_code == 1 and "--refine-methods names nope" in r.stderr and not (tmp_path / "x.npz").exists()
