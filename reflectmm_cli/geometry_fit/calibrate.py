@@ -567,7 +567,8 @@ def _setup(model: ShapeModel, landmarks, camera_names: Sequence[str], image_size
     Ke = 0 if not cfg.fit_expression else (model.n_exp if cfg.n_exp is None else min(cfg.n_exp, model.n_exp))
     pp = np.stack([(isz[:, 0] - 1) / 2.0, (isz[:, 1] - 1) / 2.0], axis=1)
     assumptions = list(notes)
-    assumptions.append(f"nominal camera orientations and centres from {nominal.source or 'the given table'}; "
+    table = Path(nominal.source).name if nominal.source else "the given table"  # no workspace path in the artifact
+    assumptions.append(f"nominal camera orientations and centres from {table}; "
                        f"weak prior σ = {cfg.camera_sigma_mm:g} mm / {cfg.camera_sigma_deg:g}° fixes the global "
                        "rigid gauge only")
     assumptions.append({"fixed": "focal fixed (not estimated)", "shared": "one focal shared by every camera "
