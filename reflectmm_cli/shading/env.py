@@ -26,7 +26,7 @@ from reflectmm_cli.threads import default_threads
 
 from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_dtype, device_of
 from .brdf import _check_exponents
-from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, sh_basis, sh_basis_into
+from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, phase_step, sh_basis, sh_basis_into
 
 __all__ = ["shade_env", "band_limits", "specular_view_albedo", "EnvBasis",
            # the two terms, written once for every execution path
@@ -518,12 +518,7 @@ def _cheb_basis_into(x, y, z, plan: _ChebPlan, out, scratch):
                 dc, ds = out[rc], out[rs]
             else:
                 (dc, ds), free = pairs[free], 1 - free
-            np.multiply(x, cm, out=dc)
-            np.multiply(y, sm, out=tmp)
-            dc -= tmp
-            np.multiply(x, sm, out=ds)
-            np.multiply(y, cm, out=tmp)
-            ds += tmp
+            phase_step(x, y, cm, sm, dc, ds, tmp)
             cm, sm = dc, ds
             m_cur += 1
         for k, j in enumerate(js):

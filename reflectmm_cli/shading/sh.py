@@ -143,6 +143,18 @@ def sh_basis(dirs, order: int, *, normalize: bool = True):
     return stack(cols, -1, tm)
 
 
+def phase_step(x, y, cm, sm, out_c, out_s, tmp) -> None:
+    """One step of the azimuthal factors, numpy, in place: ``(out_c, out_s) = (x·cm − y·sm, x·sm + y·cm)``, i.e.
+    Re/Im of (x + iy)^(m+1) from those of (x + iy)^m (all 1-D float arrays of one length). ``out_c`` must not be
+    ``cm`` or ``sm``; ``out_s`` may be ``sm`` (not ``cm``); ``tmp`` is scratch."""
+    np.multiply(x, cm, out=out_c)
+    np.multiply(y, sm, out=tmp)
+    out_c -= tmp
+    np.multiply(x, sm, out=out_s)
+    np.multiply(y, cm, out=tmp)
+    out_s += tmp
+
+
 def sh_basis_into(x, y, z, order: int, out: np.ndarray) -> np.ndarray:
     """numpy fast path: write the basis for 1-D unit vector components into ``out`` of shape ((L+1)², N).
 
@@ -167,12 +179,7 @@ def sh_basis_into(x, y, z, order: int, out: np.ndarray) -> np.ndarray:
             cm[:] = x
             sm[:] = y
         elif m > 1:
-            np.multiply(x, cm, out=cm_new)
-            np.multiply(y, sm, out=tmp)
-            cm_new -= tmp
-            np.multiply(x, sm, out=sm)
-            np.multiply(y, cm, out=tmp)
-            sm += tmp
+            phase_step(x, y, cm, sm, cm_new, sm, tmp)
             cm, cm_new = cm_new, cm
         if m > 0:
             np.multiply(cm, sqrt2, out=cm2)
