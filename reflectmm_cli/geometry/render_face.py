@@ -123,12 +123,11 @@ def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: 
         a, w = sample_model(art.arrays, beta if beta.size else np.zeros(1), "vertex" if at == "vertex" else "uv")
         e = art["exponents"]
     a, w, e = np.asarray(a, np.float32), np.asarray(w, np.float32), np.asarray(e, np.float64).reshape(-1)
-    if at == "vertex" and a.ndim == 3:  # maps → per vertex
-        from .uv import sample_uv_map
-
-        a, w = (np.asarray(sample_uv_map(x, np.asarray(vertex_uv, np.float64)), np.float32) for x in (a, w))
-        return a, w, e
     if at == "vertex":
+        if a.ndim == 3:  # maps → per vertex
+            from .uv import sample_uv_map
+
+            a, w = (np.asarray(sample_uv_map(x, np.asarray(vertex_uv, np.float64)), np.float32) for x in (a, w))
         return a, w, e
     if a.ndim != 3 or a.shape[0] != 3 or a.shape[1] != a.shape[2]:
         raise ReflectmmError(f"albedo must be (3, S, S), got {a.shape}", maps or model)

@@ -236,35 +236,39 @@ def _shading_constants(exponent_sets: Sequence[np.ndarray], order: int) -> dict[
     }
 
 
-def _default_exposure(vertices, normals, model: ModelData, K: np.ndarray, eye: np.ndarray) -> float:
-    """Exposure mapping the 99.5th percentile of the mean face's radiance (vertices facing the camera, under
-    SH lighting ``K``) to 0.9 — the rule of ``render``'s PNG, on vertices instead of pixels."""
-    from reflectmm_cli.shading import shade_env
-
+def _front(vertices, normals, eye: np.ndarray):
+    """(mask of the vertices facing the camera at ``eye``, their directions towards it)."""
     v = eye[None, :] - vertices
     front = (normals * v).sum(1) > 0
+    return front, v[front]
+
+
+def _default_exposure(vertices, normals, model: ModelData, K: np.ndarray, eye: np.ndarray) -> float:
+    """The exposure of ``render``'s PNG (:func:`reflectmm_cli.color.auto_exposure`) for the mean face's radiance
+    under SH lighting ``K``, on the vertices facing the camera instead of pixels."""
+    from reflectmm_cli.color import auto_exposure
+    from reflectmm_cli.shading import shade_env
+
+    front, v = _front(vertices, normals, eye)
     if not front.any():
         return 1.0
     d, s = shade_env(model.albedo_mean[front].astype(np.float64), model.weights_mean[front].astype(np.float64),
-                     model.exponents, normals[front].astype(np.float64), v[front], K)
-    top = float(np.percentile((d + s).max(1), 99.5))
-    return 0.9 / top if top > 0 and math.isfinite(top) else 1.0
+                     model.exponents, normals[front].astype(np.float64), v, K)
+    return auto_exposure(d + s)
 
 
 def _point_exposure(vertices, normals, model: ModelData, eye: np.ndarray) -> float:
     """The same rule for the default point light (at the camera, irradiance π at the origin)."""
+    from reflectmm_cli.color import auto_exposure
     from reflectmm_cli.shading import shade_directional
 
-    v = eye[None, :] - vertices
-    front = (normals * v).sum(1) > 0
+    front, v = _front(vertices, normals, eye)
     if not front.any():
         return 1.0
-    E = math.pi * float(eye @ eye) / np.maximum((v[front] ** 2).sum(1), 1e-30)
-    s = shade_directional(model.albedo_mean[front].astype(np.float64), model.weights_mean[front].astype(np.float64),
-                          model.exponents, normals[front].astype(np.float64), v[front], v[front],
-                          np.repeat(E[:, None], 3, axis=1))
-    top = float(np.percentile(s.max(1), 99.5))
-    return 0.9 / top if top > 0 and math.isfinite(top) else 1.0
+    E = math.pi * float(eye @ eye) / np.maximum((v ** 2).sum(1), 1e-30)
+    return auto_exposure(shade_directional(model.albedo_mean[front].astype(np.float64),
+                                           model.weights_mean[front].astype(np.float64), model.exponents,
+                                           normals[front].astype(np.float64), v, v, np.repeat(E[:, None], 3, axis=1)))
 
 
 #: The environment used when neither maps nor a light model are given: uniform unit radiance.
