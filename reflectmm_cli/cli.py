@@ -71,7 +71,8 @@ def _add_inputs_help(cmd: click.Command, verb: str) -> None:
     inputs = get_stage(verb).inputs
     if inputs:
         lines = "\n".join(f"  {i.describe()}" for i in inputs)
-        cmd.epilog = ((cmd.epilog + "\n\n") if cmd.epilog else "") + "\b\nInput roles (recipes: inputs = { role = ... }):\n" + lines
+        head = "\b\nInput roles (recipes: inputs = { role = ... }):\n"
+        cmd.epilog = ((cmd.epilog + "\n\n") if cmd.epilog else "") + head + lines
     cmd._inputs_help = True
 
 

@@ -55,34 +55,10 @@ def array_summary(name: str, arr: np.ndarray) -> dict[str, Any]:
 
 
 def _page_arrays(path: Path) -> list[dict[str, Any]]:
-    """The arrays of a viewer page's bundle (``reflectmm-data``), named by their place in it."""
-    import json
-    import re
+    """The arrays of a viewer page's bundle, named by their place in it."""
+    from reflectmm_cli.viewer import decode_blob, iter_blobs, read_bundle
 
-    from reflectmm_cli.viewer import decode_blob
-
-    m = re.search(r'<script type="application/json" id="reflectmm-data">(.*?)</script>', path.read_text("utf-8"),
-                  re.S)
-    if m is None:
-        return []
-    try:
-        doc = json.loads(m.group(1))
-    except ValueError as exc:
-        raise ArtifactError(f"corrupt reflectmm-data element ({exc})", path) from None
-    out: list[dict[str, Any]] = []
-
-    def walk(x: Any, name: str) -> None:
-        if isinstance(x, dict) and "dtype" in x and "data" in x:
-            out.append(array_summary(name, decode_blob(x)))
-        elif isinstance(x, dict):
-            for k, v in x.items():
-                walk(v, f"{name}.{k}" if name else k)
-        elif isinstance(x, list):
-            for i, v in enumerate(x):
-                walk(v, f"{name}[{i}]")
-
-    walk(doc, "")
-    return out
+    return [array_summary(name, decode_blob(rec)) for name, rec in iter_blobs(read_bundle(path) or {})]
 
 
 def inspect_artifact(path: str | Path) -> dict[str, Any]:

@@ -14,11 +14,12 @@ from .bundle import (
     bundle_size,
     decode_blob,
     envmap_data,
+    iter_blobs,
     light_model_data,
     model_data,
 )
-from .page import EXTERNAL_URL, render_page
+from .page import DATA_ID, EXTERNAL_URL, read_bundle, render_page
 
 __all__ = ["ENCODINGS", "FORMAT", "MAX_LOBES", "LightData", "ModelData", "ViewerOptions", "build_bundle",
-           "bundle_size", "decode_blob", "envmap_data", "light_model_data", "model_data", "render_page",
+           "bundle_size", "decode_blob", "envmap_data", "iter_blobs", "read_bundle", "DATA_ID", "light_model_data", "model_data", "render_page",
            "EXTERNAL_URL"]

@@ -23,7 +23,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["FORMAT", "ENCODINGS", "MAX_LOBES", "ViewerOptions", "Blob", "ModelData", "LightData",
-           "decode_blob", "model_data", "light_model_data", "envmap_data", "build_bundle", "bundle_size"]
+           "decode_blob", "iter_blobs", "model_data", "light_model_data", "envmap_data", "build_bundle", "bundle_size"]
 
 FORMAT = "reflectmm.viewer/1"
 
@@ -343,18 +343,26 @@ def build_bundle(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarra
     }
 
 
+def iter_blobs(x: Any, name: str = ""):
+    """(place, record) of every blob record in a bundle or part of one, depth first (``mesh.positions``,
+    ``models[0].albedo_basis``, …)."""
+    if isinstance(x, dict) and "dtype" in x and "data" in x:
+        yield name, x
+    elif isinstance(x, dict):
+        for k, v in x.items():
+            yield from iter_blobs(v, f"{name}.{k}" if name else k)
+    elif isinstance(x, list):
+        for i, v in enumerate(x):
+            yield from iter_blobs(v, f"{name}[{i}]")
+
+
 def bundle_size(doc: Mapping[str, Any]) -> dict[str, int]:
     """Bytes of base64 text per part of the bundle (mesh, each model's means and bases, lighting)."""
-    def size(x) -> int:
-        if isinstance(x, dict):
-            return (len(x["data"]) if "data" in x and "dtype" in x else 0) + sum(
-                size(v) for k, v in x.items() if k != "data")
-        if isinstance(x, list):
-            return sum(size(v) for v in x)
-        return 0
+    def size(*parts) -> int:
+        return sum(len(rec["data"]) for part in parts for _, rec in iter_blobs(part))
 
     out = {"mesh": size(doc["mesh"]), "lights": size(doc["lights"])}
     for i, m in enumerate(doc["models"]):
-        out[f"model{i}.means"] = size(m["albedo_mean"]) + size(m["weights_mean"])
-        out[f"model{i}.bases"] = size(m["albedo_basis"]) + size(m["weights_basis"])
+        out[f"model{i}.means"] = size(m["albedo_mean"], m["weights_mean"])
+        out[f"model{i}.bases"] = size(m["albedo_basis"], m["weights_basis"])
     return out

@@ -12,7 +12,10 @@ import re
 from importlib import resources
 from typing import Any, Mapping
 
-__all__ = ["render_page", "EXTERNAL_URL"]
+__all__ = ["render_page", "read_bundle", "EXTERNAL_URL", "DATA_ID"]
+
+#: The element that holds the bundle.
+DATA_ID = "reflectmm-data"
 
 #: What no page may contain: a URL that a browser could fetch.
 EXTERNAL_URL = re.compile(r"(?:https?|wss?|ftp)://|//[a-z0-9.-]+\.[a-z]{2,}/", re.IGNORECASE)
@@ -38,3 +41,20 @@ def render_page(doc: Mapping[str, Any], meta: Mapping[str, Any] | None = None) -
              "@SCRIPT@": _static("viewer.js"), "@DATA@": data}
     # one pass, so that no inserted text is searched for the next placeholder
     return re.sub("|".join(re.escape(k) for k in parts), lambda m: parts[m.group(0)], html)
+
+
+def read_bundle(path) -> dict[str, Any] | None:
+    """The bundle of a page written by :func:`render_page` (None if the file has no bundle element); a one-line
+    :class:`~reflectmm_cli.errors.ArtifactError` for a corrupt one."""
+    from pathlib import Path
+
+    from reflectmm_cli.errors import ArtifactError
+
+    m = re.search(rf'<script type="application/json" id="{DATA_ID}">(.*?)</script>',
+                  Path(path).read_text("utf-8"), re.S)
+    if m is None:
+        return None
+    try:
+        return json.loads(m.group(1))
+    except ValueError as exc:
+        raise ArtifactError(f"corrupt {DATA_ID} element ({exc})", path) from None
