@@ -33,7 +33,7 @@ __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_
            "stage_output", "default_input", "capture_root",
            "face_model_from_geometry", "find_face_model", "find_rig", "find_fit_rig", "CALIBRATED_RIG_SIGMAS",
            "find_truth_dir", "find_truth",
-           "list_artifacts", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
+           "list_artifacts", "face_model_recorded_by", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
 #: File name of a dataset's / workspace's face model.
 FACE_MODEL_NAME = "face_model.npz"
@@ -132,16 +132,23 @@ def capture_root(capture: Any) -> Path | None:
     return None
 
 
-def face_model_from_geometry(geometry: Any) -> Path | None:
-    """The face model a geometry artifact (Artifact or path) was fitted with, if recorded and present."""
-    meta, path = _meta_of(geometry)
+def face_model_recorded_by(artifact: Any, is_face_model_role=lambda role: role == "face_model") -> Path | None:
+    """The face model an artifact (Artifact or path) records among its inputs (a role that
+    ``is_face_model_role`` accepts, ``-`` read as ``_``), if that file is present."""
+    meta, path = _meta_of(artifact)
     for ref in meta.get("inputs", []):
         role = str(ref.get("role", "")).replace("-", "_")
-        if path is not None and (role in ("face_model", "model") or "face" in role):
+        if path is not None and is_face_model_role(role):
             p = (path.parent / ref.get("path", "")).resolve()
             if p.is_file():
                 return p
     return None
+
+
+def face_model_from_geometry(geometry: Any) -> Path | None:
+    """The face model a geometry artifact (Artifact or path) was fitted with, if recorded and present (its role is
+    ``face_model``, ``model`` or names a face)."""
+    return face_model_recorded_by(geometry, lambda role: role in ("face_model", "model") or "face" in role)
 
 
 def find_face_model(workspace: Path, capture: Any = None, geometry: Any = None) -> Path | None:

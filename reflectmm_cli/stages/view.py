@@ -2,7 +2,8 @@
 (docs/viewer.md). Library: :mod:`reflectmm_cli.viewer`.
 
 Inputs: ``model`` (a ``reflectance-model`` with a per-vertex part), optional ``compare`` (a second model shown side
-by side under the same β and light), ``face_model`` (default: the one the model was built with, from its meta),
+by side under the same β and light), ``face_model`` (default: the one the model records among its inputs, else
+the workspace's, :func:`reflectmm_cli.workspace.find_face_model`),
 optional ``light_model`` and ``envmap`` (any number of equirectangular maps, projected to SH).
 """
 from __future__ import annotations
@@ -50,26 +51,16 @@ def _outputs(ctx: StageContext) -> list[Path]:
     return [_out(ctx)]
 
 
-def recorded_face_model(model: Path) -> Path | None:
-    """The face model a model artifact records among its inputs (role ``face_model``), if that file exists."""
-    from reflectmm_cli.artifacts import read_meta
-
-    for ref in read_meta(model).get("inputs", []):
-        if ref.get("role") == "face_model" and ref.get("path"):
-            p = (Path(model).parent / ref["path"])
-            if p.is_file():
-                return p
-    return None
-
-
 def _face_model(ctx: StageContext) -> Path:
     given = ctx.input_list("face_model", required=False)
     if given:
         return given[0]
-    found = recorded_face_model(ctx.input("model"))
+    from reflectmm_cli.workspace import face_model_recorded_by, find_face_model
+
+    found = face_model_recorded_by(ctx.input("model")) or find_face_model(ctx.workspace)
     if found is None:
-        raise ReflectmmError("view: the model does not record a face model that exists here; give --face-model",
-                             ctx.input("model"))
+        raise ReflectmmError("view: the model records no face model that exists here and the workspace has none; "
+                             "give --face-model", ctx.input("model"))
     return found
 
 

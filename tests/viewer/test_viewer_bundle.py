@@ -129,8 +129,16 @@ def test_face_model_defaults_to_the_one_the_model_records(small, cli, tmp_path):
     assert r.exit_code == 0, r.stderr
     assert any(i["role"] == "face_model" for i in read_meta(tmp_path / "v.html")["inputs"])
     (tmp_path / "face_model.npz").unlink()
-    r = cli("view", tmp_path / "m.npz", "-o", tmp_path / "w.html")
+    empty = tmp_path / "empty_ws"
+    empty.mkdir()
+    r = cli("view", tmp_path / "m.npz", "-w", empty, "-o", tmp_path / "w.html")
     assert r.exit_code != 0 and "give --face-model" in r.stderr and not (tmp_path / "w.html").exists()
+    # the workspace's face model is the next default (workspace.find_face_model)
+    import shutil as sh
+
+    sh.copy(small["fm_path"], empty / "face_model.npz")
+    r = cli("-q", "view", tmp_path / "m.npz", "-w", empty, "-o", tmp_path / "w.html")
+    assert r.exit_code == 0, r.stderr
 
 
 def test_model_without_per_vertex_part_is_refused(small, cli, tmp_path):
