@@ -246,10 +246,10 @@ def shade_gbuffer(params: ModelParams, beta, sh, gb: GBufferBatch, *, band_tol: 
     """
     import torch
 
-    from reflectmm_cli.shading import EnvBasis, shade_env
+    from reflectmm_cli.shading import EnvBasis, shade_env, sh_order
 
     alb, wts = pixel_reflectance(params, beta, gb)
-    order = int(round(np.sqrt(sh.shape[-1]))) - 1
+    order = sh_order(sh.shape[-1])
     diff, spec = [], []
     counts = [int(c) for c in np.diff(gb.offsets)]
     # torch.split, not slicing: the backward of B slices would build B zero copies of the whole batch

@@ -246,11 +246,13 @@ class Trainer:
     def _predict(self, idx, x, gb):
         """(β, γ, SH lighting, per-pixel prediction (P, 3)) of the images ``idx``: ``x`` (B,3,S,S) in [0, 1],
         ``gb`` their G-buffer."""
+        from reflectmm_cli.shading import sh_order
+
         from .render import lighting, shade_gbuffer
 
         beta, gamma, z = self.encoder(x)
         sh = lighting(self.light, gamma[:, :self.NL] if self.NL else gamma, z)
-        order = int(round(np.sqrt(sh.shape[-1]))) - 1
+        order = sh_order(sh.shape[-1])
         # no NaN scans of the shading inputs: the step refuses a non-finite loss
         d, s, _, _ = shade_gbuffer(self.params, beta, sh, gb, bases=self._bases(idx, gb, order), check_finite=False)
         return beta, gamma, sh, d + s

@@ -47,10 +47,10 @@ def light_from_model_sh(sh_model, R) -> np.ndarray:
     The light frame is the model frame carried by ``M = model_to_light(R)``: ``L_light(d) = L_model(Mᵀ d)``, i.e.
     ``K_light = K_model · sh_rotation(M, L)ᵀ``.
     """
-    from reflectmm_cli.shading import sh_rotation
+    from reflectmm_cli.shading import sh_order, sh_rotation
 
     K = np.asarray(sh_model, dtype=np.float64)
-    order = int(round(np.sqrt(K.shape[-1]))) - 1
+    order = sh_order(K.shape[-1])
     return K @ sh_rotation(model_to_light(R), order).T
 
 

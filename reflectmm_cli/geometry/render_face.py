@@ -252,10 +252,9 @@ def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model
             light = {"type": "sh", "file": Path(sh).name, "sh_order": int(np.sqrt(K.shape[1])) - 1}
         if env_rotation:
             from reflectmm_cli.geometry.rotations import rotation_y
-            from reflectmm_cli.shading import sh_rotation
+            from reflectmm_cli.shading.sh import sh_order, sh_rotation
 
-            order = int(round(np.sqrt(K.shape[1]))) - 1
-            K = K @ sh_rotation(rotation_y(np.radians(env_rotation)), order).T
+            K = K @ sh_rotation(rotation_y(np.radians(env_rotation)), sh_order(K.shape[1])).T
             light["rotation_deg"] = float(env_rotation)
         res = render_envmap(scene, cam, albedo, weights, exps, K, uv=uv)
     return {"image": res.image, "mask": res.mask, "camera": cam, "light": light}

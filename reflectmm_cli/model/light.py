@@ -24,7 +24,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.rotations import rotation_x, rotation_y  # re-exported (public names of this module)
 from reflectmm_cli.shading._array import any_torch, device_of
 from reflectmm_cli.shading.envmap import envmap_from_sh, envmap_rgb, project_envmap
-from reflectmm_cli.shading.sh import sh_rotation
+from reflectmm_cli.shading.sh import sh_order, sh_rotation
 
 __all__ = [
     "LIGHT_MODEL_KIND",
@@ -105,7 +105,7 @@ def augmentation_rotations(rotations: int = 1, tilt_deg: float = 0.0) -> list[np
 def augment_sh(coeffs: np.ndarray, rotations: list[np.ndarray]) -> np.ndarray:
     """(M, C, n) coefficients → (M·len(rotations), C, n), map-major: sample ``i·R + r`` is map i, rotation r."""
     coeffs = np.asarray(coeffs, dtype=np.float64)
-    order = int(round(math.sqrt(coeffs.shape[-1]))) - 1
+    order = sh_order(coeffs.shape[-1])
     mats = np.stack([sh_rotation(R, order) for R in rotations])  # (R, n, n)
     out = np.einsum("rij,mcj->mrci", mats, coeffs)
     return out.reshape(-1, *coeffs.shape[1:])

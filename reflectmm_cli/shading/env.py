@@ -26,7 +26,7 @@ from reflectmm_cli.threads import default_threads
 
 from ._array import any_torch, as_array, broadcast_shapes, check_last, compute_dtype, device_of
 from .brdf import _check_exponents
-from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, phase_step, sh_basis, sh_basis_into
+from .sh import blinn_phong_sh_coeffs, lambert_sh_coeffs, phase_step, sh_basis, sh_basis_into, sh_order
 
 __all__ = ["shade_env", "band_limits", "specular_view_albedo", "EnvBasis",
            # the two terms, written once for every execution path
@@ -37,13 +37,6 @@ DEFAULT_CHUNK = 1 << 14
 #: the blocked kernel gathers the front-facing texels of a block for the specular part only when fewer than this
 #: fraction of them face the viewer; above it, shading every texel and zeroing the others is cheaper (measured)
 COMPACT_BELOW = 0.75
-
-
-def _order_from_count(n: int) -> int:
-    L = int(round(math.sqrt(n))) - 1
-    if L < 0 or (L + 1) ** 2 != n:
-        raise ReflectmmError(f"shading: argument 'sh_coeffs' has {n} coefficients per channel, not (L+1)^2")
-    return L
 
 
 def band_limits(exponents, order: int, band_tol: float = 0.0):
@@ -109,7 +102,7 @@ def diffuse_rows(K, order_d: int):
     K (..., 3, (L+1)²) → (..., 3, (order_d+1)²); dtype/device of K.
     """
     nd = (order_d + 1) ** 2
-    L = _order_from_count(K.shape[-1])
+    L = sh_order(K.shape[-1])
     a = lambert_sh_coeffs(L)[_band_of_coeff(L)[:nd]] / math.pi
     if any_torch(K):
         import torch
@@ -124,7 +117,7 @@ def lobe_rows(K, B, orders, active):
 
     K (..., 3, (L+1)²), B (lobes, L+1) float64 → (..., 3·len(active), (max_j orders[active[j]] + 1)²).
     """
-    L = _order_from_count(K.shape[-1])
+    L = sh_order(K.shape[-1])
     lvl = _band_of_coeff(L)
     ns = (max(orders[i] for i in active) + 1) ** 2
     if any_torch(K):
@@ -239,7 +232,7 @@ class EnvTerms(NamedTuple):
 def env_terms(K, exponents, active, band_tol: float = 0.0, view_correction: bool = False) -> EnvTerms:
     """The :class:`EnvTerms` of lighting K (..., 3, (L+1)²) (numpy or torch) for lobes of ``exponents`` (float64,
     (lobes,)), shading the lobes ``active``, bands dropped by :func:`band_limits` at ``band_tol``."""
-    order = _order_from_count(K.shape[-1])
+    order = sh_order(K.shape[-1])
     Ld, Ls = band_limits(exponents, order, band_tol)
     active = tuple(active)
     lobes, Lsmax = None, -1
@@ -323,7 +316,7 @@ def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask, che
     check_last("weights", w, p.shape[0])
     if K.ndim < 2 or K.shape[-2] != 3:
         raise ReflectmmError(f"shading: argument 'sh_coeffs' must have shape (..., 3, (L+1)^2), got {tuple(K.shape)}")
-    order = _order_from_count(K.shape[-1])
+    order = sh_order(K.shape[-1])
     shapes = [c.shape[:-1], w.shape[:-1], n.shape[:-1], v.shape[:-1], K.shape[:-2]]
     if mask is not None:
         mask = np.asarray(mask.detach().cpu() if any_torch(mask) else mask)
@@ -550,7 +543,7 @@ def _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, thre
     wsel = w2 if idx is None else w2[idx]
     active = [i for i in range(Kn) if np.any(wsel[:, i] != 0)] if Ntex else []
     terms = env_terms(K.astype(np.float64), p, active, band_tol, vc)
-    order = _order_from_count(K.shape[-1])
+    order = sh_order(K.shape[-1])
     A = lambert_sh_coeffs(order)
     plan_d = _cheb_plan(order, tuple(l for l in range(terms.diffuse_order + 1) if A[l] != 0))
     rows_d = (terms.diffuse @ plan_d.M[:terms.diffuse.shape[-1]]).astype(dt)

@@ -20,7 +20,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-from .sh import _check_order, sh_basis_into, sh_rotation
+from .sh import _check_order, sh_basis_into, sh_order, sh_rotation
 
 __all__ = ["equirect_directions", "equirect_weights", "project_envmap", "envmap_from_sh", "direction_to_equirect",
            "envmap_rgb", "load_envmap"]
@@ -215,7 +215,7 @@ def envmap_from_sh(coeffs, width: int, height: int) -> np.ndarray:
         K = K[None]
     if K.ndim != 2:
         raise ReflectmmError(f"envmap_from_sh: coeffs must be (C, (L+1)^2), got shape {K.shape}")
-    order = int(round(math.sqrt(K.shape[1]))) - 1
+    order = sh_order(K.shape[1])
     if (order + 1) ** 2 != K.shape[1]:
         raise ReflectmmError(f"envmap_from_sh: {K.shape[1]} coefficients is not a square (L+1)^2")
     width, height = int(width), int(height)

@@ -23,6 +23,7 @@ from ._array import any_torch, as_array, check_last, compute_dtype, device_of, s
 
 __all__ = [
     "sh_count",
+    "sh_order",
     "sh_index",
     "sh_basis",
     "sh_rotation",
@@ -39,6 +40,16 @@ MAX_ORDER = 64
 def sh_count(order: int) -> int:
     """Number of coefficients of an order-``order`` expansion, ``(order + 1)²``."""
     return (int(order) + 1) ** 2
+
+
+def sh_order(n_coeffs: int, what: str = "sh_coeffs") -> int:
+    """The order L of an expansion of ``n_coeffs`` = (L+1)² coefficients (the inverse of :func:`sh_count`); a
+    one-line error naming ``what`` when ``n_coeffs`` is not a square."""
+    n = int(n_coeffs)
+    L = int(round(math.sqrt(n))) - 1
+    if L < 0 or (L + 1) ** 2 != n:
+        raise ReflectmmError(f"shading: argument '{what}' has {n} coefficients per channel, not (L+1)^2")
+    return L
 
 
 def sh_index(l: int, m: int) -> int:  # noqa: E741 - l is the SH degree

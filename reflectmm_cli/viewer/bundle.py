@@ -21,6 +21,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.shading.sh import sh_order
 
 __all__ = ["FORMAT", "ENCODINGS", "MAX_LOBES", "ViewerOptions", "Blob", "ModelData", "LightData",
            "decode_blob", "iter_blobs", "model_data", "light_model_data", "envmap_data", "build_bundle", "bundle_size"]
@@ -208,10 +209,6 @@ def envmap_data(paths: Sequence[Path], order: int, light: LightData | None = Non
     return out
 
 
-def _order_of(n: int) -> int:
-    return int(round(math.sqrt(n))) - 1
-
-
 def _pad_sh(K: np.ndarray, order: int) -> np.ndarray:
     """(3, n) → (3, (order+1)²) with exact zeros in the added bands."""
     out = np.zeros((3, (order + 1) ** 2))
@@ -300,7 +297,7 @@ def build_bundle(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarra
     envs = list(light.envmaps)
     if not envs and light.model_mean is None:
         envs.append((UNIFORM_SKY, _pad_sh(np.full((3, 1), math.sqrt(4 * math.pi)), 0)))
-    orders = [_order_of(K.shape[1]) for _, K in envs] + ([light.model_order] if light.model_mean is not None else [])
+    orders = [sh_order(K.shape[1]) for _, K in envs] + ([light.model_order] if light.model_mean is not None else [])
     order = max(orders)
     if order > MAX_ORDER:
         raise ReflectmmError(f"view: lighting of SH order {order}; the viewer evaluates at most {MAX_ORDER}")
