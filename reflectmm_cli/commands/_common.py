@@ -43,9 +43,10 @@ def device_option(f):
                         help="torch device: cpu, cuda, cuda:N, or auto.")(f)
 
 
-def output_option(f):
-    return click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path), default=None,
-                        help="Explicit output path (overrides <workspace>/<stage>/<id>.npz).")(f)
+def output_option(f=None, *, help: str = "Explicit output path (overrides <workspace>/<stage>/<id>.npz)."):
+    """``-o/--output FILE``; ``@output_option`` or ``@output_option(help=...)`` for a verb's own wording."""
+    deco = click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path), default=None, help=help)
+    return deco(f) if f is not None else deco
 
 
 class ParamType(click.ParamType):

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import (emit, given_params, json_option, param_options, run_stage_cli,
-                                            workspace_option)
+from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options,
+                                            run_stage_cli, workspace_option)
 from reflectmm_cli.stages.render import PARAMS, VERB
 
 
@@ -22,8 +22,7 @@ from reflectmm_cli.stages.render import PARAMS, VERB
 @click.option("--geometry", type=click.Path(path_type=Path), default=None,
               help="geometry artifact: render its fitted vertices instead.")
 @param_options(PARAMS)
-@click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Output EXR (default <workspace>/render/render.exr); the PNG goes beside it.")
+@output_option(help="Output EXR (default <workspace>/render/render.exr); the PNG goes beside it.")
 @workspace_option
 @json_option
 def render_cmd(face_model, maps, model, envmap, sh, geometry, output, workspace, as_json, **kw):

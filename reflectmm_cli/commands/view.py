@@ -5,8 +5,8 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.commands._common import (emit, given_params, json_option, param_options, run_stage_cli,
-                                            workspace_option)
+from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options,
+                                            run_stage_cli, workspace_option)
 from reflectmm_cli.stages.view import PARAMS, VERB
 
 
@@ -21,8 +21,7 @@ from reflectmm_cli.stages.view import PARAMS, VERB
 @click.option("--envmap", "envmaps", multiple=True, type=click.Path(path_type=Path),
               help="Equirectangular HDR map (EXR/HDR), projected to SH; repeat for several.")
 @param_options(PARAMS)
-@click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Output HTML (default <workspace>/view/model.html).")
+@output_option(help="Output HTML (default <workspace>/view/model.html).")
 @workspace_option
 @json_option
 def view_cmd(model, compare, face_model, light_model, envmaps, output, workspace, as_json, **kw):
