@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterable, Mapping
 from reflectmm_cli import __version__
 from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.params import Param, ParamError, resolve_params
+from reflectmm_cli.params import Param, ParamError, closest_name, resolve_params
 from reflectmm_cli.workspace import check_id, stage_output
 
 #: Bump when the way cache keys are computed changes (invalidates every cache).
@@ -210,8 +210,6 @@ class Stage:
             return
         for role in roles:
             if not any(i.matches(role) for i in self.inputs):
-                from reflectmm_cli.params import closest_name
-
                 names = [f"{i.role}_<name>" if i.prefix else i.role for i in self.inputs]
                 near = closest_name(role, [i.role for i in self.inputs])
                 hint = f"did you mean '{near}'? " if near else ""
