@@ -31,7 +31,7 @@ from typing import Any
 
 __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_workspace", "stage_dir",
            "stage_output", "default_input", "capture_root",
-           "face_model_from_geometry", "find_face_model", "find_rig", "find_fit_rig", "CALIBRATED_RIG_SIGMAS",
+           "face_model_from_geometry", "find_face_model", "find_rig", "calibrated_rig", "find_fit_rig", "CALIBRATED_RIG_SIGMAS",
            "find_truth_dir", "find_truth",
            "list_artifacts", "face_model_recorded_by", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
@@ -179,12 +179,17 @@ def find_rig(capture: Any) -> Path | None:
 CALIBRATED_RIG_SIGMAS = {"rig_sigma_mm": 3.0, "rig_rot_sigma_deg": 0.3}
 
 
+def calibrated_rig(workspace: Path) -> Path:
+    """``<ws>/calibrate-rig/rig.toml``: where ``calibrate-rig`` writes the rig table a per-identity fit takes first."""
+    return Path(workspace) / "calibrate-rig" / "rig.toml"
+
+
 def find_fit_rig(workspace: Path, capture: Any = None) -> tuple[Path | None, str]:
     """The rig a per-identity fit takes by default, and where it comes from: the workspace's calibrated rig
     (``<ws>/calibrate-rig/rig.toml``, written by ``calibrate-rig``) first, then the capture dataset's
     ``rig.toml``, else None (the packaged Multi-PIE rig). Returns ``(path, "calibrated" | "dataset" | "packaged")``.
     """
-    cal = Path(workspace) / "calibrate-rig" / "rig.toml"
+    cal = calibrated_rig(workspace)
     if cal.is_file():
         return cal, "calibrated"
     found = find_rig(capture)

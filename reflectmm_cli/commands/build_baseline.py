@@ -9,9 +9,9 @@ import click
 
 from reflectmm_cli.commands._common import emit, given_params, json_option, output_option, param_options, \
     run_stage_cli, workspace_option
-from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.build_baseline import PARAMS, VERB
-from reflectmm_cli.workspace import find_face_model, require_truth_dir, resolve_workspace
+from reflectmm_cli.stages.build_baseline import PARAMS, STAGE, VERB
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.workspace import resolve_workspace
 
 
 @click.command(VERB)
@@ -30,15 +30,8 @@ def build_baseline_cmd(truth, face_model, workspace, output, as_json, **kw):
 
     Writes a `reflectance-model` artifact (<ws>/build-baseline/<kind>.npz or --output) and a component preview.
     """
-    ws = resolve_workspace(workspace)
-    truths = list(truth)
-    if not truths:
-        truths = [require_truth_dir(ws)]
-    fm = face_model or find_face_model(ws)
-    if fm is None:
-        raise ReflectmmError(f"build-baseline: no --face-model given and none found in {ws}")
-    paths = run_stage_cli(VERB, workspace=workspace, params=given_params(kw, PARAMS),
-                          inputs={"truth": truths, "face_model": [fm]}, output=output)
+    inputs = default_inputs(STAGE, resolve_workspace(workspace), {"truth": truth, "face_model": [face_model]})
+    paths = run_stage_cli(VERB, workspace=workspace, params=given_params(kw, PARAMS), inputs=inputs, output=output)
     emit(paths, as_json)
 
 

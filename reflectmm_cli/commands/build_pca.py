@@ -8,8 +8,9 @@ import click
 
 from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options, parse_ids,
                                             run_stage_cli, workspace_option)
-from reflectmm_cli.stages.build_pca import PARAMS, VERB
-from reflectmm_cli.workspace import find_face_model, resolve_workspace, stage_output
+from reflectmm_cli.stages.build_pca import PARAMS, STAGE, VERB
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.workspace import resolve_workspace
 
 
 @click.command(VERB)
@@ -30,14 +31,9 @@ def build_pca_cmd(ids, inputs, face_model, workspace, output, as_json, **kw):
     components ±2σ and (with a face model) 30 random samples under a white frontal point light.
     """
     ws = resolve_workspace(workspace)
-    paths = [stage_output(ws, "fit-reflectance", i) for i in parse_ids(ids)] + list(inputs)
-    if not paths:
+    if not parse_ids(ids) and not inputs:
         raise click.UsageError("give --ids or at least two --input files")
-    if face_model is None:
-        face_model = find_face_model(ws)
-    inp = {"maps": paths}
-    if face_model is not None:
-        inp["face_model"] = [face_model]
+    inp = default_inputs(STAGE, ws, {"maps": inputs, "face_model": [face_model]}, ids=parse_ids(ids))
     out = run_stage_cli(VERB, workspace=workspace, params=given_params(kw, PARAMS), inputs=inp, output=output)
     emit(out, as_json)
 

@@ -9,12 +9,11 @@ from pathlib import Path
 
 import click
 
-from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.commands._common import (emit, given_params, json_option, output_option, param_options, parse_ids,
                                             run_stage_cli, workspace_option)
-from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.calibrate_rig import PARAMS, VERB
-from reflectmm_cli.workspace import find_face_model, find_rig, resolve_workspace, stage_output
+from reflectmm_cli.stages.calibrate_rig import PARAMS, STAGE, VERB
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.workspace import resolve_workspace
 
 
 @click.command(VERB)
@@ -38,20 +37,10 @@ def calibrate_rig_cmd(ids, captures, face_model, rig, workspace, output, as_json
     `fit-geometry --rig` (with a tight --rig-sigma, e.g. 3 mm).
     """
     ws = resolve_workspace(workspace)
-    paths = [stage_output(ws, "preprocess-multipie", i) for i in parse_ids(ids)] + list(captures)
-    if not paths:
+    if not parse_ids(ids) and not captures:
         raise click.UsageError("give --ids or --capture files")
-    missing = [p for p in paths if not Path(p).is_file()]
-    if missing:
-        raise ReflectmmError("capture artifact not found (run preprocess-multipie first)", missing[0])
-    first = read_artifact(paths[0], "capture")
-    face_model = face_model or find_face_model(ws, capture=first)
-    if face_model is None:
-        raise ReflectmmError("no face model: pass --face-model", paths[0])
-    rig = rig or find_rig(first)
-    inputs = {"capture": paths, "face_model": [face_model]}
-    if rig is not None:
-        inputs["rig"] = [rig]
+    inputs = default_inputs(STAGE, ws, {"capture": captures, "face_model": [face_model], "rig": [rig]},
+                            ids=parse_ids(ids))
     out = run_stage_cli(VERB, workspace=ws, params=given_params(kw, PARAMS), inputs=inputs, output=output)
     emit(out, as_json)
 

@@ -15,7 +15,8 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.stages import (evaluate_albedo, evaluate_expressive, evaluate_reconstruction, evaluate_relighting, evaluate_report,
                                   evaluate_representation, evaluate_truth)
-from reflectmm_cli.workspace import find_face_model, require_truth_dir, resolve_workspace, stage_dir, stage_output
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.workspace import resolve_workspace
 
 
 @click.group("evaluate")
@@ -43,18 +44,8 @@ def evaluate_truth_cmd(identity, maps, truth, geometry, face_model, workspace, o
     observable and flagged texels, raw and after one global least-squares scale. Writes an `evaluation`
     artifact (<ws>/evaluate-truth/<id>.npz or --output).
     """
-    ws = resolve_workspace(workspace)
-    if maps is None and stage_output(ws, "fit-reflectance", identity).is_file():
-        maps = stage_output(ws, "fit-reflectance", identity)
-    if truth is None:
-        truth = require_truth_dir(ws) / f"{identity}.npz"
-    inputs = {"truth": [truth]}
-    if maps is not None:
-        inputs["maps"] = [maps]
-    if geometry is not None:
-        inputs["geometry"] = [geometry]
-    if face_model is not None:
-        inputs["face_model"] = [face_model]
+    inputs = default_inputs(evaluate_truth.STAGE, resolve_workspace(workspace), {
+        "maps": [maps], "truth": [truth], "geometry": [geometry], "face_model": [face_model]}, identity=identity)
     paths = run_stage_cli(evaluate_truth.VERB, workspace=workspace, identity=identity, inputs=inputs, output=output)
     art = read_artifact(paths[0], EVAL_KIND)
     click.echo(json.dumps({"outputs": [str(p) for p in paths], "identity": identity,
@@ -79,20 +70,12 @@ def evaluate_representation_cmd(ids, inputs, lpips_weights, face_model, workspac
     Writes an `evaluation` artifact (<ws>/evaluate-representation/evaluate-representation.npz or --output), the
     table (.md) and a figure (.png) beside it.
     """
-    ws = resolve_workspace(workspace)
-    files = [stage_output(ws, "unwrap-uv", i) for i in parse_ids(ids)] + list(inputs)
-    if not files:
+    if not parse_ids(ids) and not inputs:
         raise click.UsageError("give --ids or --input")
     params = given_params(kw, evaluate_representation.PARAMS)
-    inp = {"observations": files}
-    if params.get("space") != "uv" and ids:
-        caps = [stage_output(ws, "preprocess-multipie", i) for i in parse_ids(ids)]
-        geos = [stage_output(ws, "fit-geometry", i) for i in parse_ids(ids)]
-        fm = face_model or find_face_model(ws)
-        if fm is not None and all(c.is_file() for c in caps) and all(g.is_file() for g in geos):
-            inp.update(capture=caps, geometry=geos, face_model=[fm])
-    if lpips_weights is not None:
-        inp["lpips_weights"] = [lpips_weights]
+    inp = default_inputs(evaluate_representation.STAGE, resolve_workspace(workspace), {
+        "observations": inputs, "face_model": [face_model], "lpips_weights": [lpips_weights]},
+        ids=parse_ids(ids), params=params)
     paths = run_stage_cli(evaluate_representation.VERB, workspace=workspace, params=params, inputs=inp,
                           output=output)
     if as_json:
@@ -177,16 +160,13 @@ def evaluate_albedo_cmd(ids, obs, truth, method_specs, workspace, output, as_jso
 
     Writes an `evaluation` artifact (<ws>/evaluate-albedo/evaluate-albedo.npz or --output) and the table (.md).
     """
-    ws = resolve_workspace(workspace)
-    files = [stage_output(ws, "unwrap-uv", i) for i in parse_ids(ids)] + list(obs)
-    if not files:
+    if not parse_ids(ids) and not obs:
         raise click.UsageError("give --ids or --input")
-    truths = list(truth)
-    if not truths:
-        truths = [require_truth_dir(ws)]
+    found = default_inputs(evaluate_albedo.STAGE, resolve_workspace(workspace), {"observations": obs, "truth": truth},
+                           ids=parse_ids(ids))
     inputs, names = _methods(method_specs)
     inputs = {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
-    inputs.update(observations=files, truth=truths)
+    inputs.update(found)
     params = given_params(kw, evaluate_albedo.PARAMS)
     params["methods"] = names
     paths = run_stage_cli(evaluate_albedo.VERB, workspace=workspace, params=params, inputs=inputs, output=output)
@@ -208,11 +188,10 @@ def evaluate_expressive_cmd(truth, method_specs, workspace, output, as_json, **k
 
     Writes an `evaluation` artifact (<ws>/evaluate-expressive/evaluate-expressive.npz or --output) and its table.
     """
-    ws = resolve_workspace(workspace)
-    truth = truth or stage_dir(ws, "synth-wild")
+    found = default_inputs(evaluate_expressive.STAGE, resolve_workspace(workspace), {"truth": [truth]})
     inputs, names = _methods(method_specs)
     inputs = {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
-    inputs["truth"] = [truth]
+    inputs.update(found)
     params = given_params(kw, evaluate_expressive.PARAMS)
     params["methods"] = names
     paths = run_stage_cli(evaluate_expressive.VERB, workspace=workspace, params=params, inputs=inputs,
@@ -246,18 +225,11 @@ def evaluate_relighting_cmd(identity, capture, geometry, face_model, light_model
     Writes an `evaluation` artifact (<ws>/evaluate-relighting/<id>.npz or --output), the table (.md) and the figure
     (.png) beside it.
     """
-    ws = resolve_workspace(workspace)
-    capture = capture or stage_output(ws, "preprocess-multipie", identity)
-    geometry = geometry or stage_output(ws, "fit-geometry", identity)
-    fm = face_model or find_face_model(ws, geometry=geometry if Path(geometry).is_file() else None)
-    if fm is None:
-        raise ReflectmmError(f"evaluate relighting: no --face-model given and none found in {ws}")
+    found = default_inputs(evaluate_relighting.STAGE, resolve_workspace(workspace), {
+        "capture": [capture], "geometry": [geometry], "face_model": [face_model], "light_model": [light_model],
+        "observations": [observations]}, identity=identity)
     inputs, names = _methods(method_specs)
-    inputs.update(capture=[capture], geometry=[geometry], face_model=[fm])
-    if light_model is not None:
-        inputs["light_model"] = [light_model]
-    if observations is not None:
-        inputs["observations"] = [observations]
+    inputs.update(found)
     params = given_params(kw, evaluate_relighting.PARAMS)
     params["methods"] = names
     paths = run_stage_cli(evaluate_relighting.VERB, workspace=workspace, identity=identity, params=params,

@@ -8,9 +8,9 @@ import click
 
 from reflectmm_cli.commands._common import (device_option, emit, given_params, json_option, output_option,
                                             param_options, run_stage_cli, workspace_option)
-from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.finetune import PARAMS, VERB
-from reflectmm_cli.workspace import default_input, find_face_model, list_artifacts, resolve_workspace
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.stages.finetune import PARAMS, STAGE, VERB
+from reflectmm_cli.workspace import resolve_workspace
 
 _FILE = click.Path(dir_okay=False, path_type=Path)
 
@@ -45,17 +45,9 @@ def finetune_cmd(model, light_model, data, face_model, identity_weights, init_we
     and components before/after).  --epochs2 0 trains the encoder only (phase 1) and leaves the model unchanged.
     """
     ws = resolve_workspace(workspace)
-    data = list(data) or list_artifacts(ws, "prepare-wild")
-    if not data:
-        raise ReflectmmError(f"--data: not given and no shards in {ws / 'prepare-wild'}")
-    inputs = {"model": [model or default_input(ws, "build-pca", "--model")],
-              "light_model": [light_model or default_input(ws, "build-light-pca", "--light-model")],
-              "data": data}
-    face_model = face_model or find_face_model(ws, geometry=data[0] if Path(data[0]).is_file() else None)
-    for role, p in (("face_model", face_model), ("identity_weights", identity_weights),
-                    ("init_weights", init_weights), ("phase1_encoder", phase1_encoder)):
-        if p is not None:
-            inputs[role] = [p]
+    given = {"model": [model], "light_model": [light_model], "data": data, "face_model": [face_model],
+             "identity_weights": [identity_weights], "init_weights": [init_weights], "phase1_encoder": [phase1_encoder]}
+    inputs = default_inputs(STAGE, ws, given, roles=("data", "model", "light_model", "face_model"))
     out = run_stage_cli(VERB, workspace=ws, params=given_params(kw, PARAMS), inputs=inputs, output=output,
                         device=device)
     emit(out, as_json)

@@ -10,14 +10,12 @@ from typing import Any
 
 import click
 
-from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
                                             output_option, param_options, run_stage_cli, workspace_option)
-from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.fit_geometry import PARAMS, VERB
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.stages.fit_geometry import PARAMS, STAGE, VERB
 from reflectmm_cli.progress import log
-from reflectmm_cli.workspace import (CALIBRATED_RIG_SIGMAS, find_face_model, find_fit_rig, find_truth,
-                                     resolve_workspace, stage_output)
+from reflectmm_cli.workspace import CALIBRATED_RIG_SIGMAS, calibrated_rig, resolve_workspace
 
 
 @click.command(VERB)
@@ -53,34 +51,20 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
     Writes the `geometry` artifact (<ws>/fit-geometry/<id>.npz) and one overlay PNG per view.
     """
     ws = resolve_workspace(workspace)
-    capture = capture or stage_output(ws, "preprocess-multipie", identity)
     params: dict[str, Any] = given_params(kw, PARAMS)
-    inputs: dict[str, list[Path]] = {}
-    if from_truth is not None:
-        inputs["truth"] = [from_truth]
-        if Path(capture).exists():
-            inputs["capture"] = [capture]
-            face_model = face_model or find_face_model(ws, capture=read_artifact(capture, "capture"))
-        if face_model is not None:
-            inputs["face_model"] = [face_model]
-        if rig is not None:
-            inputs["rig"] = [rig]
+    given = {"capture": [capture], "face_model": [face_model], "rig": [rig], "landmarks": [landmarks_dir]}
+    if from_truth is not None:  # the capture and its face model only where they are found; the rig only if given
+        inputs = default_inputs(STAGE, ws, {**given, "truth": [from_truth], "landmarks": []}, identity=identity,
+                                roles=("capture", "face_model"), required=False)
         params["from_truth"] = True
         paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=params, inputs=inputs, output=output,
                               device=device)
         emit(paths, as_json)
         return
-    if not Path(capture).exists():
-        raise ReflectmmError("capture artifact not found (run preprocess-multipie first or pass --capture)", capture)
-    cap = read_artifact(capture, "capture")
-    if face_model is None:
-        face_model = find_face_model(ws, capture=cap)
-        if face_model is None:
-            raise ReflectmmError("no face model: pass --face-model (a face-model artifact or a BFM .mat); none found "
-                                 "beside the capture's dataset or at <workspace>/face_model.npz", capture)
-    if rig is None:
-        rig, source = find_fit_rig(ws, cap)
-        if source == "calibrated":
+    inputs = default_inputs(STAGE, ws, {**given, "truth": [truth]}, identity=identity)
+    if rig is None:  # the default rig: the calibrated one brings its soft constraints; stderr says which
+        rig = (inputs.get("rig") or [None])[0]
+        if rig is not None and rig == calibrated_rig(ws):
             for k, v in CALIBRATED_RIG_SIGMAS.items():
                 params.setdefault(k, v)
             log.info("fit-geometry: rig: the workspace's calibrated rig %s (σ %g mm, %g°)", rig,
@@ -88,14 +72,6 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
         else:
             log.info("fit-geometry: rig: %s", f"the capture dataset's {rig}" if rig is not None
                      else "the packaged Multi-PIE rig")
-    truth = truth or find_truth(ws, identity, capture=cap)
-    inputs = {"capture": [capture], "face_model": [face_model]}
-    if rig is not None:
-        inputs["rig"] = [rig]
-    if truth is not None:
-        inputs["truth"] = [truth]
-    if landmarks_dir is not None:
-        inputs["landmarks"] = [landmarks_dir]
     if iters is not None:
         params["landmark_iters"] = iters
         params["photo_iters"] = max(1, iters // 10) if iters else 0

@@ -8,9 +8,9 @@ import click
 
 from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
                                             output_option, param_options, run_stage_cli, workspace_option)
-from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.fit_reflectance import PARAMS, VERB
-from reflectmm_cli.workspace import check_id, resolve_workspace, stage_output
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.stages.fit_reflectance import PARAMS, STAGE, VERB
+from reflectmm_cli.workspace import check_id, resolve_workspace
 
 
 @click.command(VERB)
@@ -32,16 +32,11 @@ def fit_reflectance_cmd(identity, input_path, device, workspace, output, as_json
     if identity is None and input_path is None:
         raise click.UsageError("give --id or --input")
     params = given_params(kw, PARAMS)
-    if input_path is not None:
-        src = input_path
-    else:
-        src = stage_output(resolve_workspace(workspace), "unwrap-uv", identity)
-        if not src.exists():
-            raise ReflectmmError("uv-observations not found (run unwrap-uv first or give --input)", src)
+    inputs = default_inputs(STAGE, resolve_workspace(workspace), {"observations": [input_path]}, identity=identity)
     if identity is None:  # the input's name is the identity: it names the outputs, so it must be a safe id
         identity = check_id(Path(input_path).stem, f"--input {input_path}: its name is the identity (or give --id)")
     paths = run_stage_cli(VERB, workspace=workspace, identity=identity, params=params,
-                          inputs={"observations": [src]}, output=output, device=device)
+                          inputs=inputs, output=output, device=device)
     emit(paths, as_json)
 
 

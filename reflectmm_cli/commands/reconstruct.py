@@ -8,9 +8,9 @@ import click
 
 from reflectmm_cli.commands._common import (device_option, emit, given_params, json_option, output_option,
                                             param_options, run_stage_cli, workspace_option)
-from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.reconstruct import PARAMS, VERB
-from reflectmm_cli.workspace import default_input, find_face_model, resolve_workspace
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.stages.reconstruct import PARAMS, STAGE, VERB
+from reflectmm_cli.workspace import resolve_workspace
 
 _FILE = click.Path(dir_okay=False, path_type=Path)
 _DIR = click.Path(file_okay=False, path_type=Path)
@@ -45,21 +45,11 @@ def reconstruct_cmd(encoder, model, light_model, data, images, landmarks, masks,
     if bool(data) == (images is not None):
         raise click.UsageError("give either --data SHARD... or --images DIR")
     no_encoder = kw.get("refine") and kw.get("refine_from") == "zero" and encoder is None
-    inputs = {} if no_encoder else {"encoder": [encoder or default_input(ws, "finetune", "--encoder",
-                                                                         "finetune_encoder", ".safetensors")]}
-    inputs |= {"model": [model or default_input(ws, "finetune", "--model")],
-               "light_model": [light_model or default_input(ws, "build-light-pca", "--light-model")]}
-    if images is not None:
-        inputs["images"] = [images]
-        fm = face_model or find_face_model(ws)
-        if fm is None:
-            raise ReflectmmError("--images needs --face-model (no face model found in the workspace)")
-        inputs["face_model"] = [fm]
-        for role, p in (("landmarks", landmarks), ("masks", masks)):
-            if p is not None:
-                inputs[role] = [p]
-    else:
-        inputs["data"] = list(data)
+    given = {"encoder": [encoder], "model": [model], "light_model": [light_model], "data": data}
+    if images is not None:  # the photos are prepared in memory with a face model (and the optional folders)
+        given.update(images=[images], face_model=[face_model], landmarks=[landmarks], masks=[masks])
+    roles = ("encoder",) * (not no_encoder) + ("model", "light_model") + ("face_model",) * (images is not None)
+    inputs = default_inputs(STAGE, ws, given, roles=roles)
     out = run_stage_cli(VERB, workspace=ws, params=given_params(kw, PARAMS), inputs=inputs, output=output,
                         device=device)
     emit(out, as_json)

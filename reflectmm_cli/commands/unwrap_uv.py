@@ -8,9 +8,9 @@ import click
 
 from reflectmm_cli.commands._common import (emit, given_params, id_callback, json_option, output_option, param_options,
                                             run_stage_cli, workspace_option)
-from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.unwrap_uv import PARAMS, VERB
-from reflectmm_cli.workspace import find_face_model, resolve_workspace, stage_output
+from reflectmm_cli.stages.defaults import default_inputs
+from reflectmm_cli.stages.unwrap_uv import PARAMS, STAGE, VERB
+from reflectmm_cli.workspace import resolve_workspace
 
 
 @click.command(VERB)
@@ -29,18 +29,9 @@ from reflectmm_cli.workspace import find_face_model, resolve_workspace, stage_ou
 def unwrap_uv_cmd(identity, capture, geometry, face_model, workspace, output, as_json, **kw):
     """Unwrap one identity's OLAT images into UV space with visibility, shadow and saturation masks."""
     ws = resolve_workspace(workspace)
-    capture = capture or stage_output(ws, "preprocess-multipie", identity)
-    geometry = geometry or stage_output(ws, "fit-geometry", identity)
-    for role, p, verb in (("capture", capture, "preprocess-multipie"), ("geometry", geometry, "fit-geometry")):
-        if not Path(p).exists():
-            raise ReflectmmError(f"{role} artifact not found (run {verb} first or pass --{role})", p)
-    if face_model is None:
-        face_model = find_face_model(ws, capture=capture, geometry=geometry)
-        if face_model is None:
-            raise ReflectmmError("no face model: the geometry does not record one, and there is no face_model.npz "
-                                 "beside the capture's dataset or in the workspace; pass --face-model", geometry)
-    paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=given_params(kw, PARAMS),
-                          inputs={"capture": [capture], "geometry": [geometry], "face_model": [face_model]},
+    inputs = default_inputs(STAGE, ws, {"capture": [capture], "geometry": [geometry], "face_model": [face_model]},
+                            identity=identity)
+    paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=given_params(kw, PARAMS), inputs=inputs,
                           output=output)
     emit(paths, as_json)
 

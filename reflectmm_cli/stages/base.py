@@ -122,6 +122,48 @@ class StageContext:
 
 
 @dataclass(frozen=True)
+class Default:
+    """Where a command finds an input role it was not given: the workspace convention, declared with the role
+    (:func:`reflectmm_cli.stages.defaults.default_inputs` applies it; recipes name their inputs and use none).
+
+    Attributes:
+        rule: ``output``: the upstream stage's output ``<ws>/<upstream>/<name><suffix>`` (name: ``name``, else the
+            identity, else the upstream's name); for a ``many`` role, one per ``--ids`` identity (placed before
+            the given paths), else one for the identity.  ``all``: every ``*<suffix>`` the upstream wrote.  ``folder``: ``<ws>/<upstream>/``.
+            ``face-model``: :func:`~reflectmm_cli.workspace.find_face_model`, consulting the first file of the roles
+            ``capture`` and ``geometry`` name.  ``truth``: the workspace's truth folder (a ``many`` role), else
+            ``<truth folder>/<id>.npz`` (:func:`~reflectmm_cli.workspace.find_truth_dir`, consulting ``capture``).
+            ``rig``: ``rig.toml`` of the capture's dataset folder; ``fit-rig``: the workspace's calibrated rig first
+            (:func:`~reflectmm_cli.workspace.find_fit_rig`).
+        name, suffix: the file name of an ``output`` (``suffix`` also filters ``all``).
+        optional: a default that is not found leaves the role out instead of raising ``missing``.
+        checked: False passes a composed path on without looking (the stage then reports a missing file).
+        check_given: given paths are checked too (each must exist, else ``missing``).
+        missing: the one-line error when the default is not found; ``{path}``, ``{folder}``, ``{workspace}``,
+            ``{option}`` and ``{<role>}`` (the first path of that role) are filled in.  Empty: ``{option}: not given
+            and {path} does not exist`` (for a search: ``{option}: not given and none found in {workspace}``).
+        capture, geometry: the roles whose first file a search consults.
+        needs: roles that must be present for the default to be looked for.
+        group: roles of one group are passed all together or not at all, given ones included (a role whose
+            default is not found drops the group).
+        unless: ``(param, value)``: when the command's param has that value the role is left out, given or not.
+    """
+
+    rule: str = "output"
+    name: str | None = None
+    suffix: str = ".npz"
+    optional: bool = False
+    checked: bool = True
+    check_given: bool = False
+    missing: str = ""
+    capture: str | None = None
+    geometry: str | None = None
+    needs: tuple[str, ...] = ()
+    group: str | None = None
+    unless: tuple[str, Any] | None = None
+
+
+@dataclass(frozen=True)
 class Input:
     """One input role of a stage: declared once, it checks recipes and the command line and writes ``--help``.
 
@@ -134,6 +176,8 @@ class Input:
         many: more than one path may be given (files or folders).
         prefix: ``role`` names a family of roles (see above).
         help: one line.
+        default: where a command finds this role when it is not given (:class:`Default`, from ``upstream``);
+            None: the command has no default for it.
     """
 
     role: str
@@ -142,6 +186,7 @@ class Input:
     many: bool = False
     prefix: bool = False
     help: str = ""
+    default: Default | None = None
 
     def matches(self, role: str) -> bool:
         return role.startswith(self.role + "_") and len(role) > len(self.role) + 1 if self.prefix else role == self.role

@@ -15,14 +15,16 @@ from reflectmm_cli.artifacts import write_png
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "build-baseline"
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True, help='identities to build the baseline from'),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True, help='identities to build the baseline from',
+          default=Default('truth')),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', missing='build-baseline: no --face-model given and none found in {workspace}')),
 )
 
 

@@ -14,7 +14,7 @@ from reflectmm_cli.model import MODEL_KIND, model_arrays
 from reflectmm_cli.model.build import build_reflectance_model
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "build-pca"
 
@@ -29,8 +29,9 @@ PARAMS = (
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True, default=Default(checked=False)),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', optional=True)),
 )
 
 

@@ -17,7 +17,7 @@ from typing import Any
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 log = logging.getLogger("reflectmm")
 
@@ -27,9 +27,12 @@ _CFG = CalibrationConfig()
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('capture', 'capture', upstream='preprocess-multipie', many=True),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
-    Input('rig', 'rig TOML', upstream='synth-multipie', help='the nominal table to start from'),
+    Input('capture', 'capture', upstream='preprocess-multipie', many=True, default=Default(
+        check_given=True, missing='{path}: capture artifact not found (run preprocess-multipie first)')),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', capture='capture', missing='{capture}: no face model: pass --face-model')),
+    Input('rig', 'rig TOML', upstream='synth-multipie', help='the nominal table to start from',
+          default=Default('rig', capture='capture', optional=True)),
 )
 
 

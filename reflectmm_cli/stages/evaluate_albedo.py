@@ -17,7 +17,7 @@ from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "evaluate-albedo"
 
@@ -37,8 +37,9 @@ ROLE_OPTIONS = {"observations": "--input", "truth": "--truth"}
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True),
-    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True),
+    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True, default=Default(checked=False)),
+    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True,
+          default=Default('truth')),
     Input('model', 'reflectance-model', prefix=True, help='one method each'),
 )
 

@@ -24,13 +24,14 @@ from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "evaluate-expressive"
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('truth', 'synth-wild folder or ground-truth files', upstream='synth-wild', many=True),
+    Input('truth', 'synth-wild folder or ground-truth files', upstream='synth-wild', many=True,
+          default=Default('folder', checked=False)),
     Input('model', 'reflectance-model', prefix=True, help='one method each'),
 )
 

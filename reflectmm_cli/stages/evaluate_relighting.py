@@ -18,7 +18,7 @@ from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.evaluation.methods import check_method_names
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 from reflectmm_cli.stages.reconstruct import refine_config, refine_params
 
 VERB = "evaluate-relighting"
@@ -47,9 +47,11 @@ ROLE_OPTIONS = {"capture": "--capture", "geometry": "--geometry", "face_model": 
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('capture', 'capture', upstream='preprocess-multipie', many=True),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
-    Input('geometry', 'geometry', upstream='fit-geometry', many=True),
+    Input('capture', 'capture', upstream='preprocess-multipie', many=True, default=Default(checked=False)),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', geometry='geometry',
+                          missing='evaluate relighting: no --face-model given and none found in {workspace}')),
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True, default=Default(checked=False)),
     Input('light_model', 'light-model', upstream='build-light-pca'),
     Input('observations', 'uv-observations', upstream='unwrap-uv', many=True),
     Input('model', 'reflectance-model', prefix=True, help='one method each'),

@@ -3,6 +3,7 @@ held-out flash images (library: :mod:`reflectmm_cli.evaluation.representation`).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,17 +13,24 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.params import Param, parse_list
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 from reflectmm_cli.stages.fit_reflectance import SOLVER_PARAMS
 
 VERB = "evaluate-representation"
 
+#: The command's image-space inputs: with --ids (and --space other than uv), each identity's capture and geometry and
+#: the workspace's face model are passed when every one of them exists, else none of them (a given --face-model
+#: included); the stage then re-renders in image space when they are given (--space auto), as in a recipe that
+#: names them.
+_IMAGE_SPACE = Default(optional=True, group="image", unless=("space", "uv"))
+
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True),
-    Input('capture', 'capture', upstream='preprocess-multipie', many=True),
-    Input('geometry', 'geometry', upstream='fit-geometry', many=True),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True, default=Default(checked=False)),
+    Input('capture', 'capture', upstream='preprocess-multipie', many=True, default=_IMAGE_SPACE),
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True, default=_IMAGE_SPACE),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=replace(_IMAGE_SPACE, rule='face-model')),
     Input('lpips_weights', 'LPIPS weights (safetensors)'),
 )
 

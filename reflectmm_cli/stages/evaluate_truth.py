@@ -9,7 +9,7 @@ import numpy as np
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "evaluate-truth"
 
@@ -17,9 +17,9 @@ PARAMS = ()
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('maps', 'reflectance-maps', upstream='fit-reflectance'),
+    Input('maps', 'reflectance-maps', upstream='fit-reflectance', default=Default(optional=True)),
     Input('geometry', 'geometry', upstream='fit-geometry'),
-    Input('truth', 'ground-truth NPZ', upstream='synth-multipie'),
+    Input('truth', 'ground-truth NPZ', upstream='synth-multipie', default=Default('truth', checked=False)),
     Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
 )
 

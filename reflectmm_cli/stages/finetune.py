@@ -27,7 +27,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.config import RELEASED, FinetuneConfig
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "finetune"
 
@@ -36,10 +36,12 @@ _KINDS = {"int": "int", "float": "float", "str": "str", "int | None": "int", "tu
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('model', 'reflectance-model', upstream='build-pca'),
-    Input('light_model', 'light-model', upstream='build-light-pca'),
-    Input('data', 'wild-shard', upstream='prepare-wild', many=True),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('model', 'reflectance-model', upstream='build-pca', default=Default()),
+    Input('light_model', 'light-model', upstream='build-light-pca', default=Default()),
+    Input('data', 'wild-shard', upstream='prepare-wild', many=True,
+          default=Default('all', missing='--data: not given and no shards in {folder}')),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', geometry='data', optional=True)),
     Input('init_weights', 'encoder weights (safetensors)', help='ImageNet-style initial weights'),
     Input('identity_weights', 'face-recognition weights (safetensors)'),
     Input('phase1_encoder', 'finetune-encoder', upstream='finetune', help='take phase 1 from this encoder instead of training it'),

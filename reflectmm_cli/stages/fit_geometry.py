@@ -19,7 +19,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit import FitConfig
 from reflectmm_cli.geometry_fit.identity import fit_identity, geometry_from_truth
 from reflectmm_cli.params import Param
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 log = logging.getLogger("reflectmm")
 
@@ -29,11 +29,16 @@ _CFG = FitConfig()
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('capture', 'capture', upstream='preprocess-multipie'),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
-    Input('rig', 'rig TOML', upstream='calibrate-rig'),
+    Input('capture', 'capture', upstream='preprocess-multipie', default=Default(
+        check_given=True, missing='{path}: capture artifact not found (run preprocess-multipie first or pass --capture)')),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', capture='capture', needs=('capture',), missing=(
+              '{capture}: no face model: pass --face-model (a face-model artifact or a BFM .mat); none found '
+              "beside the capture's dataset or at <workspace>/face_model.npz"))),
+    Input('rig', 'rig TOML', upstream='calibrate-rig', default=Default('fit-rig', capture='capture', optional=True)),
     Input('landmarks', 'landmark files or folder', many=True),
-    Input('truth', 'ground-truth NPZ', upstream='synth-multipie', help="only for the report's errors"),
+    Input('truth', 'ground-truth NPZ', upstream='synth-multipie', help="only for the report's errors",
+          default=Default('truth', capture='capture', optional=True)),
 )
 
 

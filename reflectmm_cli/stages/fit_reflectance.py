@@ -16,7 +16,7 @@ from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.reflectance.fit import FitMapsConfig
 from reflectmm_cli.shading.brdf import check_exponents
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 from reflectmm_cli.workspace import stage_output
 
 VERB = "fit-reflectance"
@@ -26,7 +26,8 @@ _CFG = SimpleNamespace(**FitMapsConfig().flat())
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('observations', 'uv-observations', upstream='unwrap-uv'),
+    Input('observations', 'uv-observations', upstream='unwrap-uv',
+          default=Default(missing='{path}: uv-observations not found (run unwrap-uv first or give --input)')),
 )
 
 

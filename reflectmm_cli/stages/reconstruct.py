@@ -17,7 +17,7 @@ from pathlib import Path
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "reconstruct"
 
@@ -25,12 +25,13 @@ _KINDS = {"int": "int", "float": "float", "str": "str"}
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('model', 'reflectance-model', upstream='finetune'),
-    Input('encoder', 'finetune-encoder', upstream='finetune'),
-    Input('light_model', 'light-model', upstream='build-light-pca'),
+    Input('model', 'reflectance-model', upstream='finetune', default=Default()),
+    Input('encoder', 'finetune-encoder', upstream='finetune', default=Default(name='finetune_encoder', suffix='.safetensors')),
+    Input('light_model', 'light-model', upstream='build-light-pca', default=Default()),
     Input('data', 'wild-shard', upstream='prepare-wild', many=True),
     Input('images', 'photos', many=True),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', missing='--images needs --face-model (no face model found in the workspace)')),
 )
 
 

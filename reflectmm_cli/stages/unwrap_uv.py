@@ -10,7 +10,7 @@ from pathlib import Path
 from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 from reflectmm_cli.stages.fit_reflectance import EXPONENTS
 from reflectmm_cli.workspace import find_face_model
 
@@ -33,9 +33,14 @@ PARAMS = (
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('capture', 'capture', upstream='preprocess-multipie'),
-    Input('geometry', 'geometry', upstream='fit-geometry'),
-    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs'),
+    Input('capture', 'capture', upstream='preprocess-multipie', default=Default(
+        check_given=True, missing='{path}: capture artifact not found (run preprocess-multipie first or pass --capture)')),
+    Input('geometry', 'geometry', upstream='fit-geometry', default=Default(
+        check_given=True, missing='{path}: geometry artifact not found (run fit-geometry first or pass --geometry)')),
+    Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
+          default=Default('face-model', capture='capture', geometry='geometry', missing=(
+              '{geometry}: no face model: the geometry does not record one, and there is no face_model.npz beside '
+              "the capture's dataset or in the workspace; pass --face-model"))),
 )
 
 
