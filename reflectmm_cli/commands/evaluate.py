@@ -248,15 +248,13 @@ def evaluate_report_cmd(truth_dir, out, workspace, as_json):
     """Closing report of a workspace: per-identity and mean errors against ground truth for every stage that has
     outputs (geometry, reflectance, PCA, Tables 1-3, relighting, finetuning samples), with the PNG previews linked,
     each table with the command that made it, and the paper's numbers beside ours."""
-    from reflectmm_cli.evaluation.report import discover_inputs
-
     ws = resolve_workspace(workspace)
-    inputs = discover_inputs(ws, truth_dir)
-    if not any(inputs.values()):
+    inputs = default_inputs(evaluate_report.STAGE, ws, {"truth": [truth_dir]})
+    if not inputs:
         raise ReflectmmError(f"evaluate report: nothing to report in {ws} (no fit-geometry/, fit-reflectance/, "
                              "build-pca/, evaluate-representation/, evaluate-reconstruction/, evaluate-albedo/, "
                              "evaluate-relighting/ or finetune/ outputs)")
-    paths = run_stage_cli(evaluate_report.VERB, workspace=workspace, inputs={k: v for k, v in inputs.items() if v},
+    paths = run_stage_cli(evaluate_report.VERB, workspace=workspace, inputs=inputs,
                           output=out)
     emit(paths, as_json)
 

@@ -26,27 +26,14 @@ import numpy as np
 
 from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.workspace import find_truth_dir, list_artifacts
 
 from .truth import geometry_errors, reflectance_errors
 
-__all__ = ["discover_inputs", "build_report", "pca_reconstruction"]
+__all__ = ["build_report", "pca_reconstruction"]
+
 
 def _npz(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.npz") if not p.name.startswith(".")) if folder.is_dir() else []
-
-
-def discover_inputs(workspace: Path, truth_dir: Path | None = None) -> dict[str, list[Path]]:
-    """The report's inputs in a workspace: every stage's artifacts (workspace convention) and the truth folder."""
-    ws = Path(workspace)
-    td = truth_dir if truth_dir is not None else find_truth_dir(ws)
-    return {"geometry": list_artifacts(ws, "fit-geometry"), "maps": list_artifacts(ws, "fit-reflectance"),
-            "model": list_artifacts(ws, "build-pca"), "representation": list_artifacts(ws, "evaluate-representation"),
-            "reconstruction": list_artifacts(ws, "evaluate-reconstruction"),
-            "albedo": list_artifacts(ws, "evaluate-albedo"), "relighting": list_artifacts(ws, "evaluate-relighting"),
-            "finetune": list_artifacts(ws, "finetune"), "expressive": list_artifacts(ws, "evaluate-expressive"),
-            "viewer": sorted((ws / "view").glob("*.html")) if (ws / "view").is_dir() else [],
-            "truth": _npz(Path(td)) if td is not None else []}
 
 
 def pca_reconstruction(model_arrays, maps_list: Sequence[dict], ks: Sequence[int] = (1, 3, 10)) -> dict[str, Any]:

@@ -147,6 +147,7 @@ class Default:
         group: roles of one group are passed all together or not at all, given ones included (a role whose
             default is not found drops the group).
         unless: ``(param, value)``: when the command's param has that value the role is left out, given or not.
+        listed: a folder (given or found) stands for the ``*<suffix>`` files in it (none if it does not exist).
     """
 
     rule: str = "output"
@@ -161,6 +162,7 @@ class Default:
     needs: tuple[str, ...] = ()
     group: str | None = None
     unless: tuple[str, Any] | None = None
+    listed: bool = False
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,11 @@ def _first(found: Mapping[str, list[Path]], role: str | None, kind: str | None =
     return Path(paths[0])
 
 
+def _listed(folder: Path, suffix: str) -> list[Path]:
+    """The ``*<suffix>`` files of a folder (sorted; hidden temp files left out); none if it is not a folder."""
+    return sorted(p for p in folder.glob(f"*{suffix}") if not p.name.startswith(".")) if folder.is_dir() else []
+
+
 def default_paths(inp: Input, workspace: Path, identity: str | None = None, ids: Sequence[str] = (),
                   found: Mapping[str, list[Path]] | None = None) -> tuple[list[Path], Path | None]:
     """``(paths, missing)``: the default of one declared role and the path it looked for in vain (None: found).
@@ -63,7 +68,7 @@ def default_paths(inp: Input, workspace: Path, identity: str | None = None, ids:
         return paths, next((p for p in paths if not p.is_file()), None)
     if d.rule == "all":
         folder = stage_dir(ws, up)
-        paths = sorted(p for p in folder.glob(f"*{d.suffix}") if not p.name.startswith(".")) if folder.is_dir() else []
+        paths = _listed(folder, d.suffix)
         return paths, None if paths else folder
     if d.rule == "folder":
         folder = stage_dir(ws, up)
@@ -141,6 +146,10 @@ def default_inputs(stage: Stage, workspace: Path, given: Mapping[str, Iterable[P
             dropped.add(d.group or role)
             continue
         out[role] = paths + out.get(role, [])
+        if d.listed:
+            out[role] = [q for p in out[role] for q in (_listed(p, d.suffix) if p.suffix != d.suffix else [p])]
+            if not out[role]:
+                out.pop(role)
     for role, inp in decl.items():
         if inp.default.group in dropped:
             out.pop(role, None)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,25 +11,30 @@ import numpy as np
 from reflectmm_cli.artifacts import atomic_write_text, write_artifact
 from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
 from reflectmm_cli.progress import progress
-from reflectmm_cli.stages.base import Input, Stage, StageContext
+from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
 VERB = "evaluate-report"
 
 PARAMS = ()
 
+#: The report's inputs on the command line: whatever each stage wrote in the workspace (an empty folder, or none,
+#: leaves the role out).
+_FOUND = Default("all", optional=True)
+
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
-    Input('geometry', 'geometry', upstream='fit-geometry', many=True),
-    Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True),
-    Input('model', 'reflectance-model', upstream='build-pca', many=True),
-    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True),
-    Input('representation', 'evaluation', upstream='evaluate-representation', many=True),
-    Input('reconstruction', 'evaluation', upstream='evaluate-reconstruction', many=True),
-    Input('albedo', 'evaluation', upstream='evaluate-albedo', many=True),
-    Input('relighting', 'evaluation', upstream='evaluate-relighting', many=True),
-    Input('finetune', 'reflectance-model', upstream='finetune', many=True),
-    Input('expressive', 'evaluation', upstream='evaluate-expressive', many=True),
-    Input('viewer', 'viewer page', upstream='view', many=True),
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True, default=_FOUND),
+    Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True, default=_FOUND),
+    Input('model', 'reflectance-model', upstream='build-pca', many=True, default=_FOUND),
+    Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True,
+          default=Default('truth', optional=True, listed=True)),
+    Input('representation', 'evaluation', upstream='evaluate-representation', many=True, default=_FOUND),
+    Input('reconstruction', 'evaluation', upstream='evaluate-reconstruction', many=True, default=_FOUND),
+    Input('albedo', 'evaluation', upstream='evaluate-albedo', many=True, default=_FOUND),
+    Input('relighting', 'evaluation', upstream='evaluate-relighting', many=True, default=_FOUND),
+    Input('finetune', 'reflectance-model', upstream='finetune', many=True, default=_FOUND),
+    Input('expressive', 'evaluation', upstream='evaluate-expressive', many=True, default=_FOUND),
+    Input('viewer', 'viewer page', upstream='view', many=True, default=replace(_FOUND, suffix='.html')),
 )
 
 

@@ -70,8 +70,9 @@ def test_an_output_default_is_the_upstream_stages_output(tmp_path, verb, inp):
 def test_an_all_or_folder_default_is_the_upstream_stages_folder(tmp_path, verb, inp):
     folder = _upstream_outputs(inp.upstream, tmp_path, "shard_00000")[0].parent
     assert folder == tmp_path / inp.upstream
-    written = [_touch(folder / "shard_00001.npz"), _touch(folder / "shard_00000.npz")]
-    _touch(folder / ".shard_00002.npz.tmp.npz")  # a hidden temp file is not an artifact
+    sfx = inp.default.suffix
+    written = [_touch(folder / f"shard_00001{sfx}"), _touch(folder / f"shard_00000{sfx}")]
+    _touch(folder / f".shard_00002.tmp{sfx}")  # a hidden temp file is not an artifact
     paths, missing = default_paths(inp, tmp_path)
     assert missing is None
     assert paths == (sorted(written) if inp.default.rule == "all" else [folder])
@@ -248,3 +249,19 @@ def test_the_command_reports_its_declared_default(cli, tmp_path):
     r = cli("unwrap-uv", "--id", "001", "-w", str(tmp_path))
     assert r.exit_code == 1 and (f"{stage_output(tmp_path.resolve(), 'preprocess-multipie', '001')}: capture "
                                  "artifact not found (run preprocess-multipie first or pass --capture)") in r.stderr
+
+
+def test_the_reports_inputs_are_what_each_stage_wrote(tmp_path):
+    """evaluate report: every role is what its upstream stage wrote (``*.npz``, the viewer's ``*.html``), the truth
+    folder stands for its files; a stage with no outputs leaves its role out."""
+    st = get_stage("evaluate-report")
+    assert default_inputs(st, tmp_path, {"truth": [None]}) == {}
+    geo = [_touch(stage_output(tmp_path, "fit-geometry", i)) for i in IDS]
+    page = _touch(tmp_path / "view" / "model.html")
+    truth = [_touch(tmp_path / "synth" / "truth" / f"{i}.npz") for i in IDS]
+    got = default_inputs(st, tmp_path, {"truth": [None]})
+    assert got == {"geometry": geo, "viewer": [page], "truth": truth}
+    other = tmp_path / "elsewhere"
+    mine = _touch(other / "001.npz")
+    assert default_inputs(st, tmp_path, {"truth": [other]})["truth"] == [mine]
+    assert "truth" not in default_inputs(st, tmp_path, {"truth": [tmp_path / "missing"]})
