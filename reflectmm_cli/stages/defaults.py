@@ -73,9 +73,10 @@ def default_paths(inp: Input, workspace: Path, identity: str | None = None, ids:
     if d.rule == "folder":
         folder = stage_dir(ws, up)
         return [folder], None if folder.is_dir() else folder
+    geometry = _first(found, d.geometry)  # read first, as find_face_model does
     capture = _first(found, d.capture, "capture")
     if d.rule == "face-model":
-        fm = find_face_model(ws, capture=capture, geometry=_first(found, d.geometry))
+        fm = find_face_model(ws, capture=capture, geometry=geometry)
         return ([fm], None) if fm is not None else ([], ws)
     if d.rule == "truth":
         td = find_truth_dir(ws, capture=capture)
