@@ -30,6 +30,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.model.pca import MODEL_KIND, ReflectanceModel, add_vertex_model, fit_reflectance_pca, model_arrays
+from reflectmm_cli.shading.exponents import ExponentError, check_exponents
 
 __all__ = ["DIFFUSE_ONLY_EXPONENT", "ALBEDOMM_EXPONENT", "BASELINES", "truth_maps", "load_truths",
            "diffuse_only_model", "global_exponent_model", "build_baseline", "is_diffuse_only",
@@ -103,8 +104,10 @@ def global_exponent_model(truths: Sequence[Mapping[str, np.ndarray]], exponent: 
                           log: Callable[[str], Any] | None = None) -> ReflectanceModel:
     """AlbedoMM's role: PCA of the diffuse albedo, specular albedo transferred with the same sample combination,
     one lobe of ``exponent`` with weight = specular albedo (Σw = spec albedo)."""
-    if not np.isfinite(exponent) or exponent <= 0:
-        raise ReflectmmError(f"baseline: the global exponent must be > 0, got {exponent}")
+    try:  # the one exponent check, its positivity rule (a baseline lobe may be as sharp as it likes)
+        check_exponents([exponent], max_exponent=None, distinct=False)
+    except ExponentError:
+        raise ReflectmmError(f"baseline: the global exponent must be > 0, got {exponent}") from None
     return _build(truths, lambda s: s[None].astype(np.float32), float(exponent), components, ids, vertex_uv, log,
                   "albedomm")
 

@@ -20,6 +20,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 from ._array import any_torch, as_array, check_last, compute_dtype, device_of, safe_normalize, stack
+from .exponents import ExponentError, check_exponents
 
 __all__ = [
     "sh_count",
@@ -395,8 +396,10 @@ def blinn_phong_sh_coeffs(p, order: int) -> np.ndarray:
     """
     order = _check_order(order)
     pa = np.asarray(p, dtype=np.float64)
-    if not np.isfinite(pa).all() or (pa <= 0).any():
-        raise ReflectmmError(f"blinn_phong_sh_coeffs: exponents must be finite and > 0, got {pa.tolist()}")
+    try:  # the one exponent check, its positivity rule only (any p > 0 has coefficients)
+        check_exponents(pa.reshape(-1), max_exponent=None, distinct=False, nonempty=False)
+    except ExponentError:
+        raise ReflectmmError(f"blinn_phong_sh_coeffs: exponents must be finite and > 0, got {pa.tolist()}") from None
     if pa.ndim == 0:
         return np.array(_bp_coeffs_cached(float(pa), order))
     if pa.ndim != 1:
