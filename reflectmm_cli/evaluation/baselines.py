@@ -32,7 +32,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.model.pca import MODEL_KIND, ReflectanceModel, add_vertex_model, fit_reflectance_pca, model_arrays
 from reflectmm_cli.shading.exponents import ExponentError, check_exponents
 
-__all__ = ["DIFFUSE_ONLY_EXPONENT", "ALBEDOMM_EXPONENT", "BASELINES", "truth_maps", "load_truths",
+__all__ = ["DIFFUSE_ONLY_EXPONENT", "ALBEDOMM_EXPONENT", "BASELINES", "truth_maps",
            "diffuse_only_model", "global_exponent_model", "build_baseline", "is_diffuse_only",
            "write_baseline_model"]
 
@@ -56,21 +56,6 @@ def truth_maps(truth: Mapping[str, np.ndarray], name: str = "") -> tuple[np.ndar
         raise ReflectmmError(f"{name}: truth albedo {a.shape} / spec_albedo {s.shape} are not (3,S,S) / (S,S)")
     m = np.asarray(truth["uv_mask"], bool) if "uv_mask" in truth else np.ones(s.shape, bool)
     return a, s, m
-
-
-def load_truths(paths: Sequence[str | Path]) -> tuple[list[dict[str, np.ndarray]], list[str]]:
-    """Read ``synth-truth`` artifacts → (list of {albedo, spec_albedo, uv_mask, …} dicts, identity ids)."""
-    from reflectmm_cli.artifacts import read_artifact
-
-    out, ids = [], []
-    for p in paths:
-        art = read_artifact(p, "synth-truth")
-        arrs = {k: np.asarray(art.arrays[k]) for k in ("albedo", "spec_albedo", "uv_mask", "vertex_albedo",
-                                                       "vertex_spec_albedo") if k in art.arrays}
-        truth_maps(arrs, str(p))
-        out.append(arrs)
-        ids.append(str(art.meta.get("identity", Path(p).stem)))
-    return out, ids
 
 
 def _build(truths, weights_fn, exponent, components, ids, vertex_uv, log, baseline) -> ReflectanceModel:

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from reflectmm_cli.artifacts import write_png
+import numpy as np
+
+from reflectmm_cli.artifacts import read_artifact, write_png
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
@@ -73,8 +75,24 @@ def truth_files(paths: list[Path], ids: list[str] | None) -> list[Path]:
     return files
 
 
+def load_truths(paths: list[Path]) -> tuple[list[dict[str, np.ndarray]], list[str]]:
+    """Read ``synth-truth`` artifacts → (list of {albedo, spec_albedo, uv_mask, …} dicts, identity ids), each
+    checked by :func:`reflectmm_cli.evaluation.baselines.truth_maps` (the stage reads, the library builds)."""
+    from reflectmm_cli.evaluation.baselines import truth_maps
+
+    out, ids = [], []
+    for p in paths:
+        art = read_artifact(p, "synth-truth")
+        arrs = {k: np.asarray(art.arrays[k]) for k in ("albedo", "spec_albedo", "uv_mask", "vertex_albedo",
+                                                       "vertex_spec_albedo") if k in art.arrays}
+        truth_maps(arrs, str(p))
+        out.append(arrs)
+        ids.append(str(art.meta.get("identity", Path(p).stem)))
+    return out, ids
+
+
 def run(ctx: StageContext) -> list[Path]:
-    from reflectmm_cli.evaluation.baselines import build_baseline, load_truths, write_baseline_model
+    from reflectmm_cli.evaluation.baselines import build_baseline, write_baseline_model
     from reflectmm_cli.geometry.face_model import load_face_model
 
     p = ctx.params

@@ -165,7 +165,7 @@ def test_resample_truth_box_and_bilinear():
 
 def test_load_truths_from_synth_truth_artifacts(world, tmp_path):
     from reflectmm_cli.artifacts import write_artifact
-    from reflectmm_cli.evaluation.baselines import load_truths
+    from reflectmm_cli.stages.build_baseline import load_truths
 
     paths = []
     for i, (_, t) in enumerate(world[:3]):
