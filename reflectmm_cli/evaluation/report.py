@@ -20,20 +20,18 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from reflectmm_cli.artifacts import read_artifact
-from reflectmm_cli.errors import ReflectmmError
-
 from .truth import geometry_errors, reflectance_errors
 
-__all__ = ["build_report", "pca_reconstruction"]
+__all__ = ["build_report", "pca_reconstruction", "Read"]
 
-
-def _npz(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.glob("*.npz") if not p.name.startswith(".")) if folder.is_dir() else []
+#: One artifact the stage read: (its path, the :class:`~reflectmm_cli.artifacts.Artifact`).  The report reads no
+#: file itself: the evaluate-report stage passes each role's artifacts, read one at a time as the report iterates
+#: them (``stages/evaluate_report.py``), and the truth as a mapping identity → arrays read when looked up.
+Read = tuple[Path, Any]
 
 
 def pca_reconstruction(model_arrays, maps_list: Sequence[dict], ks: Sequence[int] = (1, 3, 10)) -> dict[str, Any]:
@@ -70,31 +68,17 @@ def _ident(art, path: Path) -> str:
     return str(art.meta.get("identity") or Path(path).stem)
 
 
-def _truth_files(truth: Sequence[Path]) -> dict[str, Path]:
-    """Truth files (given directly or as folders of ``.npz``) by identity (file stem)."""
-    truth_by_id: dict[str, Path] = {}
-    for t in truth:
-        t = Path(t)
-        if t.is_dir():
-            for q in _npz(t):
-                truth_by_id[q.stem] = q
-        else:
-            truth_by_id[t.stem] = t
-    return truth_by_id
-
-
-def _geometry_section(geometry: Sequence[Path], truth_by_id: Mapping[str, Path], progress: Callable,
+def _geometry_section(geometry: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable,
                       doc: dict[str, Any]) -> list[str]:
     """The "Geometry" section: each fit's landmark, vertex and camera errors and their mean."""
     lines: list[str] = []
     if not geometry:
         return lines
     rows, vals = [], []
-    for g in progress(list(geometry), desc="geometry"):
-        art = read_artifact(g, "geometry")
+    for g, art in progress(geometry, desc="geometry"):
         ident = _ident(art, g)
         tr = truth_by_id.get(ident)
-        e = geometry_errors(art.arrays, read_artifact(tr).arrays if tr else {})
+        e = geometry_errors(art.arrays, tr if tr is not None else {})
         vals.append(e)
         doc.setdefault("geometry", {})[ident] = e
         rows.append(f"| {ident} | {_f(e.get('landmark_rmse_px'), '{:.2f}')} | "
@@ -116,24 +100,23 @@ def _geometry_section(geometry: Sequence[Path], truth_by_id: Mapping[str, Path],
     return lines
 
 
-def _reflectance_section(maps: Sequence[Path], truth_by_id: Mapping[str, Path], progress: Callable,
-                        doc: dict[str, Any], base: Path) -> tuple[list[str], list[dict]]:
-    """The "Reflectance maps" section (errors against the truth, previews) and the maps' arrays."""
+def _reflectance_section(maps: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable,
+                        doc: dict[str, Any], base: Path) -> tuple[list[str], list[tuple[Path, dict]]]:
+    """The "Reflectance maps" section (errors against the truth, previews) and each map's (path, arrays)."""
     lines: list[str] = []
-    maps_arrays: list[dict] = []
+    maps_arrays: list[tuple[Path, dict]] = []
     if not maps:
         return lines, maps_arrays
     rows, vals = [], []
     previews = []
-    for mp in progress(list(maps), desc="reflectance"):
-        art = read_artifact(mp, "reflectance-maps")
+    for mp, art in progress(maps, desc="reflectance"):
         ident = _ident(art, mp)
-        maps_arrays.append(art.arrays)
+        maps_arrays.append((Path(mp), art.arrays))
         previews += [q for q in sorted(Path(mp).parent.glob(f"{Path(mp).stem}*.png"))]
         tr = truth_by_id.get(ident)
         if tr is None:
             continue
-        e = reflectance_errors(art.arrays, read_artifact(tr).arrays)
+        e = reflectance_errors(art.arrays, tr)
         doc.setdefault("reflectance", {})[ident] = e
         vals.append(e)
         o, fl, so = e["raw"]["observable"], e["raw"]["flagged"], e["scaled"]["observable"]
@@ -182,16 +165,12 @@ def _reflectance_section(maps: Sequence[Path], truth_by_id: Mapping[str, Path], 
     return lines, maps_arrays
 
 
-def _pca_sections(models: Sequence[Path], maps: Sequence[Path], maps_arrays: Sequence[dict], doc: dict[str, Any],
+def _pca_sections(models: Iterable[Read], maps_arrays: Sequence[tuple[Path, dict]], doc: dict[str, Any],
                  base: Path) -> list[str]:
-    """One "PCA reflectance model" section per readable model: explained variance, reconstruction of the
+    """One "PCA reflectance model" section per (readable) model: explained variance, reconstruction of the
     held-in maps, previews."""
     lines: list[str] = []
-    for mpath in models:
-        try:
-            art = read_artifact(mpath, "reflectance-model")
-        except ReflectmmError:
-            continue
+    for mpath, art in models:
         ev = np.asarray(art["explained_variance_ratio"], np.float64)
         cum = np.cumsum(ev)
         ids = [str(x) for x in art["ids"]]
@@ -202,7 +181,7 @@ def _pca_sections(models: Sequence[Path], maps: Sequence[Path], maps_arrays: Seq
                   "(cumulative): " + ", ".join(f"k={k + 1}: {100 * cum[k]:.1f}%" for k in range(min(10, ev.size))),
                   ""]
         # held-in maps: those of the training ids among the reflectance maps
-        held = [a for a, mp in zip(maps_arrays, maps) if Path(mp).stem in ids]
+        held = [a for mp, a in maps_arrays if mp.stem in ids]
         if held:
             rec = pca_reconstruction(art.arrays, held)
             entry["reconstruction"] = rec
@@ -217,14 +196,10 @@ def _pca_sections(models: Sequence[Path], maps: Sequence[Path], maps_arrays: Seq
     return lines
 
 
-def _representation_sections(representation: Sequence[Path], doc: dict[str, Any], base: Path) -> list[str]:
+def _representation_sections(representation: Iterable[Read], doc: dict[str, Any], base: Path) -> list[str]:
     """One "Representation comparison" section per evaluate-representation artifact."""
     lines: list[str] = []
-    for rpath in representation:
-        try:
-            art = read_artifact(rpath, "evaluation")
-        except ReflectmmError:
-            continue
+    for rpath, art in representation:
         if art.meta.get("evaluation") != "representation":
             continue
         lines += [f"## Representation comparison (`{_link_path(Path(rpath), base)}`)", "", art.meta.get("table", ""),
@@ -236,17 +211,21 @@ def _representation_sections(representation: Sequence[Path], doc: dict[str, Any]
     return lines
 
 
-def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), maps: Sequence[Path] = (),
-                 models: Sequence[Path] = (), truth: Sequence[Path] = (), representation: Sequence[Path] = (),
-                 progress: Callable = lambda it, **k: it, reconstruction: Sequence[Path] = (),
-                 albedo: Sequence[Path] = (), relighting: Sequence[Path] = (), finetune: Sequence[Path] = (),
-                 expressive: Sequence[Path] = (), viewer: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
-    """Markdown text and a document of numbers. ``truth`` files are matched to identities by file stem.
-    ``reconstruction`` / ``albedo`` / ``relighting``: ``evaluation`` artifacts of those stages; ``finetune``:
-    finetuned ``reflectance-model`` artifacts (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
+def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), maps: Sequence[Read] = (),
+                 models: Iterable[Read] = (), truth: Mapping[str, Any] | None = None,
+                 representation: Iterable[Read] = (), progress: Callable = lambda it, **k: it,
+                 reconstruction: Sequence[Read] = (), albedo: Sequence[Read] = (), relighting: Sequence[Read] = (),
+                 finetune: Sequence[Path] = (), expressive: Sequence[Read] = (),
+                 viewer: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
+    """Markdown text and a document of numbers, from what the stage read (:data:`Read` pairs; nothing is read
+    here).  ``geometry`` / ``maps``: geometry and reflectance-maps artifacts; ``truth``: identity → synth-truth
+    arrays; ``models``: reflectance models; ``representation`` / ``reconstruction`` / ``albedo`` / ``relighting`` /
+    ``expressive``: ``evaluation`` artifacts (each section takes those of its kind; "Paper vs reflectmm" is written
+    when ``reconstruction`` or ``albedo`` is non-empty, i.e. when files were given, readable or not);
+    ``finetune``: finetuned model paths (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
     (linked)."""
     base = Path(out_md).parent
-    truth_by_id = _truth_files(truth)
+    truth_by_id = truth if truth is not None else {}
     doc: dict[str, Any] = {}
     lines = [f"# reflectmm report — `{Path(workspace).name}`", ""]
     if not truth_by_id:
@@ -254,7 +233,7 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
     lines += _geometry_section(geometry, truth_by_id, progress, doc)
     refl_lines, maps_arrays = _reflectance_section(maps, truth_by_id, progress, doc, base)
     lines += refl_lines
-    lines += _pca_sections(models, maps, maps_arrays, doc, base)
+    lines += _pca_sections(models, maps_arrays, doc, base)
     lines += _representation_sections(representation, doc, base)
     lines += paper_sections(base, reconstruction=reconstruction, albedo=albedo, relighting=relighting,
                             finetune=finetune, expressive=expressive, doc=doc)
@@ -266,16 +245,8 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Path] = (), m
     return "\n".join(lines) + "\n", doc
 
 
-def _evaluations(paths: Sequence[Path], kind: str) -> list[tuple[Path, Any]]:
-    out = []
-    for p in paths:
-        try:
-            art = read_artifact(p, "evaluation")
-        except ReflectmmError:
-            continue
-        if art.meta.get("evaluation") == kind:
-            out.append((Path(p), art))
-    return out
+def _evaluations(items: Iterable[Read], kind: str) -> list[Read]:
+    return [(Path(p), art) for p, art in items if art.meta.get("evaluation") == kind]
 
 
 def _command(art) -> list[str]:
@@ -283,8 +254,8 @@ def _command(art) -> list[str]:
     return [f"Made by (from the workspace root): `{cmd}`", ""] if cmd else []
 
 
-def paper_sections(base: Path, *, reconstruction: Sequence[Path] = (), albedo: Sequence[Path] = (),
-                   relighting: Sequence[Path] = (), finetune: Sequence[Path] = (), expressive: Sequence[Path] = (),
+def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: Sequence[Read] = (),
+                   relighting: Sequence[Read] = (), finetune: Sequence[Path] = (), expressive: Sequence[Read] = (),
                    doc: dict[str, Any] | None = None) -> list[str]:
     """Markdown lines of the Table 2, Table 3, relighting, model-sample and "paper vs reflectmm" sections (each
     only when its inputs are given); numbers go into ``doc``."""

@@ -1,14 +1,18 @@
 """Stage ``evaluate-report``: the closing report of a run — errors of every stage against ground truth
-(library: :func:`reflectmm_cli.evaluation.report.build_report`)."""
+(library: :func:`reflectmm_cli.evaluation.report.build_report`, which computes and writes the text from what this
+stage reads: each role's artifacts and the truth, read as the report goes)."""
 
 from __future__ import annotations
 
 from dataclasses import replace
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from reflectmm_cli.artifacts import atomic_write_text, write_artifact
+from reflectmm_cli.artifacts import atomic_write_text, read_artifact, write_artifact
+from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
 from reflectmm_cli.progress import progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
@@ -38,6 +42,52 @@ INPUTS = (
 )
 
 
+class Artifacts(Sequence):
+    """One role's artifacts for :func:`~reflectmm_cli.evaluation.report.build_report`: ``(path, Artifact)`` pairs
+    read one at a time as the report iterates them (so memory, progress lines and the first error come in the
+    order they did when the report read the files itself).  ``skip``: an unreadable file is left out instead of
+    raising.  ``len()`` (and truth) count the paths given."""
+
+    def __init__(self, paths: list[Path], kind: str, skip: bool = False):
+        self.paths, self.kind, self.skip = [Path(p) for p in paths], kind, skip
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i):
+        return (self.paths[i], read_artifact(self.paths[i], self.kind))
+
+    def __iter__(self) -> Iterator[tuple[Path, Any]]:
+        for p in self.paths:
+            try:
+                art = read_artifact(p, self.kind)
+            except ReflectmmError:
+                if self.skip:
+                    continue
+                raise
+            yield p, art
+
+
+class TruthByIdentity(Mapping):
+    """Ground truth by identity (file stem) from synth-truth files or folders of them; a lookup reads the file's
+    arrays (nothing is kept)."""
+
+    def __init__(self, paths: list[Path]):
+        self.files: dict[str, Path] = {}
+        for t in map(Path, paths):
+            for q in (sorted(q for q in t.glob("*.npz") if not q.name.startswith(".")) if t.is_dir() else [t]):
+                self.files[q.stem] = q
+
+    def __getitem__(self, identity: str):
+        return read_artifact(self.files[identity]).arrays
+
+    def __iter__(self):
+        return iter(self.files)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+
 def _report_outputs(ctx: StageContext) -> list[Path]:
     """[evaluation artifact (primary, carries the cache key), markdown report]."""
     if ctx.output is not None and Path(ctx.output).suffix.lower() != ".npz":
@@ -51,17 +101,20 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.report import build_report
 
     out_npz, out_md = _report_outputs(ctx)
+    def given(role: str, kind: str, skip: bool = True) -> Artifacts:
+        return Artifacts(ctx.input_list(role, required=False), kind, skip)
+
     text, doc = build_report(ctx.workspace, out_md,
-                             geometry=ctx.input_list("geometry", required=False),
-                             maps=ctx.input_list("maps", required=False),
-                             models=ctx.input_list("model", required=False),
-                             truth=ctx.input_list("truth", required=False),
-                             representation=ctx.input_list("representation", required=False),
-                             reconstruction=ctx.input_list("reconstruction", required=False),
-                             albedo=ctx.input_list("albedo", required=False),
-                             relighting=ctx.input_list("relighting", required=False),
+                             geometry=given("geometry", "geometry", skip=False),
+                             maps=given("maps", "reflectance-maps", skip=False),
+                             models=given("model", "reflectance-model"),
+                             truth=TruthByIdentity(ctx.input_list("truth", required=False)),
+                             representation=given("representation", EVAL_KIND),
+                             reconstruction=given("reconstruction", EVAL_KIND),
+                             albedo=given("albedo", EVAL_KIND),
+                             relighting=given("relighting", EVAL_KIND),
                              finetune=ctx.input_list("finetune", required=False),
-                             expressive=ctx.input_list("expressive", required=False),
+                             expressive=given("expressive", EVAL_KIND),
                              viewer=ctx.input_list("viewer", required=False),
                              progress=lambda it, **k: progress(it, **k))
     flat = flatten("", doc, {})
