@@ -19,6 +19,9 @@
 * Ground truth (one rule — :func:`find_truth_dir`): ``truth/`` of the capture's dataset folder → ``<ws>/truth``
   → ``<ws>/synth/truth`` → ``<ws>/synth-multipie/truth``; per identity ``<dir>/<id>.npz``.
 
+A command's default inputs are these rules applied to each input role as the stage declares it
+(``Input(..., default=Default(...))``, :func:`reflectmm_cli.stages.defaults.default_inputs`).
+
 No click here: stages, the planner, the report and the commands all import this module.
 """
 
@@ -30,10 +33,10 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_workspace", "stage_dir",
-           "stage_output", "default_input", "capture_root",
+           "stage_output", "capture_root",
            "face_model_from_geometry", "find_face_model", "find_rig", "calibrated_rig", "find_fit_rig", "CALIBRATED_RIG_SIGMAS",
-           "find_truth_dir", "find_truth",
-           "list_artifacts", "face_model_recorded_by", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
+           "find_truth_dir",
+           "files_in", "list_artifacts", "face_model_recorded_by", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
 #: File name of a dataset's / workspace's face model.
 FACE_MODEL_NAME = "face_model.npz"
@@ -94,21 +97,15 @@ def stage_output(workspace: Path, stage: str, name: str | None = None, suffix: s
     return check_inside(stage_dir(workspace, stage) / f"{name if name is not None else stage}{suffix}", workspace)
 
 
-def default_input(workspace: Path, stage: str, option: str, name: str | None = None, suffix: str = ".npz") -> Path:
-    """:func:`stage_output` of an upstream stage used as a verb's default input; a one-line error naming the
-    option when that file does not exist."""
-    from reflectmm_cli.errors import ReflectmmError
-
-    path = stage_output(workspace, stage, name, suffix)
-    if not path.is_file():
-        raise ReflectmmError(f"{option}: not given and {path} does not exist")
-    return path
+def files_in(folder: Path, suffix: str = ".npz") -> list[Path]:
+    """The ``*<suffix>`` files of a folder (sorted; hidden temp files left out); none if it is not a folder."""
+    folder = Path(folder)
+    return sorted(p for p in folder.glob(f"*{suffix}") if not p.name.startswith(".")) if folder.is_dir() else []
 
 
-def list_artifacts(workspace: Path, stage: str) -> list[Path]:
-    """The ``*.npz`` a stage wrote in ``<workspace>/<stage>/`` (sorted; hidden temp files left out)."""
-    folder = stage_dir(workspace, stage)
-    return sorted(p for p in folder.glob("*.npz") if not p.name.startswith(".")) if folder.is_dir() else []
+def list_artifacts(workspace: Path, stage: str, suffix: str = ".npz") -> list[Path]:
+    """The ``*<suffix>`` a stage wrote in ``<workspace>/<stage>/`` (sorted; hidden temp files left out)."""
+    return files_in(stage_dir(workspace, stage), suffix)
 
 
 def _meta_of(artifact: Any) -> tuple[dict, Path | None]:
@@ -206,27 +203,6 @@ def find_truth_dir(workspace: Path | None, capture: Any = None) -> Path | None:
     if workspace is not None:
         candidates += [Path(workspace) / c for c in WORKSPACE_TRUTH_DIRS]
     return next((p for p in candidates if p.is_dir()), None)
-
-
-def require_truth_dir(workspace: Path) -> Path:
-    """:func:`find_truth_dir` for a verb that cannot run without ground truth: a one-line error naming the
-    workspace and the folders looked for when there is none."""
-    from reflectmm_cli.errors import ReflectmmError
-
-    td = find_truth_dir(workspace)
-    if td is None:
-        raise ReflectmmError(f"no --truth given and no truth folder in {workspace} (looked for "
-                             f"{', '.join(d + '/' for d in WORKSPACE_TRUTH_DIRS)})")
-    return td
-
-
-def find_truth(workspace: Path | None, identity: str, capture: Any = None) -> Path | None:
-    """``<truth dir>/<identity>.npz`` if it exists (``identity``: a safe id, :func:`check_id`)."""
-    check_id(identity)
-    d = find_truth_dir(workspace, capture)
-    if d is not None and (d / f"{identity}.npz").is_file():
-        return d / f"{identity}.npz"
-    return None
 
 
 def find_wild_truth(images: Path | None) -> Path | None:

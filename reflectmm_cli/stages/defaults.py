@@ -18,8 +18,8 @@ from typing import Any, Iterable, Mapping, Sequence
 from reflectmm_cli.artifacts import check_schema, read_meta
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.base import Input, Stage
-from reflectmm_cli.workspace import (WORKSPACE_TRUTH_DIRS, find_face_model, find_fit_rig, find_rig, find_truth_dir,
-                                     stage_dir, stage_output)
+from reflectmm_cli.workspace import (WORKSPACE_TRUTH_DIRS, files_in, find_face_model, find_fit_rig, find_rig,
+                                     find_truth_dir, list_artifacts, stage_dir, stage_output)
 
 __all__ = ["default_inputs", "default_paths", "NO_TRUTH"]
 
@@ -46,11 +46,6 @@ def _first(found: Mapping[str, list[Path]], role: str | None, kind: str | None =
     return Path(paths[0])
 
 
-def _listed(folder: Path, suffix: str) -> list[Path]:
-    """The ``*<suffix>`` files of a folder (sorted; hidden temp files left out); none if it is not a folder."""
-    return sorted(p for p in folder.glob(f"*{suffix}") if not p.name.startswith(".")) if folder.is_dir() else []
-
-
 def default_paths(inp: Input, workspace: Path, identity: str | None = None, ids: Sequence[str] = (),
                   found: Mapping[str, list[Path]] | None = None) -> tuple[list[Path], Path | None]:
     """``(paths, missing)``: the default of one declared role and the path it looked for in vain (None: found).
@@ -67,9 +62,8 @@ def default_paths(inp: Input, workspace: Path, identity: str | None = None, ids:
             paths = [stage_output(ws, up, d.name or identity or up, d.suffix)]
         return paths, next((p for p in paths if not p.is_file()), None)
     if d.rule == "all":
-        folder = stage_dir(ws, up)
-        paths = _listed(folder, d.suffix)
-        return paths, None if paths else folder
+        paths = list_artifacts(ws, up, d.suffix)
+        return paths, None if paths else stage_dir(ws, up)
     if d.rule == "folder":
         folder = stage_dir(ws, up)
         return [folder], None if folder.is_dir() else folder
@@ -148,7 +142,7 @@ def default_inputs(stage: Stage, workspace: Path, given: Mapping[str, Iterable[P
             continue
         out[role] = paths + out.get(role, [])
         if d.listed:
-            out[role] = [q for p in out[role] for q in (_listed(p, d.suffix) if p.suffix != d.suffix else [p])]
+            out[role] = [q for p in out[role] for q in (files_in(p, d.suffix) if p.suffix != d.suffix else [p])]
             if not out[role]:
                 out.pop(role)
     for role, inp in decl.items():

@@ -16,6 +16,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
 from reflectmm_cli.progress import progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
+from reflectmm_cli.workspace import files_in
 
 VERB = "evaluate-report"
 
@@ -75,7 +76,7 @@ class TruthByIdentity(Mapping):
     def __init__(self, paths: list[Path]):
         self.files: dict[str, Path] = {}
         for t in map(Path, paths):
-            for q in (sorted(q for q in t.glob("*.npz") if not q.name.startswith(".")) if t.is_dir() else [t]):
+            for q in (files_in(t) if t.is_dir() else [t]):
                 self.files[q.stem] = q
 
     def __getitem__(self, identity: str):
