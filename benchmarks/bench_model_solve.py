@@ -7,7 +7,8 @@ Usage:
 
 A variant is a name and :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` fields (``pull``, ``harmonics``,
 ``robust``, ``update_bases``, ...); ``initial`` (no update) and ``sgd`` (the workspace's finetuned model) are the
-reference rows. Every variant runs with the same data, rounds, pixels and CG iterations. Measures, per row:
+reference rows. With ``--load DIR`` the variants are not solved but read from ``DIR/NAME.npz`` (written by
+``--save`` on another workspace): models made on one population, measured on another. Every variant runs with the same data, rounds, pixels and CG iterations. Measures, per row:
 
 - expressive power: the relative residual of the held-out wild identities' true per-vertex diffuse albedo and lobe
   weights after projection onto the model (``evaluate expressive``'s measure, prior 1e-3), and the gap to the
@@ -76,6 +77,42 @@ def _measure(model, light, ss, truth, oracle, refine) -> dict:
     return out
 
 
+def _ci(d) -> str:
+    from reflectmm_cli.evaluation.face_metrics import mean_ci
+
+    c = mean_ci(np.asarray(d, np.float64))
+    return f"{c['mean']:+.2f} ± {c['half_width']:.2f}" if abs(c["mean"]) >= 0.05 or c["half_width"] >= 0.05 \
+        else f"{c['mean']:+.4f} ± {c['half_width']:.4f}"
+
+
+def summarise(paths: list[Path]) -> str:
+    """The markdown table of JSON-lines files written by ``--jsonl`` (the row ``initial`` is the reference)."""
+    rows = [json.loads(line) for p in paths for line in open(p) if line.strip()]
+    ini = next(r for r in rows if r["variant"] == "initial")
+    out = ["| update | config | rounds | training objective | validation objective | pixels left out | albedo "
+           "residual (gap closed) | lobe-weight residual (gap closed) | refined test PSNR | Δ PSNR vs initial | "
+           "SSIM | Δ SSIM vs initial | CPU s |", "|" + "---|" * 13]
+    for r in rows:
+        gap = [(ini[k] - r[k]) / (ini[k] - r[k + "_oracle"]) for k in ("albedo_residual", "weights_residual")]
+        rep = r.get("report", {}).get("rounds", [])
+        tr = f"{rep[-1]['solve_start']:.5f} → {rep[-1]['solve_end']:.5f}" if len(rep) > 1 else "–"
+        va = " → ".join(f"{x['val_objective']:.5f}" for x in rep) if rep else "–"
+        lo = f"{100 * rep[-1].get('pixels_left_out', 0):.1f} %" if len(rep) > 1 else "–"
+        cfg = ", ".join(f"{k} {v:g}" for k, v in r["config"].items()) or "–"
+        dp = np.subtract(r["psnr"], ini["psnr"])
+        ds = np.subtract(r["ssim"], ini["ssim"])
+        same = r is ini or not (dp.any() or ds.any())
+        cpu = f"{r['cpu_s']:.0f}" if "cpu_s" in r else "–"
+        out.append(f"| {r['variant']} | {cfg} | {r['rounds'] if rep else '–'} | {tr} | {va} | {lo} | "
+                   f"{r['albedo_residual']:.3f} ({100 * gap[0]:+.0f} %) | {r['weights_residual']:.3f} "
+                   f"({100 * gap[1]:+.0f} %) | {np.mean(r['psnr']):.2f} | {'–' if same else _ci(dp)} | "
+                   f"{np.mean(r['ssim']):.3f} | {'–' if same else _ci(ds)} | {cpu} |")
+    oracle = rows[0]
+    out.append(f"| oracle | – | – | – | – | – | {oracle['albedo_residual_oracle']:.3f} | "
+               f"{oracle['weights_residual_oracle']:.3f} | – | – | – | – | – |")
+    return "\n".join(out)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workspace", type=Path, default=Path("work"))
@@ -85,7 +122,15 @@ def main() -> int:
     ap.add_argument("--cg-iterations", type=int, default=100)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--jsonl", type=Path, default=None, help="append one JSON line per row")
+    ap.add_argument("--save", type=Path, default=None, help="write each solved variant's per-vertex arrays here")
+    ap.add_argument("--summarise", type=Path, nargs="+", default=None,
+                    help="print the markdown table of these --jsonl files and exit")
+    ap.add_argument("--load", type=Path, default=None,
+                    help="measure the variants saved here by --save (another population's run) instead of solving")
     a = ap.parse_args()
+    if a.summarise:
+        print(summarise(a.summarise))
+        return 0
     import torch
 
     from reflectmm_cli.evaluation.expressive import oracle_model
@@ -117,6 +162,8 @@ def main() -> int:
             m = model
         elif name == "sgd":
             m = load_models(ws / "finetune" / "finetune.npz", ws / "build-light-pca" / "build-light-pca.npz")[0]
+        elif a.load is not None:
+            m = _solved(model, dict(np.load(a.load / f"{name}.npz")))
         else:
             cfg = SolveConfig(rounds=a.rounds, max_pixels=a.max_pixels, cg_iterations=a.cg_iterations, **kw)
             t = time.process_time()
@@ -125,6 +172,9 @@ def main() -> int:
             row["cpu_s"] = time.process_time() - t
             row["report"] = {"rounds": rep.rounds, "best_round": rep.best_round}
             m = _solved(model, arrays)
+            if a.save is not None:
+                a.save.mkdir(parents=True, exist_ok=True)
+                np.savez(a.save / f"{name}.npz", **arrays)
         row.update(_measure(m, light, ss, truth, oracle, refine))
         print(json.dumps({k: v for k, v in row.items() if k not in ("psnr", "ssim")} |
                          {"psnr_mean": float(np.mean(row["psnr"])), "ssim_mean": float(np.mean(row["ssim"]))}),
