@@ -113,6 +113,32 @@ def summarise(paths: list[Path]) -> str:
     return "\n".join(out)
 
 
+def encoder_table(ws: Path, specs: list[str]) -> str:
+    """Table 2's encoder-only PSNR / SSIM of the test images for ``NAME=MODEL,ENCODER`` rows (the first row is the
+    reference of the per-image gains)."""
+    from reflectmm_cli.evaluation.reconstruction_eval import image_metrics_table
+    from reflectmm_cli.finetune.encoder import load_encoder
+    from reflectmm_cli.finetune.reconstruct import reconstruct
+    from reflectmm_cli.finetune.shards import load_shards
+    from reflectmm_cli.finetune.train import load_models
+
+    ss = load_shards(sorted((ws / "prepare-wild").glob("shard_*.npz")))
+    out = ["| method | model | encoder | PSNR | Δ PSNR | SSIM | Δ SSIM |", "|---|---|---|---|---|---|---|"]
+    ref = None
+    for spec in specs:
+        name, _, paths = spec.partition("=")
+        mp, ep = paths.split(",")
+        m, lt = load_models(mp, ws / "build-light-pca" / "build-light-pca.npz")
+        rec = reconstruct(ss, load_encoder(ep, "cpu")[0], m, lt, split="test")
+        fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
+        ps, ss_ = np.asarray(fm.per_image["psnr"], np.float64), np.asarray(fm.per_image["ssim"], np.float64)
+        ref = ref or (ps, ss_)
+        gain = ("–", "–") if ps is ref[0] else (_ci(ps - ref[0]), _ci(ss_ - ref[1]))
+        out.append(f"| {name} | {Path(mp).name} | {Path(ep).name} | {ps.mean():.2f} | {gain[0]} | {ss_.mean():.3f} | "
+                   f"{gain[1]} |")
+    return "\n".join(out)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workspace", type=Path, default=Path("work"))
@@ -123,6 +149,8 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--jsonl", type=Path, default=None, help="append one JSON line per row")
     ap.add_argument("--save", type=Path, default=None, help="write each solved variant's per-vertex arrays here")
+    ap.add_argument("--encoder", action="append", default=[],
+                    help="NAME=MODEL,ENCODER: print Table 2's encoder-only rows of the test images and exit")
     ap.add_argument("--summarise", type=Path, nargs="+", default=None,
                     help="print the markdown table of these --jsonl files and exit")
     ap.add_argument("--load", type=Path, default=None,
@@ -132,6 +160,11 @@ def main() -> int:
         print(summarise(a.summarise))
         return 0
     import torch
+
+    torch.set_num_threads(a.threads)
+    if a.encoder:
+        print(encoder_table(a.workspace, a.encoder))
+        return 0
 
     from reflectmm_cli.evaluation.expressive import oracle_model
     from reflectmm_cli.finetune.model_solve import SolveConfig, alternate
