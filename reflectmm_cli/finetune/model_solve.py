@@ -18,6 +18,11 @@ F is quadratic; its minimiser solves the symmetric positive-definite normal equa
 conjugate gradients preconditioned with the exact diagonal of H (matrix-free: one product H·v is one pass of the
 linear renderer and its adjoint). Vertices no image sees keep their initial values.
 
+Constraints on what may change (:class:`SolveConfig`): with ``harmonics`` Q the change of every part is
+``Φ u`` (Φ (V, Q) the mesh's lowest manifold harmonics; the unknowns are u, and F is the same quadratic in u); with
+``update_bases`` R only the means and the first R bases are unknowns; with ``robust`` k the pixels whose residual
+after the refinement is an outlier of their image (k · 1.4826 · MAD) get weight 0 (:func:`robust_weights`).
+
 ``alternate`` runs the EM-like loop: refine every training image's (β, γ, z) with the current model, solve the model,
 repeat; the objective on a validation split is recorded after each round and the best round is kept.
 """
@@ -206,11 +211,6 @@ def _render(prob: SolveProblem, am, ab, wm, wb):
     alb = at_pixels(am, ab)
     wts = at_pixels(wm, wb)
     return alb * prob.D + torch.einsum("pi,ipc->pc", wts, prob.S)
-
-
-def _objective_and_grad(prob: SolveProblem, theta: list, theta0: list, pull: float, sizes: list):
-    """(F(θ), ∇F(θ)) of the per-vertex model θ (module docstring)."""
-    return _objective_and_grad_u(prob, theta, [t * 0 for t in theta], theta0, pull, sizes, None)
 
 
 def _objective_and_grad_u(prob: SolveProblem, start: list, u: list, theta0: list, pull: float, sizes: list, basis):
