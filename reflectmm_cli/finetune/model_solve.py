@@ -18,6 +18,11 @@ F is quadratic; its minimiser solves the symmetric positive-definite normal equa
 conjugate gradients preconditioned with the exact diagonal of H (matrix-free: one product H·v is one pass of the
 linear renderer and its adjoint). Vertices no image sees keep their initial values.
 
+Constraints on what may change (:class:`SolveConfig`): with ``harmonics`` Q the change of every part is
+``Φ u`` (Φ (V, Q) the mesh's lowest manifold harmonics; the unknowns are u, and F is the same quadratic in u); with
+``update_bases`` R only the means and the first R bases are unknowns; with ``robust`` k the pixels whose residual
+after the refinement is an outlier of their image (k · 1.4826 · MAD) get weight 0 (:func:`robust_weights`).
+
 ``alternate`` runs the EM-like loop: refine every training image's (β, γ, z) with the current model, solve the model,
 repeat; the objective on a validation split is recorded after each round and the best round is kept.
 """
@@ -30,7 +35,10 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["SolveConfig", "SolveProblem", "build_problem", "merge_problems", "solve_model", "alternate", "SolveReport"]
+__all__ = ["SolveConfig", "SolveProblem", "build_problem", "merge_problems", "robust_weights", "solve_model",
+           "alternate", "SolveReport"]
+
+_FIELDS = ("vid", "bary", "coef", "D", "S", "target", "weight", "image")
 
 
 @dataclass(frozen=True)
@@ -43,6 +51,11 @@ class SolveConfig:
         cg_iterations: conjugate-gradient iterations per solve; cg_tol: stop at this relative residual.
         max_pixels: skin pixels per image entering the solve (even stride; 0 = all).
         refine_iterations: Levenberg–Marquardt iterations of the per-image refinement in each round.
+        harmonics: Q > 0 restricts the change of the mean and of every basis to the Q smoothest functions on the
+            mesh (:func:`~reflectmm_cli.geometry.harmonics.mesh_harmonics`); 0 = a free value per vertex.
+        robust: k > 0 leaves out of the solve every pixel whose residual after the refinement is more than k robust
+            standard deviations (1.4826 · MAD of its image) from its image's median residual; 0 = all pixels.
+        update_bases: only the means and the first ``update_bases`` bases change (−1: all).
     """
 
     rounds: int = field(default=3, metadata={"help": "refine -> solve rounds.", "range": (1, 100)})
@@ -53,14 +66,23 @@ class SolveConfig:
                                                     "range": (0, None)})
     refine_iterations: int = field(default=12, metadata={"help": "Refinement iterations per image and round.",
                                                          "range": (1, 1000)})
+    harmonics: int = field(default=0, metadata={"help": "Restrict the model's change to this many smoothest "
+                                                        "functions on the mesh (0 = per vertex).",
+                                                "range": (0, 100000)})
+    robust: float = field(default=0.0, metadata={"help": "Leave out pixels whose residual is beyond this many "
+                                                         "robust standard deviations (MAD) of their image (0 = off)."})
+    update_bases: int = field(default=-1, metadata={"help": "Update the means and only the first N bases (-1 = all).",
+                                                    "range": (-1, 100000)})
 
     def __post_init__(self):
-        for k in ("pull", "cg_tol"):
+        for k in ("pull", "cg_tol", "robust"):
             v = float(getattr(self, k))
             if not (math.isfinite(v) and v >= 0):
                 raise ReflectmmError(f"model solve: {k} must be finite and ≥ 0, got {v}")
         if int(self.rounds) < 1 or int(self.cg_iterations) < 1:
             raise ReflectmmError("model solve: rounds and cg_iterations must be ≥ 1")
+        if int(self.harmonics) < 0 or int(self.update_bases) < -1:
+            raise ReflectmmError("model solve: harmonics must be ≥ 0 and update_bases ≥ −1")
 
 
 @dataclass
@@ -69,7 +91,8 @@ class SolveProblem:
 
     Attributes:
         vid: (P, 3) vertex ids; bary: (P, 3); coef: (P, M) β·σ of each pixel's image; D: (P, 3); S: (K, P, 3);
-        target: (P, 3); weight: (P,) 1/(3 S_b B) of each pixel's image (B images).
+        target: (P, 3); weight: (P,) 1/(3 S_b B) of each pixel's image (B images); image: (P,) int64 the
+        pixel's image (0..B−1).
     """
 
     vid: "torch.Tensor"  # noqa: F821
@@ -79,6 +102,7 @@ class SolveProblem:
     S: "torch.Tensor"  # noqa: F821
     target: "torch.Tensor"  # noqa: F821
     weight: "torch.Tensor"  # noqa: F821
+    image: "torch.Tensor"  # noqa: F821
 
 
 @dataclass
@@ -104,7 +128,7 @@ def build_problem(params, light, gb, beta, gamma, z, *, max_pixels: int = 2000) 
     dt = torch.float64
     B = gb.n_images
     lt = _light_tensors(light, int(gamma.shape[1]), dt, gb.bary.device)
-    parts = {k: [] for k in ("vid", "bary", "coef", "D", "S", "target", "weight")}
+    parts = {k: [] for k in _FIELDS}
     sig = params.sigma[:beta.shape[1]].to(dt)
     for b in range(B):
         s0, s1 = int(gb.offsets[b]), int(gb.offsets[b + 1])
@@ -123,6 +147,7 @@ def build_problem(params, light, gb, beta, gamma, z, *, max_pixels: int = 2000) 
         parts["S"].append(tr.Ys @ K.T)
         parts["target"].append(gb.target[sel].to(dt))
         parts["weight"].append(torch.full((n,), 1.0 / (3 * n), dtype=dt))
+        parts["image"].append(torch.full((n,), b, dtype=torch.int64))
     if not parts["vid"]:
         raise ReflectmmError("model solve: no skin pixel in the training images")
     cat = {k: torch.cat(v, 1 if k == "S" else 0) for k, v in parts.items()}
@@ -133,10 +158,41 @@ def merge_problems(problems: list[SolveProblem], n_images: int) -> SolveProblem:
     """One problem of several batches' (each weight is then divided by the number of images: a mean over images)."""
     import torch
 
-    cat = {k: torch.cat([getattr(p, k) for p in problems], 1 if k == "S" else 0)
-           for k in ("vid", "bary", "coef", "D", "S", "target", "weight")}
+    cat = {k: torch.cat([getattr(p, k) for p in problems], 1 if k == "S" else 0) for k in _FIELDS if k != "image"}
     cat["weight"] = cat["weight"] / max(n_images, 1)
-    return SolveProblem(**cat)
+    ids, k = [], 0
+    for p in problems:  # image numbers made unique across the batches
+        ids.append(p.image + k)
+        k += int(p.image.max()) + 1 if p.image.numel() else 0
+    return SolveProblem(image=torch.cat(ids), **cat)
+
+
+def robust_weights(prob: SolveProblem, theta: list, k: float) -> tuple["torch.Tensor", float]:  # noqa: F821
+    """Pixel weights with the outliers of each image left out: the residual r (P, 3) of the model θ; per image,
+    its per-channel median m_c and robust scale s = 1.4826 · median |r − m| (over its pixels and channels); a pixel
+    is an outlier when any |r_pc − m_c| > k s. The image's inliers share its weight (each image keeps its share
+    of the mean). No ground truth is involved: only the images and the current fit.
+
+    Returns:
+        ((P,) weights, fraction of pixels left out).
+    """
+    import torch
+
+    with torch.no_grad():
+        r = _render(prob, *theta) - prob.target
+    w = prob.weight.clone()
+    out = torch.zeros(r.shape[0], dtype=torch.bool)
+    for b in torch.unique(prob.image):
+        sel = torch.nonzero(prob.image == b).reshape(-1)
+        rb = r[sel]
+        dev = (rb - rb.median(0).values).abs()
+        s = 1.4826 * dev.reshape(-1).median()
+        bad = (dev > k * s).any(1) if s > 0 else torch.zeros(sel.numel(), dtype=torch.bool)
+        if bool(bad.all()):  # never drop a whole image
+            continue
+        out[sel] = bad
+        w[sel] = torch.where(bad, torch.zeros_like(w[sel]), w[sel] * sel.numel() / float((~bad).sum()))
+    return w, float(out.to(torch.float64).mean())
 
 
 def _render(prob: SolveProblem, am, ab, wm, wb):
@@ -157,81 +213,74 @@ def _render(prob: SolveProblem, am, ab, wm, wb):
     return alb * prob.D + torch.einsum("pi,ipc->pc", wts, prob.S)
 
 
-def _objective_and_grad(prob: SolveProblem, theta: list, theta0: list, pull: float, sizes: list):
+def _objective_and_grad_u(prob: SolveProblem, start: list, u: list, theta0: list, pull: float, sizes: list, basis):
+    """(F, ∇_u F) at θ = start + u (per-vertex), or θ = start + Φu (``basis`` Φ (V, Q))."""
     import torch
 
-    x = [t.detach().requires_grad_(True) for t in theta]
+    u = [t.detach().requires_grad_(True) for t in u]
+    x = [s + d for s, d in zip(start, _expand(basis, u))]
     r = _render(prob, *x) - prob.target
     f = (prob.weight[:, None] * r * r).sum()
     for xi, x0, n in zip(x, theta0, sizes):
         f = f + pull * ((xi - x0) ** 2).sum() / n
-    g = torch.autograd.grad(f, x)
+    g = torch.autograd.grad(f, u)
     return float(f.detach()), [gi.detach() for gi in g]
 
 
-def _diag(prob: SolveProblem, shapes: list, pull: float, sizes: list) -> list:
-    """The exact diagonal of H (½ the Hessian of F) for the Jacobi preconditioner."""
+def _pixel_basis(prob: SolveProblem, basis, s0: int, s1: int):
+    """(n, Q) the harmonics interpolated at packed pixels s0:s1: ``Σ_t bary_pt Φ_{v_pt}``."""
+    return (basis[prob.vid[s0:s1]] * prob.bary[s0:s1, :, None]).sum(1)
+
+
+def _diag(prob: SolveProblem, shapes: list, pull: float, sizes: list, basis=None, chunk: int = 20000) -> list:
+    """The exact diagonal of H (½ the Hessian of F) in the unknowns' space (per-vertex values, or harmonic
+    coefficients when ``basis`` Φ (V, Q) is given), for the Jacobi preconditioner."""
     import torch
 
     P = prob.vid.shape[0]
-    out = []
-    w = prob.weight[:, None, None]  # (P,1,1)
-    b2 = prob.bary[..., None] ** 2  # (P,3,1)
-    for part, (shape, n) in enumerate(zip(shapes, sizes)):
-        is_alb = part < 2
-        # per-pixel, per-channel squared sensitivity of the rendered value to one vertex entry
-        if is_alb:
-            sens = (prob.D ** 2)[:, None, :]  # (P,1,3): ∂I_pc/∂ā_v,c = bary·D_pc
-        else:
-            sens = (prob.S ** 2).sum(-1).T[:, None, :]  # (P,1,K): Σ_c S_i,pc²
-        contrib = w * b2 * sens  # (P,3,C)
-        if part in (1, 3):  # bases: × coef²
-            acc = torch.zeros(shape, dtype=contrib.dtype)
-            for m in range(shape[0]):
-                c = contrib * (prob.coef[:, m] ** 2)[:, None, None]
-                acc[m].index_add_(0, prob.vid.reshape(-1), c.reshape(P * 3, -1))
-        else:
-            acc = torch.zeros(shape, dtype=contrib.dtype)
-            acc.index_add_(0, prob.vid.reshape(-1), contrib.reshape(P * 3, -1))
-        out.append(acc + pull / n)
-    return out
+    w = prob.weight[:, None]
+    # per-pixel, per-channel squared sensitivity of the rendered value to one interpolated entry
+    sens = [w * prob.D ** 2, w * (prob.S ** 2).sum(-1).T]  # ∂I_pc/∂a_c = D_pc; Σ_c S_i,pc² for lobe i
+    coef2 = prob.coef ** 2
+    out = [torch.zeros(shape, dtype=prob.D.dtype) for shape in shapes]
+    for s0 in range(0, P, chunk):
+        s1 = min(s0 + chunk, P)
+        for part in range(4):
+            sn = sens[part // 2][s0:s1]  # (n, C)
+            if basis is None:  # a pixel touches its 3 vertices with weights bary²
+                b2 = prob.bary[s0:s1, :, None] ** 2  # (n, 3, 1)
+                ids = prob.vid[s0:s1].reshape(-1)
+                if part % 2 == 0:
+                    out[part].index_add_(0, ids, (b2 * sn[:, None]).reshape(-1, sn.shape[1]))
+                else:
+                    for m in range(shapes[part][0]):
+                        c = b2 * (sn * coef2[s0:s1, m:m + 1])[:, None]
+                        out[part][m].index_add_(0, ids, c.reshape(-1, sn.shape[1]))
+            else:  # a pixel touches harmonic q with weight (Σ_t bary_t Φ_tq)²
+                f2 = _pixel_basis(prob, basis, s0, s1) ** 2  # (n, Q)
+                if part % 2 == 0:
+                    out[part] += f2.T @ sn
+                else:
+                    out[part] += torch.einsum("pq,pm,pc->mqc", f2, coef2[s0:s1], sn)
+    reg = [pull / n for n in sizes]
+    if basis is not None:
+        phi2 = (basis ** 2).sum(0)[:, None]  # (Q, 1): the pull ‖Φu‖² on each coefficient
+        return [o + r * phi2 for o, r in zip(out, reg)]
+    return [o + r for o, r in zip(out, reg)]
 
 
-def solve_model(prob: SolveProblem, theta0: list, theta_start: list | None = None, *, pull: float = 1.0,
-                cg_iterations: int = 150, cg_tol: float = 1e-4) -> tuple[list, dict]:
-    """Minimise F (module docstring) by preconditioned CG from ``theta_start`` (default θ₀).
-
-    Args:
-        prob: the fixed data; theta0: [am (V,3), ab (M,V,3), wm (V,K), wb (M,V,K)] float64 torch, the initial
-            model (the pull's target).
-    Returns:
-        (θ, info) with ``info = {"f_start", "f_end", "iterations", "rel_residual"}``.
-    """
-    import torch
-
-    sizes = [t.numel() for t in theta0]
-    theta = [t.clone() for t in (theta_start or theta0)]
-    f0, g = _objective_and_grad(prob, theta, theta0, pull, sizes)
-    # F is quadratic: ∇F(θ + v) − ∇F(θ) = 2 H v
-    zero = [torch.zeros_like(t) for t in theta]
-    _, g_at = _objective_and_grad(prob, theta, theta0, pull, sizes)
-
-    def Hv(v):
-        _, gv = _objective_and_grad(prob, [t + vi for t, vi in zip(theta, v)], theta0, pull, sizes)
-        return [(a - b) / 2 for a, b in zip(gv, g_at)]
-
-    dinv = [1.0 / d for d in _diag(prob, [t.shape for t in theta], pull, sizes)]
+def _pcg(Hv, rhs: list, dinv: list, iterations: int, tol: float) -> tuple[list, int, float]:
+    """Preconditioned conjugate gradients on ``H δ = rhs`` from δ = 0 (lists of tensors); (δ, iterations, relative
+    residual)."""
     dot = lambda a, b: sum(float((x * y).sum()) for x, y in zip(a, b))  # noqa: E731
-    # solve H δ = −g/2
-    r = [-gi / 2 for gi in g]
+    r = [t.clone() for t in rhs]
     zvec = [d * ri for d, ri in zip(dinv, r)]
     p = [zi.clone() for zi in zvec]
-    delta = zero
+    delta = [t * 0 for t in rhs]
     rz = dot(r, zvec)
     r0 = math.sqrt(max(dot(r, r), 1e-300))
-    it = 0
-    rel = 1.0
-    for it in range(1, cg_iterations + 1):
+    it, rel = 0, 1.0
+    for it in range(1, iterations + 1):
         Hp = Hv(p)
         pHp = dot(p, Hp)
         if not (pHp > 0 and math.isfinite(pHp)):
@@ -240,20 +289,93 @@ def solve_model(prob: SolveProblem, theta0: list, theta_start: list | None = Non
         delta = [d + a * pi for d, pi in zip(delta, p)]
         r = [ri - a * hi for ri, hi in zip(r, Hp)]
         rel = math.sqrt(max(dot(r, r), 0.0)) / r0
-        if rel < cg_tol:
+        if rel < tol:
             break
         zvec = [d * ri for d, ri in zip(dinv, r)]
         rz_new = dot(r, zvec)
         beta = rz_new / rz
         rz = rz_new
         p = [zi + beta * pi for zi, pi in zip(zvec, p)]
-    theta = [t + d for t, d in zip(theta, delta)]
-    f1, _ = _objective_and_grad(prob, theta, theta0, pull, sizes)
+    return delta, it, rel
+
+
+def _expand(basis, u: list) -> list:
+    """Per-vertex changes of the unknowns u: u itself, or ``Φ u`` per part with Φ (V, Q)."""
+    import torch
+
+    if basis is None:
+        return u
+    return [torch.einsum("vq,...qc->...vc", basis, x) for x in u]
+
+
+def _free_mask(shapes: list, update_bases: int, dtype) -> list:
+    """1 for unknowns that may change, 0 for the bases from ``update_bases`` on (−1: all change)."""
+    import torch
+
+    out = []
+    for part, shape in enumerate(shapes):
+        m = torch.ones(shape, dtype=dtype)
+        if part % 2 == 1 and update_bases >= 0:
+            m[update_bases:] = 0
+        out.append(m)
+    return out
+
+
+def solve_model(prob: SolveProblem, theta0: list, theta_start: list | None = None, *, pull: float = 1.0,
+                cg_iterations: int = 150, cg_tol: float = 1e-4, basis=None, update_bases: int = -1
+                ) -> tuple[list, dict]:
+    """Minimise F (module docstring) by preconditioned CG from ``theta_start`` (default θ₀).
+
+    Args:
+        prob: the fixed data; theta0: [am (V,3), ab (M,V,3), wm (V,K), wb (M,V,K)] float64 torch, the initial
+            model (the pull's target).
+        basis: optional Φ (V, Q) float64 torch: the change of every part is restricted to ``Φ u`` (smooth
+            functions on the mesh, :func:`~reflectmm_cli.geometry.harmonics.mesh_harmonics`); unknowns u (…, Q, C).
+        update_bases: only the means and the first ``update_bases`` bases change (−1: all).
+    Returns:
+        (θ, info) with ``info = {"f_start", "f_end", "iterations", "rel_residual"}``.
+    """
+    sizes = [t.numel() for t in theta0]
+    start = [t.clone() for t in (theta_start or theta0)]
+    shapes = [t.shape if basis is None else t.shape[:-2] + (basis.shape[1], t.shape[-1]) for t in start]
+    mask = _free_mask(shapes, int(update_bases), start[0].dtype)
+
+    def F(u):  # objective and gradient in the unknowns' space, frozen unknowns' gradient zeroed
+        f, g = _objective_and_grad_u(prob, start, u, theta0, pull, sizes, basis)
+        return f, [gi * m for gi, m in zip(g, mask)]
+
+    zero = [start[0].new_zeros(sh) for sh in shapes]
+    f0, g = F(zero)  # F is quadratic: ∇F(u) − ∇F(0) = 2 H u
+
+    def Hv(v):
+        return [(a - b) / 2 for a, b in zip(F(v)[1], g)]
+
+    dinv = [m / d for m, d in zip(mask, _diag(prob, shapes, pull, sizes, basis))]
+    delta, it, rel = _pcg(Hv, [-gi / 2 for gi in g], dinv, cg_iterations, cg_tol)
+    f1, _ = F(delta)
     if not math.isfinite(f1):
         raise ReflectmmError("model solve: the objective became non-finite")
     if f1 > f0:  # CG on an SPD system never raises a quadratic; guard against round-off all the same
-        theta, f1 = [t.clone() for t in (theta_start or theta0)], f0
+        return start, {"f_start": f0, "f_end": f0, "iterations": it, "rel_residual": rel}
+    theta = [t + d for t, d in zip(start, _expand(basis, delta))]
     return theta, {"f_start": f0, "f_end": f1, "iterations": it, "rel_residual": rel}
+
+
+def _harmonic_basis(cfg: SolveConfig, mesh, V: int, say):
+    """Φ (V, Q) float64 torch of ``cfg.harmonics`` (None when 0)."""
+    import torch
+
+    from reflectmm_cli.geometry.harmonics import mesh_harmonics
+
+    if not cfg.harmonics:
+        return None
+    if mesh is None:
+        raise ReflectmmError("model solve: harmonics need the face mesh (no face model found)")
+    if np.shape(mesh[0])[0] != V:
+        raise ReflectmmError(f"model solve: the face mesh has {np.shape(mesh[0])[0]} vertices, the model {V}")
+    phi, lam = mesh_harmonics(mesh[0], mesh[1], cfg.harmonics)
+    say(f"model solve: {cfg.harmonics} mesh harmonics (eigenvalues {lam[1]:.3g} … {lam[-1]:.3g})")
+    return torch.as_tensor(phi, dtype=torch.float64)
 
 
 def _theta(params) -> list:
@@ -286,11 +408,14 @@ def _fit_coefficients(params, light, shards, idx, refine, batch_size, device, st
 
 
 def alternate(model, light, shards, config: SolveConfig | None = None, *, refine=None, batch_size: int = 8,
-              device="cpu", log=None) -> tuple[dict, SolveReport]:
+              device="cpu", log=None, mesh=None, keep_best: bool = True) -> tuple[dict, SolveReport]:
     """The least-squares model update: ``config.rounds`` times, refine every training image's (β, γ, z) with the
     current model (from the previous round's values), then solve the model (:func:`solve_model`); after each round
     the validation images are refined from zero with the new model and their mean objective recorded. The round
     with the lowest validation objective is kept (the last one without a validation split).
+
+    ``mesh`` = (vertices (V, 3), triangles (F, 3)) of the model's topology is needed with ``config.harmonics``.
+    ``keep_best=False`` keeps the last round whatever the validation says (to measure the update itself).
 
     Returns:
         (``vertex_*`` arrays of the kept model, float32, :class:`SolveReport`).
@@ -309,6 +434,7 @@ def alternate(model, light, shards, config: SolveConfig | None = None, *, refine
     if len(train) == 0:
         raise ReflectmmError("model solve: the shards have no image in the 'train' split")
     report = SolveReport()
+    basis = _harmonic_basis(cfg, mesh, theta0[0].shape[0], say)
 
     def val_objective():
         if len(val) == 0:
@@ -329,17 +455,20 @@ def alternate(model, light, shards, config: SolveConfig | None = None, *, refine
                                        max_pixels=cfg.max_pixels))
             k += n
         prob = merge_problems(probs, len(train))
+        left_out = 0.0
+        if cfg.robust > 0:
+            prob.weight, left_out = robust_weights(prob, _theta(params), cfg.robust)
         theta, info = solve_model(prob, theta0, _theta(params), pull=cfg.pull, cg_iterations=cfg.cg_iterations,
-                                  cg_tol=cfg.cg_tol)
+                                  cg_tol=cfg.cg_tol, basis=basis, update_bases=cfg.update_bases)
         params.albedo_mean, params.albedo_basis, params.weights_mean, params.weights_basis = theta
         v = val_objective()
         rec = {"round": rnd, "train_refined_objective": float(np.mean(obj)), "solve_start": info["f_start"],
                "solve_end": info["f_end"], "cg_iterations": info["iterations"], "cg_rel_residual":
-               info["rel_residual"], "val_objective": v}
+               info["rel_residual"], "val_objective": v, "pixels_left_out": left_out}
         report.rounds.append(rec)
         say(f"model solve: round {rnd}: training objective {info['f_start']:.5g} -> {info['f_end']:.5g} "
             f"({info['iterations']} CG iterations), validation objective {v:.5g}")
-        if not (v >= best[0]):  # lower, or no validation split (NaN): keep this round
+        if not (v >= best[0]) or not keep_best:  # lower, or no validation split (NaN): keep this round
             best = (v, [t.clone() for t in theta], rnd)
     report.best_round = best[2]
     am, ab, wm, wb = (t.detach().cpu().numpy().astype(np.float32) for t in best[1])

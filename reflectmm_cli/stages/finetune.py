@@ -76,6 +76,9 @@ def config_params() -> tuple[Param, ...]:
 
 
 _SOLVE_KINDS = {"int": "int", "float": "float"}
+#: The constraints of the least-squares update: off unless given, and then not recorded (cache keys of runs made
+#: before these options are unchanged).
+_SOLVE_OFF_BY_DEFAULT = ("harmonics", "robust", "update_bases")
 
 
 def solver_params() -> tuple[Param, ...]:
@@ -90,7 +93,9 @@ def solver_params() -> tuple[Param, ...]:
     for f in dataclasses.fields(SolveConfig):
         md = f.metadata
         kind = _SOLVE_KINDS[str(f.type)]
-        out.append(Param("ls_" + f.name, kind, f.default, range=md.get("range") or (0.0, None), help=md["help"]))
+        off = f.name in _SOLVE_OFF_BY_DEFAULT
+        out.append(Param("ls_" + f.name, kind, None if off else f.default, range=md.get("range") or (0.0, None),
+                         help=md["help"] + (" [default: off]" if off else "")))
     return tuple(out)
 
 
@@ -98,7 +103,8 @@ def solve_config(params: dict[str, Any]):
     """The :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` of resolved params."""
     from reflectmm_cli.finetune.model_solve import SolveConfig
 
-    return SolveConfig(**{f.name: params["ls_" + f.name] for f in dataclasses.fields(SolveConfig)})
+    return SolveConfig(**{f.name: params["ls_" + f.name] for f in dataclasses.fields(SolveConfig)
+                          if params.get("ls_" + f.name) is not None})
 
 
 CONFIG_KEYS = tuple(f.name for f in dataclasses.fields(FinetuneConfig) if f.name != "extra")
@@ -199,7 +205,8 @@ def run(ctx: StageContext) -> list[Path]:
     face_model = load_face_model(fm_path) if fm_path is not None else None
     train_model, solve_report = model, None
     if p["solver"] == "ls":
-        train_model, solve_report = _least_squares_update(model, light, shards, solve_config(p), ctx)
+        mesh = (face_model.mean_shape, face_model.triangles) if face_model is not None else None
+        train_model, solve_report = _least_squares_update(model, light, shards, solve_config(p), ctx, mesh)
         cfg = cfg.replace(model_lr=0.0)  # the encoder is trained on the solved model, which stays fixed
     res = finetune(shards, train_model, light, cfg, output_paths(out)["workdir"], device=ctx.device,
                    identity=identity, init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")),
@@ -216,14 +223,14 @@ def run(ctx: StageContext) -> list[Path]:
                                   samples=p["samples"], seed=cfg.seed, log=log.info)
 
 
-def _least_squares_update(model, light, shards, scfg, ctx):
+def _least_squares_update(model, light, shards, scfg, ctx, mesh):
     """(the model with its per-vertex part solved by :func:`~reflectmm_cli.finetune.model_solve.alternate`, the
-    report)."""
+    report); ``mesh`` (vertices, triangles) of the face model, for ``--ls-harmonics``."""
     import copy
 
     from reflectmm_cli.finetune.model_solve import alternate
 
-    arrays, report = alternate(model, light, shards, scfg, device=ctx.device, log=log.info)
+    arrays, report = alternate(model, light, shards, scfg, device=ctx.device, log=log.info, mesh=mesh)
     solved = copy.deepcopy(model)
     for k, v in arrays.items():
         full = np.array(getattr(model, k), np.float32)

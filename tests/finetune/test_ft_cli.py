@@ -320,6 +320,35 @@ def test_finetune_solver_ls_writes_a_solved_model_and_an_encoder_trained_on_it(c
     assert r.exit_code == 0, r.stderr
 
 
+def test_finetune_solver_ls_with_harmonics_changes_the_model_by_smooth_functions_only(cli, data, tmp_path):
+    """--ls-harmonics Q --ls-robust K: the change of the mean and of every basis lies in the span of the face
+    mesh's Q lowest harmonics (Φ Φᵀ M Δ = Δ), the options are recorded, and a run without them records none (the
+    cache keys of earlier runs are unchanged)."""
+    from reflectmm_cli.geometry.face_model import load_face_model
+    from reflectmm_cli.geometry.harmonics import cotangent_laplacian, mesh_harmonics
+
+    out = tmp_path / "lsh" / "m.npz"
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY, "--solver", "ls",
+            "--ls-rounds", "1", "--ls-max-pixels", "0", "--ls-harmonics", "12", "--ls-robust", "4")
+    assert r.exit_code == 0, r.stderr
+    art = read_artifact(out, "reflectance-model")
+    init = read_artifact(data["init_path"], "reflectance-model")
+    params = art.meta["params"]
+    assert params["ls_harmonics"] == 12 and params["ls_robust"] == 4.0 and "ls_update_bases" not in params
+    fm = load_face_model(data["face_model"])
+    phi, _ = mesh_harmonics(fm.mean_shape, fm.triangles, 12)
+    _, M = cotangent_laplacian(fm.mean_shape, fm.triangles)
+    for k in ("vertex_albedo_mean", "vertex_weights_mean"):
+        delta = np.asarray(art[k], np.float64) - np.asarray(init[k], np.float64)
+        assert np.abs(delta).max() > 1e-4
+        np.testing.assert_allclose(phi @ (phi.T @ (M @ delta)), delta, atol=1e-5)
+    delta = np.asarray(art["vertex_albedo_basis"], np.float64)[0] - np.asarray(init["vertex_albedo_basis"])[0]
+    np.testing.assert_allclose(phi @ (phi.T @ (M @ delta)), delta, atol=1e-5)
+    rounds = art.meta["finetune"]["model_solve"]["rounds"]
+    assert rounds[1]["solve_end"] < rounds[1]["solve_start"] and rounds[1]["pixels_left_out"] >= 0
+
+
 def test_a_control_started_from_the_phase1_encoder_equals_a_full_control_run(cli, data, tmp_path):
     """--phase1-encoder: the control run takes phase 1 from the finetuned run (same settings, data and seed) and
     trains phase 2 only; its encoder and model equal those of a control run that trains phase 1 itself. Another

@@ -93,3 +93,166 @@ def test_alternating_update_recovers_a_model_and_keeps_the_best_round(small):
     before = np.abs(np.asarray(wrong.vertex_albedo_mean) - np.asarray(d["truth"].vertex_albedo_mean)).mean()
     after = np.abs(arrays["vertex_albedo_mean"] - np.asarray(d["truth"].vertex_albedo_mean)).mean()
     assert after < before
+
+
+def _dense_system(prob, theta0, start, pull, cols_of):
+    """Dense (H, g) of F in the unknowns u (θ = start + cols_of(u)), built column by column from the renderer."""
+    shapes = [t.shape for t in theta0]
+    sizes = [t.numel() for t in theta0]
+    flat0 = torch.cat([t.reshape(-1) for t in theta0]).numpy()
+    flat_s = torch.cat([t.reshape(-1) for t in start]).numpy()
+
+    def unflat(x):
+        out, k = [], 0
+        for sh, m in zip(shapes, sizes):
+            out.append(torch.as_tensor(x[k:k + m]).reshape(sh))
+            k += m
+        return out
+
+    Jv = []  # per-vertex Jacobian of the rendered pixels (the renderer is linear in θ)
+    zero = np.zeros(sum(sizes))
+    r0 = MS._render(prob, *unflat(zero)).reshape(-1).numpy()
+    for j in range(sum(sizes)):
+        e = zero.copy()
+        e[j] = 1.0
+        Jv.append(MS._render(prob, *unflat(e)).reshape(-1).numpy() - r0)
+    Jv = np.stack(Jv, 1)
+    A = cols_of  # (n_vertex_values, n_unknowns)
+    J = Jv @ A
+    w = np.repeat(prob.weight.numpy(), 3)
+    reg = np.concatenate([np.full(m, pull / m) for m in sizes])
+    H = J.T @ (w[:, None] * J) + A.T @ (reg[:, None] * A)
+    resid = Jv @ flat_s - prob.target.numpy().reshape(-1)
+    g = J.T @ (w * resid) + A.T @ (reg * (flat_s - flat0))
+    return H, g, unflat
+
+
+def _harmonic_columns(phi, shapes):
+    """The dense map u → Φu of all four parts (block-diagonal over parts, components and channels)."""
+    import scipy.linalg
+
+    blocks = []
+    for sh in shapes:
+        lead = int(np.prod(sh[:-2])) if len(sh) > 2 else 1
+        C = sh[-1]
+        # θ part laid out (lead, V, C) row-major; u part (lead, Q, C): Φ acts on V with C and lead fixed
+        blocks.append(np.kron(np.eye(lead), np.kron(phi, np.eye(C))))
+    return scipy.linalg.block_diag(*blocks)
+
+
+def test_harmonic_solve_equals_the_dense_least_squares_solution(small):
+    """The change restricted to Φu (Q mesh harmonics): the CG minimiser equals the dense normal-equation solution
+    in u, from a start away from θ₀, and the preconditioner's diagonal is the dense diagonal in u."""
+    from reflectmm_cli.geometry.harmonics import mesh_harmonics
+
+    p, gb, d = small["p"], small["gb"], small["d"]
+    rng = np.random.default_rng(1)
+    prob = MS.build_problem(p, d["light"], gb, small["beta"], small["gamma"], small["z"], max_pixels=0)
+    prob.target = prob.target + torch.tensor(rng.normal(0, 0.02, tuple(prob.target.shape)))
+    prob = MS.merge_problems([prob], 4)
+    theta0 = _theta(p)
+    phi = mesh_harmonics(d["V"], d["tri"], 6)[0]
+    basis = torch.as_tensor(phi)
+    start = [t + 0.01 * torch.as_tensor(rng.normal(size=tuple(t.shape))) for t in theta0]
+    shapes = [t.shape for t in theta0]
+    A = _harmonic_columns(phi, shapes)
+    pull = 0.3
+    H, g, unflat = _dense_system(prob, theta0, start, pull, A)
+    u = np.linalg.solve(H, -g)
+    want = torch.cat([t.reshape(-1) for t in start]).numpy() + A @ u
+    theta, info = MS.solve_model(prob, theta0, start, pull=pull, cg_iterations=3000, cg_tol=1e-13, basis=basis)
+    got = torch.cat([t.reshape(-1) for t in theta]).numpy()
+    np.testing.assert_allclose(got, want, atol=1e-7 * max(1.0, np.abs(want).max()))
+    assert info["f_end"] < info["f_start"]
+    ushapes = [t.shape[:-2] + (6, t.shape[-1]) for t in theta0]
+    diag = torch.cat([x.reshape(-1) for x in MS._diag(prob, ushapes, pull, [t.numel() for t in theta0], basis,
+                                                      chunk=7)]).numpy()
+    np.testing.assert_allclose(diag, np.diag(H), rtol=1e-9, atol=1e-15)
+
+
+def test_update_bases_freezes_the_later_bases(small):
+    """update_bases = 1: the means and basis 0 change; the other bases keep their start; the free part equals the
+    dense solution restricted to those unknowns."""
+    p, gb, d = small["p"], small["gb"], small["d"]
+    rng = np.random.default_rng(2)
+    prob = MS.build_problem(p, d["light"], gb, small["beta"], small["gamma"], small["z"], max_pixels=0)
+    prob.target = prob.target + torch.tensor(rng.normal(0, 0.02, tuple(prob.target.shape)))
+    prob = MS.merge_problems([prob], 4)
+    theta0 = _theta(p)
+    n = sum(t.numel() for t in theta0)
+    free = torch.cat([m.reshape(-1) for m in MS._free_mask([t.shape for t in theta0], 1, torch.float64)]).numpy()
+    A = np.eye(n)[:, free > 0]
+    H, g, _ = _dense_system(prob, theta0, theta0, 0.3, A)
+    want = torch.cat([t.reshape(-1) for t in theta0]).numpy() + A @ np.linalg.solve(H, -g)
+    theta, _ = MS.solve_model(prob, theta0, pull=0.3, cg_iterations=3000, cg_tol=1e-13, update_bases=1)
+    got = torch.cat([t.reshape(-1) for t in theta]).numpy()
+    np.testing.assert_allclose(got, want, atol=1e-7 * max(1.0, np.abs(want).max()))
+    for part in (1, 3):
+        assert torch.equal(theta[part][1:], theta0[part][1:])
+        assert not torch.equal(theta[part][0], theta0[part][0])
+
+
+def test_robust_weights_against_a_direct_computation(small):
+    """Shadow-like outliers (a block of pixels made darker): the weights leave out exactly the pixels a direct
+    per-image median / MAD computation flags, the inliers carry each image's weight, and the rest is unchanged."""
+    p, gb, d = small["p"], small["gb"], small["d"]
+    rng = np.random.default_rng(3)
+    prob = MS.build_problem(p, d["light"], gb, small["beta"], small["gamma"], small["z"], max_pixels=0)
+    prob = MS.merge_problems([prob], 4)
+    theta = _theta(p)
+    tgt = prob.target.numpy() + rng.normal(0, 0.01, tuple(prob.target.shape))
+    img = prob.image.numpy()
+    for b in range(4):  # a cast shadow: 10 % of the image's pixels at 30 % brightness
+        idx = np.nonzero(img == b)[0]
+        tgt[idx[: len(idx) // 10]] *= 0.3
+    prob.target = torch.as_tensor(tgt)
+    k = 3.0
+    w, frac = MS.robust_weights(prob, theta, k)
+    r = MS._render(prob, *theta).numpy() - tgt
+    w0 = prob.weight.numpy()
+    want = np.zeros_like(w0)
+    left = 0
+    for b in range(4):
+        idx = np.nonzero(img == b)[0]
+        rb = r[idx]
+        dev = np.abs(rb - np.median(rb, 0))
+        s = 1.4826 * np.median(dev)
+        bad = (dev > k * s).any(1)
+        left += bad.sum()
+        want[idx] = np.where(bad, 0.0, w0[idx] * len(idx) / (~bad).sum())
+        assert bad[: len(idx) // 10].mean() > 0.9  # the shadow is found
+        np.testing.assert_allclose(want[idx].sum(), w0[idx].sum())  # each image keeps its share
+    np.testing.assert_allclose(w.numpy(), want, rtol=1e-12)
+    assert frac == pytest.approx(left / len(w0))
+
+
+def test_constrained_alternating_update_lowers_its_objective(small):
+    """Harmonics, robust pixels and a low-rank change together, 3 rounds on images of the truth model from a wrong
+    initial mean: every solve lowers its objective, the refined training objective never rises from one round to
+    the next, and the model moves towards the truth."""
+    from _shards import wrong_initial
+
+    d, ss = small["d"], small["ss"]
+    wrong = wrong_initial(d["truth"], d["V"])
+    cfg = MS.SolveConfig(rounds=3, pull=1e-4, cg_iterations=300, max_pixels=0, harmonics=20, robust=4.0,
+                         update_bases=1)
+    arrays, rep = MS.alternate(wrong, d["light"], ss, cfg, mesh=(d["V"], d["tri"]))
+    train = [r["train_refined_objective"] for r in rep.rounds[1:]]
+    for r in rep.rounds[1:]:
+        assert r["solve_end"] < r["solve_start"]
+        assert 0.0 <= r["pixels_left_out"] < 0.5
+    assert all(b <= a * (1 + 1e-9) for a, b in zip(train, train[1:]))
+    before = np.abs(np.asarray(wrong.vertex_albedo_mean) - np.asarray(d["truth"].vertex_albedo_mean)).mean()
+    after = np.abs(arrays["vertex_albedo_mean"] - np.asarray(d["truth"].vertex_albedo_mean)).mean()
+    assert after < before
+    np.testing.assert_array_equal(arrays["vertex_albedo_basis"][1:], np.asarray(wrong.vertex_albedo_basis)[1:])
+
+
+def test_harmonics_need_the_mesh(small):
+    from reflectmm_cli.errors import ReflectmmError
+
+    d = small["d"]
+    with pytest.raises(ReflectmmError, match="face mesh"):
+        MS.alternate(d["truth"], d["light"], small["ss"], MS.SolveConfig(rounds=1, harmonics=4))
+    with pytest.raises(ReflectmmError, match="harmonics"):
+        MS.SolveConfig(harmonics=-1)

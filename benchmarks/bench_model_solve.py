@@ -1,0 +1,222 @@
+"""The least-squares model update (``finetune --solver ls``) and its constrained variants, measured on a finished
+demo workspace (docs/benchmarks.md, "The least-squares model update").
+
+Usage:
+    python benchmarks/bench_model_solve.py --workspace work --variant NAME[:key=value,...] [--variant ...]
+        [--rounds 1] [--max-pixels 1000] [--cg-iterations 100] [--threads 1] [--jsonl out.jsonl]
+
+A variant is a name and :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` fields (``pull``, ``harmonics``,
+``robust``, ``update_bases``, ...); ``initial`` (no update) and ``sgd`` (the workspace's finetuned model) are the
+reference rows. With ``--load DIR`` the variants are not solved but read from ``DIR/NAME.npz`` (written by
+``--save`` on another workspace): models made on one population, measured on another. Every variant runs with the same data, rounds, pixels and CG iterations. Measures, per row:
+
+- expressive power: the relative residual of the held-out wild identities' true per-vertex diffuse albedo and lobe
+  weights after projection onto the model (``evaluate expressive``'s measure, prior 1e-3), and the gap to the
+  oracle (a model of the same size from the training identities' truth) closed from the initial model;
+- the refined PSNR / SSIM of the test images from zero coefficients (the model alone, no encoder), and the gain
+  over the initial model per image with its 95 % CI;
+- the model update's CPU time (``time.process_time``, all threads).
+
+The model of the last round is measured (``keep_best=False``), whatever the validation split says; the report records
+the validation objective of every round.
+
+The truth is read only by the measures, never by the update.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _variant(spec: str) -> tuple[str, dict]:
+    name, _, rest = spec.partition(":")
+    kw = {}
+    for item in filter(None, rest.split(",")):
+        k, _, v = item.partition("=")
+        kw[k] = float(v) if k in ("pull", "robust", "cg_tol") else int(v)
+    return name, kw
+
+
+def _solved(model, arrays):
+    out = copy.deepcopy(model)
+    for k, v in arrays.items():
+        full = np.array(getattr(model, k), np.float32)
+        if k.endswith("basis"):
+            full[:v.shape[0]] = v
+        else:
+            full = v
+        setattr(out, k, full)
+    return out
+
+
+def _measure(model, light, ss, truth, oracle, refine) -> dict:
+    from reflectmm_cli.evaluation.expressive import projection_residuals
+    from reflectmm_cli.evaluation.reconstruction_eval import image_metrics_table
+    from reflectmm_cli.finetune.reconstruct import reconstruct
+
+    out = {}
+    for part, key in (("albedo", "vertex_albedo"), ("weights", "vertex_weights")):
+        for name, m in (("model", model), ("oracle", oracle)):
+            if m is None:
+                continue
+            mean = m[f"{key}_mean"] if isinstance(m, dict) else getattr(m, f"{key}_mean")
+            basis = m[f"{key}_basis"] if isinstance(m, dict) else getattr(m, f"{key}_basis")
+            sigma = m["sigma"] if isinstance(m, dict) else m.sigma
+            r = projection_residuals(mean, basis, sigma, truth[part], truth["skin"], prior=1e-3)
+            out[f"{part}_residual" + ("" if name == "model" else "_oracle")] = float(r.mean())
+    rec = reconstruct(ss, None, model, light, split="test", refine=refine)
+    fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
+    out["psnr"] = np.asarray(fm.per_image["psnr"], np.float64).tolist()
+    out["ssim"] = np.asarray(fm.per_image["ssim"], np.float64).tolist()
+    return out
+
+
+def _ci(d) -> str:
+    from reflectmm_cli.evaluation.face_metrics import mean_ci
+
+    c = mean_ci(np.asarray(d, np.float64))
+    return f"{c['mean']:+.2f} ± {c['half_width']:.2f}" if abs(c["mean"]) >= 0.05 or c["half_width"] >= 0.05 \
+        else f"{c['mean']:+.4f} ± {c['half_width']:.4f}"
+
+
+def summarise(paths: list[Path]) -> str:
+    """The markdown table of JSON-lines files written by ``--jsonl`` (the row ``initial`` is the reference)."""
+    rows = [json.loads(line) for p in paths for line in open(p) if line.strip()]
+    ini = next(r for r in rows if r["variant"] == "initial")
+    out = ["| update | config | rounds | training objective | validation objective | pixels left out | albedo "
+           "residual (gap closed) | lobe-weight residual (gap closed) | refined test PSNR | Δ PSNR vs initial | "
+           "SSIM | Δ SSIM vs initial | CPU s |", "|" + "---|" * 13]
+    for r in rows:
+        gap = [(ini[k] - r[k]) / (ini[k] - r[k + "_oracle"]) for k in ("albedo_residual", "weights_residual")]
+        rep = r.get("report", {}).get("rounds", [])
+        tr = f"{rep[-1]['solve_start']:.5f} → {rep[-1]['solve_end']:.5f}" if len(rep) > 1 else "–"
+        va = " → ".join(f"{x['val_objective']:.5f}" for x in rep) if rep else "–"
+        lo = f"{100 * rep[-1].get('pixels_left_out', 0):.1f} %" if len(rep) > 1 else "–"
+        cfg = ", ".join(f"{k} {v:g}" for k, v in r["config"].items()) or "–"
+        dp = np.subtract(r["psnr"], ini["psnr"])
+        ds = np.subtract(r["ssim"], ini["ssim"])
+        same = r is ini or not (dp.any() or ds.any())
+        cpu = f"{r['cpu_s']:.0f}" if "cpu_s" in r else "–"
+        out.append(f"| {r['variant']} | {cfg} | {r['rounds'] if rep else '–'} | {tr} | {va} | {lo} | "
+                   f"{r['albedo_residual']:.3f} ({100 * gap[0]:+.0f} %) | {r['weights_residual']:.3f} "
+                   f"({100 * gap[1]:+.0f} %) | {np.mean(r['psnr']):.2f} | {'–' if same else _ci(dp)} | "
+                   f"{np.mean(r['ssim']):.3f} | {'–' if same else _ci(ds)} | {cpu} |")
+    oracle = rows[0]
+    out.append(f"| oracle | – | – | – | – | – | {oracle['albedo_residual_oracle']:.3f} | "
+               f"{oracle['weights_residual_oracle']:.3f} | – | – | – | – | – |")
+    return "\n".join(out)
+
+
+def encoder_table(ws: Path, specs: list[str]) -> str:
+    """Table 2's encoder-only PSNR / SSIM of the test images for ``NAME=MODEL,ENCODER`` rows (the first row is the
+    reference of the per-image gains)."""
+    from reflectmm_cli.evaluation.reconstruction_eval import image_metrics_table
+    from reflectmm_cli.finetune.encoder import load_encoder
+    from reflectmm_cli.finetune.reconstruct import reconstruct
+    from reflectmm_cli.finetune.shards import load_shards
+    from reflectmm_cli.finetune.train import load_models
+
+    ss = load_shards(sorted((ws / "prepare-wild").glob("shard_*.npz")))
+    out = ["| method | model | encoder | PSNR | Δ PSNR | SSIM | Δ SSIM |", "|---|---|---|---|---|---|---|"]
+    ref = None
+    for spec in specs:
+        name, _, paths = spec.partition("=")
+        mp, ep = paths.split(",")
+        m, lt = load_models(mp, ws / "build-light-pca" / "build-light-pca.npz")
+        rec = reconstruct(ss, load_encoder(ep, "cpu")[0], m, lt, split="test")
+        fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
+        ps, ss_ = np.asarray(fm.per_image["psnr"], np.float64), np.asarray(fm.per_image["ssim"], np.float64)
+        ref = ref or (ps, ss_)
+        gain = ("–", "–") if ps is ref[0] else (_ci(ps - ref[0]), _ci(ss_ - ref[1]))
+        out.append(f"| {name} | {Path(mp).name} | {Path(ep).name} | {ps.mean():.2f} | {gain[0]} | {ss_.mean():.3f} | "
+                   f"{gain[1]} |")
+    return "\n".join(out)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workspace", type=Path, default=Path("work"))
+    ap.add_argument("--variant", action="append", default=[], help="NAME[:key=value,...]; initial, sgd: references")
+    ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--max-pixels", type=int, default=1000)
+    ap.add_argument("--cg-iterations", type=int, default=100)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--jsonl", type=Path, default=None, help="append one JSON line per row")
+    ap.add_argument("--save", type=Path, default=None, help="write each solved variant's per-vertex arrays here")
+    ap.add_argument("--encoder", action="append", default=[],
+                    help="NAME=MODEL,ENCODER: print Table 2's encoder-only rows of the test images and exit")
+    ap.add_argument("--summarise", type=Path, nargs="+", default=None,
+                    help="print the markdown table of these --jsonl files and exit")
+    ap.add_argument("--load", type=Path, default=None,
+                    help="measure the variants saved here by --save (another population's run) instead of solving")
+    a = ap.parse_args()
+    if a.summarise:
+        print(summarise(a.summarise))
+        return 0
+    import torch
+
+    torch.set_num_threads(a.threads)
+    if a.encoder:
+        print(encoder_table(a.workspace, a.encoder))
+        return 0
+
+    from reflectmm_cli.evaluation.expressive import oracle_model
+    from reflectmm_cli.finetune.model_solve import SolveConfig, alternate
+    from reflectmm_cli.finetune.refine import RefineConfig
+    from reflectmm_cli.finetune.shards import load_shards
+    from reflectmm_cli.finetune.train import load_models
+    from reflectmm_cli.geometry.face_model import load_face_model
+    from reflectmm_cli.stages.evaluate_expressive import load_wild_truth
+
+    torch.set_num_threads(a.threads)
+    ws = a.workspace
+    model, light = load_models(ws / "build-pca" / "build-pca.npz", ws / "build-light-pca" / "build-light-pca.npz")
+    ss = load_shards(sorted((ws / "prepare-wild").glob("shard_*.npz")))
+    fm = load_face_model(ws / "synth-wild" / "face_model.npz")
+    tr = load_wild_truth(ws / "synth-wild")
+    held = tr["heldout"]
+    truth = {"albedo": np.stack([tr["albedo"][i] for i in held]).astype(np.float64),
+             "weights": np.stack([tr["weights"][i] for i in held]).astype(np.float64),
+             "skin": np.stack([tr["skin"][i] for i in held]).astype(bool)}
+    oracle = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),
+                          np.stack([tr["weights"][i] for i in tr["train"]]), model.exponents, model.n_components)
+    refine = RefineConfig()
+    for spec in a.variant:
+        name, kw = _variant(spec)
+        row = {"variant": name, "config": kw, "rounds": a.rounds, "max_pixels": a.max_pixels,
+               "cg_iterations": a.cg_iterations, "threads": a.threads}
+        if name == "initial":
+            m = model
+        elif name == "sgd":
+            m = load_models(ws / "finetune" / "finetune.npz", ws / "build-light-pca" / "build-light-pca.npz")[0]
+        elif a.load is not None:
+            m = _solved(model, dict(np.load(a.load / f"{name}.npz")))
+        else:
+            cfg = SolveConfig(rounds=a.rounds, max_pixels=a.max_pixels, cg_iterations=a.cg_iterations, **kw)
+            t = time.process_time()
+            arrays, rep = alternate(model, light, ss, cfg, mesh=(fm.mean_shape, fm.triangles),
+                                    log=lambda s: print(s, file=sys.stderr, flush=True), keep_best=False)
+            row["cpu_s"] = time.process_time() - t
+            row["report"] = {"rounds": rep.rounds, "best_round": rep.best_round}
+            m = _solved(model, arrays)
+            if a.save is not None:
+                a.save.mkdir(parents=True, exist_ok=True)
+                np.savez(a.save / f"{name}.npz", **arrays)
+        row.update(_measure(m, light, ss, truth, oracle, refine))
+        print(json.dumps({k: v for k, v in row.items() if k not in ("psnr", "ssim")} |
+                         {"psnr_mean": float(np.mean(row["psnr"])), "ssim_mean": float(np.mean(row["ssim"]))}),
+              flush=True)
+        if a.jsonl is not None:
+            with open(a.jsonl, "a") as f:
+                f.write(json.dumps(row) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
