@@ -43,6 +43,7 @@ from reflectmm_cli.geometry_fit.photometric import (
     solve_albedo,
     solve_lighting,
 )
+from reflectmm_cli.geometry_fit.placement import pose_curvature, pose_sigmas, rig_shift, view_evidence
 from reflectmm_cli.geometry_fit.visibility import vertex_visibility
 from reflectmm_cli.progress import progress
 from reflectmm_cli.threads import torch_threads
@@ -81,6 +82,12 @@ class FitConfig:
                                     # (its origin) within ~σ of the model origin.  Breaks the face-size /
                                     # distance ambiguity of a rig whose cameras all look from one side
                                     # (0 disables)
+    unmarked_sigma_mm: float = 0.0  # soft rig constraint σ of a view without landmarks (0: rig_sigma_mm); wider
+                                    # for a camera whose rig position is only a nominal table's
+    unmarked_rot_sigma_deg: float = 2.0  # prior on the orientation of a view without landmarks: the rig's,
+                                         # moved by the head rotation, within ~σ
+    uncertainty: str = "unmarked"   # per-view pose uncertainty from the curvature of the last stage's objective:
+                                    # "unmarked" (the views without landmarks), "all" or "none"
     fit_expression: bool = True
     photo_vertices: int = 2000      # at most this many skin vertices in the photometric term
     photo_min_cos: float = 0.5      # a vertex enters a view's photometric term only if n·v exceeds this
@@ -113,7 +120,8 @@ class FitConfig:
 class ViewSet:
     """The views of one identity: names, intrinsics, initial poses, landmarks and (optional) images.
 
-    K, R0: (V, 3, 3); t0: (V, 3); landmarks: (V, 68, 2) pixels, NaN where missing;
+    K, R0: (V, 3, 3); t0: (V, 3); landmarks: (V, 68, 2) pixels, NaN where missing (a view without any is placed
+    by the rig and the image terms: it needs rig_centers and rig_R, and at least one view with landmarks);
     images: (V, h, w, 3) linear room-light images or None; image_size (W, H) of the full frame;
     rig_centers: (V, 3) nominal camera positions in the rig frame (soft rig constraint) or None;
     rig_R: (V, 3, 3) the rig's world-to-camera rotations (soft orientation constraint) or None;
@@ -199,6 +207,11 @@ class GeometryFit:
     flash_gain: np.ndarray | None = None  # (F,) fitted relative flash intensities (geometric mean 1; NaN = unused)
     history: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    evidence: list[str] = field(default_factory=list)  # (V,) what placed each view: "landmarks" or "rig", and
+                                                       # "+photo" / "+flash" for the image terms it entered
+    center_sigma_mm: np.ndarray | None = None    # (V,) 1-σ of each camera centre (the others held), mm
+    rotation_sigma_deg: np.ndarray | None = None  # (V,) 1-σ of each camera orientation (largest axis), degrees
+    rig_shift_mm: np.ndarray | None = None       # (V,) fitted centre − the rig's centre under the fitted head, mm
 
     @property
     def cam_centers(self) -> np.ndarray:
@@ -224,6 +237,8 @@ def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = N
         A :class:`GeometryFit` (coefficients, vertices, per-view R, t, residuals).
     """
     cfg = config or FitConfig()
+    if cfg.uncertainty not in ("none", "unmarked", "all"):
+        raise ReflectmmError(f"uncertainty must be none, unmarked or all, got {cfg.uncertainty!r}")
     if cfg.albedo not in ("auto", "texture", "per-vertex", "constant"):
         raise ReflectmmError(f"albedo must be auto, texture, per-vertex or constant, got {cfg.albedo!r}")
     with torch_threads(cfg.threads):
@@ -248,9 +263,12 @@ class _FitProblem:
         lm_obs = views.landmarks
         self.valid = valid = np.isfinite(lm_obs).all(-1)
         for v in range(V):
-            if valid[v].sum() < 6:
+            if 0 < valid[v].sum() < 6:
                 raise ReflectmmError(f"view {views.names[v]}: only {int(valid[v].sum())} valid landmarks "
                                      "(at least 6 needed)")
+        self.marked = marked = valid.any(1)
+        if not marked.any():
+            raise ReflectmmError("no view has landmarks: at least one view needs them to place the face")
         wl = landmark_weights(cfg.group_weights)[None, :] * valid
         self.wl_t = tt(wl)
         self.wsum = float(wl.sum())
@@ -270,6 +288,9 @@ class _FitProblem:
         self.dw = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
         self.dtr = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
         self._init_rig()
+        self._check_unmarked()
+        self.probe: torch.Tensor | None = None
+        self.last_loss = None
         self.history: list[dict] = []
         self.n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
         self.n_flash = cfg.flash_rounds if (views.flash_images is not None and cfg.w_flash > 0) else 0
@@ -292,13 +313,51 @@ class _FitProblem:
         self.dth = torch.zeros(3, dtype=self.dtype, device=self.device, requires_grad=use_rig)
         self.pose_params = [self.dw, self.dtr] + ([self.dwh, self.dth] if use_rig else [])
 
+    def _check_unmarked(self) -> None:
+        """Priors of the views without landmarks: their centre (σ ``unmarked_sigma_mm``) and orientation (σ
+        ``unmarked_rot_sigma_deg``) follow the rig under the fitted head; refused when there is no rig to follow."""
+        views, cfg, V = self.views, self.cfg, self.V
+        um = ~self.marked
+        self.rig_w_t = self.tt(np.where(um, 1.0 / (cfg.unmarked_sigma_mm or cfg.rig_sigma_mm) ** 2
+                                        if cfg.rig_sigma_mm > 0 else 0.0, 1.0 / max(cfg.rig_sigma_mm, 1e-12) ** 2))
+        self.unmarked_rot_w_t = None
+        if not um.any():
+            return
+        names = ", ".join(n for n, u in zip(views.names, um) if u)
+        if not self.use_rig or views.rig_R is None or cfg.unmarked_rot_sigma_deg <= 0:
+            raise ReflectmmError(f"view(s) {names} have no landmarks and nothing else places them: they need the "
+                                 "rig (rig centres and orientations, rig_sigma_mm > 0, unmarked_rot_sigma_deg > 0, "
+                                 f"at least 3 views; here {V})")
+        self.rigR_t = self.tt(views.rig_R)
+        self.unmarked_rot_w_t = self.tt(um / math.radians(cfg.unmarked_rot_sigma_deg) ** 2)
+
     def tt(self, a) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)
 
     def poses(self):
         """Per-view world-to-camera (R (V, 3, 3), t (V, 3)) at the current unknowns."""
         R = axis_angle_to_matrix(self.dw * self.r_unit) @ self.R0_t
-        return R, self.t0_t + self.dtr * self.tv_unit
+        t = self.t0_t + self.dtr * self.tv_unit
+        if self.probe is not None:
+            R, t = self._probed(R, t)
+        return R, t
+
+    def _probed(self, R, t):
+        """Poses moved by ``probe`` (V, 6): a centre shift δc (mm) that keeps the model origin on the same pixel
+        (the camera turns to keep aiming at it), then a turn ω in units of 1 / distance (rad), so that both
+        halves move the image by similar amounts (:mod:`.placement`)."""
+        c = camera_centers(R, t)
+        c2 = c + self.probe[:, 3:]
+        a = -c2 / torch.linalg.norm(c2, dim=-1, keepdim=True)          # new direction to the origin
+        b = -c / torch.linalg.norm(c, dim=-1, keepdim=True)            # old one
+        v = torch.cross(a, b, dim=-1)
+        vx = torch.zeros(self.V, 3, 3, dtype=self.dtype, device=self.device)
+        vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        vx = vx - vx.transpose(1, 2)
+        Q = torch.eye(3, dtype=self.dtype, device=self.device) + vx + vx @ vx / (1 + (a * b).sum(-1))[:, None, None]
+        dist = torch.linalg.norm(c, dim=-1, keepdim=True).detach()
+        R = axis_angle_to_matrix(self.probe[:, :3] / dist) @ R @ Q      # Q a = b: the origin stays on its ray
+        return R, -(R @ c2[..., None])[..., 0]
 
     def verts(self) -> torch.Tensor:
         return self.ts.vertices(self.zs, self.ze)
@@ -326,7 +385,9 @@ class _FitProblem:
             c = camera_centers(R, t)
             Rh, th = self.head()
             ch = self.rig_t @ Rh.T + th
-            p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
+            p = p + 0.5 * (((c - ch) ** 2).sum(-1) * self.rig_w_t).sum()
+            if self.unmarked_rot_w_t is not None:  # views without landmarks follow the rig's aim
+                p = p + 0.25 * (((R - self.rigR_t @ Rh.T) ** 2).sum((1, 2)) * self.unmarked_rot_w_t).sum()
             if self.use_rot:
                 # model → camera of view v is R_rig,v · Rhᵀ when the head pose (rig → model) is (Rh, th);
                 # ‖ΔR‖²_F = 2·(2 − 2cos θ) ≈ 2θ² for a rotation error θ, so ¼‖ΔR‖²/σ² ≈ ½θ²/σ²
@@ -350,6 +411,7 @@ class _FitProblem:
             return loss
 
         opt.step(closure)
+        self.last_loss = closure_loss
         with torch.no_grad():
             final = float(closure_loss())
         self.history.append({"stage": stage, "loss": final, "evals": int(opt.state[opt._params[0]]["func_evals"])})
@@ -525,13 +587,17 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
                 t_start: float) -> GeometryFit:
     """Gather the :class:`GeometryFit` at the final unknowns (landmark RMSE per view, coefficients, vertices)."""
     model, cfg, views, V, valid = prob.model, prob.cfg, prob.views, prob.V, prob.valid
+    which = {"all": np.arange(V), "unmarked": np.nonzero(~prob.marked)[0]}.get(cfg.uncertainty, [])
+    with torch.no_grad():
+        dist = np.linalg.norm(camera_centers(*prob.poses()).cpu().numpy(), axis=-1)
+    c_sig, r_sig = pose_sigmas(pose_curvature(prob, which), dist)
     with torch.no_grad():
         X = prob.verts()
         R, t = prob.poses()
         _, uv = prob.lm_loss(X, R, t)
     uv = uv.cpu().numpy().astype(np.float64)
     err = np.linalg.norm(uv - views.landmarks, axis=-1)
-    rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) for v in range(V)])
+    rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) if valid[v].any() else math.nan for v in range(V)])
     zs_np = prob.zs.detach().cpu().numpy().astype(np.float64)
     ze_np = prob.ze.detach().cpu().numpy().astype(np.float64)
     shape_coeffs = zs_np * model.shape_sigma
@@ -543,7 +609,9 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
                        visible_count=photo.visible, sh=photo.sh, albedo=photo.albedo,
                        photo_sample=None if sm is None else sm.sample, history=prob.history,
                        flash_residual=flash_res, flash_gain=flash_gain,
-                       seconds=time.perf_counter() - t_start)
+                       seconds=time.perf_counter() - t_start,
+                       evidence=view_evidence(prob.marked, photo.visible if prob.n_photo else None, flash_res),
+                       center_sigma_mm=c_sig, rotation_sigma_deg=r_sig, rig_shift_mm=rig_shift(prob))
 
 
 class _FlashPairs:
