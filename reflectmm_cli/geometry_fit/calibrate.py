@@ -43,6 +43,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry import align
 from reflectmm_cli.geometry.rotations import nearest_rotation, rodrigues, rotation_angle, skew
 from reflectmm_cli.geometry_fit.init import rigid_align
 from reflectmm_cli.geometry_fit.landmarks import landmark_weights
@@ -816,11 +817,13 @@ def _subset(setup: _RigSetup, keep: np.ndarray) -> _RigSetup:
 
 
 def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: CalibrationConfig) -> RigCalibration:
-    """Insert the cameras no identity annotates: the nominal table's pose carried by the rigid map that best aligns
-    the nominal centres of the calibrated cameras to their fitted ones (their nominal prior, not measured; σ NaN),
-    the focal the nominal one (times the fitted common factor with a shared focal)."""
+    """Insert the cameras no identity annotates: the nominal table's pose carried by the similarity that best
+    aligns the nominal centres of the calibrated cameras to their fitted ones (a table's distance is its least
+    certain part; the scale corrects it), their nominal prior, not measured (σ NaN); the focal the nominal one
+    (times the fitted common factor with a shared focal)."""
     k_seen, k_un = np.nonzero(seen)[0], np.nonzero(~seen)[0]
-    Ra, ta, res = rigid_align(setup.c0[k_seen], cal.centers)
+    Ra, ta, sa = align.rigid_align(setup.c0[k_seen], cal.centers, scale=True)
+    res = np.linalg.norm(sa * setup.c0[k_seen] @ Ra.T + ta - cal.centers, axis=-1)
     C, N = setup.C, setup.N
     R = np.zeros((C, 3, 3))
     centers = np.zeros((C, 3))
@@ -829,7 +832,7 @@ def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: Ca
         focal = focal * float(np.median(cal.focal / focal[k_seen]))
     R[k_seen], centers[k_seen], focal[k_seen] = cal.R, cal.centers, cal.focal
     R[k_un] = setup.R0[k_un] @ Ra.T
-    centers[k_un] = setup.c0[k_un] @ Ra.T + ta
+    centers[k_un] = sa * setup.c0[k_un] @ Ra.T + ta
 
     def widen(a, fill):
         out = np.full((C,) + a.shape[1:], fill, dtype=a.dtype)
@@ -839,7 +842,8 @@ def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: Ca
     names = [setup.names[k] for k in k_un]
     cal.assumptions.append(
         f"camera(s) {', '.join(names)}: no identity has landmarks in them; placed by the nominal table carried "
-        f"by the rigid map of the calibrated cameras (residual {np.sqrt(np.mean(res ** 2)):.1f} mm RMS): nominal "
+        f"by the similarity of the calibrated cameras (x{sa:.4f}, residual {np.sqrt(np.mean(res ** 2)):.1f} mm "
+        "RMS): nominal "
         "prior only, not measured (fit-geometry refines each view by its images)")
     cal.report["camera_placed_by"] = {n: ("nominal prior only" if k in k_un else "landmarks")
                                       for k, n in enumerate(setup.names)}
@@ -874,7 +878,7 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
         :class:`RigCalibration`.
 
     A camera that no identity annotates (no detector finds a face in it) keeps the nominal table's pose, carried
-    by the rigid map of the calibrated cameras (:func:`_add_unseen`); the report's ``camera_placed_by`` says
+    by the similarity of the calibrated cameras (:func:`_add_unseen`); the report's ``camera_placed_by`` says
     which cameras were measured.  Needs at least 3 cameras with landmarks then.
     """
     cfg = config or CalibrationConfig()

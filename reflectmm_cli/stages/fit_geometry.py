@@ -66,6 +66,10 @@ PARAMS = (
               "is only a nominal table's (calibrate-rig reports which)."),
     _cfg("unmarked_rot_sigma_deg", "float", range=(0.0, None), low_open=True, option="--unmarked-rot-sigma",
          unit="deg", help="prior on the aim of a view without landmarks: the rig's, moved by the head rotation."),
+    _cfg("register_blur_px", "floats", range=(0.0, None), option="--register-blur", unit="px",
+         help="views without landmarks: one round per blur registering their poses by the flash images, the face "
+              "and the other views held (empty = off)."),
+    _cfg("register_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per registration round."),
     _cfg("uncertainty", "str", choices=("none", "unmarked", "all"),
          help="report the pose uncertainty of the views without landmarks (unmarked), of every view, or none "
               "(12 gradient evaluations per view)."),
@@ -123,8 +127,9 @@ def _outputs(ctx: StageContext) -> list[Path]:
 def config_from_params(params: dict) -> FitConfig:
     """The FitConfig of resolved stage params."""
     kw = {k: v for k, v in params.items() if k in _CONFIG_FIELDS and v is not None}
-    if "photo_blur_px" in kw:
-        kw["photo_blur_px"] = tuple(float(x) for x in kw["photo_blur_px"])
+    for k in ("photo_blur_px", "register_blur_px"):
+        if k in kw:
+            kw[k] = tuple(float(x) for x in kw[k])
     return FitConfig(**kw)
 
 

@@ -228,5 +228,8 @@ def test_calibrate_rig_and_fit_without_the_side_landmarks(world, cli, tmp_path):
     g = read_artifact(tmp_path / "g.npz", "geometry")
     ev = [str(e).split("+")[0] for e in g["view_evidence"]]
     assert ev == ["rig", "landmarks", "landmarks", "landmarks", "landmarks", "rig"]
-    assert g["view_evidence"][5] == "rig+flash"  # 19_1 carries flash 18 and sees 07's light; 13_0 sees neither
+    reg = [p["registered_by_flash"] for p in g.meta["report"]["placement"]]
+    assert reg[1:5] == [None] * 4 and all(isinstance(r, bool) for r in (reg[0], reg[5]))
+    for k in (0, 5):  # "+flash" exactly when the flash registration was kept
+        assert (g["view_evidence"][k] == "rig+flash") == reg[k]
     assert np.isfinite(g["center_sigma_mm"][[0, 5]]).all()
