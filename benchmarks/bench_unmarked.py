@@ -49,6 +49,9 @@ def main(argv=None):
     ap.add_argument("--fit-args", default=FIT_ARGS)
     ap.add_argument("--tag", default="", help="suffix of the result folders (to compare fit arguments)")
     ap.add_argument("--reflectance", action="store_true")
+    ap.add_argument("--unwrap-views", default="default", choices=("default", "landmarks"),
+                    help="views of unwrap-uv: its default (the paper's 9) or those of them with landmarks")
+    ap.add_argument("--reuse", action="store_true", help="reuse the fitted geometry of an earlier run (no times)")
     args = ap.parse_args(argv)
     rows = run(args)
     print(f"`python benchmarks/bench_unmarked.py {' '.join(argv if argv is not None else sys.argv[1:])}` — "
@@ -59,14 +62,21 @@ def main(argv=None):
           "err (median) |")
     print("|---|---|---|---|---|---|---|")
     base = rows.get("all")
+    base = None if base is None or "error" in base else base
     for name, r in rows.items():
+        if "error" in r:
+            print(f"| {name} | refused: {r['error']} | | | | | |")
+            continue
         ratio = (f"{np.median(r['vert'] / base['vert']):.2f} ({(r['vert'] / base['vert']).max():.2f} max)"
                  if base is not None else "")
         um = f"{r['cam_unmarked']:.1f}" if np.isfinite(r["cam_unmarked"]) else "–"
+        secs = f"{r['seconds']:.0f}" if np.isfinite(r["seconds"]) else "–"
         alb = f"{np.median(r['albedo']):.3f}" if r["albedo"] else "–"
         print(f"| {name} | {r['marked']} / {r['views']} | {np.median(r['vert']):.2f} / {r['vert'].max():.2f} | "
-              f"{ratio} | {r['cam_all']:.1f} / {um} | {r['seconds']:.0f} | {alb} |")
+              f"{ratio} | {r['cam_all']:.1f} / {um} | {secs} | {alb} |")
     for name, r in rows.items():
+        if "error" in r:
+            continue
         print(f"\n{name}: per view (largest camera error over identities, mm; evidence of identity 001): "
               + ", ".join(f"{v} {e:.1f} ({ev})" for v, e, ev in r["per_view"]))
 
@@ -114,7 +124,10 @@ def run(args) -> dict:
         cli("detect-landmarks", *rooms, "--out", dirs["detect"], ok=(0, 1))
     rows = {}
     for name in [s for s in args.sets.split(",") if s]:
-        rows[name] = _one_set(args, ws, name, dirs.get(name), ids, views, true, cli, read_artifact)
+        try:
+            rows[name] = _one_set(args, ws, name, dirs.get(name), ids, views, true, cli, read_artifact)
+        except SystemExit as exc:  # a set the chain refuses (e.g. too few annotated cameras): say so, go on
+            rows[name] = {"error": str(exc).strip().splitlines()[-1]}
     return rows
 
 
@@ -137,6 +150,9 @@ def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> di
                  for c in caps)
     out = base / f"fit{args.tag}"
     t0 = time.perf_counter()
+    if args.reuse and all((out / "geo" / f"{i}.npz").is_file() for i in ids):
+        geos = [read_artifact(out / "geo" / f"{i}.npz", "geometry") for i in ids]
+        return _summary(args, ws, out, ids, views, geos, marked, float("nan"), cli, read_artifact)
     cli("calibrate-rig", *[a for c in caps for a in ("--capture", c)], "--face-model", ws / "syn" / "face_model.npz",
         "--rig", ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px, "-o", out / "cal" / "rig.npz")
     geos = []
@@ -146,13 +162,24 @@ def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> di
             out / "cal" / "rig.toml", "--truth", ws / "syn" / "truth" / f"{i}.npz", "--no-overlay", "-o", g,
             *shlex.split(args.fit_args))
         geos.append(read_artifact(g, "geometry"))
-    seconds = time.perf_counter() - t0
+    return _summary(args, ws, out, ids, views, geos, marked, time.perf_counter() - t0, cli, read_artifact)
+
+
+def _summary(args, ws, out, ids, views, geos, marked, seconds, cli, read_artifact) -> dict:
+    from reflectmm_cli.rig import DEFAULT_VIEWS
+
     albedo = []
     if args.reflectance:
         for i, g in zip(ids, geos):
-            o, mp, ev = out / "obs" / f"{i}.npz", out / "maps" / f"{i}.npz", out / "eval" / f"{i}.npz"
+            sub = "" if args.unwrap_views == "default" else "_lmviews"
+            o, mp, ev = (out / f"obs{sub}" / f"{i}.npz", out / f"maps{sub}" / f"{i}.npz",
+                         out / f"eval{sub}" / f"{i}.npz")
+            uv = []
+            if args.unwrap_views == "landmarks":
+                uv = ["--views", ",".join(str(v) for v, e in zip(g["view_names"], g["view_evidence"])
+                                          if str(v) in DEFAULT_VIEWS and str(e).startswith("landmarks"))]
             cli("unwrap-uv", "--id", i, "--capture", ws / "cap9" / f"{i}.npz", "--geometry", g.path, "--face-model",
-                ws / "syn" / "face_model.npz", "--output", o)
+                ws / "syn" / "face_model.npz", "--output", o, *uv)
             cli("fit-reflectance", "--id", i, "--input", o, "--output", mp)
             cli("evaluate", "truth", "--id", i, "--maps", mp, "--truth", ws / "syn" / "truth" / f"{i}.npz",
                 "--output", ev)

@@ -14,6 +14,10 @@ Loss (docs/fit-geometry.md):
 ``w_lm · Σ w_i huber(‖π(R_v X_i + t_v) − x_vi‖, δ_px) / Σ w_i`` +
 ``w_photo · mean_visible Σ_c charbonnier((ρ_vm − I_v(π(X_m)))/s)`` + ``w_shape ‖zs‖² + w_exp ‖ze‖²``, and in the
 flash stage ``w_flash · mean_lit,visible Σ_c charbonnier((c_m g_f I_f max(n·l, 0)/d² − O_vf(π(X_m)))/s)``.
+
+Views without landmarks (NaN): placed by the rig prior under the head, out of the image terms, then registered by
+the flash term with everything else held (:func:`_register_unmarked`); per-view evidence and uncertainty:
+:mod:`.placement`.
 """
 
 from __future__ import annotations
