@@ -93,7 +93,7 @@ class FitConfig:
                                          # moved by the head rotation, within ~σ
     register_blur_px: tuple[float, ...] = (4.0, 2.0, 0.0)  # views without landmarks, with flash images: one
                                     # round per blur (px) registering only their poses by the flash term (the
-                                    # other views and the face held) before the joint stages; () = off
+                                    # other views and the face held) after the joint stages; () = off
     register_iters: int = 40        # L-BFGS iterations per registration round
     uncertainty: str = "unmarked"   # per-view pose uncertainty from the curvature of the last stage's objective:
                                     # "unmarked" (the views without landmarks), "all" or "none"
@@ -640,7 +640,8 @@ class _FlashPairs:
     """The (view, flash) pairs of the flash term and the fitted relative flash gains.
 
     ``usable`` (U,): flashes with a fitted camera or a rig position; pairs ``pv``/``pf`` (P = V'·U,) view and flash
-    of each pair over the views ``seen_by`` (V,) bool (default all); ``log_gain`` (F,) the torch unknown (a leaf that needs gradients only with ``flash_gains``).
+    of each pair over the views ``seen_by`` (V,) bool (default all); ``log_gain`` (F,) the torch unknown (a leaf
+    that needs gradients only with ``flash_gains``).
     """
 
     def __init__(self, prob: _FitProblem, usable: np.ndarray, seen_by: np.ndarray | None = None):

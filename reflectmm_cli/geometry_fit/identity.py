@@ -152,7 +152,8 @@ def placement_report(view_names: list[str], fit) -> list[dict]:
             return None if a is None else _num(a[v], nd)
         out.append({"view": name, "evidence": fit.evidence[v], "landmark_rmse_px": arr(fit.landmark_rmse_px, 3),
                     "photo_residual": arr(fit.photo_residual, 5), "flash_residual": arr(fit.flash_residual, 5),
-                    "center_sigma_mm": arr(fit.center_sigma_mm, 2), "rotation_sigma_deg": arr(fit.rotation_sigma_deg, 3),
+                    "center_sigma_mm": arr(fit.center_sigma_mm, 2),
+                    "rotation_sigma_deg": arr(fit.rotation_sigma_deg, 3),
                     "rig_shift_mm": arr(fit.rig_shift_mm, 2),
                     "registered_by_flash": None if fit.evidence[v].startswith("landmarks") or fit.registered is None
                     else bool(fit.registered[v])})

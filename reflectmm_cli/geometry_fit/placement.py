@@ -69,7 +69,8 @@ def pose_curvature(prob, views, h_rot: float = 2.0, h_mm: float = 2.0) -> np.nda
 
 def pose_sigmas(H: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """1-σ of each camera centre (mm, RMS over the axes × √3, i.e. the norm of the σ vector) and orientation
-    (degrees, the largest axis) from (V, 6, 6) curvatures and the camera distances (V,) mm; ∞ where the curvature is not positive definite."""
+    (degrees, the largest axis) from (V, 6, 6) curvatures and the camera distances (V,) mm; ∞ where the
+    curvature is not positive definite."""
     V = len(H)
     c_sig, r_sig = np.full(V, np.inf), np.full(V, np.inf)
     for v in range(V):
