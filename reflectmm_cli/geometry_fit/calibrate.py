@@ -858,6 +858,12 @@ def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: Ca
     cal.rotation_sigma_deg = widen(cal.rotation_sigma_deg, np.nan)
     cal.focal_sigma_px = widen(cal.focal_sigma_px, np.nan)
     cal.landmark_rmse_px, cal.outliers = rmse, outl
+    for i, cam in enumerate(cal.flash_camera):  # their flashes ride on the carried cameras
+        if cam in names:
+            k, nom = setup.names.index(cam), cal.nominal.camera(cam)
+            off = nom.R @ (np.asarray(cal.nominal.flash(cal.flash_ids[i]).position, np.float64) - nom.center)
+            cal.flash_pos[i] = centers[k] + R[k].T @ off
+            cal.flash_offset[i] = off
     return cal
 
 

@@ -183,7 +183,7 @@ def test_cameras_without_landmarks_keep_the_nominal_pose(model, world, tmp_path)
     side = [VIEWS.index(n) for n in SIDE]
     lm[:, side] = np.nan
     # a nominal table that is right up to a rigid motion of the whole rig, except 08_0: 50 mm and 3° off
-    from reflectmm_cli.rig import Rig, RigCamera
+    from reflectmm_cli.rig import Rig, RigCamera, RigFlash
 
     Rm = rodrigues(np.array([0.02, -0.05, 0.01]))
     cams = []
@@ -193,7 +193,10 @@ def test_cameras_without_landmarks_keep_the_nominal_pose(model, world, tmp_path)
             pos = pos + 50.0 * np.array([0.6, 0.0, 0.8])
             aim = rodrigues(np.radians(3.0) * np.array([0.0, 1.0, 0.0])) @ aim
         cams.append(RigCamera(c.name, pos, pos + aim, Rm @ c.up, c.focal_px, c.width, c.height))
-    nominal = Rig(cams, true.flashes, true.source)
+    by_name = {c.name: c for c in cams}
+    flashes = [RigFlash(f.id, by_name[f.camera].position if f.camera else f.position, f.intensity, f.camera)
+               for f in true.flashes]
+    nominal = Rig(cams, flashes, true.source)
     cfg = CalibrationConfig(focal="fixed", focal_px=true.camera("05_1").focal_px)
     cal = calibrate_rig(model, lm, VIEWS, (640, 480), nominal, cfg)
     assert cal.camera_names == VIEWS
@@ -217,6 +220,10 @@ def test_cameras_without_landmarks_keep_the_nominal_pose(model, world, tmp_path)
     paths = write_rig_calibration(cal, tmp_path / "rig.npz")
     back = load_rig(paths[1])
     assert np.allclose(back.camera("08_0").center, cal.centers[VIEWS.index("08_0")], atol=1e-6)
+    # flash 14 rides on the carried 08_1, in the artifact and in the table
+    f14 = cal.flash_ids.index("14")
+    assert np.allclose(cal.flash_pos[f14], cal.centers[VIEWS.index("08_1")], atol=1e-6)
+    assert np.allclose(back.flash("14").position, cal.flash_pos[f14], atol=1e-6)
 
 
 def test_fewer_than_three_annotated_cameras_are_refused(model, world):
