@@ -154,17 +154,20 @@ def landmark_path(root: str | Path, identity: str, session: str, recording: str,
                   landmarks_dir: str | Path | None = None) -> Path | None:
     """Landmark file of a camera's room-light shot (``SSS_NN_RR_CCC_00_lm.{pts,txt,npy}``), or None.
 
-    With ``landmarks_dir`` the file is looked up there, flat or mirroring the Multi-PIE layout below it.
+    With ``landmarks_dir`` the file is looked up there, flat or mirroring the Multi-PIE layout below it, also
+    under the name ``detect-landmarks`` gives it (``SSS_NN_RR_CCC_00.pts``, the room shot's stem).
     """
     stem = shot_stem(identity, session, recording, camera, ROOM_SHOT)
+    suffixes = LANDMARK_SUFFIXES
     if landmarks_dir is not None:
         base = Path(landmarks_dir)
         rel = Path(f"session{session}") / "multiview" / identity / recording / camera
         folders = [base, base / rel, base / "data" / rel]
+        suffixes = LANDMARK_SUFFIXES + (".pts",)
     else:
         folders = [camera_dir(root, identity, session, recording, camera)]
     for folder in folders:
-        for suf in LANDMARK_SUFFIXES:
+        for suf in suffixes:
             p = folder / (stem + suf)
             if p.is_file():
                 return p
@@ -226,7 +229,8 @@ def default_views(root: str | Path, identity: str, flashes=DEFAULT_FLASHES, *, s
     """The default views of a capture: the paper's 9 plus the raised camera of every raised flash used (08_1 for
     flash 14, 19_1 for 18), so that fit-geometry places those flashes from the cameras' own landmarks; their
     images are not used for reflectance (unwrap-uv leaves them out by default).  A raised camera whose room shot
-    or landmark file is missing is left out with a note (its flash then comes from the rig table).
+    is missing is left out with a note (its flash then comes from the rig table); one without a landmark file is
+    kept with a note (fit-geometry places it by the rig and refines it by its images).
 
     Returns (views, notes).
     """
@@ -242,10 +246,14 @@ def default_views(root: str | Path, identity: str, flashes=DEFAULT_FLASHES, *, s
             continue
         img = shot_path(root, identity, s, str(recording).zfill(2), cam, ROOM_SHOT)
         lm = landmark_path(root, identity, s, str(recording).zfill(2), cam, landmarks_dir)
-        if img is not None and lm is not None:
+        if img is not None:
             views.append(cam)
+            if lm is None:
+                notes.append(f"camera {cam} (flash {fl}) has no landmarks for identity {identity}: fit-geometry "
+                             "places it by the rig and the other views and refines it by its images "
+                             "(docs/capture.md)")
         else:
-            notes.append(f"flash {fl} is used but camera {cam} has no {'room shot' if img is None else 'landmarks'} "
-                         f"for identity {identity}: fit-geometry will take flash {fl}'s position from the rig table "
-                         "(hundreds of mm off on a nominal table; see docs/capture.md)")
+            notes.append(f"flash {fl} is used but camera {cam} has no room shot for identity {identity}: "
+                         f"fit-geometry will take flash {fl}'s position from the rig table (hundreds of mm off on a "
+                         "nominal table; see docs/capture.md)")
     return tuple(views), notes

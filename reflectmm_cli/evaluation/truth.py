@@ -133,7 +133,9 @@ def geometry_errors(geometry: Mapping[str, np.ndarray], truth: Mapping[str, np.n
         out["source"] = "geometry artifact (err_* arrays)"
     if "landmark_rmse_px" in geometry:
         lm = np.asarray(geometry["landmark_rmse_px"], np.float64)
-        out.update(landmark_rmse_px=float(np.sqrt(np.mean(lm ** 2))), landmark_max_px=float(lm.max()))
+        lm = lm[np.isfinite(lm)]  # NaN: a view without landmarks
+        if lm.size:
+            out.update(landmark_rmse_px=float(np.sqrt(np.mean(lm ** 2))), landmark_max_px=float(lm.max()))
     return out
 
 

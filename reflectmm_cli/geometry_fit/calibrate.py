@@ -43,6 +43,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry import align
 from reflectmm_cli.geometry.rotations import nearest_rotation, rodrigues, rotation_angle, skew
 from reflectmm_cli.geometry_fit.init import rigid_align
 from reflectmm_cli.geometry_fit.landmarks import landmark_weights
@@ -561,8 +562,10 @@ def _setup(model: ShapeModel, landmarks, camera_names: Sequence[str], image_size
     if N < 1:
         raise ReflectmmError("calibrate-rig needs at least one identity")
     seen = (per_view >= 6).sum(0)
-    if np.any(seen == 0):
-        raise ReflectmmError("no landmarks at all for camera(s) " + ", ".join(n for n, s in zip(names, seen) if s == 0))
+    if (seen > 0).sum() < 3 and np.any(seen == 0):
+        raise ReflectmmError("no landmarks at all for camera(s) " + ", ".join(n for n, s in zip(names, seen) if s == 0)
+                             + f" and only {int((seen > 0).sum())} camera(s) with landmarks: at least 3 are needed "
+                             "to carry the nominal table to the others")
     Ks = model.n_shape if cfg.n_shape is None else min(cfg.n_shape, model.n_shape)
     Ke = 0 if not cfg.fit_expression else (model.n_exp if cfg.n_exp is None else min(cfg.n_exp, model.n_exp))
     pp = np.stack([(isz[:, 0] - 1) / 2.0, (isz[:, 1] - 1) / 2.0], axis=1)
@@ -806,10 +809,68 @@ def _model_coeffs(model: ShapeModel, st: _State, Ks: int, Ke: int) -> tuple[np.n
     return shape_coeffs, exp_coeffs
 
 
+def _subset(setup: _RigSetup, keep: np.ndarray) -> _RigSetup:
+    """The setup restricted to the cameras ``keep`` (C,) bool."""
+    k = np.nonzero(keep)[0]
+    return _RigSetup(setup.lm[:, k], [setup.names[i] for i in k], setup.ids, setup.image_size[k], setup.R0[k],
+                     setup.c0[k], setup.f0[k], setup.pp[k], setup.Ks, setup.Ke, setup.assumptions)
+
+
+def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: CalibrationConfig) -> RigCalibration:
+    """Insert the cameras no identity annotates: the nominal table's pose carried by the similarity that best
+    aligns the nominal centres of the calibrated cameras to their fitted ones (a table's distance is its least
+    certain part; the scale corrects it), their nominal prior, not measured (σ NaN); the focal the nominal one
+    (times the fitted common factor with a shared focal)."""
+    k_seen, k_un = np.nonzero(seen)[0], np.nonzero(~seen)[0]
+    Ra, ta, sa = align.rigid_align(setup.c0[k_seen], cal.centers, scale=True)
+    res = np.linalg.norm(sa * setup.c0[k_seen] @ Ra.T + ta - cal.centers, axis=-1)
+    C, N = setup.C, setup.N
+    R = np.zeros((C, 3, 3))
+    centers = np.zeros((C, 3))
+    focal = setup.f0.copy() if cfg.focal_px is None else np.full(C, float(cfg.focal_px))
+    if cfg.focal == "shared":
+        focal = focal * float(np.median(cal.focal / focal[k_seen]))
+    R[k_seen], centers[k_seen], focal[k_seen] = cal.R, cal.centers, cal.focal
+    R[k_un] = setup.R0[k_un] @ Ra.T
+    centers[k_un] = sa * setup.c0[k_un] @ Ra.T + ta
+
+    def widen(a, fill):
+        out = np.full((C,) + a.shape[1:], fill, dtype=a.dtype)
+        out[k_seen] = a
+        return out
+
+    names = [setup.names[k] for k in k_un]
+    cal.assumptions.append(
+        f"camera(s) {', '.join(names)}: no identity has landmarks in them; placed by the nominal table carried "
+        f"by the similarity of the calibrated cameras (x{sa:.4f}, residual {np.sqrt(np.mean(res ** 2)):.1f} mm "
+        "RMS): nominal "
+        "prior only, not measured (fit-geometry refines each view by its images)")
+    cal.report["camera_placed_by"] = {n: ("nominal prior only" if k in k_un else "landmarks")
+                                      for k, n in enumerate(setup.names)}
+    cal.report["cameras_nominal_only"] = names
+    rmse = np.full((N, C), np.nan)
+    rmse[:, k_seen] = cal.landmark_rmse_px
+    outl = np.zeros((N, C, 68), dtype=bool)
+    outl[:, k_seen] = cal.outliers
+    cal.camera_names, cal.R, cal.centers, cal.focal = list(setup.names), R, centers, focal
+    cal.image_size = setup.image_size
+    cal.center_sigma_mm = widen(cal.center_sigma_mm, np.nan)
+    cal.rotation_sigma_deg = widen(cal.rotation_sigma_deg, np.nan)
+    cal.focal_sigma_px = widen(cal.focal_sigma_px, np.nan)
+    cal.landmark_rmse_px, cal.outliers = rmse, outl
+    for i, cam in enumerate(cal.flash_camera):  # their flashes ride on the carried cameras
+        if cam in names:
+            k, nom = setup.names.index(cam), cal.nominal.camera(cam)
+            off = nom.R @ (np.asarray(cal.nominal.flash(cal.flash_ids[i]).position, np.float64) - nom.center)
+            cal.flash_pos[i] = centers[k] + R[k].T @ off
+            cal.flash_offset[i] = off
+    return cal
+
+
 def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequence[str], image_size,
                   nominal: Rig, config: CalibrationConfig | None = None, identities: Sequence[str] | None = None,
                   flash_ids: Sequence[str] | None = None, progress_fn=None) -> RigCalibration:
-    """Bundle-adjust one rig to the landmarks of every identity.
+    """Bundle-adjust one rig to the landmarks of every identity (:func:`_setup`, :func:`_calibrate_seen`).
 
     Args:
         model: the face model (its landmark vertices, shape / expression bases and σ).
@@ -822,13 +883,33 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
     Returns:
         :class:`RigCalibration`.
 
-    Steps: :func:`_setup` → :func:`_initial_state` → :func:`_levenberg_marquardt` → :func:`_scale_anchor` →
-    :func:`_reframe` → :func:`_residuals` → :func:`_uncertainty` → :func:`_place_flashes` →
-    :func:`_calibration_report`.
+    A camera that no identity annotates (no detector finds a face in it) keeps the nominal table's pose, carried
+    by the similarity of the calibrated cameras (:func:`_add_unseen`); the report's ``camera_placed_by`` says
+    which cameras were measured.  Needs at least 3 cameras with landmarks then.
     """
     cfg = config or CalibrationConfig()
-    t_start = time.perf_counter()
     setup = _setup(model, landmarks, camera_names, image_size, nominal, cfg, identities)
+    seen = (np.isfinite(setup.lm).all(-1).sum(-1) >= 6).any(0)
+    if seen.all():
+        cal = _calibrate_seen(model, setup, nominal, cfg, flash_ids, progress_fn)
+        cal.report["camera_placed_by"] = {n: "landmarks" for n in setup.names}
+        cal.report["cameras_nominal_only"] = []
+        return cal
+    cal = _calibrate_seen(model, _subset(setup, seen), nominal, cfg, flash_ids, progress_fn)
+    cal = _add_unseen(cal, setup, seen, cfg)
+    log.warning("calibrate-rig: no landmarks for camera(s) %s in any identity: kept at the nominal table's pose "
+                "(nominal prior only)", ", ".join(cal.report["cameras_nominal_only"]))
+    return cal
+
+
+def _calibrate_seen(model: ShapeModel, setup: _RigSetup, nominal: Rig, cfg: CalibrationConfig,
+                    flash_ids: Sequence[str] | None, progress_fn) -> RigCalibration:
+    """:func:`calibrate_rig` on cameras that all have landmarks.
+
+    Steps: :func:`_initial_state` → :func:`_levenberg_marquardt` → :func:`_scale_anchor` → :func:`_reframe` →
+    :func:`_residuals` → :func:`_uncertainty` → :func:`_place_flashes` → :func:`_calibration_report`.
+    """
+    t_start = time.perf_counter()
     prob = _Problem(model, setup.lm, setup.R0, setup.c0, setup.f0, setup.pp, cfg, setup.Ks, setup.Ke)
     opts = LMOptions.from_config(cfg)
     lmr = _levenberg_marquardt(prob, _initial_state(prob, setup.R0, setup.c0), opts, progress_fn)

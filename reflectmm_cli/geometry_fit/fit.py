@@ -14,6 +14,10 @@ Loss (docs/fit-geometry.md):
 ``w_lm · Σ w_i huber(‖π(R_v X_i + t_v) − x_vi‖, δ_px) / Σ w_i`` +
 ``w_photo · mean_visible Σ_c charbonnier((ρ_vm − I_v(π(X_m)))/s)`` + ``w_shape ‖zs‖² + w_exp ‖ze‖²``, and in the
 flash stage ``w_flash · mean_lit,visible Σ_c charbonnier((c_m g_f I_f max(n·l, 0)/d² − O_vf(π(X_m)))/s)``.
+
+Views without landmarks (NaN): placed by the rig prior under the head, out of the image terms, then registered by
+the flash term with everything else held (:func:`_register_unmarked`); per-view evidence and uncertainty:
+:mod:`.placement`.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from reflectmm_cli.geometry_fit.photometric import (
     solve_albedo,
     solve_lighting,
 )
+from reflectmm_cli.geometry_fit.placement import pose_curvature, pose_sigmas, rig_shift, view_evidence
 from reflectmm_cli.geometry_fit.visibility import vertex_visibility
 from reflectmm_cli.progress import progress
 from reflectmm_cli.threads import torch_threads
@@ -81,6 +86,17 @@ class FitConfig:
                                     # (its origin) within ~σ of the model origin.  Breaks the face-size /
                                     # distance ambiguity of a rig whose cameras all look from one side
                                     # (0 disables)
+    unmarked_sigma_mm: float = 100.0  # soft rig constraint σ of a view without landmarks (0: rig_sigma_mm): wide,
+                                      # a camera no identity annotates has only a nominal table's place; the flash
+                                      # registration moves it (and is rejected beyond 3 σ)
+    unmarked_rot_sigma_deg: float = 2.0  # prior on the orientation of a view without landmarks: the rig's,
+                                         # moved by the head rotation, within ~σ
+    register_blur_px: tuple[float, ...] = (4.0, 2.0, 0.0)  # views without landmarks, with flash images: one
+                                    # round per blur (px) registering only their poses by the flash term (the
+                                    # other views and the face held) after the joint stages; () = off
+    register_iters: int = 40        # L-BFGS iterations per registration round
+    uncertainty: str = "unmarked"   # per-view pose uncertainty from the curvature of the last stage's objective:
+                                    # "unmarked" (the views without landmarks), "all" or "none"
     fit_expression: bool = True
     photo_vertices: int = 2000      # at most this many skin vertices in the photometric term
     photo_min_cos: float = 0.5      # a vertex enters a view's photometric term only if n·v exceeds this
@@ -106,6 +122,7 @@ class FitConfig:
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
         d["photo_blur_px"] = list(self.photo_blur_px)
+        d["register_blur_px"] = list(self.register_blur_px)
         return d
 
 
@@ -113,7 +130,8 @@ class FitConfig:
 class ViewSet:
     """The views of one identity: names, intrinsics, initial poses, landmarks and (optional) images.
 
-    K, R0: (V, 3, 3); t0: (V, 3); landmarks: (V, 68, 2) pixels, NaN where missing;
+    K, R0: (V, 3, 3); t0: (V, 3); landmarks: (V, 68, 2) pixels, NaN where missing (a view without any is placed
+    by the rig and the image terms: it needs rig_centers and rig_R, and at least one view with landmarks);
     images: (V, h, w, 3) linear room-light images or None; image_size (W, H) of the full frame;
     rig_centers: (V, 3) nominal camera positions in the rig frame (soft rig constraint) or None;
     rig_R: (V, 3, 3) the rig's world-to-camera rotations (soft orientation constraint) or None;
@@ -199,6 +217,13 @@ class GeometryFit:
     flash_gain: np.ndarray | None = None  # (F,) fitted relative flash intensities (geometric mean 1; NaN = unused)
     history: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    evidence: list[str] = field(default_factory=list)  # (V,) what placed each view: "landmarks" or "rig", and
+                                                       # "+photo" / "+flash" for the image terms it entered
+    center_sigma_mm: np.ndarray | None = None    # (V,) 1-σ of each camera centre (the others held), mm
+    rotation_sigma_deg: np.ndarray | None = None  # (V,) 1-σ of each camera orientation (largest axis), degrees
+    rig_shift_mm: np.ndarray | None = None       # (V,) fitted centre − the rig's centre under the fitted head, mm
+    registered: np.ndarray | None = None         # (V,) bool: a view without landmarks whose registration by the
+                                                 # flash images was kept (False: rejected or not run)
 
     @property
     def cam_centers(self) -> np.ndarray:
@@ -224,6 +249,8 @@ def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = N
         A :class:`GeometryFit` (coefficients, vertices, per-view R, t, residuals).
     """
     cfg = config or FitConfig()
+    if cfg.uncertainty not in ("none", "unmarked", "all"):
+        raise ReflectmmError(f"uncertainty must be none, unmarked or all, got {cfg.uncertainty!r}")
     if cfg.albedo not in ("auto", "texture", "per-vertex", "constant"):
         raise ReflectmmError(f"albedo must be auto, texture, per-vertex or constant, got {cfg.albedo!r}")
     with torch_threads(cfg.threads):
@@ -248,9 +275,12 @@ class _FitProblem:
         lm_obs = views.landmarks
         self.valid = valid = np.isfinite(lm_obs).all(-1)
         for v in range(V):
-            if valid[v].sum() < 6:
+            if 0 < valid[v].sum() < 6:
                 raise ReflectmmError(f"view {views.names[v]}: only {int(valid[v].sum())} valid landmarks "
                                      "(at least 6 needed)")
+        self.marked = marked = valid.any(1)
+        if not marked.any():
+            raise ReflectmmError("no view has landmarks: at least one view needs them to place the face")
         wl = landmark_weights(cfg.group_weights)[None, :] * valid
         self.wl_t = tt(wl)
         self.wsum = float(wl.sum())
@@ -270,6 +300,10 @@ class _FitProblem:
         self.dw = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
         self.dtr = torch.zeros(V, 3, dtype=dtype, device=device, requires_grad=True)
         self._init_rig()
+        self._check_unmarked()
+        self.probe: torch.Tensor | None = None
+        self.registered = np.zeros(V, dtype=bool)  # views without landmarks registered by the flash images
+        self.last_loss = None
         self.history: list[dict] = []
         self.n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
         self.n_flash = cfg.flash_rounds if (views.flash_images is not None and cfg.w_flash > 0) else 0
@@ -292,13 +326,51 @@ class _FitProblem:
         self.dth = torch.zeros(3, dtype=self.dtype, device=self.device, requires_grad=use_rig)
         self.pose_params = [self.dw, self.dtr] + ([self.dwh, self.dth] if use_rig else [])
 
+    def _check_unmarked(self) -> None:
+        """Priors of the views without landmarks: their centre (σ ``unmarked_sigma_mm``) and orientation (σ
+        ``unmarked_rot_sigma_deg``) follow the rig under the fitted head; refused when there is no rig to follow."""
+        views, cfg, V = self.views, self.cfg, self.V
+        um = ~self.marked
+        self.rig_w_t = self.tt(np.where(um, 1.0 / (cfg.unmarked_sigma_mm or cfg.rig_sigma_mm) ** 2
+                                        if cfg.rig_sigma_mm > 0 else 0.0, 1.0 / max(cfg.rig_sigma_mm, 1e-12) ** 2))
+        self.unmarked_rot_w_t = None
+        if not um.any():
+            return
+        names = ", ".join(n for n, u in zip(views.names, um) if u)
+        if not self.use_rig or views.rig_R is None or cfg.unmarked_rot_sigma_deg <= 0:
+            raise ReflectmmError(f"view(s) {names} have no landmarks and nothing else places them: they need the "
+                                 "rig (rig centres and orientations, rig_sigma_mm > 0, unmarked_rot_sigma_deg > 0, "
+                                 f"at least 3 views; here {V})")
+        self.rigR_t = self.tt(views.rig_R)
+        self.unmarked_rot_w_t = self.tt(um / math.radians(cfg.unmarked_rot_sigma_deg) ** 2)
+
     def tt(self, a) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)
 
     def poses(self):
         """Per-view world-to-camera (R (V, 3, 3), t (V, 3)) at the current unknowns."""
         R = axis_angle_to_matrix(self.dw * self.r_unit) @ self.R0_t
-        return R, self.t0_t + self.dtr * self.tv_unit
+        t = self.t0_t + self.dtr * self.tv_unit
+        if self.probe is not None:
+            R, t = self._probed(R, t)
+        return R, t
+
+    def _probed(self, R, t):
+        """Poses moved by ``probe`` (V, 6): a centre shift δc (mm) that keeps the model origin on the same pixel
+        (the camera turns to keep aiming at it), then a turn ω in units of 1 / distance (rad), so that both
+        halves move the image by similar amounts (:mod:`.placement`)."""
+        c = camera_centers(R, t)
+        c2 = c + self.probe[:, 3:]
+        a = -c2 / torch.linalg.norm(c2, dim=-1, keepdim=True)          # new direction to the origin
+        b = -c / torch.linalg.norm(c, dim=-1, keepdim=True)            # old one
+        v = torch.cross(a, b, dim=-1)
+        vx = torch.zeros(self.V, 3, 3, dtype=self.dtype, device=self.device)
+        vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        vx = vx - vx.transpose(1, 2)
+        Q = torch.eye(3, dtype=self.dtype, device=self.device) + vx + vx @ vx / (1 + (a * b).sum(-1))[:, None, None]
+        dist = torch.linalg.norm(c, dim=-1, keepdim=True).detach()
+        R = axis_angle_to_matrix(self.probe[:, :3] / dist) @ R @ Q      # Q a = b: the origin stays on its ray
+        return R, -(R @ c2[..., None])[..., 0]
 
     def verts(self) -> torch.Tensor:
         return self.ts.vertices(self.zs, self.ze)
@@ -326,7 +398,9 @@ class _FitProblem:
             c = camera_centers(R, t)
             Rh, th = self.head()
             ch = self.rig_t @ Rh.T + th
-            p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
+            p = p + 0.5 * (((c - ch) ** 2).sum(-1) * self.rig_w_t).sum()
+            if self.unmarked_rot_w_t is not None:  # views without landmarks follow the rig's aim
+                p = p + 0.25 * (((R - self.rigR_t @ Rh.T) ** 2).sum((1, 2)) * self.unmarked_rot_w_t).sum()
             if self.use_rot:
                 # model → camera of view v is R_rig,v · Rhᵀ when the head pose (rig → model) is (Rh, th);
                 # ‖ΔR‖²_F = 2·(2 − 2cos θ) ≈ 2θ² for a rotation error θ, so ¼‖ΔR‖²/σ² ≈ ½θ²/σ²
@@ -335,9 +409,9 @@ class _FitProblem:
                 p = p + 0.5 * (th * th).sum() / cfg.head_sigma_mm ** 2
         return p / self.wsum
 
-    def run_lbfgs(self, params, closure_loss, iters: int, stage: str) -> None:
+    def run_lbfgs(self, params, closure_loss, iters: int, stage: str, tick: bool = True) -> None:
         """Minimise ``closure_loss()`` over ``params`` (at most ``iters`` L-BFGS iterations, strong Wolfe) and
-        record the final loss in ``history``."""
+        record the final loss in ``history`` (``tick``: one step of the progress bar)."""
         if iters <= 0:
             return
         opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=30, tolerance_grad=1e-9,
@@ -350,10 +424,12 @@ class _FitProblem:
             return loss
 
         opt.step(closure)
+        self.last_loss = closure_loss
         with torch.no_grad():
             final = float(closure_loss())
         self.history.append({"stage": stage, "loss": final, "evals": int(opt.state[opt._params[0]]["func_evals"])})
-        next(self.bar, None)
+        if tick:
+            next(self.bar, None)
         log.debug("fit-geometry: %s loss %.6g after %d evaluations", stage, final, self.history[-1]["evals"])
 
     def numpy_geometry(self):
@@ -464,6 +540,7 @@ def _photometric_stage(prob: _FitProblem, sm: _SubMesh) -> _PhotoResult:
         imgs_np = _blur(np.asarray(views.images, dtype=np.float32), blurs[rnd])
         images_t = tt(np.ascontiguousarray(imgs_np.transpose(0, 3, 1, 2)))
         vis, uv, nrm = _photo_visibility(prob, sm, Wc, Hc)
+        vis[~prob.marked] = False  # views without landmarks: the room light does not register them (benchmarks)
         vis_t = tt(vis.astype(np.float64))
         # closed-form lighting/albedo at the current geometry
         obs = sample_images(images_t, tt(uv)).cpu().numpy().astype(np.float64)
@@ -516,6 +593,10 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
         photo = _photometric_stage(prob, sm)
     if prob.n_flash:  # point lights at the flashes (docs/fit-geometry.md)
         flash_res, flash_gain = _flash_stage(prob, sm)
+        if not prob.marked.all() and cfg.register_blur_px:
+            reg = _register_unmarked(prob, sm)
+            if reg is not None:
+                flash_res[~prob.marked] = reg[~prob.marked]
     for _ in prob.bar:  # close the progress bar
         pass
     return _fit_result(prob, photo, sm, flash_res, flash_gain, t_start)
@@ -525,13 +606,17 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
                 t_start: float) -> GeometryFit:
     """Gather the :class:`GeometryFit` at the final unknowns (landmark RMSE per view, coefficients, vertices)."""
     model, cfg, views, V, valid = prob.model, prob.cfg, prob.views, prob.V, prob.valid
+    which = {"all": np.arange(V), "unmarked": np.nonzero(~prob.marked)[0]}.get(cfg.uncertainty, [])
+    with torch.no_grad():
+        dist = np.linalg.norm(camera_centers(*prob.poses()).cpu().numpy(), axis=-1)
+    c_sig, r_sig = pose_sigmas(pose_curvature(prob, which), dist)
     with torch.no_grad():
         X = prob.verts()
         R, t = prob.poses()
         _, uv = prob.lm_loss(X, R, t)
     uv = uv.cpu().numpy().astype(np.float64)
     err = np.linalg.norm(uv - views.landmarks, axis=-1)
-    rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) for v in range(V)])
+    rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) if valid[v].any() else math.nan for v in range(V)])
     zs_np = prob.zs.detach().cpu().numpy().astype(np.float64)
     ze_np = prob.ze.detach().cpu().numpy().astype(np.float64)
     shape_coeffs = zs_np * model.shape_sigma
@@ -543,23 +628,30 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
                        visible_count=photo.visible, sh=photo.sh, albedo=photo.albedo,
                        photo_sample=None if sm is None else sm.sample, history=prob.history,
                        flash_residual=flash_res, flash_gain=flash_gain,
-                       seconds=time.perf_counter() - t_start)
+                       seconds=time.perf_counter() - t_start,
+                       evidence=view_evidence(prob.marked, photo.visible if prob.n_photo else None, None
+                                              if flash_res is None else  # unregistered: the rig placed it
+                                              np.where(~prob.marked & ~prob.registered, np.nan, flash_res)),
+                       center_sigma_mm=c_sig, rotation_sigma_deg=r_sig, rig_shift_mm=rig_shift(prob),
+                       registered=prob.registered.copy())
 
 
 class _FlashPairs:
     """The (view, flash) pairs of the flash term and the fitted relative flash gains.
 
-    ``usable`` (U,): flashes with a fitted camera or a rig position; pairs ``pv``/``pf`` (P = V·U,) view and flash
-    of each pair; ``log_gain`` (F,) the torch unknown (a leaf that needs gradients only with ``flash_gains``).
+    ``usable`` (U,): flashes with a fitted camera or a rig position; pairs ``pv``/``pf`` (P = V'·U,) view and flash
+    of each pair over the views ``seen_by`` (V,) bool (default all); ``log_gain`` (F,) the torch unknown (a leaf
+    that needs gradients only with ``flash_gains``).
     """
 
-    def __init__(self, prob: _FitProblem, usable: np.ndarray):
+    def __init__(self, prob: _FitProblem, usable: np.ndarray, seen_by: np.ndarray | None = None):
         views, device, tt = prob.views, prob.device, prob.tt
         self.prob, self.usable = prob, usable
         fv = views.flash_view
         self.F = views.flash_images.shape[1]
-        self.pv = pv = np.repeat(np.arange(prob.V), len(usable))
-        self.pf = pf = np.tile(usable, prob.V)
+        cams = np.arange(prob.V) if seen_by is None else np.nonzero(seen_by)[0]  # the views whose images enter
+        self.pv = pv = np.repeat(cams, len(usable))
+        self.pf = pf = np.tile(usable, len(cams))
         self.pv_t = torch.as_tensor(pv, dtype=torch.long, device=device)
         self.fv_t = torch.as_tensor(np.maximum(fv, 0), dtype=torch.long, device=device)
         self.rigpos_t = tt(np.nan_to_num(views.flash_rig_pos))
@@ -594,17 +686,23 @@ class _FlashPairs:
         return gain
 
 
-def _usable_flashes(prob: _FitProblem) -> np.ndarray:
-    """Indices of the flashes with a fitted camera or (with the rig constraint) a rig position; warns otherwise."""
+def _usable_flashes(prob: _FitProblem, on_unmarked_too: bool = False) -> np.ndarray:
+    """Indices of the flashes with a fitted camera or (with the rig constraint) a rig position, those on cameras
+    without landmarks only with ``on_unmarked_too``; warns otherwise."""
     views = prob.views
     F = views.flash_images.shape[1]
     rig_ok = np.isfinite(views.flash_rig_pos).all(-1) & prob.use_rig
-    usable = np.nonzero((views.flash_view >= 0) | rig_ok)[0]
+    fv = views.flash_view
+    on_unmarked = (fv >= 0) & ~prob.marked[np.maximum(fv, 0)] & (not on_unmarked_too)
+    if on_unmarked.any():
+        log.info("fit-geometry: %d flash(es) sit on cameras without landmarks: left out of the flash term (their "
+                 "places are the rig's guess)", int(on_unmarked.sum()))
+    usable = np.nonzero(((fv >= 0) | rig_ok) & ~on_unmarked)[0]
     if len(usable) == 0:
         log.warning("fit-geometry: no flash has a fitted camera or a rig position: the flash term is skipped")
-    elif len(usable) < F:
+    elif len(usable) < F - int(on_unmarked.sum()):
         log.warning("fit-geometry: %d flash(es) have no fitted camera and no rig position: left out of the flash "
-                    "term", F - len(usable))
+                    "term", F - int(on_unmarked.sum()) - len(usable))
     return usable
 
 
@@ -641,6 +739,90 @@ def _flash_weights(prob: _FitProblem, sm: _SubMesh, fp: _FlashPairs, sat: np.nda
     return weight, uv
 
 
+def _flash_objective(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.ndarray, blur: float,
+                     sat: np.ndarray | None):
+    """The flash term of one round at the current geometry: (loss(images, residual) closure, blurred images
+    (P, h, w, 3) tensor); weights, visibility and the residual scale fixed at the round's start."""
+    images_t = torch.as_tensor(_blur(raw, blur), device=prob.device)  # (P, h, w, 3) channels last
+    weight, uv = _flash_weights(prob, sm, fp, sat)
+    sp, sm_ = np.nonzero(weight)
+    seen = gather_bilinear(images_t, torch.as_tensor(sp, device=prob.device),
+                           torch.as_tensor(uv[fp.pv[sp], sm_], device=prob.device)).cpu().numpy()
+    scale = max(float(np.median(seen)) if seen.size else 1.0, 1e-3)
+    weight_t = prob.tt(weight.astype(np.float64))
+
+    def flash(images, residual=True):
+        Xs, nv = sm.surface(prob)
+        R, t = prob.poses()
+        return flash_loss(Xs, nv, sm.sample_t, weight_t, sm.Kimg_t, R, t, images, fp.pv_t,
+                          fp.positions(R, t)[fp.pf_t], fp.intensities(), scale, residual=residual), R, t
+
+    return flash, images_t, weight
+
+
+def _register_unmarked(prob: _FitProblem, sm: _SubMesh) -> np.ndarray | None:
+    """Registration of the views without landmarks by the flash term, after the joint stages, coarse to fine
+    (``register_blur_px``): only their poses move; the face, the head and the views with landmarks are held (the
+    flashes on cameras without landmarks are left out of every flash round, :func:`_usable_flashes`).  A view
+    whose flash residual does not fall, or that moves more than 3 σ from the rig, goes back where the rig puts
+    it (``prob.registered`` False).  Returns the (V,) RMS flash residual at the final poses (None: not run)."""
+    cfg, views = prob.cfg, prob.views
+    um = ~prob.marked
+    usable = _usable_flashes(prob, on_unmarked_too=True)  # a camera's own flash lights the others: its place
+    if len(usable) == 0:
+        log.warning("fit-geometry: no flash on a camera with landmarks or on a stand: the views without landmarks "
+                    "are not registered by the flash images")
+        return None
+    fp = _FlashPairs(prob, usable)  # every view: the per-vertex albedo comes mostly from the views with landmarks
+    raw = np.asarray(views.flash_images[fp.pv, fp.pf], dtype=np.float32)
+    sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[fp.pv, fp.pf], dtype=bool)
+    before = _view_flash_rms(prob, sm, fp, raw, sat)
+    saved = prob.dw.detach().clone(), prob.dtr.detach().clone()
+    mask = prob.tt(um.astype(np.float64))[:, None]
+    hooks = [p.register_hook(lambda g: g * mask) for p in (prob.dw, prob.dtr)]
+    try:
+        for rnd, blur in enumerate(cfg.register_blur_px):
+            flash, images_t, _ = _flash_objective(prob, sm, fp, raw, blur, sat)
+
+            def reg():
+                (lf, _, _), R, t = flash(images_t, residual=False)
+                return cfg.w_flash * lf + prob.prior(R, t)
+
+            prob.run_lbfgs([prob.dw, prob.dtr], reg, cfg.register_iters, f"registration round {rnd + 1}",
+                           tick=False)
+    finally:
+        for h in hooks:
+            h.remove()
+    after = _view_flash_rms(prob, sm, fp, raw, sat)
+    sigma = cfg.unmarked_sigma_mm or cfg.rig_sigma_mm
+    shift = rig_shift(prob)
+    with np.errstate(invalid="ignore"):
+        bad = um & ~((after <= before) & (shift <= 3.0 * sigma))
+    if bad.any():
+        log.warning("fit-geometry: registration of view(s) %s by the flash images rejected (residual not lower, or "
+                    "moved more than 3 sigma from the rig): kept where the rig puts them",
+                    ", ".join(n for n, b in zip(views.names, bad) if b))
+        b = torch.as_tensor(bad, device=prob.device)
+        with torch.no_grad():
+            prob.dw[b] = saved[0][b]
+            prob.dtr[b] = saved[1][b]
+    prob.registered = um & ~bad
+    return np.where(bad, before, after)
+
+
+def _view_flash_rms(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.ndarray,
+                    sat: np.ndarray | None) -> np.ndarray:
+    """(V,) RMS flash residual per view at the current geometry (unblurred, its own visibility; NaN: no sample)."""
+    flash, images_t, weight = _flash_objective(prob, sm, fp, raw, 0.0, sat)
+    with torch.no_grad():
+        r = flash(images_t)[0][1].cpu().numpy()
+    out = np.full(prob.V, np.nan)
+    for v in range(prob.V):
+        m = weight[fp.pv == v]
+        out[v] = float(np.sqrt((r[fp.pv == v][m] ** 2).mean())) if m.any() else np.nan
+    return out
+
+
 def _flash_stage(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarray]:
     """Stage 3: ``flash_rounds`` L-BFGS rounds of landmarks + priors + the point-light term
     (:func:`.photometric.flash_loss`), visibility, shadows and highlight masks refreshed each round.
@@ -650,26 +832,17 @@ def _flash_stage(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarra
     usable = _usable_flashes(prob)
     if len(usable) == 0:
         return np.full(V, np.nan), np.full(fimg.shape[1], np.nan)
-    fp = _FlashPairs(prob, usable)
+    # the views without landmarks are out of the term (a view far from its place would pull the face and the other
+    # views): they follow the rig under the head; :func:`_register_unmarked` places them afterwards
+    held = ~prob.marked
+    fp = _FlashPairs(prob, usable, seen_by=~held)
     pv, pf = fp.pv, fp.pf
     blurs = _round_blurs(cfg, cfg.flash_rounds)
     raw = np.asarray(fimg[pv, pf], dtype=np.float32)  # (P, h, w, 3)
     sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[pv, pf], dtype=bool)
     res = np.full(V, np.nan)
     for rnd in range(cfg.flash_rounds):
-        images_t = torch.as_tensor(_blur(raw, blurs[rnd]), device=device)  # (P, h, w, 3) channels last
-        weight, uv = _flash_weights(prob, sm, fp, sat)
-        sp, sm_ = np.nonzero(weight)
-        seen = gather_bilinear(images_t, torch.as_tensor(sp, device=device),
-                               torch.as_tensor(uv[pv[sp], sm_], device=device)).cpu().numpy()
-        scale = max(float(np.median(seen)) if seen.size else 1.0, 1e-3)
-        weight_t = prob.tt(weight.astype(np.float64))
-
-        def flash(images, residual=True):
-            Xs, nv = sm.surface(prob)
-            R, t = prob.poses()
-            return flash_loss(Xs, nv, sm.sample_t, weight_t, sm.Kimg_t, R, t, images, fp.pv_t,
-                              fp.positions(R, t)[fp.pf_t], fp.intensities(), scale, residual=residual), R, t
+        flash, images_t, weight = _flash_objective(prob, sm, fp, raw, blurs[rnd], sat)
 
         def stage3():
             (lf, _, _), R, t = flash(images_t, residual=False)

@@ -18,7 +18,8 @@ from reflectmm_cli.errors import ReflectmmError
 
 log = logging.getLogger("reflectmm")
 
-__all__ = ["GEOMETRY_KEYS", "fit_identity", "geometry_from_truth", "gather_landmarks", "view_cameras"]
+__all__ = ["GEOMETRY_KEYS", "fit_identity", "geometry_from_truth", "gather_landmarks", "view_cameras",
+           "placement_report"]
 
 GEOMETRY_KEYS = ("shape_coeffs", "exp_coeffs", "vertices", "view_names", "K", "R", "t", "image_size",
                  "cam_centers", "flash_ids", "flash_pos", "flash_intensity", "landmark_rmse_px", "photo_residual")
@@ -38,8 +39,9 @@ def _expected_landmark_file(capture: Artifact, identity: str, view: str) -> str:
 
 def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], landmarks_dir: Path | None
                      ) -> tuple[np.ndarray, list[str]]:
-    """(V, 68, 2) full-frame landmarks per view (``--landmarks DIR`` files first, else the capture's), and where
-    each came from; a clear error naming the expected file for a view without any."""
+    """(V, 68, 2) full-frame landmarks per view (``--landmarks DIR`` files first, else the capture's; NaN for a
+    view without any, which the fit places by the rig and the images), and where each came from (``""`` for none);
+    a clear error naming the expected file when no view of the identity has landmarks."""
     from reflectmm_cli.geometry_fit.landmarks import find_landmark_file
     from reflectmm_cli.landmarks import check_in_frame, read_landmarks
 
@@ -64,12 +66,14 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
         if cap_lm is not None and np.isfinite(cap_lm[v]).all(-1).sum() >= 6:
             out[v] = cap_lm[v]
             src[v] = "capture"
-            continue
+    if not any(src):
+        name = view_names[0]
         where = f"in {landmarks_dir} or " if landmarks_dir is not None else ""
         raise ReflectmmError(
-            f"no landmarks for view {name} of identity {identity}: expected "
+            f"no landmarks for any view of identity {identity} (at least one is needed): expected e.g. "
             f"{_expected_landmark_file(capture, identity, name)} (or {name}.pts/.txt/.npy) {where}beside the "
-            "images when running preprocess-multipie; pass --landmarks DIR", capture.path)
+            "images when running preprocess-multipie (detect-landmarks writes them); pass --landmarks DIR",
+            capture.path)
     return out, src
 
 
@@ -135,6 +139,27 @@ def _flash_inputs(capture: Artifact, capture_path: Path, rig, view_names: list[s
 
 # --------------------------------------------------------------------------- library
 
+def _num(x, nd: int = 3):
+    return None if x is None or not np.isfinite(x) else round(float(x), nd)
+
+
+def placement_report(view_names: list[str], fit) -> list[dict]:
+    """Per view: the evidence that placed it, its residuals, its pose uncertainty and its shift from the rig
+    (:mod:`.placement`); JSON-ready."""
+    out = []
+    for v, name in enumerate(view_names):
+        def arr(a, nd=4):
+            return None if a is None else _num(a[v], nd)
+        out.append({"view": name, "evidence": fit.evidence[v], "landmark_rmse_px": arr(fit.landmark_rmse_px, 3),
+                    "photo_residual": arr(fit.photo_residual, 5), "flash_residual": arr(fit.flash_residual, 5),
+                    "center_sigma_mm": arr(fit.center_sigma_mm, 2),
+                    "rotation_sigma_deg": arr(fit.rotation_sigma_deg, 3),
+                    "rig_shift_mm": arr(fit.rig_shift_mm, 2),
+                    "registered_by_flash": None if fit.evidence[v].startswith("landmarks") or fit.registered is None
+                    else bool(fit.registered[v])})
+    return out
+
+
 def _truth_views(truth: Artifact, view_names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     names = _str_list(truth["camera_names"])
     missing = [n for n in view_names if n not in names]
@@ -158,6 +183,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
                  ) -> tuple[dict[str, np.ndarray], dict, Any]:
     """Fit one identity. Returns (geometry arrays, report dict, extras for the overlays)."""
     from reflectmm_cli.geometry_fit import FitConfig, ShapeModel, ViewSet, fit_geometry, flash_positions, initial_poses
+    from reflectmm_cli.geometry_fit.init import place_by_rig
     from reflectmm_cli.geometry_fit.report import truth_errors
     from reflectmm_cli.geometry import load_face_model
     from reflectmm_cli.rig import load_rig
@@ -178,6 +204,12 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     lm, lm_src = gather_landmarks(capture, identity, view_names, landmarks_dir)
     K, R_rig, t_rig, rig_pos = view_cameras(rig, view_names, (W, H), focal, rig_path)
     R0, t0, init_rms = initial_poses(model.mean[model.landmarks], lm, K, R_rig, t_rig)
+    marked = np.array([bool(s) for s in lm_src])
+    if not marked.all():
+        R0, t0, _, _ = place_by_rig(R0, t0, marked, R_rig, t_rig)
+        init_rms[~marked] = np.nan
+        log.info("fit-geometry %s: no landmarks for view(s) %s: placed by the rig and the other views, refined by "
+                 "the image terms", identity, ", ".join(n for n, m in zip(view_names, marked) if not m))
     log.info("fit-geometry %s: %d views, %d vertices, initial landmark RMS %s px", identity, len(view_names),
              model.n_vertices, " ".join(f"{e:.1f}" for e in init_rms))
     flash_kw = _flash_inputs(capture, capture_path, rig, view_names, flash_ids, room.shape[1:3], flash_intensity) \
@@ -198,7 +230,11 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
         "landmarks_given": lm, "landmarks_fit": fit.landmark_px, "landmark_rmse_init_px": init_rms,
         "visible_count": fit.visible_count, "rig_residual_mm": rig_res,
         "flash_from_view": np.array([s == "view" for s in fsrc]),
+        "view_evidence": np.array(fit.evidence, dtype=str), "rig_shift_mm": fit.rig_shift_mm,
     }
+    if fit.center_sigma_mm is not None:
+        arrays["center_sigma_mm"] = fit.center_sigma_mm
+        arrays["rotation_sigma_deg"] = fit.rotation_sigma_deg
     if fit.sh is not None:
         arrays["sh_room"] = fit.sh
     if fit.flash_residual is not None:
@@ -209,6 +245,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
         "landmark_rmse_px": [round(float(x), 4) for x in fit.landmark_rmse_px],
         "photo_residual": [None if not np.isfinite(x) else round(float(x), 6) for x in fit.photo_residual],
         "landmark_sources": lm_src, "history": fit.history, "config": cfg.as_dict(),
+        "placement": placement_report(view_names, fit),
         "rig_residual_mm": [round(float(x), 3) for x in rig_res],
         "flash_intensity_note": ("radiant intensity " + ("set by --flash-intensity" if flash_intensity is not None
                                                          else "from the rig table")

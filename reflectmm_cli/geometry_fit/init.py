@@ -8,6 +8,7 @@ import numpy as np
 
 from reflectmm_cli.geometry import align
 from reflectmm_cli.geometry.camera import camera_centers, project
+from reflectmm_cli.geometry.rotations import nearest_rotation
 
 log = logging.getLogger("reflectmm")
 
@@ -26,6 +27,8 @@ def pnp_pose(object_points: np.ndarray, image_points: np.ndarray, K: np.ndarray,
     img = np.ascontiguousarray(image_points[ok], dtype=np.float64)
 
     def rms(R, t):
+        if len(obj) == 0:
+            return np.nan
         uv, z = project(obj, K, R, t)
         if np.any(z <= 0):
             return np.inf
@@ -65,6 +68,31 @@ def initial_poses(landmarks3d: np.ndarray, landmarks2d: np.ndarray, K: np.ndarra
     for v in range(V):
         R[v], t[v], err[v] = pnp_pose(landmarks3d, landmarks2d[v], K[v], R_rig[v], t_rig[v])
     return R, t, err
+
+
+def place_by_rig(R: np.ndarray, t: np.ndarray, placed: np.ndarray, R_rig: np.ndarray, t_rig: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Poses of the views without landmarks from the rig and the views with them.
+
+    R (V, 3, 3), t (V, 3): model → camera poses, valid where ``placed`` (V,) bool; R_rig, t_rig: the rig's
+    world → camera poses.  The head pose (rig → model, ``x_model = Rh x_rig + th``) is estimated from the placed
+    views — its rotation the rotation nearest the mean of ``R_vᵀ R_rig,v``, its translation the mean of
+    ``c_v − Rh c_rig,v`` over their centres — and every other view is the rig's camera moved by it:
+    ``R_v = R_rig,v Rhᵀ``, centre ``Rh c_rig,v + th``.
+
+    Returns (R (V, 3, 3), t (V, 3) with the unplaced views filled in, Rh (3, 3), th (3,)).
+    """
+    placed = np.asarray(placed, dtype=bool)
+    if not placed.any():
+        raise ValueError("place_by_rig needs at least one placed view")
+    R, t = np.array(R, dtype=np.float64), np.array(t, dtype=np.float64)
+    Rh = nearest_rotation(np.einsum("vji,vjk->vik", R[placed], R_rig[placed]).mean(0))
+    c_rig = camera_centers(R_rig, t_rig)
+    th = (camera_centers(R[placed], t[placed]) - c_rig[placed] @ Rh.T).mean(0)
+    for v in np.nonzero(~placed)[0]:
+        R[v] = R_rig[v] @ Rh.T
+        t[v] = -R[v] @ (Rh @ c_rig[v] + th)
+    return R, t, Rh, th
 
 
 def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -66,6 +66,18 @@ PARAMS = (
          help="soft rig constraint σ (0 = free pose per view)."),
     _cfg("rig_rot_sigma_deg", "float", range=(0.0, None), option="--rig-rot-sigma", unit="deg",
          help="soft rig constraint on the camera orientations (0 = free aim per view; for a calibrated rig)."),
+    _cfg("unmarked_sigma_mm", "float", range=(0.0, None), option="--unmarked-sigma", unit="mm",
+         help="soft rig constraint σ of a view without landmarks (0 = --rig-sigma); wider when the rig's camera "
+              "is only a nominal table's (calibrate-rig reports which)."),
+    _cfg("unmarked_rot_sigma_deg", "float", range=(0.0, None), low_open=True, option="--unmarked-rot-sigma",
+         unit="deg", help="prior on the aim of a view without landmarks: the rig's, moved by the head rotation."),
+    _cfg("register_blur_px", "floats", range=(0.0, None), option="--register-blur", unit="px",
+         help="views without landmarks: one round per blur registering their poses by the flash images, the face "
+              "and the other views held (empty = off)."),
+    _cfg("register_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per registration round."),
+    _cfg("uncertainty", "str", choices=("none", "unmarked", "all"),
+         help="report the pose uncertainty of the views without landmarks (unmarked), of every view, or none "
+              "(12 gradient evaluations per view)."),
     _cfg("head_sigma_mm", "float", range=(0.0, None), option="", unit="mm",
          help="prior on where the head sits in the rig frame (0 = off)."),
     _cfg("fit_expression", "bool", option="", help="fit expression coefficients."),
@@ -120,8 +132,9 @@ def _outputs(ctx: StageContext) -> list[Path]:
 def config_from_params(params: dict) -> FitConfig:
     """The FitConfig of resolved stage params."""
     kw = {k: v for k, v in params.items() if k in _CONFIG_FIELDS and v is not None}
-    if "photo_blur_px" in kw:
-        kw["photo_blur_px"] = tuple(float(x) for x in kw["photo_blur_px"])
+    for k in ("photo_blur_px", "register_blur_px"):
+        if k in kw:
+            kw[k] = tuple(float(x) for x in kw[k])
     return FitConfig(**kw)
 
 
@@ -180,14 +193,31 @@ def run(ctx: StageContext) -> list[Path]:
     pr = arrays["photo_residual"]
     photo = (f"photometric RMS {float(np.nanmedian(pr)):.4f}" if np.isfinite(pr).any()
              else "no room-light photometric rounds")
-    msg = (f"fit-geometry {identity}: landmark RMS {np.median(arrays['landmark_rmse_px']):.2f} px (median of "
-           f"{len(arrays['view_names'])} views), {photo}")
+    lm_rms = arrays["landmark_rmse_px"]
+    n_lm = int(np.isfinite(lm_rms).sum())
+    msg = (f"fit-geometry {identity}: landmark RMS {np.nanmedian(lm_rms):.2f} px (median of "
+           f"{n_lm} views with landmarks), {photo}")
     if "err_vertex_rmse_mm" in arrays:
         msg += (f"; vs truth: landmarks {np.median(arrays['err_landmark_px']):.2f} px, vertices "
                 f"{float(arrays['err_vertex_rmse_mm']):.2f} mm RMS ({100 * float(arrays['err_vertex_rmse_iod']):.1f}% "
                 f"of the inter-ocular distance), camera centres {np.median(arrays['err_cam_center_mm']):.1f} mm")
     log.info("%s; %.1f s", msg, time.perf_counter() - t0)
+    _log_placement(identity, report["placement"])
     return written
+
+
+def _log_placement(identity: str, placement: list[dict]) -> None:
+    """One stderr line per view that landmarks did not place: its evidence, residuals, uncertainty, rig shift."""
+    def f(x, fmt):
+        return "n/a" if x is None else format(x, fmt)
+
+    for p in placement:
+        if p["evidence"].startswith("landmarks"):
+            continue
+        log.info("fit-geometry %s: view %s placed by %s: photometric RMS %s, flash RMS %s, centre ±%s mm, aim ±%s°, "
+                 "%s mm from the rig", identity, p["view"], p["evidence"], f(p["photo_residual"], ".4f"),
+                 f(p["flash_residual"], ".4f"), f(p["center_sigma_mm"], ".1f"), f(p["rotation_sigma_deg"], ".2f"),
+                 f(p["rig_shift_mm"], ".1f"))
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, params=PARAMS,

@@ -168,6 +168,12 @@ def test_landmarks_txt_npy_and_override_dir(tmp_path):
     a, _, _ = preprocess_identity(root, "001", CaptureOptions(views=VIEWS, flashes=FLASHES, landmarks_dir=other))
     np.testing.assert_allclose(a["landmarks"][2], pts + 2)
     assert np.isnan(a["landmarks"][0]).all()
+    # detect-landmarks names its files after the image: <room shot stem>.pts
+    from reflectmm_cli.geometry_fit.landmarks import write_pts
+
+    write_pts(other / "001_01_01_130_00.pts", pts + 3)
+    a, _, _ = preprocess_identity(root, "001", CaptureOptions(views=VIEWS, flashes=FLASHES, landmarks_dir=other))
+    np.testing.assert_allclose(a["landmarks"][0], pts + 3, atol=1e-3)
 
 
 def test_rotate_option(tmp_path):

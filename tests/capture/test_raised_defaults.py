@@ -18,11 +18,12 @@ def test_default_views_add_the_raised_camera_of_a_used_raised_flash(tmp_path):
     views, notes = default_views(tmp_path / "mp", "001", ("14", "18"))
     assert views == DEFAULT_VIEWS + ("08_1",)
     assert len(notes) == 1 and "19_1" in notes[0] and "rig table" in notes[0]
-    # 08_1 without its landmark file: left out with a note
+    # 08_1 without its landmark file (no detector finds a face looking down): kept with a note, fit-geometry
+    # places it by the rig and its images
     for p in (tmp_path / "mp").rglob("*_081_00_lm.pts"):
         os.remove(p)
     views, notes = default_views(tmp_path / "mp", "001", ("14",))
-    assert views == DEFAULT_VIEWS and "landmarks" in notes[0]
+    assert views == DEFAULT_VIEWS + ("08_1",) and "no landmarks" in notes[0] and "places it by the rig" in notes[0]
 
 
 def test_reflectance_views_leave_out_the_raised_cameras():

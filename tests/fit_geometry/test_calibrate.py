@@ -172,3 +172,63 @@ def test_fit_geometry_refuses_a_rig_of_another_image_size():
     assert any("using --focal 1900 px" in m for m in records)
     K, *_ = view_cameras(rig, ["05_1"], (640, 480), None, None)  # matching size: the table's focal as is
     assert K[0, 0, 0] == 1000.0
+
+
+SIDE = ["09_0", "08_0", "19_0", "20_0", "08_1", "19_1"]  # beyond ±30° of yaw or raised: no detector finds a face
+
+
+def test_cameras_without_landmarks_keep_the_nominal_pose(model, world, tmp_path):
+    true, sim, _ = world
+    lm = sim["landmarks"].copy()
+    side = [VIEWS.index(n) for n in SIDE]
+    lm[:, side] = np.nan
+    # a nominal table that is right up to a rigid motion of the whole rig, except 08_0: 50 mm and 3° off
+    from reflectmm_cli.rig import Rig, RigCamera, RigFlash
+
+    Rm = rodrigues(np.array([0.02, -0.05, 0.01]))
+    cams = []
+    for c in true.cameras:
+        pos, aim = Rm @ c.position + [30.0, -10.0, 5.0], Rm @ (np.asarray(c.look_at) - c.position)
+        if c.name == "08_0":
+            pos = pos + 50.0 * np.array([0.6, 0.0, 0.8])
+            aim = rodrigues(np.radians(3.0) * np.array([0.0, 1.0, 0.0])) @ aim
+        cams.append(RigCamera(c.name, pos, pos + aim, Rm @ c.up, c.focal_px, c.width, c.height))
+    by_name = {c.name: c for c in cams}
+    flashes = [RigFlash(f.id, by_name[f.camera].position if f.camera else f.position, f.intensity, f.camera)
+               for f in true.flashes]
+    nominal = Rig(cams, flashes, true.source)
+    cfg = CalibrationConfig(focal="fixed", focal_px=true.camera("05_1").focal_px)
+    cal = calibrate_rig(model, lm, VIEWS, (640, 480), nominal, cfg)
+    assert cal.camera_names == VIEWS
+    placed = cal.report["camera_placed_by"]
+    assert [n for n in VIEWS if placed[n] == "nominal prior only"] == SIDE
+    assert cal.report["cameras_nominal_only"] == SIDE
+    assert any("nominal prior only" in a and "08_0" in a for a in cal.assumptions)
+    assert np.all(np.isnan(cal.center_sigma_mm[side]))
+    assert np.all(np.isfinite(np.delete(cal.center_sigma_mm, side, axis=0)))
+    assert np.all(np.isnan(cal.landmark_rmse_px[:, side])) and not cal.outliers[:, side].any()
+    tc = np.array([true.camera(n).center for n in VIEWS])
+    seen = [k for k in range(len(VIEWS)) if k not in side]
+    Ra, ta, _ = rigid_align(cal.centers[seen], tc[seen])
+    err = np.linalg.norm(cal.centers @ Ra.T + ta - tc, axis=1)
+    assert err[seen].max() < 12.0, err
+    # the unseen cameras sit where the (rigidly moved) nominal table puts them: the right ones within the
+    # calibration's own error, 08_0 as far off as its table entry (prior only, nothing measured it)
+    ok = [VIEWS.index(n) for n in SIDE if n != "08_0"]
+    assert err[ok].max() < 15.0, err
+    assert 35.0 < err[VIEWS.index("08_0")] < 65.0, err
+    paths = write_rig_calibration(cal, tmp_path / "rig.npz")
+    back = load_rig(paths[1])
+    assert np.allclose(back.camera("08_0").center, cal.centers[VIEWS.index("08_0")], atol=1e-6)
+    # flash 14 rides on the carried 08_1, in the artifact and in the table
+    f14 = cal.flash_ids.index("14")
+    assert np.allclose(cal.flash_pos[f14], cal.centers[VIEWS.index("08_1")], atol=1e-6)
+    assert np.allclose(back.flash("14").position, cal.flash_pos[f14], atol=1e-6)
+
+
+def test_fewer_than_three_annotated_cameras_are_refused(model, world):
+    true, sim, nominal = world
+    lm = sim["landmarks"].copy()
+    lm[:, 2:] = np.nan
+    with pytest.raises(ReflectmmError, match="no landmarks at all for camera\\(s\\) .* only 2 camera\\(s\\)"):
+        calibrate_rig(model, lm, VIEWS, (640, 480), nominal)

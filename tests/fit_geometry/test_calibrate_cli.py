@@ -186,3 +186,50 @@ def test_external_vertex_reflectance_truth(world, cli, tmp_path):
     r = cli("evaluate", "truth", "--id", "001", "-w", world, "--maps", tmp_path / "maps.npz", "--truth",
             tmp_path / "refl.npz", "-o", tmp_path / "ev2.npz")
     assert r.exit_code != 0 and "--face-model" in r.output
+
+
+def test_calibrate_rig_and_fit_without_the_side_landmarks(world, cli, tmp_path):
+    # what a face detector leaves: no landmarks on the side view 13_0 nor on the raised 19_1 in any identity; the
+    # rig keeps their nominal pose (reported per camera), fit-geometry places those views by the rig and the images
+    from reflectmm_cli.artifacts import write_artifact
+
+    names = VIEWS.split(",")
+    caps = []
+    for i in range(1, 5):
+        cap = read_artifact(world / "preprocess-multipie" / f"{i:03d}.npz", "capture")
+        arrays = dict(cap.arrays)
+        lm = arrays["landmarks"].copy()
+        lm[[names.index("13_0"), names.index("19_1")]] = np.nan
+        arrays["landmarks"] = lm
+        caps.append(tmp_path / f"{i:03d}.npz")
+        write_artifact(caps[-1], "capture", arrays, params=cap.params, inputs=cap.meta["inputs"],
+                       extra_meta={"report": cap.meta.get("report", {})})
+    true = load_rig(world / "syn" / "rig.toml")
+    cap_args = [a for c in caps for a in ("--capture", c)]
+    fm = world / "syn" / "face_model.npz"
+    r = cli("calibrate-rig", *cap_args, "-w", world, "--face-model", fm, "--rig", world / "syn" / "rig.toml", "--focal",
+            true.camera("05_1").focal_px, "-o", tmp_path / "cal" / "calibrate-rig.npz")
+    assert r.exit_code == 0, r.output
+    art = read_artifact(tmp_path / "cal" / "calibrate-rig.npz", "rig")
+    placed = art.meta["report"]["camera_placed_by"]
+    assert placed == {n: ("nominal prior only" if n in ("13_0", "19_1") else "landmarks") for n in names}
+    assert any("13_0, 19_1" in a and "nominal prior only" in a for a in art.meta["assumptions"])
+    sig = np.asarray(art["center_sigma_mm"])
+    assert np.isnan(sig[[0, 5]]).all() and np.isfinite(sig[1:5]).all()
+    rig = tmp_path / "cal" / "rig.toml"
+    assert load_rig(rig).camera_names == names
+    tc = np.array([true.camera(n).center for n in names])
+    _, _, err = rigid_align(np.asarray(art["centers"]), tc)
+    assert err.max() < 20.0, err  # the nominal table here is the true one: its carried poses are right
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--capture", caps[0], "--face-model", fm, "--rig", rig,
+            "--iters", "100",
+            "--photo-rounds", "0", "--flash-rounds", "1", "--no-overlay", "-o", tmp_path / "g.npz")
+    assert r.exit_code == 0, r.output
+    g = read_artifact(tmp_path / "g.npz", "geometry")
+    ev = [str(e).split("+")[0] for e in g["view_evidence"]]
+    assert ev == ["rig", "landmarks", "landmarks", "landmarks", "landmarks", "rig"]
+    reg = [p["registered_by_flash"] for p in g.meta["report"]["placement"]]
+    assert reg[1:5] == [None] * 4 and all(isinstance(r, bool) for r in (reg[0], reg[5]))
+    for k in (0, 5):  # "+flash" exactly when the flash registration was kept
+        assert (g["view_evidence"][k] == "rig+flash") == reg[k]
+    assert np.isfinite(g["center_sigma_mm"][[0, 5]]).all()

@@ -119,17 +119,73 @@ def test_view_not_in_rig(world, cli, tmp_path):
     assert "13_0" in msg and "not cameras of the rig" in msg and "rig.toml" in msg
 
 
-def test_no_landmarks_for_a_view(world, cli, tmp_path):
+def _capture_without(world, tmp_path, views):
+    """The world's capture with the landmarks of ``views`` removed (what a detector that finds no face leaves)."""
     cap = read_artifact(world / "preprocess-multipie" / "001.npz", "capture")
     arrays = dict(cap.arrays)
     lm = arrays["landmarks"].copy()
-    lm[1] = np.nan
+    for v in views:
+        lm[list(cap["view_names"]).index(v)] = np.nan
     arrays["landmarks"] = lm
-    bad = tmp_path / "capture.npz"
-    write_artifact(bad, "capture", arrays, params=cap.params, inputs=cap.meta["inputs"])
+    out = tmp_path / "capture.npz"
+    write_artifact(out, "capture", arrays, params=cap.params, inputs=cap.meta["inputs"])
+    return out
+
+
+def test_no_landmarks_for_any_view(world, cli, tmp_path):
+    bad = _capture_without(world, tmp_path, VIEWS.split(","))
+    out = tmp_path / "g.npz"
     msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--capture", bad,
-                   "--face-model", world / "syn" / "face_model.npz", "-o", tmp_path / "g.npz"))
-    assert "no landmarks for view 14_0" in msg and "001_01_01_140_00_lm.pts" in msg
+                   "--face-model", world / "syn" / "face_model.npz", "-o", out))
+    assert "no landmarks for any view of identity 001" in msg and "001_01_01_130_00_lm.pts" in msg
+    assert not out.exists()
+
+
+def test_views_without_landmarks_are_placed_by_the_rig_and_the_images(world, tmp_path):
+    # the side views 13_0 and 04_1 without landmarks; placed by the rig under the head pose of the other three and
+    # refined by the flash term; each view's evidence, residuals and uncertainty in the report and on stderr
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cap = _capture_without(world, tmp_path, ["13_0", "04_1"])
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    common = [sys.executable, "-m", "reflectmm_cli", "fit-geometry", "--id", "001", "-w", str(world), "--iters",
+              "200", "--photo-rounds", "1", "--flash-rounds", "1", "--no-overlay",
+              "--truth", str(world / "syn" / "truth" / "001.npz")]
+    runs = {}
+    fm = ["--face-model", str(world / "syn" / "face_model.npz"), "--rig", str(world / "syn" / "rig.toml")]
+    for name, extra in (("all", fm), ("some", fm + ["--capture", str(cap)])):
+        r = subprocess.run(common + extra + ["-o", str(tmp_path / f"{name}.npz")], capture_output=True, text=True,
+                           timeout=600, env=env)
+        assert r.returncode == 0, r.stderr
+        runs[name] = (read_artifact(tmp_path / f"{name}.npz", "geometry"), r.stderr)
+    g, err = runs["some"]
+    g_all = runs["all"][0]
+    ev = dict(zip(g["view_names"], g["view_evidence"]))
+    rep = {p["view"]: p for p in g.meta["report"]["placement"]}
+    # the room light does not move a view without landmarks (docs/benchmarks.md); the flash registration does
+    # when it lowers the residual within 3 σ of the rig
+    assert ev == {"13_0": "rig+flash" if rep["13_0"]["registered_by_flash"] else "rig",
+                  "14_0": "landmarks+photo+flash", "05_1": "landmarks+photo+flash", "05_0": "landmarks+photo+flash",
+                  "04_1": "rig+flash" if rep["04_1"]["registered_by_flash"] else "rig"}
+    side = [0, 4]
+    assert np.all(np.isnan(g["landmark_rmse_px"][side])) and np.all(np.isfinite(g["landmark_rmse_px"][1:4]))
+    assert np.all(np.isfinite(g["center_sigma_mm"][side])) and np.all(np.isnan(g["center_sigma_mm"][1:4]))
+    assert rep["13_0"]["evidence"] == ev["13_0"] and rep["13_0"]["landmark_rmse_px"] is None
+    assert rep["04_1"]["center_sigma_mm"] == pytest.approx(float(g["center_sigma_mm"][4]), abs=0.01)
+    assert any(ln.startswith(f"fit-geometry 001: view 13_0 placed by {ev['13_0']}: photometric RMS n/a")
+               for ln in err.splitlines()), err
+    assert "view 14_0 placed" not in err
+    # against the all-landmarks run on the same data and schedule
+    assert float(g["err_vertex_rmse_mm"]) < 1.3 * float(g_all["err_vertex_rmse_mm"]), (
+        float(g["err_vertex_rmse_mm"]), float(g_all["err_vertex_rmse_mm"]))
+    # cameras: on this one-row frontal arc every camera is 32–40 mm off with all landmarks; without the side
+    # views' landmarks the head rotation rests on three near-frontal views and acts on the side cameras' 1 m lever
+    # (measured 94 and 46 mm); the 20 mm goal is measured on the full rig (docs/benchmarks.md, issue 23)
+    assert np.max(g["err_cam_center_mm"][side]) < 3.0 * np.max(g_all["err_cam_center_mm"]), (
+        g["err_cam_center_mm"], g_all["err_cam_center_mm"])
 
 
 def test_missing_face_model_and_capture(world, cli, tmp_path):
