@@ -343,8 +343,18 @@ def _make_task(spec: StageSpec, stage: Stage, workspace: Path, ident: str | None
             task.outputs_error = f"cannot list the stage's outputs: {exc}"
     except _PlanError as exc:
         task.action, task.reason = ERROR, str(exc)
-        task.outputs = [ctx.output_path()]
+        task.outputs = _listed_outputs(stage, ctx)
     return task
+
+
+def _listed_outputs(stage: Stage, ctx: StageContext) -> list[Path]:
+    """The outputs a task would write, listed without its inputs where the stage can (named outputs such as
+    ``rig`` stay resolvable for the stages downstream of a task that is not planned, e.g. an aggregate left out
+    by ``--ids``); else its primary output."""
+    try:
+        return [Path(p) for p in stage.expected_outputs(ctx)]
+    except Exception:  # noqa: BLE001 - a hook may need the inputs it could not get
+        return [ctx.output_path()]
 
 
 def _resolve_inputs(spec: StageSpec, ctx: StageContext, workspace: Path, tasks: dict[str, Task],

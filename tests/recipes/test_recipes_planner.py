@@ -400,3 +400,48 @@ def test_hidden_folders_in_inputs_are_ignored(ws):
     assert "x" not in names and len(names) == 8
     (hidden / "x").write_text("changed, still not an input")
     assert set(statuses(run_recipe(ws / "recipe.toml", ws)).values()) == {"skipped"}
+
+
+@pytest.fixture
+def named_output_stages():
+    """Registers, for one test, ``tally`` (aggregate: one summary file and a named side output ``extra.txt``) and
+    ``use-extra`` (per identity, reading ``@tally.outputs.extra``): the shape of calibrate-rig's ``rig`` feeding
+    the held-out fits."""
+    from reflectmm_cli.stages.registry import _REGISTRY, register_stage
+
+    def tally_outputs(ctx):
+        return [ctx.output_path(), ctx.output_path().parent / "extra.txt"]
+
+    @register_stage("tally", outputs=tally_outputs, open_params=True)
+    def _tally(ctx):
+        outs = tally_outputs(ctx)
+        outs[0].parent.mkdir(parents=True, exist_ok=True)
+        write_artifact(outs[0], "checksum", {"n": np.int64(len(ctx.inputs["files"]))}, params={})
+        outs[1].write_text("extra\n")
+        return outs
+
+    @register_stage("use-extra", per_identity=True, open_params=True)
+    def _use_extra(ctx):
+        out = ctx.output_path()
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_artifact(out, "checksum", {"text": np.array(ctx.inputs["extra"][0].read_text())}, params={})
+        return [out]
+
+    yield
+    for verb in ("tally", "use-extra"):  # other tests enumerate the registry
+        _REGISTRY.pop(verb, None)
+
+
+def test_ids_outside_an_aggregate_still_resolve_its_named_outputs(ws, named_output_stages):
+    """``--ids 005`` leaves out the aggregate (built from 001–004), yet its named output stays resolvable for
+    the stage downstream of it (before: "stage 'tally' has no output named 'extra'")."""
+    (ws / "recipe.toml").write_text(
+        (ws / "recipe.toml").read_text()
+        + '\n[stages.tally]\nverb = "tally"\ninputs = { files = "@manifest.output" }\n'
+        + '\n[stages.late]\nverb = "use-extra"\nforeach = ["005"]\ninputs = { extra = "@tally.outputs.extra" }\n')
+    assert run_recipe(ws / "recipe.toml", ws).ok
+    plan = run_recipe(ws / "recipe.toml", ws, ids=["005"], force="late", dry_run=True)
+    assert statuses(plan) == {"late/005": "run"}, reasons(plan)
+    rep = run_recipe(ws / "recipe.toml", ws, ids=["005"], force="late")
+    assert rep.ok and statuses(rep) == {"late/005": "ok"}
+    assert str(read_artifact(ws / "late" / "005.npz")["text"]) == "extra\n"
