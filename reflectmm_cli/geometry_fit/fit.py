@@ -398,7 +398,10 @@ class _FitProblem:
             c = camera_centers(R, t)
             Rh, th = self.head()
             ch = self.rig_t @ Rh.T + th
-            p = p + 0.5 * (((c - ch) ** 2).sum(-1) * self.rig_w_t).sum()
+            if self.marked.all():  # one σ for every view: the sum in the order it always had
+                p = p + 0.5 * ((c - ch) ** 2).sum() / cfg.rig_sigma_mm ** 2
+            else:
+                p = p + 0.5 * (((c - ch) ** 2).sum(-1) * self.rig_w_t).sum()
             if self.unmarked_rot_w_t is not None:  # views without landmarks follow the rig's aim
                 p = p + 0.25 * (((R - self.rigR_t @ Rh.T) ** 2).sum((1, 2)) * self.unmarked_rot_w_t).sum()
             if self.use_rot:
