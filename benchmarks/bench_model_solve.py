@@ -25,7 +25,6 @@ The truth is read only by the measures, never by the update.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 import time
@@ -41,18 +40,6 @@ def _variant(spec: str) -> tuple[str, dict]:
         k, _, v = item.partition("=")
         kw[k] = float(v) if k in ("pull", "robust", "cg_tol") else int(v)
     return name, kw
-
-
-def _solved(model, arrays):
-    out = copy.deepcopy(model)
-    for k, v in arrays.items():
-        full = np.array(getattr(model, k), np.float32)
-        if k.endswith("basis"):
-            full[:v.shape[0]] = v
-        else:
-            full = v
-        setattr(out, k, full)
-    return out
 
 
 def _measure(model, light, ss, truth, oracle, refine) -> dict:
@@ -167,7 +154,7 @@ def main() -> int:
         return 0
 
     from reflectmm_cli.evaluation.expressive import oracle_model
-    from reflectmm_cli.finetune.model_solve import SolveConfig, alternate
+    from reflectmm_cli.finetune.model_solve import SolveConfig, alternate, with_solved
     from reflectmm_cli.finetune.refine import RefineConfig
     from reflectmm_cli.finetune.shards import load_shards
     from reflectmm_cli.finetune.train import load_models
@@ -196,7 +183,7 @@ def main() -> int:
         elif name == "sgd":
             m = load_models(ws / "finetune" / "finetune.npz", ws / "build-light-pca" / "build-light-pca.npz")[0]
         elif a.load is not None:
-            m = _solved(model, dict(np.load(a.load / f"{name}.npz")))
+            m = with_solved(model, dict(np.load(a.load / f"{name}.npz")))
         else:
             cfg = SolveConfig(rounds=a.rounds, max_pixels=a.max_pixels, cg_iterations=a.cg_iterations, **kw)
             t = time.process_time()
@@ -204,7 +191,7 @@ def main() -> int:
                                     log=lambda s: print(s, file=sys.stderr, flush=True), keep_best=False)
             row["cpu_s"] = time.process_time() - t
             row["report"] = {"rounds": rep.rounds, "best_round": rep.best_round}
-            m = _solved(model, arrays)
+            m = with_solved(model, arrays)
             if a.save is not None:
                 a.save.mkdir(parents=True, exist_ok=True)
                 np.savez(a.save / f"{name}.npz", **arrays)

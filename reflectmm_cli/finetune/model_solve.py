@@ -36,7 +36,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["SolveConfig", "SolveProblem", "build_problem", "merge_problems", "robust_weights", "solve_model",
-           "alternate", "SolveReport"]
+           "alternate", "SolveReport", "with_solved"]
 
 _FIELDS = ("vid", "bary", "coef", "D", "S", "target", "weight", "image")
 
@@ -405,6 +405,22 @@ def _fit_coefficients(params, light, shards, idx, refine, batch_size, device, st
         gbs.append(gb)
     cat = lambda xs: torch.cat(xs).detach()  # noqa: E731
     return cat(out_b), cat(out_g), cat(out_z), np.concatenate(obj), gbs
+
+
+def with_solved(model, arrays: dict):
+    """A copy of ``model`` with the arrays :func:`alternate` solved put in: each mean replaced, and the first rows
+    of each ``*basis`` (the components the solve saw) replaced, the later ones kept (basis arrays float32 like the model)."""
+    import copy
+
+    out = copy.deepcopy(model)
+    for k, v in arrays.items():
+        full = np.array(getattr(model, k), np.float32)
+        if k.endswith("basis"):
+            full[:v.shape[0]] = v
+        else:
+            full = v
+        setattr(out, k, full)
+    return out
 
 
 def alternate(model, light, shards, config: SolveConfig | None = None, *, refine=None, batch_size: int = 8,

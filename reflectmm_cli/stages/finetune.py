@@ -21,8 +21,6 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.config import RELEASED, FinetuneConfig
 from reflectmm_cli.params import Param
@@ -226,20 +224,10 @@ def run(ctx: StageContext) -> list[Path]:
 def _least_squares_update(model, light, shards, scfg, ctx, mesh):
     """(the model with its per-vertex part solved by :func:`~reflectmm_cli.finetune.model_solve.alternate`, the
     report); ``mesh`` (vertices, triangles) of the face model, for ``--ls-harmonics``."""
-    import copy
-
-    from reflectmm_cli.finetune.model_solve import alternate
+    from reflectmm_cli.finetune.model_solve import alternate, with_solved
 
     arrays, report = alternate(model, light, shards, scfg, device=ctx.device, log=log.info, mesh=mesh)
-    solved = copy.deepcopy(model)
-    for k, v in arrays.items():
-        full = np.array(getattr(model, k), np.float32)
-        if k.endswith("basis"):
-            full[:v.shape[0]] = v
-        else:
-            full = v
-        setattr(solved, k, full)
-    return solved, report
+    return with_solved(model, arrays), report
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, side_files=_side_files,

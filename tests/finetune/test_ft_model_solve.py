@@ -140,16 +140,23 @@ def _harmonic_columns(phi, shapes):
     return scipy.linalg.block_diag(*blocks)
 
 
+def _noisy_problem(small, seed: int):
+    """(rng, the merged problem of the small batch with its targets moved by N(0, 0.02) noise): a solve with a
+    non-zero residual."""
+    p, gb, d = small["p"], small["gb"], small["d"]
+    rng = np.random.default_rng(seed)
+    prob = MS.build_problem(p, d["light"], gb, small["beta"], small["gamma"], small["z"], max_pixels=0)
+    prob.target = prob.target + torch.tensor(rng.normal(0, 0.02, tuple(prob.target.shape)))
+    return rng, MS.merge_problems([prob], 4)
+
+
 def test_harmonic_solve_equals_the_dense_least_squares_solution(small):
     """The change restricted to Φu (Q mesh harmonics): the CG minimiser equals the dense normal-equation solution
     in u, from a start away from θ₀, and the preconditioner's diagonal is the dense diagonal in u."""
     from reflectmm_cli.geometry.harmonics import mesh_harmonics
 
     p, gb, d = small["p"], small["gb"], small["d"]
-    rng = np.random.default_rng(1)
-    prob = MS.build_problem(p, d["light"], gb, small["beta"], small["gamma"], small["z"], max_pixels=0)
-    prob.target = prob.target + torch.tensor(rng.normal(0, 0.02, tuple(prob.target.shape)))
-    prob = MS.merge_problems([prob], 4)
+    rng, prob = _noisy_problem(small, 1)
     theta0 = _theta(p)
     phi = mesh_harmonics(d["V"], d["tri"], 6)[0]
     basis = torch.as_tensor(phi)
@@ -174,10 +181,7 @@ def test_update_bases_freezes_the_later_bases(small):
     """update_bases = 1: the means and basis 0 change; the other bases keep their start; the free part equals the
     dense solution restricted to those unknowns."""
     p, gb, d = small["p"], small["gb"], small["d"]
-    rng = np.random.default_rng(2)
-    prob = MS.build_problem(p, d["light"], gb, small["beta"], small["gamma"], small["z"], max_pixels=0)
-    prob.target = prob.target + torch.tensor(rng.normal(0, 0.02, tuple(prob.target.shape)))
-    prob = MS.merge_problems([prob], 4)
+    rng, prob = _noisy_problem(small, 2)
     theta0 = _theta(p)
     n = sum(t.numel() for t in theta0)
     free = torch.cat([m.reshape(-1) for m in MS._free_mask([t.shape for t in theta0], 1, torch.float64)]).numpy()
