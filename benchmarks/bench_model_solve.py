@@ -6,7 +6,7 @@ Usage:
         [--rounds 1] [--max-pixels 1000] [--cg-iterations 100] [--threads 1] [--jsonl out.jsonl]
 
 A variant is a name and :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` fields (``pull``, ``harmonics``,
-``robust``, ``update_bases``, ...); ``initial`` (no update) and ``sgd`` (the workspace's finetuned model) are the
+``robust``, ``update_bases``, ``pull_scale``, ...); ``initial`` (no update) and ``sgd`` (the workspace's finetuned model) are the
 reference rows. With ``--load DIR`` the variants are not solved but read from ``DIR/NAME.npz`` (written by
 ``--save`` on another workspace): models made on one population, measured on another. Every variant runs with the same data, rounds, pixels and CG iterations. Measures, per row:
 
@@ -39,7 +39,7 @@ def _variant(spec: str) -> tuple[str, dict]:
     kw = {}
     for item in filter(None, rest.split(",")):
         k, _, v = item.partition("=")
-        kw[k] = float(v) if k in ("pull", "robust", "cg_tol") else int(v)
+        kw[k] = float(v) if k in ("pull", "robust", "cg_tol") else v if k == "pull_scale" else int(v)
     return name, kw
 
 
@@ -98,7 +98,8 @@ def summarise(paths: list[Path]) -> str:
         tr = f"{rep[-1]['solve_start']:.5f} → {rep[-1]['solve_end']:.5f}" if len(rep) > 1 else "–"
         va = " → ".join(f"{x['val_objective']:.5f}" for x in rep) if rep else "–"
         lo = f"{100 * rep[-1].get('pixels_left_out', 0):.1f} %" if len(rep) > 1 else "–"
-        cfg = ", ".join(f"{k} {v:g}" for k, v in r["config"].items()) or "–"
+        cfg = ", ".join(f"{k} {v:g}" if not isinstance(v, str) else f"{k} {v}" for k, v in r["config"].items()) \
+            or "–"
         dp = np.subtract(r["psnr"], ini["psnr"])
         ds = np.subtract(r["ssim"], ini["ssim"])
         same = r is ini or not (dp.any() or ds.any())
