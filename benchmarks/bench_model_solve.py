@@ -140,6 +140,31 @@ def encoder_table(ws: Path, specs: list[str]) -> str:
     return "\n".join(out)
 
 
+def changes_table(ws: Path, load: Path, names: list[str]) -> str:
+    """The relative change ‖x − x₀‖ / ‖x₀‖ of each mean and basis of the variants saved in ``load`` (by ``--save``)
+    against the workspace's initial model, in per cent."""
+    from reflectmm_cli.finetune.train import load_models
+
+    model, _ = load_models(ws / "build-pca" / "build-pca.npz", ws / "build-light-pca" / "build-light-pca.npz")
+    out = ["| variant | albedo mean | albedo bases 0…M−1 | lobe-weight mean | lobe-weight bases 0…M−1 |",
+           "|---|---|---|---|---|"]
+    for name in names:
+        saved = dict(np.load(load / f"{name}.npz"))
+        cells = []
+        for key in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis"):
+            x0 = np.asarray(getattr(model, key), np.float64)
+            x = np.asarray(saved[key], np.float64)
+            if key.endswith("basis"):
+                x0 = x0[:x.shape[0]]
+                rel = np.linalg.norm((x - x0).reshape(len(x), -1), axis=1) / np.linalg.norm(x0.reshape(len(x), -1),
+                                                                                              axis=1)
+                cells.append(" ".join(f"{100 * r:.0f}" for r in rel))
+            else:
+                cells.append(f"{100 * np.linalg.norm(x - x0) / np.linalg.norm(x0):.3g}")
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workspace", type=Path, default=Path("work"))
@@ -156,7 +181,13 @@ def main() -> int:
                     help="print the markdown table of these --jsonl files and exit")
     ap.add_argument("--load", type=Path, default=None,
                     help="measure the variants saved here by --save (another population's run) instead of solving")
+    ap.add_argument("--changes", action="store_true",
+                    help="print the relative change (%%) of every mean and basis of the variants saved in --load DIR "
+                         "against the workspace's initial model and exit")
     a = ap.parse_args()
+    if a.changes:
+        print(changes_table(a.workspace, a.load, [_variant(v)[0] for v in a.variant]))
+        return 0
     if a.summarise:
         print(summarise(a.summarise))
         return 0
