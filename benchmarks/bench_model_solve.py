@@ -6,7 +6,7 @@ Usage:
         [--rounds 1] [--max-pixels 1000] [--cg-iterations 100] [--threads 1] [--jsonl out.jsonl]
 
 A variant is a name and :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` fields (``pull``, ``harmonics``,
-``robust``, ``update_bases``, ...); ``initial`` (no update) and ``sgd`` (the workspace's finetuned model) are the
+``robust``, ``update_bases``, ``pull_scale``, ...); ``initial`` (no update) and ``sgd`` (the workspace's finetuned model) are the
 reference rows. With ``--load DIR`` the variants are not solved but read from ``DIR/NAME.npz`` (written by
 ``--save`` on another workspace): models made on one population, measured on another. Every variant runs with the same data, rounds, pixels and CG iterations. Measures, per row:
 
@@ -38,7 +38,7 @@ def _variant(spec: str) -> tuple[str, dict]:
     kw = {}
     for item in filter(None, rest.split(",")):
         k, _, v = item.partition("=")
-        kw[k] = float(v) if k in ("pull", "robust", "cg_tol") else int(v)
+        kw[k] = float(v) if k in ("pull", "robust", "cg_tol") else v if k == "pull_scale" else int(v)
     return name, kw
 
 
@@ -85,7 +85,8 @@ def summarise(paths: list[Path]) -> str:
         tr = f"{rep[-1]['solve_start']:.5f} → {rep[-1]['solve_end']:.5f}" if len(rep) > 1 else "–"
         va = " → ".join(f"{x['val_objective']:.5f}" for x in rep) if rep else "–"
         lo = f"{100 * rep[-1].get('pixels_left_out', 0):.1f} %" if len(rep) > 1 else "–"
-        cfg = ", ".join(f"{k} {v:g}" for k, v in r["config"].items()) or "–"
+        cfg = ", ".join(f"{k} {v:g}" if not isinstance(v, str) else f"{k} {v}" for k, v in r["config"].items()) \
+            or "–"
         dp = np.subtract(r["psnr"], ini["psnr"])
         ds = np.subtract(r["ssim"], ini["ssim"])
         same = r is ini or not (dp.any() or ds.any())
@@ -126,6 +127,31 @@ def encoder_table(ws: Path, specs: list[str]) -> str:
     return "\n".join(out)
 
 
+def changes_table(ws: Path, load: Path, names: list[str]) -> str:
+    """The relative change ‖x − x₀‖ / ‖x₀‖ of each mean and basis of the variants saved in ``load`` (by ``--save``)
+    against the workspace's initial model, in per cent."""
+    from reflectmm_cli.finetune.train import load_models
+
+    model, _ = load_models(ws / "build-pca" / "build-pca.npz", ws / "build-light-pca" / "build-light-pca.npz")
+    out = ["| variant | albedo mean | albedo bases 0…M−1 | lobe-weight mean | lobe-weight bases 0…M−1 |",
+           "|---|---|---|---|---|"]
+    for name in names:
+        saved = dict(np.load(load / f"{name}.npz"))
+        cells = []
+        for key in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis"):
+            x0 = np.asarray(getattr(model, key), np.float64)
+            x = np.asarray(saved[key], np.float64)
+            if key.endswith("basis"):
+                x0 = x0[:x.shape[0]]
+                rel = np.linalg.norm((x - x0).reshape(len(x), -1), axis=1) / np.linalg.norm(x0.reshape(len(x), -1),
+                                                                                              axis=1)
+                cells.append(" ".join(f"{100 * r:.0f}" for r in rel))
+            else:
+                cells.append(f"{100 * np.linalg.norm(x - x0) / np.linalg.norm(x0):.3g}")
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workspace", type=Path, default=Path("work"))
@@ -142,7 +168,13 @@ def main() -> int:
                     help="print the markdown table of these --jsonl files and exit")
     ap.add_argument("--load", type=Path, default=None,
                     help="measure the variants saved here by --save (another population's run) instead of solving")
+    ap.add_argument("--changes", action="store_true",
+                    help="print the relative change (%%) of every mean and basis of the variants saved in --load DIR "
+                         "against the workspace's initial model and exit")
     a = ap.parse_args()
+    if a.changes:
+        print(changes_table(a.workspace, a.load, [_variant(v)[0] for v in a.variant]))
+        return 0
     if a.summarise:
         print(summarise(a.summarise))
         return 0

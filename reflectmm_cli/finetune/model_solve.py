@@ -14,6 +14,9 @@ The model solve minimises, over θ = (ā, A, w̄, W),
     F(θ) = mean_b [ 1/(3 S_b) Σ_{p,c} (I_pc − T_pc)² ] + λ Σ_parts mean((x − x₀)²)
 
 (an L2 pull to the initial model x₀; each part averaged over its elements so that λ does not scale with V·M).
+With ``pull_scale = "relative"`` the pull is instead λ Σ_arrays ‖x − x₀‖² / ‖x₀‖² over the two means and every
+basis k of both parts separately: a relative change of one array costs the same whatever its size, so a basis
+that is small at the start (the lobe weights') cannot grow several-fold for little cost.
 F is quadratic; its minimiser solves the symmetric positive-definite normal equations ``H θ = g``, solved here by
 conjugate gradients preconditioned with the exact diagonal of H (matrix-free: one product H·v is one pass of the
 linear renderer and its adjoint). Vertices no image sees keep their initial values.
@@ -35,9 +38,11 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["SolveConfig", "SolveProblem", "build_problem", "merge_problems", "robust_weights", "solve_model",
-           "alternate", "SolveReport", "with_solved"]
+__all__ = ["PULL_SCALES", "SolveConfig", "pull_norms", "SolveProblem", "build_problem", "merge_problems",
+           "robust_weights", "solve_model", "alternate", "SolveReport", "with_solved"]
 
+#: Scales of the L2 pull (:class:`SolveConfig`.pull_scale).
+PULL_SCALES = ("element", "relative")
 _FIELDS = ("vid", "bary", "coef", "D", "S", "target", "weight", "image")
 
 
@@ -56,6 +61,8 @@ class SolveConfig:
         robust: k > 0 leaves out of the solve every pixel whose residual after the refinement is more than k robust
             standard deviations (1.4826 · MAD of its image) from its image's median residual; 0 = all pixels.
         update_bases: only the means and the first ``update_bases`` bases change (−1: all).
+        pull_scale: ``"element"``: the pull on each part is λ × its mean squared change; ``"relative"``: λ × each
+            array's (a mean, or one basis) squared change over its initial squared norm (:func:`pull_norms`).
     """
 
     rounds: int = field(default=3, metadata={"help": "refine -> solve rounds.", "range": (1, 100)})
@@ -73,6 +80,10 @@ class SolveConfig:
                                                          "robust standard deviations (MAD) of their image (0 = off)."})
     update_bases: int = field(default=-1, metadata={"help": "Update the means and only the first N bases (-1 = all).",
                                                     "range": (-1, 100000)})
+    pull_scale: str = field(default="element", metadata={"help": "Scale of the L2 pull: element = per-element mean "
+                                                                 "square of each part; relative = each mean and basis "
+                                                                 "over its own initial squared norm.",
+                                                         "choices": PULL_SCALES})
 
     def __post_init__(self):
         for k in ("pull", "cg_tol", "robust"):
@@ -83,6 +94,9 @@ class SolveConfig:
             raise ReflectmmError("model solve: rounds and cg_iterations must be ≥ 1")
         if int(self.harmonics) < 0 or int(self.update_bases) < -1:
             raise ReflectmmError("model solve: harmonics must be ≥ 0 and update_bases ≥ −1")
+        if self.pull_scale not in PULL_SCALES:
+            raise ReflectmmError(f"model solve: pull_scale must be one of {', '.join(PULL_SCALES)}, "
+                                 f"got {self.pull_scale!r}")
 
 
 @dataclass
@@ -213,16 +227,41 @@ def _render(prob: SolveProblem, am, ab, wm, wb):
     return alb * prob.D + torch.einsum("pi,ipc->pc", wts, prob.S)
 
 
-def _objective_and_grad_u(prob: SolveProblem, start: list, u: list, theta0: list, pull: float, sizes: list, basis):
-    """(F, ∇_u F) at θ = start + u (per-vertex), or θ = start + Φu (``basis`` Φ (V, Q))."""
+def pull_norms(theta0: list, pull_scale: str = "element") -> list:
+    """Per-part divisors d of the pull ``λ Σ_parts Σ (x − x₀)² / d`` (each broadcastable to its part).
+
+    Args:
+        theta0: [am (V,3), ab (M,V,3), wm (V,K), wb (M,V,K)] the initial model.
+        pull_scale: ``"element"``: d = the part's element count (an int); ``"relative"``: d = ‖x₀‖² of the mean
+            (a float) and of each basis k (an (M, 1, 1) tensor). An array that is zero at the start gets the
+            squared norm 1e-12 × the largest of its part (it is held where it is).
+    """
+    import torch
+
+    if pull_scale == "element":
+        return [t.numel() for t in theta0]
+    if pull_scale != "relative":
+        raise ReflectmmError(f"model solve: pull_scale must be one of {', '.join(PULL_SCALES)}, got {pull_scale!r}")
+    out = []
+    for part, t in enumerate(theta0):
+        sq = (t.detach().to(torch.float64) ** 2).reshape(t.shape[0] if part % 2 else 1, -1).sum(1)
+        sq = torch.clamp(sq, min=max(1e-12 * float(sq.max()), 1e-300))
+        out.append(float(sq[0]) if part % 2 == 0 else sq.reshape(-1, 1, 1).to(t.dtype))
+    return out
+
+
+def _objective_and_grad_u(prob: SolveProblem, start: list, u: list, theta0: list, pull: float, norms: list, basis):
+    """(F, ∇_u F) at θ = start + u (per-vertex), or θ = start + Φu (``basis`` Φ (V, Q)); ``norms``:
+    :func:`pull_norms`."""
     import torch
 
     u = [t.detach().requires_grad_(True) for t in u]
     x = [s + d for s, d in zip(start, _expand(basis, u))]
     r = _render(prob, *x) - prob.target
     f = (prob.weight[:, None] * r * r).sum()
-    for xi, x0, n in zip(x, theta0, sizes):
-        f = f + pull * ((xi - x0) ** 2).sum() / n
+    for xi, x0, d in zip(x, theta0, norms):
+        sq = (xi - x0) ** 2
+        f = f + (pull * sq.sum() / d if isinstance(d, (int, float)) else pull * (sq / d).sum())
     g = torch.autograd.grad(f, u)
     return float(f.detach()), [gi.detach() for gi in g]
 
@@ -232,9 +271,10 @@ def _pixel_basis(prob: SolveProblem, basis, s0: int, s1: int):
     return (basis[prob.vid[s0:s1]] * prob.bary[s0:s1, :, None]).sum(1)
 
 
-def _diag(prob: SolveProblem, shapes: list, pull: float, sizes: list, basis=None, chunk: int = 20000) -> list:
+def _diag(prob: SolveProblem, shapes: list, pull: float, norms: list, basis=None, chunk: int = 20000) -> list:
     """The exact diagonal of H (½ the Hessian of F) in the unknowns' space (per-vertex values, or harmonic
-    coefficients when ``basis`` Φ (V, Q) is given), for the Jacobi preconditioner."""
+    coefficients when ``basis`` Φ (V, Q) is given), for the Jacobi preconditioner; ``norms``:
+    :func:`pull_norms` (the element counts of the parts by default)."""
     import torch
 
     P = prob.vid.shape[0]
@@ -262,7 +302,7 @@ def _diag(prob: SolveProblem, shapes: list, pull: float, sizes: list, basis=None
                     out[part] += f2.T @ sn
                 else:
                     out[part] += torch.einsum("pq,pm,pc->mqc", f2, coef2[s0:s1], sn)
-    reg = [pull / n for n in sizes]
+    reg = [pull / n for n in norms]
     if basis is not None:
         phi2 = (basis ** 2).sum(0)[:, None]  # (Q, 1): the pull ‖Φu‖² on each coefficient
         return [o + r * phi2 for o, r in zip(out, reg)]
@@ -322,8 +362,8 @@ def _free_mask(shapes: list, update_bases: int, dtype) -> list:
 
 
 def solve_model(prob: SolveProblem, theta0: list, theta_start: list | None = None, *, pull: float = 1.0,
-                cg_iterations: int = 150, cg_tol: float = 1e-4, basis=None, update_bases: int = -1
-                ) -> tuple[list, dict]:
+                cg_iterations: int = 150, cg_tol: float = 1e-4, basis=None, update_bases: int = -1,
+                pull_scale: str = "element") -> tuple[list, dict]:
     """Minimise F (module docstring) by preconditioned CG from ``theta_start`` (default θ₀).
 
     Args:
@@ -332,16 +372,17 @@ def solve_model(prob: SolveProblem, theta0: list, theta_start: list | None = Non
         basis: optional Φ (V, Q) float64 torch: the change of every part is restricted to ``Φ u`` (smooth
             functions on the mesh, :func:`~reflectmm_cli.geometry.harmonics.mesh_harmonics`); unknowns u (…, Q, C).
         update_bases: only the means and the first ``update_bases`` bases change (−1: all).
+        pull_scale: ``"element"`` or ``"relative"`` (:func:`pull_norms`).
     Returns:
         (θ, info) with ``info = {"f_start", "f_end", "iterations", "rel_residual"}``.
     """
-    sizes = [t.numel() for t in theta0]
+    norms = pull_norms(theta0, pull_scale)
     start = [t.clone() for t in (theta_start or theta0)]
     shapes = [t.shape if basis is None else t.shape[:-2] + (basis.shape[1], t.shape[-1]) for t in start]
     mask = _free_mask(shapes, int(update_bases), start[0].dtype)
 
     def F(u):  # objective and gradient in the unknowns' space, frozen unknowns' gradient zeroed
-        f, g = _objective_and_grad_u(prob, start, u, theta0, pull, sizes, basis)
+        f, g = _objective_and_grad_u(prob, start, u, theta0, pull, norms, basis)
         return f, [gi * m for gi, m in zip(g, mask)]
 
     zero = [start[0].new_zeros(sh) for sh in shapes]
@@ -350,7 +391,7 @@ def solve_model(prob: SolveProblem, theta0: list, theta_start: list | None = Non
     def Hv(v):
         return [(a - b) / 2 for a, b in zip(F(v)[1], g)]
 
-    dinv = [m / d for m, d in zip(mask, _diag(prob, shapes, pull, sizes, basis))]
+    dinv = [m / d for m, d in zip(mask, _diag(prob, shapes, pull, norms, basis))]
     delta, it, rel = _pcg(Hv, [-gi / 2 for gi in g], dinv, cg_iterations, cg_tol)
     f1, _ = F(delta)
     if not math.isfinite(f1):
@@ -475,7 +516,8 @@ def alternate(model, light, shards, config: SolveConfig | None = None, *, refine
         if cfg.robust > 0:
             prob.weight, left_out = robust_weights(prob, _theta(params), cfg.robust)
         theta, info = solve_model(prob, theta0, _theta(params), pull=cfg.pull, cg_iterations=cfg.cg_iterations,
-                                  cg_tol=cfg.cg_tol, basis=basis, update_bases=cfg.update_bases)
+                                  cg_tol=cfg.cg_tol, basis=basis, update_bases=cfg.update_bases,
+                                  pull_scale=cfg.pull_scale)
         params.albedo_mean, params.albedo_basis, params.weights_mean, params.weights_basis = theta
         v = val_objective()
         rec = {"round": rnd, "train_refined_objective": float(np.mean(obj)), "solve_start": info["f_start"],

@@ -73,10 +73,10 @@ def config_params() -> tuple[Param, ...]:
     return tuple(out)
 
 
-_SOLVE_KINDS = {"int": "int", "float": "float"}
+_SOLVE_KINDS = {"int": "int", "float": "float", "str": "str"}
 #: The constraints of the least-squares update: off unless given, and then not recorded (cache keys of runs made
 #: before these options are unchanged).
-_SOLVE_OFF_BY_DEFAULT = ("harmonics", "robust", "update_bases")
+_SOLVE_OFF_BY_DEFAULT = ("harmonics", "robust", "update_bases", "pull_scale")
 
 
 def solver_params() -> tuple[Param, ...]:
@@ -92,8 +92,10 @@ def solver_params() -> tuple[Param, ...]:
         md = f.metadata
         kind = _SOLVE_KINDS[str(f.type)]
         off = f.name in _SOLVE_OFF_BY_DEFAULT
-        out.append(Param("ls_" + f.name, kind, None if off else f.default, range=md.get("range") or (0.0, None),
-                         help=md["help"] + (" [default: off]" if off else "")))
+        rng = None if kind == "str" else md.get("range") or (0.0, None)
+        out.append(Param("ls_" + f.name, kind, None if off else f.default, range=rng, choices=md.get("choices"),
+                         help=md["help"] + (f" [default: {f.default}]" if kind == "str" else
+                                            " [default: off]" if off else "")))
     return tuple(out)
 
 

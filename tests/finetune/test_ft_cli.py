@@ -315,27 +315,30 @@ def test_finetune_solver_ls_writes_a_solved_model_and_an_encoder_trained_on_it(c
 
     assert residual(art) < 0.95 * residual(init)  # measured 0.135 against 0.154
     assert art.meta["finetune"]["update_rms"]["vertex_albedo_mean"] > 0
+    assert not {"ls_harmonics", "ls_robust", "ls_update_bases", "ls_pull_scale"} & set(art.meta["params"])
     r = cli("reconstruct", "--encoder", out.parent / "m_encoder.safetensors", "--model", out, "--light-model",
             data["light_path"], "--data", data["shards"][0], "--split", "val", "-o", tmp_path / "rec.npz")
     assert r.exit_code == 0, r.stderr
 
 
 def test_finetune_solver_ls_with_harmonics_changes_the_model_by_smooth_functions_only(cli, data, tmp_path):
-    """--ls-harmonics Q --ls-robust K: the change of the mean and of every basis lies in the span of the face
+    """--ls-harmonics Q --ls-robust K --ls-pull-scale relative: the change of the mean and of every basis lies in the span of the face
     mesh's Q lowest harmonics (Φ Φᵀ M Δ = Δ), the options are recorded, and a run without them records none (the
-    cache keys of earlier runs are unchanged)."""
+    cache keys of earlier runs are unchanged); an unknown pull scale is a one-line error."""
     from reflectmm_cli.geometry.face_model import load_face_model
     from reflectmm_cli.geometry.harmonics import cotangent_laplacian, mesh_harmonics
 
     out = tmp_path / "lsh" / "m.npz"
     r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
             data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY, "--solver", "ls",
-            "--ls-rounds", "1", "--ls-max-pixels", "0", "--ls-harmonics", "12", "--ls-robust", "4")
+            "--ls-rounds", "1", "--ls-max-pixels", "0", "--ls-harmonics", "12", "--ls-robust", "4",
+            "--ls-pull-scale", "relative", "--ls-pull", "0.01")
     assert r.exit_code == 0, r.stderr
     art = read_artifact(out, "reflectance-model")
     init = read_artifact(data["init_path"], "reflectance-model")
     params = art.meta["params"]
     assert params["ls_harmonics"] == 12 and params["ls_robust"] == 4.0 and "ls_update_bases" not in params
+    assert params["ls_pull_scale"] == "relative"
     fm = load_face_model(data["face_model"])
     phi, _ = mesh_harmonics(fm.mean_shape, fm.triangles, 12)
     _, M = cotangent_laplacian(fm.mean_shape, fm.triangles)
@@ -347,6 +350,9 @@ def test_finetune_solver_ls_with_harmonics_changes_the_model_by_smooth_functions
     np.testing.assert_allclose(phi @ (phi.T @ (M @ delta)), delta, atol=1e-5)
     rounds = art.meta["finetune"]["model_solve"]["rounds"]
     assert rounds[1]["solve_end"] < rounds[1]["solve_start"] and rounds[1]["pixels_left_out"] >= 0
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "-o", tmp_path / "bad" / "m.npz", *TINY, "--solver", "ls", "--ls-pull-scale", "norm")
+    assert r.exit_code != 0 and "pull" in r.stderr and not (tmp_path / "bad" / "m.npz").exists()
 
 
 def test_a_control_started_from_the_phase1_encoder_equals_a_full_control_run(cli, data, tmp_path):

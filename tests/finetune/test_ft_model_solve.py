@@ -95,8 +95,9 @@ def test_alternating_update_recovers_a_model_and_keeps_the_best_round(small):
     assert after < before
 
 
-def _dense_system(prob, theta0, start, pull, cols_of):
-    """Dense (H, g) of F in the unknowns u (θ = start + cols_of(u)), built column by column from the renderer."""
+def _dense_system(prob, theta0, start, pull, cols_of, reg=None):
+    """Dense (H, g) of F in the unknowns u (θ = start + cols_of(u)), built column by column from the renderer;
+    ``reg`` the pull's per-element weights (default λ / the part's element count)."""
     shapes = [t.shape for t in theta0]
     sizes = [t.numel() for t in theta0]
     flat0 = torch.cat([t.reshape(-1) for t in theta0]).numpy()
@@ -120,7 +121,8 @@ def _dense_system(prob, theta0, start, pull, cols_of):
     A = cols_of  # (n_vertex_values, n_unknowns)
     J = Jv @ A
     w = np.repeat(prob.weight.numpy(), 3)
-    reg = np.concatenate([np.full(m, pull / m) for m in sizes])
+    if reg is None:
+        reg = np.concatenate([np.full(m, pull / m) for m in sizes])
     H = J.T @ (w[:, None] * J) + A.T @ (reg[:, None] * A)
     resid = Jv @ flat_s - prob.target.numpy().reshape(-1)
     g = J.T @ (w * resid) + A.T @ (reg * (flat_s - flat0))
@@ -175,6 +177,77 @@ def test_harmonic_solve_equals_the_dense_least_squares_solution(small):
     diag = torch.cat([x.reshape(-1) for x in MS._diag(prob, ushapes, pull, [t.numel() for t in theta0], basis,
                                                       chunk=7)]).numpy()
     np.testing.assert_allclose(diag, np.diag(H), rtol=1e-9, atol=1e-15)
+
+
+def _relative_reg(theta0, pull):
+    """λ / ‖x₀‖² of each element's array (a mean, or one basis), computed directly, flattened like θ."""
+    out = []
+    for part, t in enumerate(theta0):
+        x = t.numpy()
+        arrays = [x] if part % 2 == 0 else list(x)
+        out += [np.full(a.size, pull / float((a ** 2).sum())) for a in arrays]
+    return np.concatenate(out)
+
+
+@pytest.mark.parametrize("harmonics", [0, 6])
+def test_relative_pull_solve_equals_the_dense_least_squares_solution(small, harmonics):
+    """pull_scale relative, with one lobe-weight basis made 100× smaller than the others: the CG minimiser equals the
+    dense normal-equation solution with the pull λ‖x − x₀‖²/‖x₀‖² per array (per vertex and with 6 harmonics, from a
+    start away from θ₀), the preconditioner's diagonal is the dense diagonal, and the small basis moves less
+    (relative to its size) than under the element pull."""
+    from reflectmm_cli.geometry.harmonics import mesh_harmonics
+
+    p, gb, d = small["p"], small["gb"], small["d"]
+    rng = np.random.default_rng(4)
+    prob = MS.build_problem(p, d["light"], gb, small["beta"], small["gamma"], small["z"], max_pixels=0)
+    prob.target = prob.target + torch.tensor(rng.normal(0, 0.02, tuple(prob.target.shape)))
+    prob = MS.merge_problems([prob], 4)
+    theta0 = _theta(p)
+    theta0[3][1] *= 0.01
+    start = [t + 0.001 * torch.as_tensor(rng.normal(size=tuple(t.shape))) for t in theta0]
+    shapes = [t.shape for t in theta0]
+    n = sum(t.numel() for t in theta0)
+    basis = torch.as_tensor(mesh_harmonics(d["V"], d["tri"], harmonics)[0]) if harmonics else None
+    A = _harmonic_columns(basis.numpy(), shapes) if harmonics else np.eye(n)
+    pull = 0.05
+    reg = _relative_reg(theta0, pull)
+    H, g, _ = _dense_system(prob, theta0, start, pull, A, reg=reg)
+    want = torch.cat([t.reshape(-1) for t in start]).numpy() + A @ np.linalg.solve(H, -g)
+    theta, info = MS.solve_model(prob, theta0, start, pull=pull, cg_iterations=4000, cg_tol=1e-13, basis=basis,
+                                 pull_scale="relative")
+    got = torch.cat([t.reshape(-1) for t in theta]).numpy()
+    np.testing.assert_allclose(got, want, atol=1e-7 * max(1.0, np.abs(want).max()))
+    assert info["f_end"] < info["f_start"]
+    ushapes = shapes if not harmonics else [t.shape[:-2] + (harmonics, t.shape[-1]) for t in theta0]
+    norms = MS.pull_norms(theta0, "relative")
+    diag = torch.cat([x.reshape(-1) for x in MS._diag(prob, ushapes, pull, norms, basis, chunk=7)]).numpy()
+    np.testing.assert_allclose(diag, np.diag(H), rtol=1e-9, atol=1e-15)
+    # the element pull with the same λ lets the small basis grow far more relative to its size
+    elem, _ = MS.solve_model(prob, theta0, start, pull=pull, cg_iterations=4000, cg_tol=1e-13, basis=basis)
+    rel = lambda th: float(((th[3][1] - theta0[3][1]) ** 2).sum() / (theta0[3][1] ** 2).sum())  # noqa: E731
+    assert rel(theta) < rel(elem)
+
+
+def test_pull_norms_against_direct_norms():
+    """element: the parts' element counts; relative: each mean's and each basis's squared norm, a zero basis held
+    at 1e-12 × its part's largest."""
+    rng = np.random.default_rng(5)
+    theta0 = [torch.as_tensor(rng.normal(size=s)) for s in ((5, 3), (4, 5, 3), (5, 2), (4, 5, 2))]
+    theta0[3][2] = 0.0
+    assert MS.pull_norms(theta0) == [15, 60, 10, 40]
+    got = MS.pull_norms(theta0, "relative")
+    for part in (0, 2):
+        assert got[part] == pytest.approx(float((theta0[part] ** 2).sum()), rel=1e-12)
+    for part in (1, 3):
+        want = (theta0[part] ** 2).sum((1, 2)).numpy()
+        if part == 3:
+            want[2] = 1e-12 * want.max()
+        np.testing.assert_allclose(got[part].reshape(-1).numpy(), want, rtol=1e-12)
+        assert got[part].shape == (4, 1, 1)
+    from reflectmm_cli.errors import ReflectmmError
+
+    with pytest.raises(ReflectmmError, match="pull_scale"):
+        MS.SolveConfig(pull_scale="global")
 
 
 def test_update_bases_freezes_the_later_bases(small):
