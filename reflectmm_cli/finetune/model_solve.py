@@ -46,6 +46,11 @@ PULL_SCALES = ("element", "relative")
 _FIELDS = ("vid", "bary", "coef", "D", "S", "target", "weight", "image")
 
 
+def _check_pull_scale(pull_scale: str) -> None:
+    if pull_scale not in PULL_SCALES:
+        raise ReflectmmError(f"model solve: pull_scale must be one of {', '.join(PULL_SCALES)}, got {pull_scale!r}")
+
+
 @dataclass(frozen=True)
 class SolveConfig:
     """Options of the least-squares model update.
@@ -94,9 +99,7 @@ class SolveConfig:
             raise ReflectmmError("model solve: rounds and cg_iterations must be ≥ 1")
         if int(self.harmonics) < 0 or int(self.update_bases) < -1:
             raise ReflectmmError("model solve: harmonics must be ≥ 0 and update_bases ≥ −1")
-        if self.pull_scale not in PULL_SCALES:
-            raise ReflectmmError(f"model solve: pull_scale must be one of {', '.join(PULL_SCALES)}, "
-                                 f"got {self.pull_scale!r}")
+        _check_pull_scale(self.pull_scale)
 
 
 @dataclass
@@ -240,8 +243,7 @@ def pull_norms(theta0: list, pull_scale: str = "element") -> list:
 
     if pull_scale == "element":
         return [t.numel() for t in theta0]
-    if pull_scale != "relative":
-        raise ReflectmmError(f"model solve: pull_scale must be one of {', '.join(PULL_SCALES)}, got {pull_scale!r}")
+    _check_pull_scale(pull_scale)
     out = []
     for part, t in enumerate(theta0):
         sq = (t.detach().to(torch.float64) ** 2).reshape(t.shape[0] if part % 2 else 1, -1).sum(1)

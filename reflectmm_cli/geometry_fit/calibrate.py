@@ -546,6 +546,11 @@ class _Flashes:
     sigma_mm: np.ndarray
 
 
+def _annotated(lm: np.ndarray) -> np.ndarray:
+    """(C,) bool: the cameras that at least one identity annotates (≥ 6 landmarks) in lm (N, C, 68, 2)."""
+    return (np.isfinite(lm).all(-1).sum(-1) >= 6).any(0)
+
+
 def _setup(model: ShapeModel, landmarks, camera_names: Sequence[str], image_size, nominal: Rig,
            cfg: CalibrationConfig, identities: Sequence[str] | None) -> _RigSetup:
     """Check the inputs of :func:`calibrate_rig` and gather them with the nominal cameras and first assumptions."""
@@ -558,13 +563,12 @@ def _setup(model: ShapeModel, landmarks, camera_names: Sequence[str], image_size
     isz = np.asarray(image_size, np.int64).reshape(-1, 2)
     isz = np.broadcast_to(isz, (C, 2)).copy()
     R0, c0, f0, notes = _nominal_cameras(nominal, names, isz, cfg)
-    per_view = np.isfinite(lm).all(-1).sum(-1)                                         # (N, C)
     if N < 1:
         raise ReflectmmError("calibrate-rig needs at least one identity")
-    seen = (per_view >= 6).sum(0)
-    if (seen > 0).sum() < 3 and np.any(seen == 0):
-        raise ReflectmmError("no landmarks at all for camera(s) " + ", ".join(n for n, s in zip(names, seen) if s == 0)
-                             + f" and only {int((seen > 0).sum())} camera(s) with landmarks: at least 3 are needed "
+    seen = _annotated(lm)
+    if seen.sum() < 3 and not seen.all():
+        raise ReflectmmError("no landmarks at all for camera(s) " + ", ".join(n for n, s in zip(names, seen) if not s)
+                             + f" and only {int(seen.sum())} camera(s) with landmarks: at least 3 are needed "
                              "to carry the nominal table to the others")
     Ks = model.n_shape if cfg.n_shape is None else min(cfg.n_shape, model.n_shape)
     Ke = 0 if not cfg.fit_expression else (model.n_exp if cfg.n_exp is None else min(cfg.n_exp, model.n_exp))
@@ -889,7 +893,7 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
     """
     cfg = config or CalibrationConfig()
     setup = _setup(model, landmarks, camera_names, image_size, nominal, cfg, identities)
-    seen = (np.isfinite(setup.lm).all(-1).sum(-1) >= 6).any(0)
+    seen = _annotated(setup.lm)
     if seen.all():
         cal = _calibrate_seen(model, setup, nominal, cfg, flash_ids, progress_fn)
         cal.report["camera_placed_by"] = {n: "landmarks" for n in setup.names}

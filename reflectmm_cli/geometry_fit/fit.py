@@ -32,6 +32,7 @@ import torch
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import axis_angle_to_matrix, camera_centers, project
+from reflectmm_cli.geometry.rotations import skew
 from reflectmm_cli.geometry_fit.init import rigid_align
 from reflectmm_cli.geometry_fit.landmarks import landmark_weights
 from reflectmm_cli.geometry.face_model import vertex_normals
@@ -331,7 +332,8 @@ class _FitProblem:
         ``unmarked_rot_sigma_deg``) follow the rig under the fitted head; refused when there is no rig to follow."""
         views, cfg, V = self.views, self.cfg, self.V
         um = ~self.marked
-        self.rig_w_t = self.tt(np.where(um, 1.0 / (cfg.unmarked_sigma_mm or cfg.rig_sigma_mm) ** 2
+        self.unmarked_sigma = cfg.unmarked_sigma_mm or cfg.rig_sigma_mm  # mm; 0 falls back to the rig's σ
+        self.rig_w_t = self.tt(np.where(um, 1.0 / self.unmarked_sigma ** 2
                                         if cfg.rig_sigma_mm > 0 else 0.0, 1.0 / max(cfg.rig_sigma_mm, 1e-12) ** 2))
         self.unmarked_rot_w_t = None
         if not um.any():
@@ -364,9 +366,7 @@ class _FitProblem:
         a = -c2 / torch.linalg.norm(c2, dim=-1, keepdim=True)          # new direction to the origin
         b = -c / torch.linalg.norm(c, dim=-1, keepdim=True)            # old one
         v = torch.cross(a, b, dim=-1)
-        vx = torch.zeros(self.V, 3, 3, dtype=self.dtype, device=self.device)
-        vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-        vx = vx - vx.transpose(1, 2)
+        vx = skew(v)
         Q = torch.eye(3, dtype=self.dtype, device=self.device) + vx + vx @ vx / (1 + (a * b).sum(-1))[:, None, None]
         dist = torch.linalg.norm(c, dim=-1, keepdim=True).detach()
         R = axis_angle_to_matrix(self.probe[:, :3] / dist) @ R @ Q      # Q a = b: the origin stays on its ray
@@ -797,7 +797,7 @@ def _register_unmarked(prob: _FitProblem, sm: _SubMesh) -> np.ndarray | None:
         for h in hooks:
             h.remove()
     after = _view_flash_rms(prob, sm, fp, raw, sat)
-    sigma = cfg.unmarked_sigma_mm or cfg.rig_sigma_mm
+    sigma = prob.unmarked_sigma
     shift = rig_shift(prob)
     with np.errstate(invalid="ignore"):
         bad = um & ~((after <= before) & (shift <= 3.0 * sigma))
