@@ -5,6 +5,11 @@ nothing is downloaded at run time).
 :func:`detect_landmarks` returns every face of an image (largest first) with its box, detector score and
 68 landmarks in the pixel-centre convention of geometry/camera.py (dlib reports integer pixel indices whose
 centre is that convention's integer coordinate).
+
+:func:`normalize_exposure` is applied first by default: dlib's HOG detector was trained on well-exposed
+photos, and a dim capture (Multi-PIE's room-light shots, the synthetic captures) has too little gradient for it.
+Scaling the image so that a high percentile of its brightest channel reaches 255 changes no pixel position, so the
+landmarks stay in the input's pixel grid (docs/capture.md, "Landmarks from a detector").
 """
 from __future__ import annotations
 
@@ -17,10 +22,14 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Face", "predictor_path", "detect_landmarks", "pick_face", "detect_landmark_files"]
+__all__ = ["Face", "EXPOSURES", "predictor_path", "normalize_exposure", "detect_landmarks", "pick_face", "detect_landmark_files"]
 
 _MISSING = ("landmark detection needs the optional extra: pip install 'reflectmm[landmarks]' "
             "(dlib-bin and face-recognition-models)")
+
+
+#: How :func:`detect_landmarks` prepares the image: ``auto`` = :func:`normalize_exposure`, ``none`` = as given.
+EXPOSURES = ("auto", "none")
 
 
 @dataclass
@@ -60,11 +69,38 @@ def _models():
     return dlib.get_frontal_face_detector(), dlib.shape_predictor(str(predictor_path()))
 
 
-def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1) -> list[Face]:
-    """All faces of an RGB uint8 image (H, W, 3), sorted by box area then score (largest first)."""
+def normalize_exposure(image_rgb: np.ndarray, percentile: float = 99.5) -> np.ndarray:
+    """Brighten an RGB uint8 image (H, W, 3) so that ``percentile`` of its per-pixel brightest channel maps to 255.
+
+    The gain is ``255 / q`` with ``q`` that percentile, never below 1 (a well-exposed image is returned unchanged)
+    and at most 64 (a nearly black image is not turned into amplified quantisation noise).  Values are clipped at
+    255 and rounded.  Returns a new uint8 array of the same shape.
+    """
+    img = np.asarray(image_rgb)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ReflectmmError(f"normalize_exposure: expected an RGB uint8 image, got {img.dtype} {img.shape}")
+    if not 0.0 < float(percentile) <= 100.0:
+        raise ReflectmmError(f"normalize_exposure: percentile must be in (0, 100], got {percentile}")
+    q = float(np.percentile(img.max(axis=2), percentile))
+    gain = min(64.0, 255.0 / max(q, 1.0))
+    if gain <= 1.0:
+        return img.copy()
+    return np.clip(np.rint(img.astype(np.float32) * np.float32(gain)), 0, 255).astype(np.uint8)
+
+
+def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1, exposure: str = "auto") -> list[Face]:
+    """All faces of an RGB uint8 image (H, W, 3), sorted by box area then score (largest first).
+
+    ``exposure`` (one of :data:`EXPOSURES`): ``auto`` detects on :func:`normalize_exposure` of the image,
+    ``none`` on the image as given.  The landmarks are in the input's pixel grid either way.
+    """
     img = np.ascontiguousarray(np.asarray(image_rgb))
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ReflectmmError(f"detect_landmarks: expected an RGB uint8 image, got {img.dtype} {img.shape}")
+    if exposure not in EXPOSURES:
+        raise ReflectmmError(f"detect_landmarks: exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
+    if exposure == "auto":
+        img = np.ascontiguousarray(normalize_exposure(img))
     det, pred = _models()
     rects, scores, _ = det.run(img, int(upsample))
     faces = []
@@ -87,7 +123,7 @@ def pick_face(faces: list[Face], index: int | None = None) -> Face | None:
 
 
 def detect_landmark_files(images, out_dir, *, face_index: int | None = None, upsample: int = 1,
-                          progress_fn=None) -> tuple[list[Path], list[str]]:
+                          exposure: str = "auto", progress_fn=None) -> tuple[list[Path], list[str]]:
     """Detect the face of each image file and write ``out_dir/<stem>.pts`` (68 iBUG points, pixel-centre
     convention; read by ``preprocess-multipie`` and ``prepare-wild``).
 
@@ -104,7 +140,7 @@ def detect_landmark_files(images, out_dir, *, face_index: int | None = None, ups
     for p in (progress_fn(images) if progress_fn else images):
         p = Path(p)
         try:
-            faces = detect_landmarks(read_image_u8(p), upsample=upsample)
+            faces = detect_landmarks(read_image_u8(p), upsample=upsample, exposure=exposure)
             f = pick_face(faces, face_index)
             if f is None:
                 raise ReflectmmError("no face found" if not faces else

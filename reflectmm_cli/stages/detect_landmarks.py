@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from reflectmm_cli.detection import EXPOSURES
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
@@ -22,6 +23,9 @@ PARAMS = (
     Param("face_index", "int", None, range=(0, None),
           help="Which face when several are found (0 = largest; default the largest)."),
     Param("upsample", "int", 1, range=(0, 3), help="Detector upsampling (finds smaller faces, slower)."),
+    Param("exposure", "str", "auto", choices=EXPOSURES,
+          help="auto: brighten dim images before detecting (99.5th percentile of the brightest channel to 255; "
+               "no pixel moves); none: detect on the image as given."),
 )
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
@@ -65,7 +69,7 @@ def run(ctx: StageContext) -> list[Path]:
     if not images:
         raise ReflectmmError(f"{VERB}: no images (png/jpg/bmp/tif/webp) in the input")
     written, errors = detect_landmark_files(images, out_dir(ctx), face_index=ctx.params.get("face_index"),
-                                            upsample=ctx.params["upsample"],
+                                            upsample=ctx.params["upsample"], exposure=ctx.params["exposure"],
                                             progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
     for e in errors:
         log.error(f"{VERB}: {e}")
@@ -75,5 +79,5 @@ def run(ctx: StageContext) -> list[Path]:
     return written
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, input_files=_files, params=PARAMS,
+STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_outputs, input_files=_files, params=PARAMS,
               help="68-point iBUG landmarks with dlib", inputs=INPUTS)

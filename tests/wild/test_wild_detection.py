@@ -68,3 +68,26 @@ def test_two_folders_with_the_same_file_name_are_refused(tmp_path, cli):
     assert res.exit_code == 1 and len(res.stderr.strip().splitlines()) == 1
     assert "face.pts" in res.stderr and str(tmp_path / "a" / "face.png") in res.stderr
     assert not (tmp_path / "lm").exists()
+
+
+def test_dim_photo_is_found_after_exposure_normalisation(tmp_path, cli):
+    """The astronaut at 1/16 of her exposure: dlib finds no face as given, and the same face (the same pixels) once
+    the image is brightened."""
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+
+    bright = data.astronaut()
+    ref = pick_face(detect_landmarks(bright, exposure="none")).landmarks
+    dim = np.rint(bright.astype(np.float64) / 16).astype(np.uint8)
+    assert detect_landmarks(dim, exposure="none") == []
+    found = pick_face(detect_landmarks(dim, exposure="auto"))
+    assert found is not None
+    iod = np.linalg.norm(ref[36:42].mean(0) - ref[42:48].mean(0))
+    assert np.median(np.linalg.norm(found.landmarks - ref, axis=1)) < 0.1 * iod
+    write_png(tmp_path / "dim.png", dim)
+    res = cli("detect-landmarks", tmp_path / "dim.png", "--out", tmp_path / "none", "--exposure", "none")
+    assert res.exit_code == 1 and "no face" in res.stderr
+    res = cli("detect-landmarks", tmp_path / "dim.png", "--out", tmp_path / "auto")
+    assert res.exit_code == 0, res.stderr
+    assert np.allclose(read_landmarks(tmp_path / "auto" / "dim.pts"), found.landmarks)
