@@ -10,7 +10,8 @@ specular part of texels facing away from the viewer (n·v ≤ 0, where it is 0 b
 
 The two terms are written once (:func:`diffuse_term`, :func:`lobe_term` on the rows of :func:`diffuse_rows` and
 :func:`lobe_rows`); the execution paths — blocked numpy, :class:`EnvBasis`, generic broadcasting, masked gather —
-only arrange the data (blocks, masks, gathers, layouts, devices) and pass one :class:`EnvTerms` record.
+only arrange the data (blocks, masks, gathers, layouts, devices) and pass one :class:`EnvTerms` record; the
+compiled kernel (:mod:`._env_numba`, ``backend=``) consumes the same rows on the same Chebyshev basis.
 """
 from __future__ import annotations
 
