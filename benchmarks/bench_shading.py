@@ -3,6 +3,7 @@
     python benchmarks/bench_shading.py            # full run (~1–2 min on 2 cores)
     python benchmarks/bench_shading.py --quick    # smaller sizes, for a smoke test
     python benchmarks/bench_shading.py --only speed --compare-old /tmp/env_old.py   # old vs new, same run
+    python benchmarks/bench_shading.py --only kernels   # compiled (numba) vs numpy kernel, same run, JIT times
 
 Sections:
 1. accuracy of ``shade_env`` (SH order × lobe exponent × view angle) against brute-force integration of the
@@ -10,7 +11,8 @@ Sections:
 2. throughput of ``shade_env`` (order 8, 3 lobes, float32) against a roofline of this machine (the kernel's own
    operation counts and the measured rate of each operation at the kernel's block size); with
    ``--compare-old FILE`` also a copy of an earlier ``reflectmm_cli/shading/env.py`` (imported from its path),
-   timed interleaved with the current one in the same process;
+   timed interleaved with the current one in the same process; and the compiled (numba) kernel against the
+   blocked numpy kernel, interleaved, with its JIT compile and cache-load times (``--only kernels`` alone);
 3. what skipping buys (band truncation, zero-weight lobes, masks, back-facing texels);
 4. equirectangular projection (2048×1024) against ducc0.
 All timings are medians of repeated runs.
@@ -349,27 +351,117 @@ def compare_old(path, quick, repeat=7):
     rows = ["### 2b. Old against new kernel, same run\n",
             f"Old: `{path}`; new: the current `reflectmm_cli/shading/env.py`. {N} texels; each case runs old, "
             f"new, old, new, … ({repeat} repeats each after one warm-up); medians of wall time. Load average at "
-            f"the start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs.\n",
-            "| case | old median wall | new median wall | old M texels/s | new M texels/s | new/old (wall) | "
-            "M texels per CPU-s, old / new (ratio) | max abs(new − old) / max abs(old) |",
+            f"the start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs.\n"]
+    rows += interleaved(cases, old, new, ("old", "new"), N, repeat)
+    rows.append(f"\nLoad average at the end: {os.getloadavg()[0]:.1f}.")
+    return "\n".join(rows)
+
+
+def interleaved(cases, a, b, names, N, repeat):
+    """Table rows: each case ``f(x)`` run for x = a, b, a, b, … (``repeat`` each after one warm-up, which also
+    gives the agreement of b's result with a's); medians of wall and CPU time (all threads)."""
+    na, nb = names
+    rows = [f"| case | {na} median wall | {nb} median wall | {na} M texels/s | {nb} M texels/s | {nb}/{na} (wall) | "
+            f"M texels per CPU-s, {na} / {nb} (ratio) | max abs({nb} − {na}) / max abs({na}) |",
             "|---|---|---|---|---|---|---|---|"]
     for name, f in cases.items():
-        ro, rn = f(old), f(new)  # warm-up, and the agreement check
-        diff = max(float(np.abs(a.astype(np.float64) - b).max() / max(np.abs(b).max(), 1e-30))
-                   for a, b in zip(rn, ro))
+        ro, rn = f(a), f(b)  # warm-up, and the agreement check
+        diff = max(float(np.abs(x.astype(np.float64) - y).max() / max(np.abs(y).max(), 1e-30))
+                   for x, y in zip(rn, ro))
         to, tn, co, cn = [], [], [], []
         for _ in range(repeat):
-            for mod, tl, cl in ((old, to, co), (new, tn, cn)):
+            for x, tl, cl in ((a, to, co), (b, tn, cn)):
                 c0 = time.process_time()
                 t = time.perf_counter()
-                f(mod)
+                f(x)
                 tl.append(time.perf_counter() - t)
                 cl.append(time.process_time() - c0)
         mo, mn = statistics.median(to), statistics.median(tn)
         qo, qn = statistics.median(co), statistics.median(cn)
         rows.append(f"| {name} | {1e3 * mo:.0f} ms | {1e3 * mn:.0f} ms | {N / mo / 1e6:.2f} | {N / mn / 1e6:.2f} "
                     f"| {mo / mn:.2f}× | {N / qo / 1e6:.2f} / {N / qn / 1e6:.2f} ({qo / qn:.2f}×) | {diff:.1e} |")
-    rows.append(f"\nLoad average at the end: {os.getloadavg()[0]:.1f}.")
+    return rows
+
+
+_JIT_PROBE = """
+import json, time
+t0 = time.perf_counter()
+import numpy as np
+from reflectmm_cli.shading import env as E
+k = E.compiled_kernel()
+t1 = time.perf_counter()
+rng = np.random.default_rng(0)
+out = {"import": t1 - t0}
+for dt in ("float32", "float64"):
+    n = rng.normal(size=(512, 3)).astype(dt)
+    t = time.perf_counter()
+    E.shade_env(np.ones((512, 3), dt), np.ones((512, 3), dt), np.array([1, 8, 64], dt), n, n,
+                np.ones((3, 81), dt), backend="compiled")
+    out[dt] = time.perf_counter() - t
+print(json.dumps(out))
+"""
+
+
+def jit_times():
+    """First-call times of the compiled kernel in fresh processes: with an empty numba cache (compilation), then
+    with the cache that run left (loading). Returns [(label, {import, float32, float64} seconds)]."""
+    import json
+    import subprocess
+    import tempfile
+
+    root = os.path.join(os.path.dirname(__file__), "..")
+    out = []
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, PYTHONPATH=os.pathsep.join(
+            [root] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+        for label in ("cold cache (compile)", "warm cache (load)"):
+            r = subprocess.run([sys.executable, "-c", _JIT_PROBE], env=env, capture_output=True, text=True,
+                               check=True)
+            out.append((label, json.loads(r.stdout.strip().splitlines()[-1])))
+    return out
+
+
+def compare_kernels(quick, repeat=7):
+    """The compiled kernel against the blocked numpy kernel (``shade_env(..., backend=...)``), interleaved in this
+    process, and the compiled kernel's JIT times."""
+    from reflectmm_cli.shading import env as E
+
+    if E.compiled_kernel() is None:
+        return "### 2c. Compiled against numpy kernel\n\nnumba is not installed: nothing to compare."
+    import numba
+
+    N = (1 << 18) if quick else (1 << 20)
+    K = (np.random.default_rng(1).normal(size=(3, 81)) * 0.3).astype(np.float32)
+    K[:, 0] = 3
+    c, w, n, v = texels(N)
+    P = np.array(EXPONENTS, np.float32)
+    mask = np.random.default_rng(2).random(N) < 0.3
+    c64, w64, P64, n64, v64, K64 = (a.astype(np.float64) for a in (c, w, P, n, v, K))
+    cases = {
+        "order 8, 3 lobes, float32, 2 threads": (lambda b: shade_env(c, w, P, n, v, K, threads=2, backend=b)),
+        "same, 1 thread": (lambda b: shade_env(c, w, P, n, v, K, threads=1, backend=b)),
+        "float64, 2 threads": (lambda b: shade_env(c64, w64, P64, n64, v64, K64, threads=2, backend=b)),
+        "float64, 1 thread": (lambda b: shade_env(c64, w64, P64, n64, v64, K64, threads=1, backend=b)),
+        "mask 30 %, 2 threads": (lambda b: shade_env(c, w, P, n, v, K, mask=mask, threads=2, backend=b)),
+        "view_correction, 2 threads": (lambda b: shade_env(c, w, P, n, v, K, view_correction=True, threads=2,
+                                                           backend=b)),
+    }
+    load0 = os.getloadavg()
+    jit = jit_times()
+    rows = ["### 2c. Compiled (numba) against numpy kernel, same run\n",
+            f"`shade_env(..., backend=\"numpy\")` (the blocked numpy kernel) against `backend=\"compiled\"` "
+            f"(numba {numba.__version__}, `reflectmm_cli/shading/_env_numba.py`); {N} texels, order 8, lobes p = "
+            f"{', '.join(f'{p:g}' for p in EXPONENTS)}; each case runs numpy, compiled, numpy, compiled, … "
+            f"({repeat} repeats each after one warm-up); medians. Load average (1, 5, 15 min) at the start: "
+            f"{load0[0]:.2f}, {load0[1]:.2f}, {load0[2]:.2f} on {os.cpu_count()} CPUs.\n"]
+    rows += interleaved(cases, "numpy", "compiled", ("numpy", "compiled"), N, repeat)
+    rows += ["\nFirst call in a fresh process (512 texels; `NUMBA_CACHE_DIR` an empty folder, then the same folder "
+             "again):\n", "| | import of the kernel module | first float32 call | first float64 call |",
+             "|---|---|---|---|"]
+    for label, t in jit:
+        rows.append(f"| {label} | {t['import']:.2f} s | {t['float32']:.2f} s | {t['float64']:.2f} s |")
+    load1 = os.getloadavg()
+    rows.append(f"\nLoad average at the end: {load1[0]:.2f}, {load1[1]:.2f}, {load1[2]:.2f}.")
     return "\n".join(rows)
 
 
@@ -467,7 +559,7 @@ def projection_report(quick):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--only", choices=["accuracy", "speed", "projection"], default=None)
+    ap.add_argument("--only", choices=["accuracy", "speed", "kernels", "projection"], default=None)
     ap.add_argument("--maps", nargs="*", default=None,
                     help="real equirectangular HDR maps (files or folders) for the accuracy section")
     ap.add_argument("--compare-old", default=None, metavar="FILE",
@@ -476,6 +568,8 @@ def main():
     parts = []
     if args.only in (None, "speed"):
         parts.append(speed_report(args.quick, args.compare_old))
+    if args.only in (None, "speed", "kernels"):
+        parts.append(compare_kernels(args.quick))
     if args.only in (None, "projection"):
         parts.append(projection_report(args.quick))
     if args.only in (None, "accuracy"):

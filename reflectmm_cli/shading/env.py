@@ -10,7 +10,8 @@ specular part of texels facing away from the viewer (n·v ≤ 0, where it is 0 b
 
 The two terms are written once (:func:`diffuse_term`, :func:`lobe_term` on the rows of :func:`diffuse_rows` and
 :func:`lobe_rows`); the execution paths — blocked numpy, :class:`EnvBasis`, generic broadcasting, masked gather —
-only arrange the data (blocks, masks, gathers, layouts, devices) and pass one :class:`EnvTerms` record.
+only arrange the data (blocks, masks, gathers, layouts, devices) and pass one :class:`EnvTerms` record; the
+compiled kernel (:mod:`._env_numba`, ``backend=``) consumes the same rows on the same Chebyshev basis.
 """
 from __future__ import annotations
 
@@ -330,7 +331,7 @@ def _validate(albedo, weights, exponents, normal, view_dir, sh_coeffs, mask, che
 
 def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=None, band_tol: float = 0.0,
               chunk: int = DEFAULT_CHUNK, threads: int | None = None, view_correction: bool = False,
-              basis: EnvBasis | None = None, check_finite: bool = True):
+              basis: EnvBasis | None = None, check_finite: bool = True, backend: str = "auto"):
     """Diffuse and specular shading of texels under SH environment lighting.
 
     Args:
@@ -354,6 +355,9 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         chunk: texels per block in the numpy fast path (cache blocking).
         threads: worker threads for the numpy fast path (blocks run in parallel; numpy releases the GIL);
             default: the CPUs this process may use (at most 8).
+        backend: kernel of the fast path (numpy inputs, one lighting): ``"compiled"`` (numba; an error when numba
+            is not installed), ``"numpy"`` (the blocked numpy kernel), ``"auto"`` (default: compiled when numba
+            is installed, else numpy). The two agree to rounding (docs/shading.md); other paths ignore it.
     Returns:
         ``(diffuse, specular)``, each (..., 3). The specular part is 0 where n·v ≤ 0. numpy in → numpy out,
         torch in → torch out (differentiable w.r.t. every input, including the SH coefficients).
@@ -370,8 +374,13 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         raise ReflectmmError(f"shading: lighting of order {order} but the EnvBasis was built for order {basis.order}")
     if band_tol < 0 or not math.isfinite(band_tol):
         raise ReflectmmError(f"shading: band_tol must be finite and ≥ 0, got {band_tol}")
+    if backend not in BACKENDS:
+        raise ReflectmmError(f"shading: backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     vc = bool(view_correction)
     if not tm and K.ndim == 2:
+        kern = _kernel_for(backend)
+        if kern is not None:
+            return _shade_env_compiled(kern, c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, threads)
         return _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, threads)
     if basis is not None:
         return _shade_env_pre(c, w, K, env_terms(K, p, _active_lobes(w, True), band_tol, vc), lead, mask, dt, basis)
@@ -392,6 +401,19 @@ def shade_env(albedo, weights, exponents, normal, view_dir, sh_coeffs, *, mask=N
         return (zero.index_put((idx,), d_m).reshape(lead + (3,)),
                 zero.index_put((idx,), s_m).reshape(lead + (3,)))
     return _shade_env_generic(tm, c, w, n, v, env_terms(K, p, _active_lobes(w, tm), band_tol, vc), lead, mask, dt)
+
+
+BACKENDS = ("auto", "compiled", "numpy")
+
+
+def _kernel_for(backend: str):
+    """The compiled kernel module for ``backend``, or None for the numpy kernel."""
+    if backend == "numpy":
+        return None
+    kern = compiled_kernel()
+    if kern is None and backend == "compiled":
+        raise ReflectmmError("shading: backend 'compiled' needs numba, which is not installed")
+    return kern
 
 
 def _flat(a, lead, k):
@@ -525,33 +547,57 @@ def _cheb_basis_into(x, y, z, plan: _ChebPlan, out, scratch):
     return out
 
 
+class _Blocked(NamedTuple):
+    """What both blocked kernels (numpy, compiled) shade: the flattened (N, ·) inputs, the texels to shade
+    (``idx`` of the mask, None for all; ``ntex`` of them), and the :class:`EnvTerms` whose rows are on the
+    Chebyshev bases of ``plan_d`` (normals) and ``plan_s`` (mirror directions; None when no lobe is active)."""
+
+    c: np.ndarray
+    w: np.ndarray
+    n: np.ndarray
+    v: np.ndarray
+    idx: np.ndarray | None
+    ntex: int
+    terms: EnvTerms
+    plan_d: _ChebPlan
+    plan_s: _ChebPlan | None
+
+
+def _blocked_setup(c, w, n, v, K, p, band_tol, vc, lead, mask, dt) -> _Blocked:
+    """Flatten the inputs of one lighting (3, n), find the texels and lobes to shade, and put the two terms' rows
+    (:func:`env_terms`) on the Chebyshev bases: ``rows @ plan.M`` in float64, then the compute dtype."""
+    Kn = w.shape[-1]
+    c2, w2, n2, v2 = _flat(c, lead, 3), _flat(w, lead, Kn), _flat(n, lead, 3), _flat(v, lead, 3)
+    idx = None
+    if mask is not None:
+        idx = np.flatnonzero(np.broadcast_to(mask, lead).reshape(-1))
+    ntex = (int(np.prod(lead)) if lead else 1) if idx is None else idx.size
+    # Lobes that carry weight somewhere in the (masked) texels.
+    wsel = w2 if idx is None else w2[idx]
+    active = np.flatnonzero((wsel != 0).any(0)).tolist() if ntex else []
+    terms = env_terms(K.astype(np.float64), p, active, band_tol, vc)
+    order = sh_order(K.shape[-1])
+    A = lambert_sh_coeffs(order)
+    plan_d = _cheb_plan(order, tuple(l for l in range(terms.diffuse_order + 1) if A[l] != 0))
+    plan_s = None
+    if active:
+        plan_s = _cheb_plan(order, tuple(range(terms.lobe_order + 1)))
+        terms = terms._replace(lobes=(terms.lobes @ plan_s.M[:terms.lobes.shape[-1]]).astype(dt))
+    terms = terms._replace(diffuse=(terms.diffuse @ plan_d.M[:terms.diffuse.shape[-1]]).astype(dt))
+    return _Blocked(c2, w2, n2, v2, idx, ntex, terms, plan_d, plan_s)
+
+
 def _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, threads):
     """Blocked numpy kernel for one lighting (3, n): blocks of ``chunk`` texels in threads, everything
     coefficient-major ((3, m) geometry, (rows, m) bases) in per-thread buffers reused from block to block."""
     import threading
 
     N = int(np.prod(lead)) if lead else 1
-    Kn = w.shape[-1]
-    c2, w2, n2, v2 = _flat(c, lead, 3), _flat(w, lead, Kn), _flat(n, lead, 3), _flat(v, lead, 3)
+    bl = _blocked_setup(c, w, n, v, K, p, band_tol, vc, lead, mask, dt)
+    c2, w2, n2, v2, idx, Ntex, terms, plan_d, plan_s = bl
+    active = terms.active
     diffuse = np.zeros((N, 3), dt)
     specular = np.zeros((N, 3), dt)
-    idx = None
-    if mask is not None:
-        idx = np.flatnonzero(np.broadcast_to(mask, lead).reshape(-1))
-    Ntex = N if idx is None else idx.size
-    # Lobes that carry weight somewhere in the (masked) texels.
-    wsel = w2 if idx is None else w2[idx]
-    active = [i for i in range(Kn) if np.any(wsel[:, i] != 0)] if Ntex else []
-    terms = env_terms(K.astype(np.float64), p, active, band_tol, vc)
-    order = sh_order(K.shape[-1])
-    A = lambert_sh_coeffs(order)
-    plan_d = _cheb_plan(order, tuple(l for l in range(terms.diffuse_order + 1) if A[l] != 0))
-    rows_d = (terms.diffuse @ plan_d.M[:terms.diffuse.shape[-1]]).astype(dt)
-    if active:
-        plan_s = _cheb_plan(order, tuple(range(terms.lobe_order + 1)))
-        rows_s = (terms.lobes @ plan_s.M[:terms.lobes.shape[-1]]).astype(dt)
-        terms = terms._replace(lobes=rows_s)
-    terms = terms._replace(diffuse=rows_d)
     nb = max(plan_d.n_rows, plan_s.n_rows if active else 0)
     local = threading.local()
 
@@ -596,17 +642,61 @@ def _shade_env_numpy(c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, thre
             S[:, back] = 0
         specular[rows_s] = S.T
 
-    starts = list(range(0, Ntex, chunk))
-    nthreads = min(threads if threads else _default_threads(), len(starts))
     with _single_threaded_blas(Ntex >= 2048):
-        if nthreads > 1:
-            from concurrent.futures import ThreadPoolExecutor
+        _run_blocks(block, Ntex, chunk, threads)
+    return diffuse.reshape(lead + (3,)), specular.reshape(lead + (3,))
 
-            with ThreadPoolExecutor(nthreads) as ex:
-                list(ex.map(lambda s0: block(s0, min(Ntex, s0 + chunk)), starts))
-        else:
-            for s0 in starts:
-                block(s0, min(Ntex, s0 + chunk))
+
+def _run_blocks(block, ntex: int, chunk: int, threads: int | None) -> None:
+    """``block(s0, s1)`` for consecutive ranges of ``chunk`` of the ``ntex`` texels, on ``threads`` worker threads
+    (default: the CPUs this process may use, at most 8); the blocks must release the GIL to run in parallel."""
+    starts = list(range(0, ntex, chunk))
+    nthreads = min(threads if threads else _default_threads(), len(starts))
+    if nthreads > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(nthreads) as ex:
+            list(ex.map(lambda s0: block(s0, min(ntex, s0 + chunk)), starts))
+    else:
+        for s0 in starts:
+            block(s0, min(ntex, s0 + chunk))
+
+
+@lru_cache(maxsize=1)
+def compiled_kernel():
+    """The compiled kernel module (:mod:`reflectmm_cli.shading._env_numba`), or None when numba is not installed
+    (then the blocked numpy kernel shades)."""
+    try:
+        from . import _env_numba
+    except ImportError:
+        return None
+    return _env_numba
+
+
+def _shade_env_compiled(kern, c, w, n, v, K, p, band_tol, vc, lead, mask, dt, chunk, threads):
+    """The compiled kernel for one lighting (3, n): the set-up of the numpy kernel (:func:`_blocked_setup`), then
+    ranges of ``chunk`` texels in threads (:func:`_run_blocks`; the kernel releases the GIL)."""
+    N = int(np.prod(lead)) if lead else 1
+    bl = _blocked_setup(c, w, n, v, K, p, band_tol, vc, lead, mask, dt)
+    terms = bl.terms
+    diffuse = np.zeros((N, 3), dt)
+    specular = np.zeros((N, 3), dt)
+    J = len(terms.active)
+    plan_d = kern.plan_arrays(bl.plan_d)
+    plan_s = kern.plan_arrays(bl.plan_s) if J else plan_d
+    rows_s = np.ascontiguousarray(terms.lobes) if J else np.zeros((0, 1), dt)
+    view_tab = (np.stack([_view_albedo_table(e) for e in terms.view_exponents]).astype(dt) if J and vc
+                else np.zeros((max(J, 1), _VIEW_NODES), dt))
+    idx = np.zeros(0, np.int64) if bl.idx is None else bl.idx.astype(np.int64)
+    c2, w2, n2, v2 = (np.ascontiguousarray(a) for a in (bl.c, bl.w, bl.n, bl.v))
+    rows_d, active = np.ascontiguousarray(terms.diffuse), np.asarray(terms.active, np.int64)
+    consts, grid = np.array([1e-30, 1.0, _VIEW_NODES - 1], dt), np.arange(_VIEW_NODES).astype(dt)
+
+    def block(s0, s1):
+        kern.shade_range(s0, s1, c2, w2, n2, v2, idx, bl.idx is not None, rows_d, plan_d, rows_s, plan_s, active,
+                         view_tab, bool(vc and J), consts, grid, diffuse, specular)
+
+    _run_blocks(block, bl.ntex, chunk, threads)
     return diffuse.reshape(lead + (3,)), specular.reshape(lead + (3,))
 
 

@@ -139,7 +139,7 @@ def _inputs(seed, mostly_front, N=400):
 @pytest.mark.parametrize("mostly_front", [False, True])
 @pytest.mark.parametrize("kw", [{}, {"band_tol": 1e-2}, {"view_correction": True}, {"mask": True}])
 def test_execution_paths_agree(kw, mostly_front):
-    # the blocked numpy kernel, the numpy broadcasting path (per-texel lighting), torch with and without geometry
+    # the blocked kernel (compiled, or numpy without numba), the numpy kernel, the numpy broadcasting path (per-texel lighting), torch with and without geometry
     # gradients, torch's masked gather and the EnvBasis path (global and per-texel lighting) on the same inputs
     order = 6
     K = _lighting(7, order)
@@ -163,6 +163,8 @@ def test_execution_paths_agree(kw, mostly_front):
         "EnvBasis": shade_env(T[0], T[1], P, None, None, Kt, basis=eb, **kw),
         "EnvBasis, per-texel lighting": shade_env(T[0], T[1], P, None, None, torch.tensor(Kp), basis=eb, **kw),
         "numpy one thread, one block": shade_env(c, w, P, n, v, K, chunk=N, threads=1, **kw),
+        "numpy kernel (ref: the compiled one when numba is installed)": shade_env(c, w, P, n, v, K, chunk=96,
+                                                                                   backend="numpy", **kw),
     }
     for name, (d, s) in got.items():
         d = d.detach().numpy() if torch.is_tensor(d) else d
