@@ -52,7 +52,12 @@ def main(argv=None):
     ap.add_argument("--unwrap-views", default="default", choices=("default", "landmarks"),
                     help="views of unwrap-uv: its default (the paper's 9) or those of them with landmarks")
     ap.add_argument("--reuse", action="store_true", help="reuse the fitted geometry of an earlier run (no times)")
+    ap.add_argument("--cameras", action="store_true",
+                    help="only the camera table of an earlier run's sets 'all' and 'side': control, nominal-only, "
+                         "per-identity and joint registration (calibrate-rig --geometry on the side fits)")
     args = ap.parse_args(argv)
+    if args.cameras:
+        return camera_table(args)
     rows = run(args)
     print(f"`python benchmarks/bench_unmarked.py {' '.join(argv if argv is not None else sys.argv[1:])}` — "
           f"{args.identities} GGX identities ({args.skin} skin), {args.size}, true rig {args.radius:g} mm / focal "
@@ -193,6 +198,84 @@ def _summary(args, ws, out, ids, views, geos, marked, seconds, cli, read_artifac
             "cam_all": float(cam.max()), "cam_unmarked": float(cam[um].max()) if um.any() else float("nan"),
             "seconds": seconds, "albedo": albedo,
             "per_view": [(v, float(cam[:, k].max()), str(geos[0]["view_evidence"][k])) for k, v in enumerate(vnames)]}
+
+
+def _aligned(centers, R, true, names, ref):
+    """Centre error (mm) and optical-axis error (deg) per camera after the similarity that best aligns the centres
+    of the cameras ``ref`` (bool) to the true rig's: the landmarks fix a scene only up to a similarity, so this
+    measures where a camera sits relative to the annotated ones."""
+    from reflectmm_cli.geometry.align import rigid_align
+
+    ct = np.array([true.camera(n).center for n in names])
+    zt = np.array([true.camera(n).R[2] for n in names])
+    Ra, ta, s = rigid_align(centers[ref], ct[ref], scale=True)
+    err = np.linalg.norm(s * centers @ Ra.T + ta - ct, axis=-1)
+    z = np.einsum("ij,vj->vi", Ra, R[:, 2])
+    return err, np.degrees(np.arccos(np.clip((z * zt).sum(-1), -1.0, 1.0)))
+
+
+def camera_table(args) -> None:
+    """Camera centre / aim errors of the cameras without landmarks, per path (module docstring, ``--cameras``)."""
+    from click.testing import CliRunner
+
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.cli import main as cli_main
+    from reflectmm_cli.geometry.camera import camera_centers
+    from reflectmm_cli.geometry_fit.init import place_by_rig
+    from reflectmm_cli.rig import load_rig
+
+    ws = Path(args.workspace).resolve()
+    ids = [f"{i:03d}" for i in range(1, args.identities + 1)]
+    true = load_rig(ws / "true_rig.toml")
+    side = ws / "side" / f"fit{args.tag}"
+    joint = side / "cal_joint" / "rig.npz"
+    t0 = time.perf_counter()
+    if not joint.is_file():
+        r = CliRunner().invoke(cli_main, ["-q", "calibrate-rig", "-w", str(ws),
+                                          *[a for i in ids for a in ("--capture", ws / "side" / "cap" / f"{i}.npz")],
+                                          *[a for i in ids for a in ("--geometry", side / "geo" / f"{i}.npz")],
+                                          "--face-model", ws / "syn" / "face_model.npz", "--rig",
+                                          ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px,
+                                          "-o", joint], catch_exceptions=False)
+        if r.exit_code:
+            raise SystemExit(r.output)
+    secs = time.perf_counter() - t0
+    rows = {}
+    for name, path in (("control (all landmarks)", ws / "all" / f"fit{args.tag}" / "cal" / "rig.npz"),
+                       ("nominal only", side / "cal" / "rig.npz"), ("joint", joint)):
+        a = read_artifact(path, "rig")
+        names = [str(n) for n in a["camera_names"]]
+        ref = np.array([n not in SIDE for n in names])
+        rows[name] = (names, *_aligned(np.asarray(a["centers"]), np.asarray(a["R"]), true, names, ref))
+        if name == "joint":
+            by = a.meta["report"]["camera_placed_by"]
+            place = {p["camera"]: p for p in a.meta["report"].get("camera_placement", [])}
+    cal = load_rig(side / "cal" / "rig.toml")
+    per = []
+    for i in ids:  # each identity's registered cameras, moved into the rig frame by its own head
+        g = read_artifact(side / "geo" / f"{i}.npz", "geometry")
+        names = [str(n) for n in g["view_names"]]
+        marked = np.array([str(e).startswith("landmarks") for e in g["view_evidence"]])
+        R, t = np.asarray(g["R"]), np.asarray(g["t"])
+        _, _, Rh, th = place_by_rig(R, t, marked, np.array([cal.camera(n).R for n in names]),
+                                    np.array([cal.camera(n).t for n in names]))
+        per.append(_aligned((camera_centers(R, t) - th) @ Rh, R @ Rh, true, names, marked))
+    per_c, per_a = np.array([p[0] for p in per]), np.array([p[1] for p in per])
+    print(f"`python benchmarks/bench_unmarked.py {' '.join(sys.argv[1:])}` — joint registration {secs:.0f} s "
+          f"(calibrate-rig with --geometry, {len(ids)} identities); load {os.getloadavg()[0]:.1f}\n")
+    print("| camera | control (all landmarks) | nominal only | per identity (median, max over ids) | joint "
+          "| joint: evidence, flash RMS, σ centre mm |")
+    print("|---|---|---|---|---|---|")
+    names = rows["joint"][0]
+    for k, n in enumerate(names):
+        if n not in SIDE:
+            continue
+        cells = [f"{rows[r][1][k]:.0f} mm / {rows[r][2][k]:.1f}°" for r in ("control (all landmarks)", "nominal only")]
+        cells.append(f"{np.median(per_c[:, k]):.0f} ({per_c[:, k].max():.0f}) mm / {np.median(per_a[:, k]):.1f}°")
+        cells.append(f"{rows['joint'][1][k]:.0f} mm / {rows['joint'][2][k]:.1f}°")
+        p = place.get(n, {})
+        cells.append(f"{by.get(n)}, {p.get('residual')}, {p.get('center_sigma_mm')}")
+        print(f"| {n} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

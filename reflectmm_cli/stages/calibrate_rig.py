@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
+from reflectmm_cli.geometry_fit.joint import JointOptions
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
@@ -24,6 +25,7 @@ log = logging.getLogger("reflectmm")
 VERB = "calibrate-rig"
 
 _CFG = CalibrationConfig()
+_JOINT = JointOptions()
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
@@ -33,6 +35,9 @@ INPUTS = (
           default=Default('face-model', capture='capture', missing='{capture}: no face model: pass --face-model')),
     Input('rig', 'rig TOML', upstream='synth-multipie', help='the nominal table to start from',
           default=Default('rig', capture='capture', optional=True)),
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True,
+          help='preliminary fits on this calibration\'s rig, one per capture in the same order: the cameras no '
+               'identity annotates are then registered jointly by the flash images (docs/capture.md)'),
 )
 
 
@@ -58,6 +63,13 @@ PARAMS = (
          help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "
               "size by these weights (0 = the faces only; 0.01 for a measured rig)."),
     Param("views", "strs", None, help="cameras to calibrate, comma separated (default: every capture view)."),
+    Param("joint_sigma", "float", _JOINT.center_sigma_mm, range=(0.0, None), low_open=True, unit="mm",
+          help="with --geometry: prior σ of an unannotated camera's centre around its nominal place "
+               "(fit-geometry's --unmarked-sigma)."),
+    Param("joint_rot_sigma", "float", _JOINT.rot_sigma_deg, range=(0.0, None), low_open=True, unit="deg",
+          help="with --geometry: prior σ of its aim (fit-geometry's --unmarked-rot-sigma)."),
+    Param("joint_blur", "floats", list(_JOINT.blur_px), range=(0.0, None), unit="px",
+          help="with --geometry: one registration round per Gaussian blur of the flash images."),
 )
 
 
@@ -85,6 +97,15 @@ def run(ctx: StageContext) -> list[Path]:
     rigs = ctx.input_list("rig", required=False)
     cal = calibrate_from_captures(caps, fm, rigs[0] if rigs else None, config_from_params(p), views=p.get("views"),
                                   progress_fn=progress)
+    geos = ctx.input_list("geometry", required=False)
+    if geos:  # the cameras no identity annotates: one pose each, by the flash images of every identity
+        from reflectmm_cli.geometry import load_face_model
+        from reflectmm_cli.geometry_fit.joint import register_calibration
+        from reflectmm_cli.geometry_fit.model import ShapeModel
+
+        opts = JointOptions(center_sigma_mm=p["joint_sigma"], rot_sigma_deg=p["joint_rot_sigma"],
+                            blur_px=tuple(float(b) for b in p["joint_blur"]))
+        register_calibration(cal, ShapeModel.from_face_model(load_face_model(fm)), caps, geos, opts)
     out = ctx.output_path()
     written = write_rig_calibration(cal, out, toml_path=out.with_name("rig.toml"), params=ctx.resolved_params(),
                                     inputs=ctx.input_refs(out.parent), producer=ctx.producer(),
