@@ -43,7 +43,7 @@ from reflectmm_cli.geometry_fit.model import ShapeModel
 
 log = logging.getLogger("reflectmm")
 
-__all__ = ["JointOptions", "JointResult", "HeldIdentity", "held_identity", "register_jointly", "joint_objective"]
+__all__ = ["JointOptions", "JointResult", "HeldIdentity", "held_identity", "hold", "register_calibration", "register_jointly", "joint_objective"]
 
 
 @dataclass(frozen=True)
@@ -135,26 +135,46 @@ def held_identity(model: ShapeModel, capture_path: str | Path, geometry_path: st
                     images=room, rig_centers=np.array([rig.camera(n).center for n in names]),
                     image_origin=np.asarray(cap.arrays.get("crop_origin", np.zeros((len(names), 2))), np.float64),
                     rig_R=R_rig, **kw)
-    cfg = config or FitConfig(flash_rounds=1)
-    prob = _FitProblem(model, views, cfg, "cpu")
+    ident = str(geo.meta.get("report", {}).get("identity") or Path(geometry_path).stem)
+    return hold(model, views, np.asarray(geo["shape_coeffs"], np.float64), np.asarray(geo["exp_coeffs"], np.float64),
+                cameras, name=ident, head=(Rh, th), config=config, source=capture_path)
+
+
+def hold(model: ShapeModel, views: ViewSet, shape_coeffs: np.ndarray, exp_coeffs: np.ndarray,
+         cameras: Sequence[str], *, name: str = "", head: tuple[np.ndarray, np.ndarray] | None = None,
+         config: FitConfig | None = None, source: str | Path | None = None) -> HeldIdentity:
+    """An identity held at a fit: ``views`` (its views without landmarks are those whose landmarks are all NaN;
+    needs flash images, rig centres and orientations), the model coefficients (n_shape,), (n_exp,), the head
+    (rig → model: Rh (3, 3), th (3,); default :func:`.init.place_by_rig` from the views with landmarks) and the
+    cameras ``cameras`` to register (Cu,)."""
+    if views.flash_images is None:
+        raise ReflectmmError(f"identity {name}: no flash images: the joint registration needs them", source)
+    marked = np.isfinite(views.landmarks).all(-1).any(-1)
+    if head is None:
+        _, _, Rh, th = place_by_rig(views.R0, views.t0, marked, views.rig_R,
+                                    -np.einsum("vij,vj->vi", views.rig_R, views.rig_centers))
+    else:
+        Rh, th = (np.asarray(a, np.float64) for a in head)
+    prob = _FitProblem(model, views, config or FitConfig(flash_rounds=1), "cpu")
     with torch.no_grad():
-        prob.zs.copy_(prob.tt(np.asarray(geo["shape_coeffs"], np.float64) / model.shape_sigma))
+        prob.zs.copy_(prob.tt(np.asarray(shape_coeffs, np.float64) / model.shape_sigma))
         if prob.ze.numel():
-            prob.ze.copy_(prob.tt(np.asarray(geo["exp_coeffs"], np.float64)[:prob.ze.numel()]
+            prob.ze.copy_(prob.tt(np.asarray(exp_coeffs, np.float64)[:prob.ze.numel()]
                                   / model.exp_sigma[:prob.ze.numel()]))
     prob.Rh0_t, prob.th0_t = prob.tt(Rh), prob.tt(th)  # the head of the landmarked views; dwh = dth = 0
     sm = _sub_mesh(prob)
     usable = _usable_flashes(prob, on_unmarked_too=True)
     usable = usable[views.flash_view[usable] >= 0]  # flashes on the fitted views: the others are the table's guess
     if len(usable) == 0:
-        raise ReflectmmError("no flash sits on a camera of the capture's views: the joint registration has no "
-                             "flash evidence", capture_path)
+        raise ReflectmmError(f"identity {name}: no flash sits on a camera of its views: the joint registration has "
+                             "no flash evidence", source)
     fp = _FlashPairs(prob, usable)
     raw = np.asarray(views.flash_images[fp.pv, fp.pf], dtype=np.float32)
     sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[fp.pv, fp.pf], dtype=bool)
-    view_of = np.array([names.index(c) if c in names and not marked[names.index(c)] else -1 for c in cameras])
-    ident = str(geo.meta.get("report", {}).get("identity") or Path(geometry_path).stem)
-    return HeldIdentity(ident, prob, sm, fp, raw, sat, Rh, th, view_of)
+    names = list(views.names)
+    view_of = np.array([names.index(c) if c in names and not marked[names.index(c)] else -1 for c in cameras],
+                       dtype=np.int64)
+    return HeldIdentity(name, prob, sm, fp, raw, sat, Rh, th, view_of)
 
 
 class _Shared:
