@@ -43,7 +43,7 @@ from reflectmm_cli.geometry_fit.model import ShapeModel
 
 log = logging.getLogger("reflectmm")
 
-__all__ = ["JointOptions", "JointResult", "HeldIdentity", "held_identity", "hold", "register_calibration", "register_jointly", "joint_objective"]
+__all__ = ["JointOptions", "JointResult", "HeldIdentity", "held_identity", "hold", "register_calibration", "check_pairs", "register_jointly", "joint_objective"]
 
 
 @dataclass(frozen=True)
@@ -340,6 +340,13 @@ def register_jointly(idents: Sequence[HeldIdentity], names: Sequence[str], R0: n
                        np.where(ok, shift, 0.0), seen, history)
 
 
+def check_pairs(capture_paths: Sequence, geometry_paths: Sequence) -> None:
+    """Refuse a number of preliminary fits that differs from the number of captures (they pair by order)."""
+    if len(capture_paths) != len(geometry_paths):
+        raise ReflectmmError(f"joint camera registration: {len(geometry_paths)} geometry file(s) for "
+                             f"{len(capture_paths)} capture(s): give one preliminary fit per identity")
+
+
 def register_calibration(cal, model: ShapeModel, capture_paths: Sequence[str | Path],
                          geometry_paths: Sequence[str | Path], opts: JointOptions | None = None):
     """Register jointly the cameras of a :class:`.calibrate.RigCalibration` that no identity annotates
@@ -348,9 +355,7 @@ def register_calibration(cal, model: ShapeModel, capture_paths: Sequence[str | P
     report's ``camera_placed_by`` (``flash-joint`` or ``nominal``) and ``camera_placement`` (per camera: evidence,
     residual, uncertainty).  Returns (cal, :class:`JointResult` or None when every camera has landmarks)."""
     opts = opts or JointOptions()
-    if len(capture_paths) != len(geometry_paths):
-        raise ReflectmmError(f"joint camera registration: {len(geometry_paths)} geometry file(s) for "
-                             f"{len(capture_paths)} capture(s): give one preliminary fit per identity")
+    check_pairs(capture_paths, geometry_paths)
     todo = list(cal.report.get("cameras_nominal_only", []))
     result = None
     if todo:

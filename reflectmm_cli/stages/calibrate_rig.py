@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
-from reflectmm_cli.geometry_fit.joint import JointOptions
+from reflectmm_cli.geometry_fit.joint import JointOptions, check_pairs
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
@@ -95,9 +95,11 @@ def run(ctx: StageContext) -> list[Path]:
     caps = ctx.input_list("capture")
     fm = ctx.input("face_model")
     rigs = ctx.input_list("rig", required=False)
+    geos = ctx.input_list("geometry", required=False)
+    if geos:
+        check_pairs(caps, geos)
     cal = calibrate_from_captures(caps, fm, rigs[0] if rigs else None, config_from_params(p), views=p.get("views"),
                                   progress_fn=progress)
-    geos = ctx.input_list("geometry", required=False)
     if geos:  # the cameras no identity annotates: one pose each, by the flash images of every identity
         from reflectmm_cli.geometry import load_face_model
         from reflectmm_cli.geometry_fit.joint import register_calibration
