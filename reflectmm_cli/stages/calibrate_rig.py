@@ -63,13 +63,16 @@ PARAMS = (
          help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "
               "size by these weights (0 = the faces only; 0.01 for a measured rig)."),
     Param("views", "strs", None, help="cameras to calibrate, comma separated (default: every capture view)."),
-    Param("joint_sigma", "float", _JOINT.center_sigma_mm, range=(0.0, None), low_open=True, unit="mm",
+    # the joint registration's options: not recorded unless given (rigs calibrated before them keep their bytes)
+    Param("joint_sigma", "float", None, range=(0.0, None), low_open=True, unit="mm",
           help="with --geometry: prior σ of an unannotated camera's centre around its nominal place "
-               "(fit-geometry's --unmarked-sigma)."),
-    Param("joint_rot_sigma", "float", _JOINT.rot_sigma_deg, range=(0.0, None), low_open=True, unit="deg",
-          help="with --geometry: prior σ of its aim (fit-geometry's --unmarked-rot-sigma)."),
-    Param("joint_blur", "floats", list(_JOINT.blur_px), range=(0.0, None), unit="px",
-          help="with --geometry: one registration round per Gaussian blur of the flash images."),
+               f"(fit-geometry's --unmarked-sigma) [default: {_JOINT.center_sigma_mm:g}]."),
+    Param("joint_rot_sigma", "float", None, range=(0.0, None), low_open=True, unit="deg",
+          help=f"with --geometry: prior σ of its aim (fit-geometry's --unmarked-rot-sigma) "
+               f"[default: {_JOINT.rot_sigma_deg:g}]."),
+    Param("joint_blur", "floats", None, range=(0.0, None), unit="px",
+          help="with --geometry: one registration round per Gaussian blur of the flash images "
+               f"[default: {','.join(f'{b:g}' for b in _JOINT.blur_px)}]."),
 )
 
 
@@ -105,8 +108,9 @@ def run(ctx: StageContext) -> list[Path]:
         from reflectmm_cli.geometry_fit.joint import register_calibration
         from reflectmm_cli.geometry_fit.model import ShapeModel
 
-        opts = JointOptions(center_sigma_mm=p["joint_sigma"], rot_sigma_deg=p["joint_rot_sigma"],
-                            blur_px=tuple(float(b) for b in p["joint_blur"]))
+        opts = JointOptions(center_sigma_mm=p.get("joint_sigma") or _JOINT.center_sigma_mm,
+                            rot_sigma_deg=p.get("joint_rot_sigma") or _JOINT.rot_sigma_deg,
+                            blur_px=tuple(float(b) for b in (p.get("joint_blur") or _JOINT.blur_px)))
         register_calibration(cal, ShapeModel.from_face_model(load_face_model(fm)), caps, geos, opts)
     out = ctx.output_path()
     written = write_rig_calibration(cal, out, toml_path=out.with_name("rig.toml"), params=ctx.resolved_params(),
