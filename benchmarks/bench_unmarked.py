@@ -315,7 +315,8 @@ def ceiling(args) -> None:
         tr = read_artifact(ws / "syn" / "truth" / f"{i}.npz")
         tn = [str(n) for n in tr["camera_names"]]
         k = [tn.index(str(n)) for n in g["view_names"]]
-        arrays = {"view_names": g["view_names"], "view_evidence": g["view_evidence"], "K": g["K"],
+        ev = np.array(["landmarks" if str(e).startswith("landmarks") else "rig" for e in g["view_evidence"]])
+        arrays = {"view_names": g["view_names"], "view_evidence": ev, "K": g["K"],  # "rig": no start from the truth
                   "landmarks_given": g["landmarks_given"], "R": np.asarray(tr["R"])[k], "t": np.asarray(tr["t"])[k],
                   "shape_coeffs": tr["shape_coeffs"], "exp_coeffs": tr["exp_coeffs"]}
         path = write_artifact(ws / "ceiling" / f"{i}.npz", "geometry", arrays)

@@ -84,6 +84,8 @@ class HeldIdentity:
     Rh: np.ndarray
     th: np.ndarray
     view_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    own_R: np.ndarray | None = None  # (Cu, 3, 3) / (Cu, 3): the identity's own registration of each camera in the
+    own_c: np.ndarray | None = None  # rig frame (NaN where it has none): candidate starts of the joint search
 
 
 @dataclass
@@ -136,8 +138,14 @@ def held_identity(model: ShapeModel, capture_path: str | Path, geometry_path: st
                     image_origin=np.asarray(cap.arrays.get("crop_origin", np.zeros((len(names), 2))), np.float64),
                     rig_R=R_rig, **kw)
     ident = str(geo.meta.get("report", {}).get("identity") or Path(geometry_path).stem)
-    return hold(model, views, np.asarray(geo["shape_coeffs"], np.float64), np.asarray(geo["exp_coeffs"], np.float64),
+    held = hold(model, views, np.asarray(geo["shape_coeffs"], np.float64), np.asarray(geo["exp_coeffs"], np.float64),
                 cameras, name=ident, head=(Rh, th), config=config, source=capture_path)
+    held.own_R, held.own_c = np.full((len(cameras), 3, 3), np.nan), np.full((len(cameras), 3), np.nan)
+    for k, v in enumerate(held.view_of):  # a view fit-geometry registered by the flash images ("rig+flash")
+        if v >= 0 and "flash" in evidence[v]:
+            held.own_R[k] = R[v] @ Rh
+            held.own_c[k] = Rh.T @ (-R[v].T @ t[v] - th)
+    return held
 
 
 def hold(model: ShapeModel, views: ViewSet, shape_coeffs: np.ndarray, exp_coeffs: np.ndarray,
@@ -192,6 +200,15 @@ class _Shared:
         """(R (Cu, 3, 3) world → camera, centres (Cu, 3)) in the rig frame at the current θ."""
         u = self.opts.unit_mm
         return axis_angle_to_matrix(self.theta[:, :3] * u / self.dist) @ self.R0, self.c0 + self.theta[:, 3:] * u
+
+    def theta_of(self, k: int, R: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """(6,) θ of camera ``k`` that puts it at the rig pose R (3, 3), c (3,) (the inverse of :meth:`rig_pose`)."""
+        u, dist = self.opts.unit_mm, float(self.dist[k, 0])
+        D = np.asarray(R, np.float64) @ self.R0[k].numpy().T
+        ang = math.acos(max(-1.0, min(1.0, (np.trace(D) - 1) / 2)))
+        w = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
+        w = w * ang / (2 * math.sin(ang)) if ang > 1e-12 else w / 2
+        return np.concatenate([w * dist / u, (np.asarray(c, np.float64) - self.c0[k].numpy()) / u])
 
     def prior(self) -> torch.Tensor:
         """½ Σ ‖δc‖²/σ_c² + ¼ Σ ‖R − R0‖²_F/σ_r² (≈ ½ θ²/σ_r² for a turn θ)."""
@@ -294,6 +311,37 @@ def _sigmas(H: np.ndarray, shared: _Shared) -> tuple[np.ndarray, np.ndarray]:
     return cs, rs
 
 
+def _best_start(idents: Sequence[HeldIdentity], shared: _Shared, opts: JointOptions) -> dict:
+    """Set θ to the best start, camera by camera: the nominal pose or one of the identities' own registrations
+    (``own_R`` / ``own_c``), whichever gives the lowest summed objective (unblurred) with the other cameras at their
+    choice so far.  The objective is not convex and each identity's registration already found a basin of its own
+    term.  Returns the history entry (which start each camera took)."""
+    cands = [d for d in idents if d.own_R is not None]
+    chosen = ["nominal"] * shared.theta.shape[0]
+    if not cands:
+        return {"start": chosen}
+
+    def value(th):
+        with torch.no_grad():
+            shared.theta.copy_(torch.as_tensor(th))
+            return float(joint_objective(idents, shared, 0.0, opts.w_flash)[0]())
+
+    theta = np.zeros(tuple(shared.theta.shape))
+    best = value(theta)
+    for k in range(len(theta)):
+        for d in cands:
+            if not np.isfinite(d.own_c[k]).all():
+                continue
+            trial = theta.copy()
+            trial[k] = shared.theta_of(k, d.own_R[k], d.own_c[k])
+            v = value(trial)
+            if v < best:
+                best, theta, chosen[k] = v, trial, f"identity {d.name}"
+    with torch.no_grad():
+        shared.theta.copy_(torch.as_tensor(theta))
+    return {"start": chosen, "start_loss": best}
+
+
 def register_jointly(idents: Sequence[HeldIdentity], names: Sequence[str], R0: np.ndarray, c0: np.ndarray,
                      opts: JointOptions | None = None) -> JointResult:
     """Register the cameras ``names`` (Cu,) from their starting rig poses R0 (Cu, 3, 3), c0 (Cu, 3) by the flash
@@ -308,7 +356,7 @@ def register_jointly(idents: Sequence[HeldIdentity], names: Sequence[str], R0: n
     for d in idents:
         shared.attach(d)
     before, seen = _camera_residuals(idents, Cu)
-    history: list[dict] = []
+    history: list[dict] = [_best_start(idents, shared, opts)]
     total = wbar = None
     for rnd, blur in enumerate(opts.blur_px):
         total, _, wbar = joint_objective(idents, shared, blur, opts.w_flash)
@@ -374,7 +422,7 @@ def _update_calibration(cal, res: JointResult, opts: JointOptions) -> None:
         k = cal.camera_names.index(name)
         if not res.accepted[j]:
             log.warning("calibrate-rig: camera %s: the joint registration by the flash images was rejected (%s): "
-                        "kept at the nominal pose", name, "no identity has flash images of it" if res.identities[j]
+                        "kept at the nominal pose", name, "no identity has a flash sample of it" if res.identities[j]
                         == 0 else "residual not lower, or moved more than 3 sigma")
             continue
         cal.R[k], cal.centers[k] = res.R[j], res.centers[j]

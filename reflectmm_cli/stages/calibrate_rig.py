@@ -5,7 +5,10 @@ Library: :func:`reflectmm_cli.geometry_fit.calibrate.calibrate_from_captures` (d
 table; default the packaged Multi-PIE table, whose image size must then match the images).  Outputs: the ``rig``
 artifact (``<ws>/calibrate-rig/calibrate-rig.npz``) and beside it ``rig.toml``, the calibrated table that
 ``fit-geometry --rig`` reads (recipes: ``@calibrate-rig.outputs.rig``).  The fit's parameters are fields of
-:class:`~reflectmm_cli.geometry_fit.calibrate.CalibrationConfig` (their defaults are its defaults).
+:class:`~reflectmm_cli.geometry_fit.calibrate.CalibrationConfig` (their defaults are its defaults).  With
+``geometry`` (one preliminary fit-geometry output per capture, on this calibration's rig, same order) the cameras
+no identity annotates are then registered jointly by the flash images
+(:func:`reflectmm_cli.geometry_fit.joint.register_calibration`; options ``joint_*``, recorded only when given).
 """
 
 from __future__ import annotations

@@ -141,3 +141,16 @@ def test_a_camera_no_identity_sees_keeps_its_start_and_bad_input_is_refused(join
         hold(m, vs, coef[0], coef[1], [str(AZ[0])], name="001", config=FitConfig(flash_rounds=1))
     with pytest.raises(ReflectmmError, match="rot_sigma_deg must be a finite number > 0"):
         JointOptions(rot_sigma_deg=0.0)
+
+
+def test_theta_of_inverts_the_shared_pose(joint_world):
+    m, K, Rr, tr, ids = joint_world
+    R_s, c_s = _displaced(Rr, tr, 30.0, 2.0)
+    shared = _Shared(np.stack([R_s, Rr[1]]), np.stack([c_s, camera_centers(Rr, tr)[1]]), JointOptions())
+    rng = np.random.default_rng(3)
+    theta = rng.normal(size=(2, 6)) * 2.0
+    with torch.no_grad():
+        shared.theta.copy_(torch.as_tensor(theta))
+        R, c = (a.numpy() for a in shared.rig_pose())
+    back = np.stack([shared.theta_of(k, R[k], c[k]) for k in range(2)])
+    assert np.allclose(back, theta, atol=1e-9)
