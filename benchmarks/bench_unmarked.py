@@ -17,6 +17,14 @@ landmarks), the wall time of calibrate-rig + fit-geometry, and with ``--reflecta
 
     python benchmarks/bench_unmarked.py --workspace W [--identities 3] [--size 320x240] [--radius 1300]
         [--focal 500] [--skin single] [--seed 1] [--sets all,side,detect] [--fit-args "..."] [--reflectance]
+
+On the workspace of such a run (sets ``all`` and ``side``), the cameras no identity annotates
+(docs/benchmarks.md, "Issue 23 §1: joint registration"): ``--cameras`` (centre and aim errors per path: control,
+nominal only, per identity, ``calibrate-rig --geometry`` — run here if missing — and, if ``side/fit/geo2`` holds
+fit-geometry outputs on the joint rig, the joint rig fitted again), ``--objective`` (the summed joint objective
+at the start, the truth, each identity's registration and the joint pose), ``--ceiling`` (the joint
+registration with the faces and heads held at the truth) and ``--scale`` (the control's camera errors split
+into a global scale and the rest).
 """
 
 from __future__ import annotations

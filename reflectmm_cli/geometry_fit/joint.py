@@ -16,8 +16,9 @@ with ``L_i`` exactly the flash term ``fit-geometry`` registers one identity's vi
 (:func:`.fit._flash_objective`: point-light Lambertian residual, albedo eliminated per vertex, visibility and
 highlight masks fixed per round), ``σ_c`` / ``σ_r`` the prior of a view without landmarks (``fit-geometry``'s
 ``unmarked_sigma_mm`` / ``unmarked_rot_sigma_deg``, 100 mm / 2° by default) and ``w̄`` the identities' mean
-landmark weight sum (the per-identity objective divides its priors by it).  L-BFGS, coarse to fine over blurred
-images.  A camera whose summed flash residual does not fall, or that moves more than 3 σ_c, goes back to its
+landmark weight sum (the per-identity objective divides its priors by it).  Each camera starts at the best
+(lowest J, camera by camera) of its nominal pose and the poses the identities' own registrations gave it (the
+objective is not convex), then L-BFGS, coarse to fine over blurred images.  A camera whose summed flash residual does not fall, or that moves more than 3 σ_c, goes back to its
 start ("nominal").  Its uncertainty is the Laplace approximation of J in its six pose parameters, the other
 cameras held (the curvature of the image term cut to its positive semi-definite part, as in :mod:`.placement`).
 """
