@@ -154,3 +154,22 @@ def test_theta_of_inverts_the_shared_pose(joint_world):
         R, c = (a.numpy() for a in shared.rig_pose())
     back = np.stack([shared.theta_of(k, R[k], c[k]) for k in range(2)])
     assert np.allclose(back, theta, atol=1e-9)
+
+
+def test_the_start_is_the_best_of_the_nominal_pose_and_the_identities_registrations(joint_world):
+    m, K, Rr, tr, ids = joint_world
+    R_s, c_s = _displaced(Rr, tr, 50.0, 3.0)
+    c_true = camera_centers(Rr, tr)[0]
+    held = _held(joint_world, R_s, c_s)
+    # identity 0 registered the camera near its true place, identity 1 further off than the table; neither is
+    # used unless it lowers the summed objective
+    R_far, c_far = _displaced(Rr, tr, 120.0, -4.0)
+    held[0].own_R, held[0].own_c = Rr[:1].copy(), (c_true + np.array([3.0, -2.0, 1.0]))[None]
+    held[1].own_R, held[1].own_c = R_far[None], c_far[None]
+    res = register_jointly(held, [str(AZ[0])], R_s[None], c_s[None], JointOptions(blur_px=(0.0,), iters=5))
+    assert res.history[0]["start"] == ["identity 0"]
+    assert np.linalg.norm(res.centers[0] - c_true) < 10.0
+    for d in held:  # without candidates the start is the nominal pose
+        d.own_R = d.own_c = None
+    res = register_jointly(held, [str(AZ[0])], R_s[None], c_s[None], JointOptions(blur_px=(0.0,), iters=0))
+    assert res.history[0]["start"] == ["nominal"]
