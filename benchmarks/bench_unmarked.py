@@ -281,7 +281,8 @@ def camera_table(args) -> None:
     print(f"`python benchmarks/bench_unmarked.py {' '.join(sys.argv[1:])}` — joint registration {secs:.0f} s "
           f"(calibrate-rig with --geometry, {len(ids)} identities); load {os.getloadavg()[0]:.1f}\n")
     print("| camera | control (all landmarks) | nominal only | per identity (median, max over ids) | joint "
-          "| joint: evidence, flash RMS, σ centre mm |" + (" joint, then per identity (median, max) |" if again else ""))
+          "| joint: evidence, flash RMS, σ centre mm |"
+          + (" joint, then per identity (median, max) |" if again else ""))
     print("|---|---|---|---|---|---|" + ("---|" if again else ""))
     names = rows["joint"][0]
     for k, n in enumerate(names):

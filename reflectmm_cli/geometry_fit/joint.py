@@ -18,9 +18,10 @@ highlight masks fixed per round), ``σ_c`` / ``σ_r`` the prior of a view withou
 ``unmarked_sigma_mm`` / ``unmarked_rot_sigma_deg``, 100 mm / 2° by default) and ``w̄`` the identities' mean
 landmark weight sum (the per-identity objective divides its priors by it).  Each camera starts at the best
 (lowest J, camera by camera) of its nominal pose and the poses the identities' own registrations gave it (the
-objective is not convex), then L-BFGS, coarse to fine over blurred images.  A camera whose summed flash residual does not fall, or that moves more than 3 σ_c, goes back to its
-start ("nominal").  Its uncertainty is the Laplace approximation of J in its six pose parameters, the other
-cameras held (the curvature of the image term cut to its positive semi-definite part, as in :mod:`.placement`).
+objective is not convex), then L-BFGS, coarse to fine over blurred images.  A camera whose summed flash
+residual does not fall, or that moves more than 3 σ_c, goes back to its start ("nominal").  Its uncertainty is
+the Laplace approximation of J in its six pose parameters, the other cameras held (the curvature of the image
+term cut to its positive semi-definite part, as in :mod:`.placement`).
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ from reflectmm_cli.geometry_fit.model import ShapeModel
 
 log = logging.getLogger("reflectmm")
 
-__all__ = ["JointOptions", "JointResult", "HeldIdentity", "held_identity", "hold", "register_calibration", "check_pairs", "register_jointly", "joint_objective"]
+__all__ = ["JointOptions", "JointResult", "HeldIdentity", "held_identity", "hold", "register_calibration",
+           "check_pairs", "register_jointly", "joint_objective"]
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ def _identity(m, seed, Kc, Rr, tr, head_deg, head_mm):
     w = rng.normal(size=3)
     Rh = toy.rotvec_matrix(math.radians(head_deg) * w / np.linalg.norm(w))
     th = rng.normal(size=3) * head_mm / math.sqrt(3)
-    R = Rr @ Rh.T                                         # model → camera: x_cam = Rr (x_rig − c) with x_rig = Rhᵀ(x − th)
+    R = Rr @ Rh.T  # model → camera: x_cam = Rr (x_rig − c) with x_rig = Rhᵀ(x − th)
     t = tr - np.einsum("vij,j->vi", R, th)
     lights = camera_centers(R, t)
     imgs = np.stack([np.stack([toy.render_point(verts, m.triangles, m.mean_tex, lights[f], INTENSITY, Kc[v], R[v],
@@ -68,7 +68,8 @@ def _displaced(Rr, tr, shift_mm, turn_deg):
     c = camera_centers(Rr, tr)[0]
     d = np.array([1.0, 0.6, -0.4])
     w = np.array([0.3, 0.9, 0.3])
-    return toy.rotvec_matrix(math.radians(turn_deg) * w / np.linalg.norm(w)) @ Rr[0], c + shift_mm * d / np.linalg.norm(d)
+    R = toy.rotvec_matrix(math.radians(turn_deg) * w / np.linalg.norm(w)) @ Rr[0]
+    return R, c + shift_mm * d / np.linalg.norm(d)
 
 
 def test_joint_objective_is_the_sum_of_the_per_identity_flash_terms_plus_the_prior(joint_world):
