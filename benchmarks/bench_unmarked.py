@@ -17,6 +17,14 @@ landmarks), the wall time of calibrate-rig + fit-geometry, and with ``--reflecta
 
     python benchmarks/bench_unmarked.py --workspace W [--identities 3] [--size 320x240] [--radius 1300]
         [--focal 500] [--skin single] [--seed 1] [--sets all,side,detect] [--fit-args "..."] [--reflectance]
+
+On the workspace of such a run (sets ``all`` and ``side``), the cameras no identity annotates
+(docs/benchmarks.md, "Issue 23 §1: joint registration"): ``--cameras`` (centre and aim errors per path: control,
+nominal only, per identity, ``calibrate-rig --geometry`` — run here if missing — and, if ``side/fit/geo2`` holds
+fit-geometry outputs on the joint rig, the joint rig fitted again), ``--objective`` (the summed joint objective
+at the start, the truth, each identity's registration and the joint pose), ``--ceiling`` (the joint
+registration with the faces and heads held at the truth) and ``--scale`` (the control's camera errors split
+into a global scale and the rest).
 """
 
 from __future__ import annotations
@@ -52,7 +60,27 @@ def main(argv=None):
     ap.add_argument("--unwrap-views", default="default", choices=("default", "landmarks"),
                     help="views of unwrap-uv: its default (the paper's 9) or those of them with landmarks")
     ap.add_argument("--reuse", action="store_true", help="reuse the fitted geometry of an earlier run (no times)")
+    ap.add_argument("--scale", action="store_true",
+                    help="only the split of the control's camera errors: along / across each optical axis, distance "
+                         "and face-size ratios, the error left after a similarity (set 'all' of an earlier run)")
+    ap.add_argument("--objective", action="store_true",
+                    help="only the summed joint objective at the start, at the true poses (mapped into the rig by "
+                         "the annotated cameras), at each per-identity registration and at the joint pose")
+    ap.add_argument("--ceiling", action="store_true",
+                    help="only the joint registration with the faces and heads held at the truth, on the true rig, "
+                         "from the true poses and from poses displaced by 50 mm / 3 deg (set 'side' of an earlier run)")
+    ap.add_argument("--cameras", action="store_true",
+                    help="only the camera table of an earlier run's sets 'all' and 'side': control, nominal-only, "
+                         "per-identity and joint registration (calibrate-rig --geometry on the side fits)")
     args = ap.parse_args(argv)
+    if args.cameras:
+        return camera_table(args)
+    if args.ceiling:
+        return ceiling(args)
+    if args.scale:
+        return scale_split(args)
+    if args.objective:
+        return objective_values(args)
     rows = run(args)
     print(f"`python benchmarks/bench_unmarked.py {' '.join(argv if argv is not None else sys.argv[1:])}` — "
           f"{args.identities} GGX identities ({args.skin} skin), {args.size}, true rig {args.radius:g} mm / focal "
@@ -193,6 +221,246 @@ def _summary(args, ws, out, ids, views, geos, marked, seconds, cli, read_artifac
             "cam_all": float(cam.max()), "cam_unmarked": float(cam[um].max()) if um.any() else float("nan"),
             "seconds": seconds, "albedo": albedo,
             "per_view": [(v, float(cam[:, k].max()), str(geos[0]["view_evidence"][k])) for k, v in enumerate(vnames)]}
+
+
+def _aligned(centers, R, true, names, ref):
+    """Centre error (mm) and optical-axis error (deg) per camera after the similarity that best aligns the centres
+    of the cameras ``ref`` (bool) to the true rig's: the landmarks fix a scene only up to a similarity, so this
+    measures where a camera sits relative to the annotated ones."""
+    from reflectmm_cli.geometry.align import rigid_align
+
+    ct = np.array([true.camera(n).center for n in names])
+    zt = np.array([true.camera(n).R[2] for n in names])
+    Ra, ta, s = rigid_align(centers[ref], ct[ref], scale=True)
+    err = np.linalg.norm(s * centers @ Ra.T + ta - ct, axis=-1)
+    z = np.einsum("ij,vj->vi", Ra, R[:, 2])
+    return err, np.degrees(np.arccos(np.clip((z * zt).sum(-1), -1.0, 1.0)))
+
+
+def camera_table(args) -> None:
+    """Camera centre / aim errors of the cameras without landmarks, per path (module docstring, ``--cameras``)."""
+    from click.testing import CliRunner
+
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.cli import main as cli_main
+    from reflectmm_cli.rig import load_rig
+
+    ws = Path(args.workspace).resolve()
+    ids = [f"{i:03d}" for i in range(1, args.identities + 1)]
+    true = load_rig(ws / "true_rig.toml")
+    side = ws / "side" / f"fit{args.tag}"
+    joint = side / "cal_joint" / "rig.npz"
+    t0 = time.perf_counter()
+    if not joint.is_file():
+        r = CliRunner().invoke(cli_main, ["-q", "calibrate-rig", "-w", str(ws),
+                                          *[a for i in ids for a in ("--capture", ws / "side" / "cap" / f"{i}.npz")],
+                                          *[a for i in ids for a in ("--geometry", side / "geo" / f"{i}.npz")],
+                                          "--face-model", ws / "syn" / "face_model.npz", "--rig",
+                                          ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px,
+                                          "-o", joint], catch_exceptions=False)
+        if r.exit_code:
+            raise SystemExit(r.output)
+    secs = time.perf_counter() - t0
+    rows = {}
+    for name, path in (("control (all landmarks)", ws / "all" / f"fit{args.tag}" / "cal" / "rig.npz"),
+                       ("nominal only", side / "cal" / "rig.npz"), ("joint", joint)):
+        a = read_artifact(path, "rig")
+        names = [str(n) for n in a["camera_names"]]
+        ref = np.array([n not in SIDE for n in names])
+        rows[name] = (names, *_aligned(np.asarray(a["centers"]), np.asarray(a["R"]), true, names, ref))
+        if name == "joint":
+            by = a.meta["report"]["camera_placed_by"]
+            place = {p["camera"]: p for p in a.meta["report"].get("camera_placement", [])}
+    per = _per_identity(side / "geo", load_rig(side / "cal" / "rig.toml"), ids, true)
+    again = None  # fit-geometry on the joint rig (its views registered per identity from the joint pose), if run:
+    if all((side / "geo2" / f"{i}.npz").is_file() for i in ids):  # --rig side/fit/cal_joint/rig.toml -o geo2/<id>
+        again = _per_identity(side / "geo2", load_rig(joint.with_suffix(".toml")), ids, true)
+    per_c, per_a = np.array([p[0] for p in per]), np.array([p[1] for p in per])
+    if again is not None:
+        ag_c, ag_a = np.array([p[0] for p in again]), np.array([p[1] for p in again])
+    print(f"`python benchmarks/bench_unmarked.py {' '.join(sys.argv[1:])}` — joint registration {secs:.0f} s "
+          f"(calibrate-rig with --geometry, {len(ids)} identities); load {os.getloadavg()[0]:.1f}\n")
+    print("| camera | control (all landmarks) | nominal only | per identity (median, max over ids) | joint "
+          "| joint: evidence, flash RMS, σ centre mm |"
+          + (" joint, then per identity (median, max) |" if again else ""))
+    print("|---|---|---|---|---|---|" + ("---|" if again else ""))
+    names = rows["joint"][0]
+    for k, n in enumerate(names):
+        if n not in SIDE:
+            continue
+        cells = [f"{rows[r][1][k]:.0f} mm / {rows[r][2][k]:.1f}°" for r in ("control (all landmarks)", "nominal only")]
+        cells.append(f"{np.median(per_c[:, k]):.0f} ({per_c[:, k].max():.0f}) mm / {np.median(per_a[:, k]):.1f}°")
+        cells.append(f"{rows['joint'][1][k]:.0f} mm / {rows['joint'][2][k]:.1f}°")
+        p = place.get(n, {})
+        cells.append(f"{by.get(n)}, {p.get('residual')}, {p.get('center_sigma_mm')}")
+        if again is not None:
+            cells.append(f"{np.median(ag_c[:, k]):.0f} ({ag_c[:, k].max():.0f}) mm / {np.median(ag_a[:, k]):.1f}°")
+        print(f"| {n} | " + " | ".join(cells) + " |")
+    vert = {k: np.array([float(read_artifact(d / f"{i}.npz", "geometry")["err_vertex_rmse_mm"]) for i in ids])
+            for k, d in (("all", ws / "all" / f"fit{args.tag}" / "geo"), ("side", side / "geo"),
+                         ("joint", side / "geo2")) if all((d / f"{i}.npz").is_file() for i in ids)}
+    for k, v in vert.items():
+        print(f"\nvertex RMS {k}: " + ", ".join(f"{x:.2f}" for x in v) + " mm; × all-landmarks: "
+              + ", ".join(f"{x:.2f}" for x in v / vert["all"]))
+
+
+def ceiling(args) -> None:
+    """The joint registration's evidence without the fit's errors: each identity's face and head at the truth, the
+    cameras without landmarks started at their true pose and displaced by 50 mm / 3° (random directions, --seed)."""
+    from reflectmm_cli.artifacts import read_artifact, write_artifact
+    from reflectmm_cli.geometry import load_face_model
+    from reflectmm_cli.geometry.rotations import rodrigues, rotation_angle
+    from reflectmm_cli.geometry_fit.joint import JointOptions, held_identity, register_jointly
+    from reflectmm_cli.geometry_fit.model import ShapeModel
+    from reflectmm_cli.rig import load_rig
+
+    ws = Path(args.workspace).resolve()
+    ids = [f"{i:03d}" for i in range(1, args.identities + 1)]
+    true = load_rig(ws / "true_rig.toml")
+    model = ShapeModel.from_face_model(load_face_model(ws / "syn" / "face_model.npz"))
+    held = []
+    for i in ids:  # a geometry artifact with the true face and poses (the side fit's views and landmarks)
+        g = read_artifact(ws / "side" / f"fit{args.tag}" / "geo" / f"{i}.npz", "geometry")
+        tr = read_artifact(ws / "syn" / "truth" / f"{i}.npz")
+        tn = [str(n) for n in tr["camera_names"]]
+        k = [tn.index(str(n)) for n in g["view_names"]]
+        ev = np.array(["landmarks" if str(e).startswith("landmarks") else "rig" for e in g["view_evidence"]])
+        arrays = {"view_names": g["view_names"], "view_evidence": ev, "K": g["K"],  # "rig": no start from the truth
+                  "landmarks_given": g["landmarks_given"], "R": np.asarray(tr["R"])[k], "t": np.asarray(tr["t"])[k],
+                  "shape_coeffs": tr["shape_coeffs"], "exp_coeffs": tr["exp_coeffs"]}
+        path = write_artifact(ws / "ceiling" / f"{i}.npz", "geometry", arrays)
+        cams = [str(n) for n, e in zip(g["view_names"], g["view_evidence"]) if not str(e).startswith("landmarks")]
+        held.append(held_identity(model, ws / "side" / "cap" / f"{i}.npz", path, true, cams))
+    R0 = np.array([true.camera(n).R for n in cams])
+    c0 = np.array([true.camera(n).center for n in cams])
+    rng = np.random.default_rng(args.seed)
+    d = rng.normal(size=c0.shape)
+    w = rng.normal(size=c0.shape)
+    starts = {"true pose": (R0, c0),
+              "50 mm / 3° off": (np.array([rodrigues(np.radians(3.0) * w[k] / np.linalg.norm(w[k])) @ R0[k]
+                                           for k in range(len(cams))]),
+                                 c0 + 50.0 * d / np.linalg.norm(d, axis=1, keepdims=True))}
+    print(f"`python benchmarks/bench_unmarked.py {' '.join(sys.argv[1:])}` — {len(ids)} identities held at the "
+          f"truth; load {os.getloadavg()[0]:.1f}\n")
+    print("| start | " + " | ".join(cams) + " | s |")
+    print("|---|" + "---|" * len(cams) + "---|")
+    for name, (R, c) in starts.items():
+        t0 = time.perf_counter()
+        res = register_jointly(held, cams, R, c, JointOptions())
+        e = np.linalg.norm(res.centers - c0, axis=1)
+        a = [np.degrees(rotation_angle(res.R[k], R0[k])) for k in range(len(cams))]
+        print(f"| {name} | " + " | ".join(f"{e[k]:.1f} mm / {a[k]:.2f}°{'' if res.accepted[k] else ' (rejected)'}"
+                                          for k in range(len(cams))) + f" | {time.perf_counter() - t0:.0f} |")
+
+
+def scale_split(args) -> None:
+    """Per identity of set 'all': fit-geometry's camera centre errors split along / across each true optical axis,
+    the fitted / true camera distance and face size, and the error after the best similarity of the centres."""
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.geometry.align import rigid_align
+
+    ws = Path(args.workspace).resolve()
+    print(f"`python benchmarks/bench_unmarked.py {' '.join(sys.argv[1:])}`\n")
+    print("| id | along the axis mm (+ closer) | across mm | distance ratio | face size ratio | after a similarity mm "
+          "| its scale |")
+    print("|---|---|---|---|---|---|---|")
+    for i in [f"{i:03d}" for i in range(1, args.identities + 1)]:
+        g = read_artifact(ws / "all" / f"fit{args.tag}" / "geo" / f"{i}.npz", "geometry")
+        tr = read_artifact(ws / "syn" / "truth" / f"{i}.npz")
+        tn = [str(n) for n in tr["camera_names"]]
+        k = [tn.index(str(n)) for n in g["view_names"]]
+        cf, ct, z = np.asarray(g["cam_centers"]), np.asarray(tr["cam_centers"])[k], np.asarray(tr["R"])[k][:, 2]
+        d = cf - ct
+        along = (d * z).sum(-1)
+        across = np.linalg.norm(d - along[:, None] * z, axis=-1)
+        ratio = np.linalg.norm(cf, axis=-1) / np.linalg.norm(ct, axis=-1)
+        vf, vt = np.asarray(g["vertices"], np.float64), np.asarray(tr["vertices"], np.float64)
+        size = np.linalg.norm(vf - vf.mean(0)) / np.linalg.norm(vt - vt.mean(0))
+        R, t, s = rigid_align(cf, ct, scale=True)
+        left = np.linalg.norm(s * cf @ R.T + t - ct, axis=-1)
+        print(f"| {i} | {along.min():+.1f} … {along.max():+.1f} | {across.min():.1f} … {across.max():.1f} | "
+              f"{ratio.min():.3f} … {ratio.max():.3f} | {size:.3f} | {left.min():.1f} … {left.max():.1f} | {s:.3f} |")
+
+
+def objective_values(args) -> None:
+    """The joint objective (blur 0) of set 'side' at the start (the calibrated rig), at the true poses mapped into
+    the rig frame by the similarity of the annotated cameras, at each identity's own registration (moved into the
+    rig by its head) and at the joint pose: whether its optimum is near the truth with the fitted faces."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.geometry import load_face_model
+    from reflectmm_cli.geometry.align import rigid_align
+    from reflectmm_cli.geometry.camera import camera_centers
+    from reflectmm_cli.geometry_fit.joint import JointOptions, _Shared, held_identity, joint_objective
+    from reflectmm_cli.geometry_fit.model import ShapeModel
+    from reflectmm_cli.rig import load_rig
+
+    ws = Path(args.workspace).resolve()
+    ids = [f"{i:03d}" for i in range(1, args.identities + 1)]
+    side = ws / "side" / f"fit{args.tag}"
+    rig, true = load_rig(side / "cal" / "rig.toml"), load_rig(ws / "true_rig.toml")
+    model = ShapeModel.from_face_model(load_face_model(ws / "syn" / "face_model.npz"))
+    cams = [n for n in SIDE if n in rig.camera_names]
+    held = [held_identity(model, ws / "side" / "cap" / f"{i}.npz", side / "geo" / f"{i}.npz", rig, cams) for i in ids]
+    R0, c0 = np.array([rig.camera(n).R for n in cams]), np.array([rig.camera(n).center for n in cams])
+    opts = JointOptions()
+    shared = _Shared(R0, c0, opts)
+    for d in held:
+        shared.attach(d)
+
+    def value(R, c):
+        th = np.zeros((len(cams), 6))
+        th[:, 3:] = (c - c0) / opts.unit_mm
+        dist = shared.dist.numpy()[:, 0]
+        for k in range(len(cams)):
+            th[k, :3] = Rotation.from_matrix(R[k] @ R0[k].T).as_rotvec() * dist[k] / opts.unit_mm
+        with torch.no_grad():
+            shared.theta.copy_(torch.as_tensor(th))
+            total, _, _ = joint_objective(held, shared, 0.0, opts.w_flash)
+            return float(total())
+
+    ann = [n for n in rig.camera_names if n not in SIDE]
+    Ra, ta, s = rigid_align(np.array([true.camera(n).center for n in ann]), np.array([rig.camera(n).center
+                                                                                     for n in ann]), scale=True)
+    rows = [("start (calibrated rig)", value(R0, c0)),
+            ("true poses", value(np.array([true.camera(n).R for n in cams]) @ Ra.T,
+                                 s * np.array([true.camera(n).center for n in cams]) @ Ra.T + ta))]
+    for i, d in zip(ids, held):
+        g = read_artifact(side / "geo" / f"{i}.npz", "geometry")
+        names = [str(n) for n in g["view_names"]]
+        k = [names.index(n) for n in cams]
+        R, t = np.asarray(g["R"]), np.asarray(g["t"])
+        rows.append((f"identity {i}'s registration", value(R[k] @ d.Rh, (camera_centers(R, t)[k] - d.th) @ d.Rh)))
+    joint = side / "cal_joint" / "rig.npz"
+    if joint.is_file():
+        a = read_artifact(joint, "rig")
+        k = [[str(n) for n in a["camera_names"]].index(n) for n in cams]
+        rows.append(("joint pose", value(np.asarray(a["R"])[k], np.asarray(a["centers"])[k])))
+    print(f"`python benchmarks/bench_unmarked.py {' '.join(sys.argv[1:])}` — cameras {', '.join(cams)}\n")
+    print("| poses | summed objective |\n|---|---|")
+    for name, v in rows:
+        print(f"| {name} | {v:.1f} |")
+
+
+def _per_identity(folder, cal, ids, true):
+    """Per identity: its fitted cameras moved into the rig frame by its own head (from its views with landmarks,
+    against the rig ``cal`` it was fitted on), then :func:`_aligned` by those views."""
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.geometry.camera import camera_centers
+    from reflectmm_cli.geometry_fit.init import place_by_rig
+
+    out = []
+    for i in ids:
+        g = read_artifact(folder / f"{i}.npz", "geometry")
+        names = [str(n) for n in g["view_names"]]
+        marked = np.array([str(e).startswith("landmarks") for e in g["view_evidence"]])
+        R, t = np.asarray(g["R"]), np.asarray(g["t"])
+        _, _, Rh, th = place_by_rig(R, t, marked, np.array([cal.camera(n).R for n in names]),
+                                    np.array([cal.camera(n).t for n in names]))
+        out.append(_aligned((camera_centers(R, t) - th) @ Rh, R @ Rh, true, names, marked))
+    return out
 
 
 if __name__ == "__main__":

@@ -26,11 +26,14 @@ from reflectmm_cli.workspace import resolve_workspace
 @click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="nominal rig table TOML: camera angles, a rough distance and the focal (default: rig.toml of the "
                    "dataset folder, else the packaged Multi-PIE table; its image size must match the images).")
+@click.option("--geometry", "geometries", multiple=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="a preliminary fit-geometry output on this calibration's rig (repeatable, one per capture, same "
+                   "order): registers the cameras no identity annotates jointly by the flash images.")
 @param_options(PARAMS)
 @workspace_option
 @output_option
 @json_option
-def calibrate_rig_cmd(ids, captures, face_model, rig, workspace, output, as_json, **kw):
+def calibrate_rig_cmd(ids, captures, face_model, rig, geometries, workspace, output, as_json, **kw):
     """Estimate one rig (camera poses, focal, flash positions) from the landmarks of all identities.
 
     Writes the `rig` artifact (<ws>/calibrate-rig/calibrate-rig.npz) and rig.toml beside it; pass that to
@@ -39,8 +42,8 @@ def calibrate_rig_cmd(ids, captures, face_model, rig, workspace, output, as_json
     ws = resolve_workspace(workspace)
     if not parse_ids(ids) and not captures:
         raise click.UsageError("give --ids or --capture files")
-    inputs = default_inputs(STAGE, ws, {"capture": captures, "face_model": [face_model], "rig": [rig]},
-                            ids=parse_ids(ids))
+    inputs = default_inputs(STAGE, ws, {"capture": captures, "face_model": [face_model], "rig": [rig],
+                                        "geometry": geometries}, ids=parse_ids(ids))
     out = run_stage_cli(VERB, workspace=ws, params=given_params(kw, PARAMS), inputs=inputs, output=output)
     emit(out, as_json)
 

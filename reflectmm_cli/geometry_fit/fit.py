@@ -303,6 +303,7 @@ class _FitProblem:
         self._init_rig()
         self._check_unmarked()
         self.probe: torch.Tensor | None = None
+        self.pose_fn = None  # optional (R, t) -> (R, t) applied to the poses (the joint camera registration)
         self.registered = np.zeros(V, dtype=bool)  # views without landmarks registered by the flash images
         self.last_loss = None
         self.history: list[dict] = []
@@ -353,6 +354,8 @@ class _FitProblem:
         """Per-view world-to-camera (R (V, 3, 3), t (V, 3)) at the current unknowns."""
         R = axis_angle_to_matrix(self.dw * self.r_unit) @ self.R0_t
         t = self.t0_t + self.dtr * self.tv_unit
+        if self.pose_fn is not None:
+            R, t = self.pose_fn(R, t)
         if self.probe is not None:
             R, t = self._probed(R, t)
         return R, t

@@ -5,7 +5,10 @@ Library: :func:`reflectmm_cli.geometry_fit.calibrate.calibrate_from_captures` (d
 table; default the packaged Multi-PIE table, whose image size must then match the images).  Outputs: the ``rig``
 artifact (``<ws>/calibrate-rig/calibrate-rig.npz``) and beside it ``rig.toml``, the calibrated table that
 ``fit-geometry --rig`` reads (recipes: ``@calibrate-rig.outputs.rig``).  The fit's parameters are fields of
-:class:`~reflectmm_cli.geometry_fit.calibrate.CalibrationConfig` (their defaults are its defaults).
+:class:`~reflectmm_cli.geometry_fit.calibrate.CalibrationConfig` (their defaults are its defaults).  With
+``geometry`` (one preliminary fit-geometry output per capture, on this calibration's rig, same order) the cameras
+no identity annotates are then registered jointly by the flash images
+(:func:`reflectmm_cli.geometry_fit.joint.register_calibration`; options ``joint_*``, recorded only when given).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
+from reflectmm_cli.geometry_fit.joint import JointOptions, check_pairs
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
@@ -24,6 +28,7 @@ log = logging.getLogger("reflectmm")
 VERB = "calibrate-rig"
 
 _CFG = CalibrationConfig()
+_JOINT = JointOptions()
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
@@ -33,6 +38,9 @@ INPUTS = (
           default=Default('face-model', capture='capture', missing='{capture}: no face model: pass --face-model')),
     Input('rig', 'rig TOML', upstream='synth-multipie', help='the nominal table to start from',
           default=Default('rig', capture='capture', optional=True)),
+    Input('geometry', 'geometry', upstream='fit-geometry', many=True,
+          help='preliminary fits on this calibration\'s rig, one per capture in the same order: the cameras no '
+               'identity annotates are then registered jointly by the flash images (docs/capture.md)'),
 )
 
 
@@ -58,6 +66,16 @@ PARAMS = (
          help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "
               "size by these weights (0 = the faces only; 0.01 for a measured rig)."),
     Param("views", "strs", None, help="cameras to calibrate, comma separated (default: every capture view)."),
+    # the joint registration's options: not recorded unless given (rigs calibrated before them keep their bytes)
+    Param("joint_sigma", "float", None, range=(0.0, None), low_open=True, unit="mm",
+          help="with --geometry: prior σ of an unannotated camera's centre around its nominal place "
+               f"(fit-geometry's --unmarked-sigma) [default: {_JOINT.center_sigma_mm:g}]."),
+    Param("joint_rot_sigma", "float", None, range=(0.0, None), low_open=True, unit="deg",
+          help=f"with --geometry: prior σ of its aim (fit-geometry's --unmarked-rot-sigma) "
+               f"[default: {_JOINT.rot_sigma_deg:g}]."),
+    Param("joint_blur", "floats", None, range=(0.0, None), unit="px",
+          help="with --geometry: one registration round per Gaussian blur of the flash images "
+               f"[default: {','.join(f'{b:g}' for b in _JOINT.blur_px)}]."),
 )
 
 
@@ -83,8 +101,20 @@ def run(ctx: StageContext) -> list[Path]:
     caps = ctx.input_list("capture")
     fm = ctx.input("face_model")
     rigs = ctx.input_list("rig", required=False)
+    geos = ctx.input_list("geometry", required=False)
+    if geos:
+        check_pairs(caps, geos)
     cal = calibrate_from_captures(caps, fm, rigs[0] if rigs else None, config_from_params(p), views=p.get("views"),
                                   progress_fn=progress)
+    if geos:  # the cameras no identity annotates: one pose each, by the flash images of every identity
+        from reflectmm_cli.geometry import load_face_model
+        from reflectmm_cli.geometry_fit.joint import register_calibration
+        from reflectmm_cli.geometry_fit.model import ShapeModel
+
+        opts = JointOptions(center_sigma_mm=p.get("joint_sigma") or _JOINT.center_sigma_mm,
+                            rot_sigma_deg=p.get("joint_rot_sigma") or _JOINT.rot_sigma_deg,
+                            blur_px=tuple(float(b) for b in (p.get("joint_blur") or _JOINT.blur_px)))
+        register_calibration(cal, ShapeModel.from_face_model(load_face_model(fm)), caps, geos, opts)
     out = ctx.output_path()
     written = write_rig_calibration(cal, out, toml_path=out.with_name("rig.toml"), params=ctx.resolved_params(),
                                     inputs=ctx.input_refs(out.parent), producer=ctx.producer(),

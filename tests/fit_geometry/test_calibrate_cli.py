@@ -233,3 +233,40 @@ def test_calibrate_rig_and_fit_without_the_side_landmarks(world, cli, tmp_path):
     for k in (0, 5):  # "+flash" exactly when the flash registration was kept
         assert (g["view_evidence"][k] == "rig+flash") == reg[k]
     assert np.isfinite(g["center_sigma_mm"][[0, 5]]).all()
+    # the two cameras no identity annotates, registered jointly by the flash images of identities 001 and 002
+    # (their fits on this rig are the preliminary fits; the calibration from their two captures)
+    r = cli("fit-geometry", "--id", "002", "-w", world, "--capture", caps[1], "--face-model", fm, "--rig", rig,
+            "--iters", "100", "--photo-rounds", "0", "--flash-rounds", "1", "--no-overlay", "-o", tmp_path / "g2.npz")
+    assert r.exit_code == 0, r.output
+    geo_args = ["--geometry", tmp_path / "g.npz", "--geometry", tmp_path / "g2.npz"]
+    r = cli("calibrate-rig", *cap_args[:4], *geo_args, "-w", world, "--face-model", fm, "--rig",
+            world / "syn" / "rig.toml", "--focal", true.camera("05_1").focal_px, "--joint-blur", "2,0",
+            "-o", tmp_path / "joint" / "calibrate-rig.npz")
+    assert r.exit_code == 0, r.output
+    art = read_artifact(tmp_path / "joint" / "calibrate-rig.npz", "rig")
+    rep = art.meta["report"]
+    place = {p["camera"]: p for p in rep["camera_placement"]}
+    assert [place[n]["evidence"] for n in names[1:5]] == ["landmarks"] * 4
+    jr = rep["joint_registration"]
+    assert jr["cameras"] == ["13_0", "19_1"] and all(0 <= n <= 2 for n in jr["identities"])
+    for j, n in enumerate(("13_0", "19_1")):  # placed jointly, or kept at the nominal pose (rejected, or no identity
+        # had a flash sample of it: on this tiny world the carried 13_0 is ~90 mm off and its face leaves the crop)
+        joint = rep["camera_placed_by"][n] == "flash-joint"
+        assert place[n]["evidence"] == ("flash-joint" if joint else "nominal") and jr["accepted"][j] == joint
+        assert place[n]["residual_kind"].startswith("flash RMS")
+        assert (place[n]["residual"] is not None) == (jr["identities"][j] > 0)
+        assert (place[n]["center_sigma_mm"] is not None) == joint
+    # against the same calibration without --geometry: the annotated cameras untouched, the rejected ones too
+    r = cli("calibrate-rig", *cap_args[:4], "-w", world, "--face-model", fm, "--rig", world / "syn" / "rig.toml",
+            "--focal", true.camera("05_1").focal_px, "-o", tmp_path / "nom" / "calibrate-rig.npz")
+    assert r.exit_code == 0, r.output
+    nom = read_artifact(tmp_path / "nom" / "calibrate-rig.npz", "rig")
+    same = [k for k, n in enumerate(names) if rep["camera_placed_by"][n] != "flash-joint"]
+    assert np.array_equal(np.asarray(art["centers"])[same], np.asarray(nom["centers"])[same])
+    assert np.array_equal(np.asarray(art["R"])[same], np.asarray(nom["R"])[same])
+    assert load_rig(tmp_path / "joint" / "rig.toml").camera_names == names
+    # bad input: a preliminary fit per capture, in the same order; refused in one line, nothing written
+    r = cli("calibrate-rig", *cap_args[:6], *geo_args, "-w", world, "--face-model", fm, "--rig",
+            world / "syn" / "rig.toml", "--focal", true.camera("05_1").focal_px, "-o", tmp_path / "bad" / "c.npz")
+    assert r.exit_code != 0 and "2 geometry file(s) for 3 capture(s)" in r.output
+    assert len(r.output.strip().splitlines()) == 1 and not (tmp_path / "bad" / "c.npz").exists()
