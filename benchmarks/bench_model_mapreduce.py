@@ -21,8 +21,10 @@ validation images), from a model whose mean and third basis are wrong. Rows per 
   ``--shard-images`` per map task, serially (1) and on a process pool of 2 (and on a 2-worker Dask LocalCluster
   with ``--dask``).
 
-Measured: the wall time of the update (workers included; torch threads ``--threads`` per process) and the largest
-absolute difference of the four solved arrays (float32) to each reference row.
+Measured: the wall time of the update (workers included; torch threads ``--threads`` per process), split into
+the map calls (refinements and the tasks' summaries; with the CPU seconds the tasks report, whose ratio to the
+map's wall time is the parallelism reached) and the reduce + solve; and the largest absolute difference of the
+four solved arrays (float32) to each reference row. The one-process rows count their CG solve as the solve.
 """
 from __future__ import annotations
 
@@ -75,6 +77,42 @@ def _data(tmp: Path, a):
     return d, wrong_initial(d["truth"], d["V"])
 
 
+class _Clock:
+    """Wall seconds of the map calls (with the CPU seconds the tasks report) and of the solves, by wrapping the
+    modules' functions for the benchmark only."""
+
+    def __init__(self):
+        import reflectmm_cli.finetune.model_mapreduce as MR
+        import reflectmm_cli.finetune.model_solve as MS
+
+        self.t = {"map_s": 0.0, "task_cpu_s": 0.0, "solve_s": 0.0}
+        clock = self
+
+        class TimedMap(MR.OrderedMap):
+            def __call__(self, fn, items):
+                t = time.perf_counter()
+                out = super().__call__(fn, items)
+                clock.t["map_s"] += time.perf_counter() - t
+                clock.t["task_cpu_s"] += sum(r.get("cpu_s", 0.0) for r in out)
+                return out
+
+        def timed(f):
+            def g(*args, **kw):
+                t = time.perf_counter()
+                out = f(*args, **kw)
+                clock.t["solve_s"] += time.perf_counter() - t
+                return out
+            return g
+
+        MR.OrderedMap = TimedMap
+        MR._reduce = timed(MR._reduce)
+        MS.solve_model = timed(MS.solve_model)
+
+    def take(self) -> dict:
+        out, self.t = self.t, {k: 0.0 for k in self.t}
+        return out
+
+
 def _diff(x: dict, y: dict) -> float:
     return float(max(np.abs(np.asarray(x[k], np.float64) - np.asarray(y[k], np.float64)).max() for k in x))
 
@@ -102,6 +140,7 @@ def main() -> int:
     from reflectmm_cli.finetune.shards import load_shards
 
     torch.set_num_threads(a.threads)
+    clock = _Clock()
     with tempfile.TemporaryDirectory() as tmp:
         d, wrong = _data(Path(tmp), a)
         ss = load_shards(d["shards"])
@@ -123,11 +162,12 @@ def main() -> int:
                     threads=a.threads)))
             got = {}
             for name, fn in runs:
+                clock.take()
                 t = time.perf_counter()
                 arrays, rep = fn()
                 dt = time.perf_counter() - t
                 got[name] = arrays
-                row = {"harmonics": q, "run": name, "wall_s": dt, "threads": a.threads,
+                row = {"harmonics": q, "run": name, "wall_s": dt, **clock.take(), "threads": a.threads,
                        "shard_images": a.shard_images, "solve_end": rep.rounds[-1]["solve_end"],
                        "max_diff_vs_one_process": _diff(arrays, got["one process"]),
                        "max_diff_vs_exact": _diff(arrays, got["one process, CG to 1e-12"])

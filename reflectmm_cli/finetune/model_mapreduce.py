@@ -32,6 +32,7 @@ Q = 200 (M = 8, K = 3), per map task and at the reduce.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,14 +85,16 @@ def _numpy(t):
 
 
 def run_shard(task: ShardTask) -> dict:
-    """The map step (module docstring): ``{"objective": (n,)}`` plus, unless ``mode == "val"``, ``beta``, ``gamma``,
-    ``z`` (refined, numpy), ``pixels`` and ``left_out`` (pixels left out by the robust weights), and ``problem``
-    (the packed pixels as numpy, ``"pixels"``) or ``H``, ``g``, ``f`` (``"normal"``)."""
+    """The map step (module docstring): ``{"objective": (n,), "cpu_s": the task's CPU seconds}`` plus, unless
+    ``mode == "val"``, ``beta``, ``gamma``, ``z`` (refined, numpy), ``pixels`` and ``left_out`` (the fraction of
+    pixels the robust weights leave out), and ``problem`` (the packed pixels as numpy, ``"pixels"``) or ``H``,
+    ``g``, ``f`` (``"normal"``)."""
     import torch
 
     from .render import ModelParams
     from .shards import load_shards
 
+    cpu = time.process_time()
     with torch_threads(task.threads), torch.no_grad():
         ss = load_shards(task.data) if isinstance(task.data, (list, tuple)) else task.data
         params = ModelParams(task.model, "cpu", dtype=torch.float64)
@@ -102,7 +105,7 @@ def run_shard(task: ShardTask) -> dict:
                                                          task.batch_size, "cpu", task.start)
         out = {"objective": np.asarray(obj)}
         if task.mode == "val":
-            return out
+            return out | {"cpu_s": time.process_time() - cpu}
         probs, k = [], 0
         for gb in gbs:
             n = gb.n_images
@@ -113,12 +116,12 @@ def run_shard(task: ShardTask) -> dict:
         out.update(beta=_numpy(beta), gamma=_numpy(gamma), z=_numpy(z), pixels=int(prob.vid.shape[0]), left_out=0.0)
         if task.mode == "pixels":
             out["problem"] = {k: _numpy(v) for k, v in vars(prob).items()}
-            return out
+            return out | {"cpu_s": time.process_time() - cpu}
         prob.weight = prob.weight / task.n_train
         if task.robust > 0:
             prob.weight, out["left_out"] = robust_weights(prob, _theta(params), task.robust)
         H, g, f = normal_equations(prob, _theta(params), torch.as_tensor(task.basis))
-        out.update(H=H, g=g, f=f)
+        out.update(H=H, g=g, f=f, cpu_s=time.process_time() - cpu)
         return out
 
 
@@ -166,7 +169,7 @@ def normal_equations(prob: SolveProblem, start: list, basis, image_chunk: int = 
     return H.numpy().copy(), g.numpy().copy(), f
 
 
-def _pull_terms(start: list, theta0: list, basis, pull: float, norms: list):
+def _pull_terms(start: list, theta0: list, pull: float, norms: list):
     """(ρ (M+1, A) the pull's weight of each unknown column, D (M+1, V, A) = θ_start − θ₀ in U's layout)."""
     import torch
 
@@ -192,7 +195,8 @@ def solve_normal_equations(H: np.ndarray, g: np.ndarray, f: float, start: list, 
     :func:`~reflectmm_cli.finetune.model_solve.solve_model` stops at its tolerance.
 
     Args:
-        H, g, f: the reduced data term; start, theta0: θ_start and θ₀ (float64 torch, as solve_model's); basis: Φ (V, Q).
+        H, g, f: the reduced data term; start, theta0: θ_start and θ₀ (float64 torch, as solve_model's);
+            basis: Φ (V, Q).
     Returns:
         (θ, info) as :func:`~reflectmm_cli.finetune.model_solve.solve_model` (``iterations`` 0).
     """
@@ -200,7 +204,7 @@ def solve_normal_equations(H: np.ndarray, g: np.ndarray, f: float, start: list, 
     import torch
 
     norms = pull_norms(theta0, pull_scale)
-    rho, D = _pull_terms(start, theta0, basis, pull, norms)
+    rho, D = _pull_terms(start, theta0, pull, norms)
     M1, Q, A = rho.shape[0], basis.shape[1], rho.shape[1]
     PtP = (basis.T @ basis).numpy()
     Hp = H.reshape(M1, Q, A, M1, Q, A).copy()

@@ -39,7 +39,8 @@ def _u_order(theta0, Q):
     """Permutation from U's layout (M+1, Q, A) to the parts' flat layout [am (Q,3), ab (M,Q,3), wm (Q,K), wb]."""
     M, K = theta0[1].shape[0], theta0[2].shape[1]
     idx = np.arange((M + 1) * Q * (3 + K)).reshape(M + 1, Q, 3 + K)
-    return np.concatenate([idx[0, :, :3].ravel(), idx[1:, :, :3].ravel(), idx[0, :, 3:].ravel(), idx[1:, :, 3:].ravel()])
+    return np.concatenate([idx[0, :, :3].ravel(), idx[1:, :, :3].ravel(), idx[0, :, 3:].ravel(),
+                           idx[1:, :, 3:].ravel()])
 
 
 def test_reduced_normal_equations_equal_the_dense_jacobians(small):
