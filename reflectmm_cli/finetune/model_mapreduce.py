@@ -166,7 +166,8 @@ def normal_equations(prob: SolveProblem, start: list, basis, image_chunk: int = 
             Cs.append(torch.outer(cb, cb).reshape(-1))
         H4 += torch.stack(Cs).T @ torch.stack(Ys)
     H = H4.reshape(M1, M1, Q, A, Q, A).permute(0, 2, 3, 1, 4, 5).reshape(M1 * Q * A, M1 * Q * A)
-    return H.numpy().copy(), g.numpy().copy(), f
+    del H4  # H is a copy in U's order (the permutation is not a view)
+    return H.numpy(), g.numpy(), f
 
 
 def _pull_terms(start: list, theta0: list, pull: float, norms: list):
@@ -219,8 +220,9 @@ def solve_normal_equations(H: np.ndarray, g: np.ndarray, f: float, start: list, 
         free[1 + update_bases:] = False
     free = free.reshape(-1)
     u = np.zeros_like(gp)
+    Hf = Hp if free.all() else Hp[np.ix_(free, free)]
     try:
-        cf = scipy.linalg.cho_factor(Hp[np.ix_(free, free)], lower=True, check_finite=True)
+        cf = scipy.linalg.cho_factor(Hf, lower=True, check_finite=True)
     except (np.linalg.LinAlgError, ValueError):
         raise ReflectmmError("model solve: the reduced normal equations are not positive definite "
                              "(no pull and harmonics no image sees? give --ls-pull > 0)") from None
@@ -233,7 +235,7 @@ def solve_normal_equations(H: np.ndarray, g: np.ndarray, f: float, start: list, 
     U = torch.as_tensor(u.reshape(M1, Q, A))
     parts = [U[0, :, :3], U[1:, :, :3], U[0, :, 3:], U[1:, :, 3:]]
     theta = [s + d for s, d in zip(start, _expand(basis, parts))]
-    res = float(np.linalg.norm(Hp[np.ix_(free, free)] @ u[free] + gp[free]) / max(np.linalg.norm(gp[free]), 1e-300))
+    res = float(np.linalg.norm(Hf @ u[free] + gp[free]) / max(np.linalg.norm(gp[free]), 1e-300))
     return theta, {"f_start": f0, "f_end": f1, "iterations": 0, "rel_residual": res}
 
 
