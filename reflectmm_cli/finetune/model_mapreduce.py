@@ -27,7 +27,7 @@ image b with ``c_b = (1, β_b σ)``, ``φ_p = Σ_t bary_pt Φ_{v_pt}`` and ``t_p
 a = 3 + i) the rendered value is ``I_pc = I_pc(θ_start) + Σ c_bm φ_pq t_pc,a U_mqa``, so
 ``H = Σ_b (c_b c_bᵀ) ⊗ Y_b`` with ``Y_b = Σ_{p∈b} w_p φ_p φ_pᵀ ⊗ (Σ_c t_pc t_pcᵀ)``: one (QA)² matrix per image and
 one product over the images, never a Jacobian. The dense H has ((M+1)QA)² entries: 58 MB at Q = 50, 0.93 GB at
-Q = 200 (M = 8, K = 3), per map task and at the reduce.
+Q = 200 (M = 8, K = 3), per map task, and the reduce holds every task's until it has summed them.
 """
 from __future__ import annotations
 
