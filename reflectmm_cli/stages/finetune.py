@@ -235,10 +235,13 @@ def run(ctx: StageContext) -> list[Path]:
 def _check_map_options(p: dict[str, Any]) -> None:
     """--jobs / --executor / --scheduler choose where the sharded update's map runs: refused (one line, before
     anything is read) where there is no map to run."""
+    from reflectmm_cli.recipes.executors import executor_kind
+
     asked = p.get("jobs", 1) > 1 or p.get("executor", "auto") != "auto" or p.get("scheduler")
     if asked and not (p["solver"] == "ls" and p.get("ls_shard_images")):
         raise ReflectmmError("finetune: --jobs, --executor and --scheduler run the sharded model update; "
                              "give --solver ls --ls-shard-images N")
+    executor_kind(p.get("executor", "auto"), p.get("jobs", 1), p.get("scheduler"))  # e.g. --scheduler with pool
 
 
 def _least_squares_update(model, light, shards, scfg, ctx, mesh):
