@@ -68,6 +68,8 @@ class SolveConfig:
         update_bases: only the means and the first ``update_bases`` bases change (−1: all).
         pull_scale: ``"element"``: the pull on each part is λ × its mean squared change; ``"relative"``: λ × each
             array's (a mean, or one basis) squared change over its initial squared norm (:func:`pull_norms`).
+        shard_images: > 0 runs each round as a map-reduce over groups of this many training images (rounded up to
+            a multiple of the refinement batch; finetune/model_mapreduce.py); 0 = one process (:func:`alternate`).
     """
 
     rounds: int = field(default=3, metadata={"help": "refine -> solve rounds.", "range": (1, 100)})
@@ -89,6 +91,9 @@ class SolveConfig:
                                                                  "square of each part; relative = each mean and basis "
                                                                  "over its own initial squared norm.",
                                                          "choices": PULL_SCALES})
+    shard_images: int = field(default=0, metadata={"help": "Run each round as a map-reduce over groups of this many "
+                                                           "training images, on --jobs / --executor / --scheduler "
+                                                           "(0 = one process).", "range": (0, 10000000)})
 
     def __post_init__(self):
         for k in ("pull", "cg_tol", "robust"):
@@ -97,8 +102,8 @@ class SolveConfig:
                 raise ReflectmmError(f"model solve: {k} must be finite and ≥ 0, got {v}")
         if int(self.rounds) < 1 or int(self.cg_iterations) < 1:
             raise ReflectmmError("model solve: rounds and cg_iterations must be ≥ 1")
-        if int(self.harmonics) < 0 or int(self.update_bases) < -1:
-            raise ReflectmmError("model solve: harmonics must be ≥ 0 and update_bases ≥ −1")
+        if int(self.harmonics) < 0 or int(self.update_bases) < -1 or int(self.shard_images) < 0:
+            raise ReflectmmError("model solve: harmonics and shard_images must be ≥ 0 and update_bases ≥ −1")
         _check_pull_scale(self.pull_scale)
 
 

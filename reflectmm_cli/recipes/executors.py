@@ -393,3 +393,74 @@ def make_executor(kind: str = "serial", jobs: int = 1, scheduler: str | None = N
     if kind == "dask":
         return DaskExecutor(jobs, scheduler)
     raise ReflectmmError(f"unknown executor '{kind}' (serial, pool, dask)")
+
+
+def executor_kind(executor: str = "auto", jobs: int = 1, scheduler: str | None = None) -> str:
+    """The executor ``auto`` stands for (the rule of ``reflectmm run``): dask with a scheduler address, a process
+    pool with more than one job, else serial; a given kind is checked and returned."""
+    kind = (executor or "auto").lower()
+    if kind == "auto":
+        return "dask" if scheduler else ("pool" if int(jobs) > 1 else "serial")
+    if kind not in ("serial", "pool", "dask"):
+        raise ReflectmmError(f"unknown executor '{executor}' (auto, serial, pool, dask)")
+    if scheduler and kind != "dask":
+        raise ReflectmmError("--scheduler needs --executor dask")
+    return kind
+
+
+class OrderedMap:
+    """``[fn(x) for x in items]`` in this process (``serial``), on a local process pool of ``jobs`` workers
+    (``pool``, the pool the recipe tasks run on) or on Dask (``dask``: the scheduler at ``scheduler``, or a new
+    ``LocalCluster`` of ``jobs`` workers); a context manager whose pool or cluster serves every call until it is
+    closed (workers start once). The results come back in the items' order whatever order the tasks finish in,
+    so a reduction over them is the same on every executor. ``fn`` must be a module-level function and the items
+    picklable; an exception of a task is raised here (the first in the items' order)."""
+
+    def __init__(self, executor: str = "serial", jobs: int = 1, scheduler: str | None = None):
+        self.kind = executor_kind(executor, jobs, scheduler)
+        self.jobs = max(1, int(jobs))
+        self.scheduler = scheduler
+        self._pool: ProcessPoolExecutor | None = None
+        self._dask: DaskExecutor | None = None
+
+    def __enter__(self) -> "OrderedMap":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        if self._dask is not None:
+            self._dask.close()
+            self._dask = None
+
+    def __call__(self, fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
+        items = list(items)
+        if self.kind == "serial" or not items:
+            return [fn(x) for x in items]
+        if self.kind == "pool":
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=_mp_context(),
+                                                 initializer=_worker_init,
+                                                 initargs=(os.getpid(), _proc_start(os.getpid())))
+            futures = [self._pool.submit(fn, x) for x in items]
+            try:
+                return [f.result() for f in futures]
+            except BrokenProcessPool:
+                self.close()
+                raise ReflectmmError("a worker process died (out of memory?) while mapping "
+                                     f"{getattr(fn, '__name__', 'a task')}") from None
+        if self._dask is None:
+            self._dask = DaskExecutor(self.jobs, self.scheduler)
+        client = self._dask._get_client()
+        return client.gather([client.submit(fn, x, pure=False, retries=0) for x in items])
+
+
+def map_in_order(fn: Callable[[Any], Any], items: list[Any], *, executor: str = "serial", jobs: int = 1,
+                 scheduler: str | None = None) -> list[Any]:
+    """One :class:`OrderedMap` call: ``[fn(x) for x in items]`` on the executor, in the items' order."""
+    with OrderedMap(executor, jobs, scheduler) as run:
+        return run(fn, items)

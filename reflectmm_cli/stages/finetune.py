@@ -76,7 +76,7 @@ def config_params() -> tuple[Param, ...]:
 _SOLVE_KINDS = {"int": "int", "float": "float", "str": "str"}
 #: The constraints of the least-squares update: off unless given, and then not recorded (cache keys of runs made
 #: before these options are unchanged).
-_SOLVE_OFF_BY_DEFAULT = ("harmonics", "robust", "update_bases", "pull_scale")
+_SOLVE_OFF_BY_DEFAULT = ("harmonics", "robust", "update_bases", "pull_scale", "shard_images")
 
 
 def solver_params() -> tuple[Param, ...]:
@@ -115,6 +115,14 @@ PARAMS = config_params() + (
           help="Continue from the checkpoint in <output stem>_work/ (refused if made with other settings)."),
     Param("threads", "int", None, range=(1, 256), invalidates_cache=False,
           help="torch CPU threads (default: torch's; 1 is fastest for tiny problems on a busy machine)."),
+    Param("jobs", "int", 1, range=(1, 256), invalidates_cache=False,
+          help="Worker processes of the sharded least-squares update (--solver ls --ls-shard-images N): a local "
+               "process pool, or LocalCluster workers with --executor dask. The result does not depend on it."),
+    Param("executor", "str", "auto", choices=("auto", "serial", "pool", "dask"), invalidates_cache=False,
+          help="Where the sharded update's map runs: auto = dask with --scheduler, pool with --jobs > 1, else "
+               "serial."),
+    Param("scheduler", "str", None, invalidates_cache=False, metavar="tcp://HOST:PORT",
+          help="Address of a running Dask scheduler for the sharded update's map (implies --executor dask)."),
     Param("tensorboard", "path", None, invalidates_cache=False, metavar="DIR",
           help="Also write TensorBoard events to DIR: the JSONL log's losses, images/s and validation "
                "reconstructions (needs the 'tensorboard' package: pip install 'reflectmm[tensorboard]')."),
@@ -190,6 +198,7 @@ def run(ctx: StageContext) -> list[Path]:
 
         require_tensorboard()
     cfg = config_from_params(p)
+    _check_map_options(p)
     out = ctx.output_path()
     model, light = load_models(ctx.input("model"), ctx.input("light_model"))
     data = data_paths(ctx.input_list("data"))
@@ -223,12 +232,34 @@ def run(ctx: StageContext) -> list[Path]:
                                   samples=p["samples"], seed=cfg.seed, log=log.info)
 
 
+def _check_map_options(p: dict[str, Any]) -> None:
+    """--jobs / --executor / --scheduler choose where the sharded update's map runs: refused (one line, before
+    anything is read) where there is no map to run."""
+    from reflectmm_cli.recipes.executors import executor_kind
+
+    asked = p.get("jobs", 1) > 1 or p.get("executor", "auto") != "auto" or p.get("scheduler")
+    if asked and not (p["solver"] == "ls" and p.get("ls_shard_images")):
+        raise ReflectmmError("finetune: --jobs, --executor and --scheduler run the sharded model update; "
+                             "give --solver ls --ls-shard-images N")
+    executor_kind(p.get("executor", "auto"), p.get("jobs", 1), p.get("scheduler"))  # e.g. --scheduler with pool
+
+
 def _least_squares_update(model, light, shards, scfg, ctx, mesh):
-    """(the model with its per-vertex part solved by :func:`~reflectmm_cli.finetune.model_solve.alternate`, the
-    report); ``mesh`` (vertices, triangles) of the face model, for ``--ls-harmonics``."""
+    """(the model with its per-vertex part solved by :func:`~reflectmm_cli.finetune.model_solve.alternate`, or by
+    its map-reduce :func:`~reflectmm_cli.finetune.model_mapreduce.alternate_sharded` with ``--ls-shard-images``,
+    the report); ``mesh`` (vertices, triangles) of the face model, for ``--ls-harmonics``."""
+    from reflectmm_cli.finetune.model_mapreduce import alternate_sharded
     from reflectmm_cli.finetune.model_solve import alternate, with_solved
 
-    arrays, report = alternate(model, light, shards, scfg, device=ctx.device, log=log.info, mesh=mesh)
+    p = ctx.params
+    if scfg.shard_images:
+        if ctx.device not in ("cpu", None):
+            raise ReflectmmError(f"finetune: the sharded model update runs on the CPU (--device {ctx.device} given)")
+        arrays, report = alternate_sharded(model, light, shards, scfg, log=log.info, mesh=mesh,
+                                           executor=p.get("executor", "auto"), jobs=p.get("jobs", 1),
+                                           scheduler=p.get("scheduler"), threads=p.get("threads") or 1)
+    else:
+        arrays, report = alternate(model, light, shards, scfg, device=ctx.device, log=log.info, mesh=mesh)
     return with_solved(model, arrays), report
 
 

@@ -383,3 +383,31 @@ def test_a_control_started_from_the_phase1_encoder_equals_a_full_control_run(cli
     r = cli(*base, "-o", tmp_path / "bad" / "m.npz", *other, "--phase1-encoder",
             upd.parent / "m_encoder_phase1.safetensors")
     assert r.exit_code == 1 and "phase-1 settings differ (lr1)" in r.stderr
+
+
+def test_finetune_solver_ls_sharded_on_two_jobs_equals_the_serial_map(cli, data, tmp_path):
+    """--ls-shard-images 3 --jobs 2 (process pool) and the same map run serially write the same model, bit for bit;
+    the shard size is recorded, the jobs are not; --jobs without a sharded update is a one-line error and nothing
+    is written."""
+    base = ["finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], *TINY, "--solver", "ls", "--ls-rounds", "1",
+            "--ls-harmonics", "8", "--ls-pull", "0.01", "--ls-shard-images", "3"]
+    arts = []
+    for name, extra in (("pool", ["--jobs", "2"]), ("serial", [])):
+        out = tmp_path / name / "m.npz"
+        r = cli(*base, "-o", out, *extra)
+        assert r.exit_code == 0, r.stderr
+        arts.append(read_artifact(out, "reflectance-model"))
+    for k in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis"):
+        np.testing.assert_array_equal(arts[0][k], arts[1][k])
+    params = arts[0].meta["params"]
+    assert params["ls_shard_images"] == 3 and "jobs" not in params and "executor" not in params
+    rounds = arts[0].meta["finetune"]["model_solve"]["rounds"]
+    assert rounds[1]["solve_end"] < rounds[1]["solve_start"]
+    init = read_artifact(data["init_path"], "reflectance-model")
+    assert np.abs(np.asarray(arts[0]["vertex_albedo_mean"]) - np.asarray(init["vertex_albedo_mean"])).max() > 1e-4
+    bad = tmp_path / "bad" / "m.npz"
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "-o", bad, *TINY, "--solver", "ls", "--jobs", "2")
+    assert r.exit_code != 0 and "--ls-shard-images" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not bad.exists()

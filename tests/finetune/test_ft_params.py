@@ -17,7 +17,8 @@ def test_params_are_the_config_fields():
     from reflectmm_cli.finetune.model_solve import SolveConfig
 
     solver = {"solver"} | {"ls_" + f.name for f in dataclasses.fields(SolveConfig)}
-    assert set(fields) <= set(decl) and set(decl) - set(fields) == {"samples", "resume", "threads", "tensorboard"} | solver
+    execution = {"samples", "resume", "threads", "tensorboard", "jobs", "executor", "scheduler"}
+    assert set(fields) <= set(decl) and set(decl) - set(fields) == execution | solver
     for name, f in fields.items():
         want = None if name in RELEASED and name != "variant" else f.default
         assert decl[name].default == (list(want) if isinstance(want, tuple) else want), name
