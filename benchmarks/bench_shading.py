@@ -225,6 +225,19 @@ def texels(N, seed=0, dtype=np.float32):
     return [a.astype(dtype) for a in (c, w, n, v)]
 
 
+def comparison_case(quick):
+    """The inputs both kernel comparisons time: N texels, (c, w, P, n, v, K) in float32 (order 8, 3 lobes, light
+    coefficients with a dominant constant term), a 30 % mask, and the same arrays in float64."""
+    N = (1 << 18) if quick else (1 << 20)
+    K = (np.random.default_rng(1).normal(size=(3, 81)) * 0.3).astype(np.float32)
+    K[:, 0] = 3
+    c, w, n, v = texels(N)
+    P = np.array(EXPONENTS, np.float32)
+    mask = np.random.default_rng(2).random(N) < 0.3
+    f32 = (c, w, P, n, v, K)
+    return N, f32, mask, tuple(a.astype(np.float64) for a in f32)
+
+
 def throughput(quick):
     N = (1 << 18) if quick else (1 << 20)
     order = 8
@@ -334,13 +347,7 @@ def compare_old(path, quick, repeat=7):
     from reflectmm_cli.shading import env as new
 
     old = load_module_from(path)
-    N = (1 << 18) if quick else (1 << 20)
-    K = (np.random.default_rng(1).normal(size=(3, 81)) * 0.3).astype(np.float32)
-    K[:, 0] = 3
-    c, w, n, v = texels(N)
-    P = np.array(EXPONENTS, np.float32)
-    mask = np.random.default_rng(2).random(N) < 0.3
-    c64, w64, P64, n64, v64, K64 = (a.astype(np.float64) for a in (c, w, P, n, v, K))
+    N, (c, w, P, n, v, K), mask, (c64, w64, P64, n64, v64, K64) = comparison_case(quick)
     cases = {
         "order 8, 3 lobes, float32, 2 threads": (lambda m: m.shade_env(c, w, P, n, v, K, threads=2)),
         "same, 1 thread": (lambda m: m.shade_env(c, w, P, n, v, K, threads=1)),
@@ -430,13 +437,7 @@ def compare_kernels(quick, repeat=7):
         return "### 2c. Compiled against numpy kernel\n\nnumba is not installed: nothing to compare."
     import numba
 
-    N = (1 << 18) if quick else (1 << 20)
-    K = (np.random.default_rng(1).normal(size=(3, 81)) * 0.3).astype(np.float32)
-    K[:, 0] = 3
-    c, w, n, v = texels(N)
-    P = np.array(EXPONENTS, np.float32)
-    mask = np.random.default_rng(2).random(N) < 0.3
-    c64, w64, P64, n64, v64, K64 = (a.astype(np.float64) for a in (c, w, P, n, v, K))
+    N, (c, w, P, n, v, K), mask, (c64, w64, P64, n64, v64, K64) = comparison_case(quick)
     cases = {
         "order 8, 3 lobes, float32, 2 threads": (lambda b: shade_env(c, w, P, n, v, K, threads=2, backend=b)),
         "same, 1 thread": (lambda b: shade_env(c, w, P, n, v, K, threads=1, backend=b)),

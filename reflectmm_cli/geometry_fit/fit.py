@@ -258,6 +258,22 @@ def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = N
         return _fit(model, views, cfg, device)
 
 
+def lbfgs_minimise(params, loss_fn, iters: int) -> "torch.optim.LBFGS":
+    """One L-BFGS run (at most ``iters`` iterations, strong Wolfe line search, history 30) of the scalar
+    ``loss_fn()`` over the tensors ``params``, in place; returns the optimiser (its state counts the evaluations)."""
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=30, tolerance_grad=1e-9,
+                            tolerance_change=1e-10, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return opt
+
+
 class _FitProblem:
     """The unknowns, fixed tensors and loss terms of one :func:`fit_geometry` run (the record every stage takes).
 
@@ -420,16 +436,7 @@ class _FitProblem:
         record the final loss in ``history`` (``tick``: one step of the progress bar)."""
         if iters <= 0:
             return
-        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=30, tolerance_grad=1e-9,
-                                tolerance_change=1e-10, line_search_fn="strong_wolfe")
-
-        def closure():
-            opt.zero_grad()
-            loss = closure_loss()
-            loss.backward()
-            return loss
-
-        opt.step(closure)
+        opt = lbfgs_minimise(params, closure_loss, iters)
         self.last_loss = closure_loss
         with torch.no_grad():
             final = float(closure_loss())

@@ -39,7 +39,7 @@ from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import axis_angle_to_matrix
 from reflectmm_cli.geometry_fit.fit import (FitConfig, ViewSet, _FitProblem, _FlashPairs, _flash_objective,
-                                            _sub_mesh, _SubMesh, _usable_flashes, _view_flash_rms)
+                                            _sub_mesh, _SubMesh, _usable_flashes, _view_flash_rms, lbfgs_minimise)
 from reflectmm_cli.geometry_fit.init import place_by_rig
 from reflectmm_cli.geometry_fit.model import ShapeModel
 
@@ -363,16 +363,7 @@ def register_jointly(idents: Sequence[HeldIdentity], names: Sequence[str], R0: n
     total = wbar = None
     for rnd, blur in enumerate(opts.blur_px):
         total, _, wbar = joint_objective(idents, shared, blur, opts.w_flash)
-        opt = torch.optim.LBFGS([shared.theta], lr=1.0, max_iter=opts.iters, history_size=30, tolerance_grad=1e-9,
-                                tolerance_change=1e-10, line_search_fn="strong_wolfe")
-
-        def closure():
-            opt.zero_grad()
-            loss = total()
-            loss.backward()
-            return loss
-
-        opt.step(closure)
+        lbfgs_minimise([shared.theta], total, opts.iters)
         with torch.no_grad():
             history.append({"round": rnd + 1, "blur_px": blur, "loss": float(total())})
         log.debug("joint registration round %d (blur %g px): loss %.6g", rnd + 1, blur, history[-1]["loss"])
