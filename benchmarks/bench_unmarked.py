@@ -17,6 +17,7 @@ landmarks), the wall time of calibrate-rig + fit-geometry, and with ``--reflecta
 
     python benchmarks/bench_unmarked.py --workspace W [--identities 3] [--size 320x240] [--radius 1300]
         [--focal 500] [--skin single] [--seed 1] [--sets all,side,detect] [--fit-args "..."] [--reflectance]
+        [--unwrap-views landmarks] [--unwrap-flashes landmarked]
 
 On the workspace of such a run (sets ``all`` and ``side``), the cameras no identity annotates
 (docs/benchmarks.md, "Issue 23 §1: joint registration"): ``--cameras`` (centre and aim errors per path: control,
@@ -57,6 +58,8 @@ def main(argv=None):
     ap.add_argument("--fit-args", default=FIT_ARGS)
     ap.add_argument("--tag", default="", help="suffix of the result folders (to compare fit arguments)")
     ap.add_argument("--reflectance", action="store_true")
+    ap.add_argument("--unwrap-flashes", default=None, choices=("landmarked",),
+                    help="unwrap-uv --flashes: only the flashes on cameras that landmarks placed")
     ap.add_argument("--unwrap-views", default="default", choices=("default", "landmarks"),
                     help="views of unwrap-uv: its default (the paper's 9) or those of them with landmarks")
     ap.add_argument("--reuse", action="store_true", help="reuse the fitted geometry of an earlier run (no times)")
@@ -199,13 +202,16 @@ def _summary(args, ws, out, ids, views, geos, marked, seconds, cli, read_artifac
     albedo = []
     if args.reflectance:
         for i, g in zip(ids, geos):
-            sub = "" if args.unwrap_views == "default" else "_lmviews"
+            sub = ("" if args.unwrap_views == "default" else "_lmviews") + \
+                ("" if args.unwrap_flashes is None else f"_{args.unwrap_flashes}")
             o, mp, ev = (out / f"obs{sub}" / f"{i}.npz", out / f"maps{sub}" / f"{i}.npz",
                          out / f"eval{sub}" / f"{i}.npz")
             uv = []
             if args.unwrap_views == "landmarks":
                 uv = ["--views", ",".join(str(v) for v, e in zip(g["view_names"], g["view_evidence"])
                                           if str(v) in DEFAULT_VIEWS and str(e).startswith("landmarks"))]
+            if args.unwrap_flashes is not None:
+                uv += ["--flashes", args.unwrap_flashes]
             cli("unwrap-uv", "--id", i, "--capture", ws / "cap9" / f"{i}.npz", "--geometry", g.path, "--face-model",
                 ws / "syn" / "face_model.npz", "--output", o, *uv)
             cli("fit-reflectance", "--id", i, "--input", o, "--output", mp)

@@ -166,10 +166,81 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
     return keep
 
 
+def _select_flashes(capture: Mapping[str, np.ndarray], select: Sequence[str], capture_path=None) -> dict:
+    """The capture with only the flashes ``select`` (in that order): ``flash_ids`` and the flash axis (1) of
+    ``olat`` and ``saturated``."""
+    have = [str(f) for f in np.asarray(capture["flash_ids"]).reshape(-1)]
+    missing = [f for f in select if f not in have]
+    if missing:
+        raise ReflectmmError(f"flash(es) {', '.join(missing)} are not in the capture (it has {', '.join(have)})",
+                             capture_path)
+    keep = [have.index(f) for f in select]
+    out = dict(capture)
+    out["flash_ids"] = np.array(list(select), dtype=str)
+    for k in ("olat", "saturated"):
+        out[k] = np.asarray(capture[k])[:, keep]
+    return out
+
+
+#: ``unwrap-uv --flashes landmarked``: only the flashes carried by cameras that landmarks placed.
+LANDMARKED = "landmarked"
+
+
+def landmarked_flashes(geometry: Mapping[str, np.ndarray], geometry_path=None) -> list[str]:
+    """The flash ids of a ``geometry`` whose place rests on landmarks: carried by a fitted view
+    (``flash_from_view``) whose ``view_evidence`` starts with ``landmarks``.
+
+    fit-geometry puts a carried flash exactly at its view's fitted centre, so the carrying view is the one whose
+    ``cam_centers`` row equals the flash position (to 1e-9 relative).  A flash on a view placed by the rig alone or
+    by its flash images (evidence ``rig``, ``rig+flash``) sits where that camera was guessed, and a free-standing
+    flash where the rig's alignment to all fitted views puts it: both are left out.
+    """
+    for key in ("view_evidence", "flash_from_view", "flash_ids", "flash_pos", "cam_centers"):
+        if key not in geometry:
+            raise ReflectmmError(f"geometry has no '{key}' (written before fit-geometry recorded each view's "
+                                 "evidence): rerun fit-geometry, or name the flashes to keep", geometry_path)
+    ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
+    evidence = [str(e) for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
+    carried = np.asarray(geometry["flash_from_view"], bool).reshape(-1)
+    pos = np.asarray(geometry["flash_pos"], np.float64).reshape(-1, 3)
+    centers = np.asarray(geometry["cam_centers"], np.float64).reshape(-1, 3)
+    keep = []
+    for i, fid in enumerate(ids):
+        d = np.linalg.norm(centers - pos[i], axis=1)
+        v = int(np.argmin(d))
+        if carried[i] and d[v] <= 1e-9 * max(1.0, float(np.linalg.norm(pos[i]))) and evidence[v].startswith("landmarks"):
+            keep.append(fid)
+    return keep
+
+
+def reflectance_flashes(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
+                        flashes: str | Sequence[str] | None = None, geometry_path=None) -> list[str] | None:
+    """The capture flashes whose images enter the reflectance fit: ``None`` (all), a list / comma string of flash
+    ids, or ``"landmarked"`` (:func:`landmarked_flashes`).  Refuses an empty selection in one line."""
+    if flashes is None:
+        return None
+    fs = [str(f).strip() for f in (flashes.split(",") if isinstance(flashes, str) else flashes) if str(f).strip()]
+    have = [str(f) for f in np.asarray(capture["flash_ids"]).reshape(-1)]
+    if fs == ["all"]:
+        return None
+    if fs == [LANDMARKED]:
+        placed = set(landmarked_flashes(geometry, geometry_path))
+        fs = [f for f in have if f in placed]
+        left = [f for f in have if f not in placed]
+        if left:
+            log.info("unwrap-uv: leaving out flash(es) %s (not carried by a camera that landmarks placed)",
+                     ", ".join(left))
+    if not fs:
+        raise ReflectmmError("no flash left to unwrap: no camera that carries a flash was placed by landmarks",
+                             geometry_path)
+    return fs
+
+
 def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
                         triangles: np.ndarray, uv: np.ndarray, *, uv_size: int = 256, grazing_deg: float = 80.0,
                         exponents: Sequence[float] = DEFAULT_EXPONENTS, geometry_path=None, capture_path=None,
-                        with_conditioning: bool = True, select_views: Sequence[str] | None = None
+                        with_conditioning: bool = True, select_views: Sequence[str] | None = None,
+                        select_flashes: Sequence[str] | None = None
                         ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Build the ``uv-observations`` arrays of docs/pipeline.md.
 
@@ -181,6 +252,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         triangles, uv: the face model's topology and texture coordinates.
         grazing_deg: views with ``n·v ≤ cos(grazing_deg)`` do not see the texel.
         select_views: the capture views to unwrap (default all; the stage leaves out 08_1 / 19_1).
+        select_flashes: the capture flashes to unwrap (default all).
     Returns:
         ``(arrays, report)``.
     """
@@ -203,6 +275,8 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         capture = {k: (np.asarray(capture[k])[keep] if k in ("olat", "saturated", "crop_origin", "view_names")
                        and np.asarray(capture[k]).shape[:1] == (V0,) else capture[k]) for k in capture}
         views = [str(v) for v in capture["view_names"]]
+    if select_flashes is not None:
+        capture = _select_flashes(capture, select_flashes, capture_path)
     flashes = [str(f) for f in capture["flash_ids"]]
     gv = _index_of(geometry["view_names"], views, "view", geometry_path)
     gf = _index_of(geometry["flash_ids"], flashes, "flash", geometry_path)

@@ -29,6 +29,10 @@ PARAMS = (
     Param("views", "strs", None,
           help="Capture views to unwrap, comma separated, or 'all' (default: every view but the raised 08_1 / "
                "19_1, which only place flashes 14 / 18)."),
+    Param("flashes", "strs", None,
+          help="Capture flashes to unwrap, comma separated, 'all' (the default) or 'landmarked': only the flashes "
+               "carried by cameras that landmarks placed (a camera placed by the rig or by its flash images puts "
+               "its flash where it was guessed)."),
 )
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
@@ -67,7 +71,8 @@ def _resolved_inputs(ctx: StageContext) -> dict[str, list[Path]]:
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.capture.preprocess import encode_png
     from reflectmm_cli.geometry.face_model import load_face_model
-    from reflectmm_cli.observations.unwrap import previews, reflectance_views, unwrap_observations
+    from reflectmm_cli.observations.unwrap import (previews, reflectance_flashes, reflectance_views,
+                                                   unwrap_observations)
 
     t0 = time.perf_counter()
     cap_path = ctx.input("capture")
@@ -83,6 +88,8 @@ def run(ctx: StageContext) -> list[Path]:
     p = ctx.params
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
                                          select_views=reflectance_views(cap.arrays, p.get("views")),
+                                         select_flashes=reflectance_flashes(cap.arrays, geo.arrays,
+                                                                            p.get("flashes"), geo_path),
                                          uv_size=p["uv_size"], grazing_deg=p["grazing_deg"],
                                          exponents=tuple(p["exponents"]),
                                          geometry_path=geo_path, capture_path=cap_path)

@@ -1,0 +1,78 @@
+"""unwrap-uv --flashes: which flash images enter the observations."""
+import numpy as np
+import pytest
+
+from _sphere_scene import make_scene
+from reflectmm_cli.artifacts import read_artifact, write_artifact
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.observations.unwrap import landmarked_flashes, reflectance_flashes
+
+
+def _geometry():
+    centers = np.array([[0.0, 0.0, 1300.0], [900.0, 0.0, 900.0], [-900.0, 0.0, 900.0]])
+    return {"view_names": np.array(["05_1", "19_0", "08_0"]), "cam_centers": centers,
+            "view_evidence": np.array(["landmarks+flash", "rig+flash", "landmarks"]),
+            "flash_ids": np.array(["07", "10", "15", "04"]),
+            "flash_pos": np.array([centers[0], centers[1], [0.0, 800.0, 900.0], centers[2] + [0.0, 0.0, 1e-3]]),
+            "flash_from_view": np.array([True, True, False, True])}
+
+
+def test_only_flashes_on_cameras_placed_by_landmarks():
+    # 07 rides on 05_1 (landmarks): kept; 10 on 19_0 (placed by the rig and its flash images): left out;
+    # 15 stands free: left out; 04 claims a view but sits 1 µm from 08_0's centre, so it is not carried: left out
+    assert landmarked_flashes(_geometry()) == ["07"]
+    g = _geometry()
+    g["view_evidence"] = np.array(["landmarks", "landmarks", "landmarks"])
+    g["flash_pos"][3] = g["cam_centers"][2]
+    assert landmarked_flashes(g) == ["07", "10", "04"]
+
+
+def test_selection_rules_and_refusals(tmp_path):
+    cap = {"flash_ids": np.array(["04", "07", "10", "15"])}
+    assert reflectance_flashes(cap, _geometry(), None) is None
+    assert reflectance_flashes(cap, _geometry(), "all") is None
+    assert reflectance_flashes(cap, _geometry(), "landmarked") == ["07"]
+    assert reflectance_flashes(cap, _geometry(), "10,07") == ["10", "07"]
+    g = _geometry()
+    g["view_evidence"] = np.array(["rig", "rig", "rig"])
+    with pytest.raises(ReflectmmError, match="no flash left"):
+        reflectance_flashes(cap, g, "landmarked", tmp_path / "g.npz")
+    del g["view_evidence"]
+    with pytest.raises(ReflectmmError, match="view_evidence.*rerun fit-geometry"):
+        reflectance_flashes(cap, g, "landmarked", tmp_path / "g.npz")
+
+
+def _unwrap(cli, tmp_path, scene, name, *extra):
+    ws = tmp_path / "ws"
+    out = tmp_path / f"{name}.npz"
+    res = cli("unwrap-uv", "--id", "001", "--uv-size", 48, "--face-model", scene["face_model_path"],
+              "--workspace", ws, "-o", out, *extra)
+    return res, out
+
+
+def test_unwrap_with_a_flash_subset_equals_the_full_unwrap_restricted(tmp_path, cli):
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws")
+    res = cli("preprocess-multipie", "--root", tmp_path / "mp", "--id", "001", "--views", ",".join(scene["views"]),
+              "--flashes", ",".join(scene["flashes"]), "--workspace", tmp_path / "ws")
+    assert res.exit_code == 0, res.stderr
+    res, full = _unwrap(cli, tmp_path, scene, "full")
+    assert res.exit_code == 0, res.stderr
+    # the scene's flash 07 sits on camera 05_1, flash 14 stands free; 05_1 placed by landmarks, 14_0 by the rig
+    geo = dict(scene["geometry"])
+    geo["view_evidence"] = np.array(["landmarks", "rig"])
+    geo["flash_from_view"] = np.array([True, False])
+    write_artifact(scene["geometry_path"], "geometry", geo)
+    res, sub = _unwrap(cli, tmp_path, scene, "sub", "--flashes", "landmarked")
+    assert res.exit_code == 0, res.stderr
+    assert "leaving out flash(es) 14" in res.stderr
+    a, b = read_artifact(full, "uv-observations"), read_artifact(sub, "uv-observations")
+    assert b["flash_ids"].tolist() == ["07"] and b["pair_flash"].tolist() == [0, 0]
+    keep = a["pair_flash"] == 0                                     # flash 07 is index 0 of the full unwrap
+    for k in ("radiance", "observed", "saturated"):
+        np.testing.assert_array_equal(b[k], a[k][keep])
+    np.testing.assert_array_equal(b["lit"], a["lit"][:1])
+    np.testing.assert_array_equal(b["obs_count"], b["observed"].sum(0))
+    assert b.meta["params"]["flashes"] == ["landmarked"]
+    assert "flashes" not in a.meta["params"]                          # not recorded unless given
+    res, bad = _unwrap(cli, tmp_path, scene, "bad", "--flashes", "09")
+    assert res.exit_code != 0 and "flash(es) 09 are not in the capture" in res.stderr and not bad.exists()
