@@ -166,15 +166,20 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
     return keep
 
 
+def _positions(have, select: Sequence[str], what: str, capture_path=None) -> list[int]:
+    """Indices of the names ``select`` in the capture's names ``have``; a one-line error names those missing."""
+    have = [str(x) for x in np.asarray(have).reshape(-1)]
+    missing = [x for x in select if x not in have]
+    if missing:
+        raise ReflectmmError(f"{what} {', '.join(missing)} are not in the capture (it has {', '.join(have)})",
+                             capture_path)
+    return [have.index(x) for x in select]
+
+
 def _select_flashes(capture: Mapping[str, np.ndarray], select: Sequence[str], capture_path=None) -> dict:
     """The capture with only the flashes ``select`` (in that order): ``flash_ids`` and the flash axis (1) of
     ``olat`` and ``saturated``."""
-    have = [str(f) for f in np.asarray(capture["flash_ids"]).reshape(-1)]
-    missing = [f for f in select if f not in have]
-    if missing:
-        raise ReflectmmError(f"flash(es) {', '.join(missing)} are not in the capture (it has {', '.join(have)})",
-                             capture_path)
-    keep = [have.index(f) for f in select]
+    keep = _positions(capture["flash_ids"], select, "flash(es)", capture_path)
     out = dict(capture)
     out["flash_ids"] = np.array(list(select), dtype=str)
     for k in ("olat", "saturated"):
@@ -266,11 +271,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
                              f"{np.asarray(uv).shape[0]}", geometry_path)
     views = [str(v) for v in capture["view_names"]]
     if select_views is not None:
-        missing = [v for v in select_views if v not in views]
-        if missing:
-            raise ReflectmmError(f"view(s) {', '.join(missing)} are not in the capture (it has {', '.join(views)})",
-                                 capture_path)
-        keep = [views.index(v) for v in select_views]
+        keep = _positions(views, select_views, "view(s)", capture_path)
         V0 = len(views)
         capture = {k: (np.asarray(capture[k])[keep] if k in ("olat", "saturated", "crop_origin", "view_names")
                        and np.asarray(capture[k]).shape[:1] == (V0,) else capture[k]) for k in capture}
