@@ -163,7 +163,7 @@ def pairs(paths: list[Path], specs: list[str]) -> str:
             span = np.mean(ini[f"{k}_residuals"]) - A[f"{k}_residual_oracle"]
             d = np.subtract(B[f"{k}_residuals"], A[f"{k}_residuals"]) / span
             c = _mean_ci(d)
-            cells.append(f"{100 * c['mean']:+.0f} ± {100 * c['half_width']:.0f} %")
+            cells.append(f"{100 * c['mean']:+.1f} ± {100 * c['half_width']:.1f} %")
         out.append(f"| {an} − {bn} | " + " | ".join(cells) + " |")
     return "\n".join(out)
 

@@ -98,4 +98,4 @@ def test_the_paired_table_against_an_independent_t_interval(tmp_path):
     assert cells[3] == f"{m:+.4f} ± {h:.4f}"
     span = np.mean(rows[0]["weights_residuals"]) - 0.2
     m, h = ci((np.subtract(rows[2]["weights_residuals"], rows[1]["weights_residuals"])) / span)
-    assert cells[6] == f"{100 * m:+.0f} ± {100 * h:.0f} %"
+    assert cells[6] == f"{100 * m:+.1f} ± {100 * h:.1f} %"
