@@ -3,7 +3,7 @@ demo workspace (docs/benchmarks.md, "The least-squares model update").
 
 Usage:
     python benchmarks/bench_model_solve.py --workspace work --variant NAME[:key=value,...] [--variant ...]
-        [--rounds 1] [--max-pixels 1000] [--cg-iterations 100] [--threads 1] [--jsonl out.jsonl]
+        [--rounds 1] [--max-pixels 1000] [--cg-iterations 100] [--shard-images 0] [--threads 1] [--jsonl out.jsonl]
 
 A variant is a name and :class:`~reflectmm_cli.finetune.model_solve.SolveConfig` fields (``pull``, ``harmonics``,
 ``robust``, ``update_bases``, ``pull_scale``, ...); ``initial`` (no update) and ``sgd`` (the workspace's finetuned model) are the
@@ -12,10 +12,19 @@ reference rows. With ``--load DIR`` the variants are not solved but read from ``
 
 - expressive power: the relative residual of the held-out wild identities' true per-vertex diffuse albedo and lobe
   weights after projection onto the model (``evaluate expressive``'s measure, prior 1e-3), and the gap to the
-  oracle (a model of the same size from the training identities' truth) closed from the initial model;
+  oracle (a model of the same size from the training identities' truth) closed from the initial model (the
+  per-identity residuals are kept for paired CIs, ``--pair``);
 - the refined PSNR / SSIM of the test images from zero coefficients (the model alone, no encoder), and the gain
   over the initial model per image with its 95 % CI;
-- the model update's CPU time (``time.process_time``, all threads).
+- the model update's CPU time (``time.process_time``, all threads) and wall time, and per round the solver's
+  relative residual (the CG's where it stopped; the Cholesky solve's).
+
+How each round is solved (:func:`solve_variant`): by the one-process CG of
+:func:`~reflectmm_cli.finetune.model_solve.alternate` (``--cg-iterations``, tolerance 1e-4), or, with
+``--shard-images N`` (or a variant's ``shard_images=N``) and harmonics, exactly: the map-reduce of
+:func:`~reflectmm_cli.finetune.model_mapreduce.alternate_sharded` run serially in this process (groups of N
+training images, the same refinement, pixels and pull), whose reduced normal equations are solved by Cholesky.
+Only the solve differs between the two.
 
 The model of the last round is measured (``keep_best=False``), whatever the validation split says; the report records
 the validation objective of every round.
@@ -42,6 +51,27 @@ def _variant(spec: str) -> tuple[str, dict]:
     return name, kw
 
 
+def solve_variant(model, light, shards, cfg, mesh, *, threads: int = 1, log=None) -> tuple[dict, object]:
+    """One variant's update with the bench's settings: :func:`~reflectmm_cli.finetune.model_solve.alternate` (the
+    CG), or with ``cfg.shard_images > 0`` the exact map-reduce (:func:`~reflectmm_cli.finetune.model_mapreduce.
+    alternate_sharded`, serial executor, ``threads`` torch threads). The last round is kept (``keep_best=False``).
+
+    Returns:
+        (``vertex_*`` arrays, float32, the :class:`~reflectmm_cli.finetune.model_solve.SolveReport`).
+    """
+    from reflectmm_cli.errors import ReflectmmError
+    from reflectmm_cli.finetune.model_mapreduce import alternate_sharded
+    from reflectmm_cli.finetune.model_solve import alternate
+
+    if cfg.shard_images <= 0:
+        return alternate(model, light, shards, cfg, mesh=mesh, log=log, keep_best=False)
+    if cfg.harmonics <= 0:
+        raise ReflectmmError("bench_model_solve: the exact solve (shard_images) needs harmonics > 0; "
+                             "per vertex the map-reduce runs the same CG")
+    return alternate_sharded(model, light, shards, cfg, mesh=mesh, log=log, keep_best=False, executor="serial",
+                             jobs=1, threads=threads)
+
+
 def _measure(model, light, ss, truth, oracle, refine) -> dict:
     from reflectmm_cli.evaluation.expressive import projection_residuals
     from reflectmm_cli.evaluation.reconstruction_eval import image_metrics_table
@@ -57,6 +87,8 @@ def _measure(model, light, ss, truth, oracle, refine) -> dict:
             sigma = m["sigma"] if isinstance(m, dict) else m.sigma
             r = projection_residuals(mean, basis, sigma, truth[part], truth["skin"], prior=1e-3)
             out[f"{part}_residual" + ("" if name == "model" else "_oracle")] = float(r.mean())
+            if name == "model":
+                out[f"{part}_residuals"] = r.astype(np.float64).tolist()
     rec = reconstruct(ss, None, model, light, split="test", refine=refine)
     fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
     out["psnr"] = np.asarray(fm.per_image["psnr"], np.float64).tolist()
@@ -78,7 +110,7 @@ def summarise(paths: list[Path]) -> str:
     ini = next(r for r in rows if r["variant"] == "initial")
     out = ["| update | config | rounds | training objective | validation objective | pixels left out | albedo "
            "residual (gap closed) | lobe-weight residual (gap closed) | refined test PSNR | Δ PSNR vs initial | "
-           "SSIM | Δ SSIM vs initial | CPU s |", "|" + "---|" * 13]
+           "SSIM | Δ SSIM vs initial | solve (relative residual) | CPU s |", "|" + "---|" * 14]
     for r in rows:
         gap = [(ini[k] - r[k]) / (ini[k] - r[k + "_oracle"]) for k in ("albedo_residual", "weights_residual")]
         rep = r.get("report", {}).get("rounds", [])
@@ -91,14 +123,60 @@ def summarise(paths: list[Path]) -> str:
         ds = np.subtract(r["ssim"], ini["ssim"])
         same = r is ini or not (dp.any() or ds.any())
         cpu = f"{r['cpu_s']:.0f}" if "cpu_s" in r else "–"
+        sol = "–" if len(rep) < 2 else ", ".join(
+            (f"CG {x['cg_iterations']}" if x["cg_iterations"] else "Cholesky") + f" ({x['cg_rel_residual']:.1e})"
+            for x in rep[1:])
         out.append(f"| {r['variant']} | {cfg} | {r['rounds'] if rep else '–'} | {tr} | {va} | {lo} | "
                    f"{r['albedo_residual']:.3f} ({100 * gap[0]:+.0f} %) | {r['weights_residual']:.3f} "
                    f"({100 * gap[1]:+.0f} %) | {np.mean(r['psnr']):.2f} | {'–' if same else _ci(dp)} | "
-                   f"{np.mean(r['ssim']):.3f} | {'–' if same else _ci(ds)} | {cpu} |")
+                   f"{np.mean(r['ssim']):.3f} | {'–' if same else _ci(ds)} | {sol} | {cpu} |")
     oracle = rows[0]
     out.append(f"| oracle | – | – | – | – | – | {oracle['albedo_residual_oracle']:.3f} | "
-               f"{oracle['weights_residual_oracle']:.3f} | – | – | – | – | – |")
+               f"{oracle['weights_residual_oracle']:.3f} | – | – | – | – | – | – |")
     return "\n".join(out)
+
+
+def pairs(paths: list[Path], specs: list[str]) -> str:
+    """``A − B`` for each ``A:B`` of ``specs`` (rows of the ``--jsonl`` files): the per-test-image gain in refined
+    PSNR and SSIM, the per-held-out-identity change of the albedo and lobe-weight residuals (negative: closer to the
+    truth) and the change of the gap closed, each as mean ± 95 % CI (Student t)."""
+    rows = {}
+    for p in paths:
+        for line in open(p):
+            if line.strip():
+                r = json.loads(line)
+                rows[r["variant"]] = r
+    ini = rows.get("initial")
+    out = ["| pair | Δ PSNR | Δ SSIM | Δ albedo residual | Δ lobe-weight residual | Δ albedo gap closed | "
+           "Δ lobe-weight gap closed |", "|---|---|---|---|---|---|---|"]
+    for spec in specs:
+        an, _, bn = spec.partition(":")
+        A, B = rows[an], rows[bn]
+        cells = [_ci(np.subtract(A[k], B[k])) for k in ("psnr", "ssim")]
+        for k in ("albedo", "weights"):
+            d = np.subtract(A[f"{k}_residuals"], B[f"{k}_residuals"])
+            cells.append(_ci4(d))
+        for k in ("albedo", "weights"):
+            if ini is None:
+                cells.append("–")
+                continue
+            span = np.mean(ini[f"{k}_residuals"]) - A[f"{k}_residual_oracle"]
+            d = np.subtract(B[f"{k}_residuals"], A[f"{k}_residuals"]) / span
+            c = _mean_ci(d)
+            cells.append(f"{100 * c['mean']:+.1f} ± {100 * c['half_width']:.1f} %")
+        out.append(f"| {an} − {bn} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def _mean_ci(d) -> dict:
+    from reflectmm_cli.evaluation.face_metrics import mean_ci
+
+    return mean_ci(np.asarray(d, np.float64))
+
+
+def _ci4(d) -> str:
+    c = _mean_ci(d)
+    return f"{c['mean']:+.4f} ± {c['half_width']:.4f}"
 
 
 def encoder_table(ws: Path, specs: list[str]) -> str:
@@ -159,6 +237,9 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=1)
     ap.add_argument("--max-pixels", type=int, default=1000)
     ap.add_argument("--cg-iterations", type=int, default=100)
+    ap.add_argument("--shard-images", type=int, default=0,
+                    help="solve every round exactly: the map-reduce in this process over groups of N training images "
+                         "and a Cholesky solve (needs harmonics; a variant's shard_images=N overrides; 0: the CG)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--jsonl", type=Path, default=None, help="append one JSON line per row")
     ap.add_argument("--save", type=Path, default=None, help="write each solved variant's per-vertex arrays here")
@@ -166,6 +247,9 @@ def main() -> int:
                     help="NAME=MODEL,ENCODER: print Table 2's encoder-only rows of the test images and exit")
     ap.add_argument("--summarise", type=Path, nargs="+", default=None,
                     help="print the markdown table of these --jsonl files and exit")
+    ap.add_argument("--pair", action="append", default=[],
+                    help="A:B with --summarise: also print A − B per test image (PSNR, SSIM) and per held-out "
+                         "identity (residuals), mean ± 95 %% CI")
     ap.add_argument("--load", type=Path, default=None,
                     help="measure the variants saved here by --save (another population's run) instead of solving")
     ap.add_argument("--changes", action="store_true",
@@ -177,6 +261,8 @@ def main() -> int:
         return 0
     if a.summarise:
         print(summarise(a.summarise))
+        if a.pair:
+            print("\n" + pairs(a.summarise, a.pair))
         return 0
     import torch
 
@@ -186,7 +272,7 @@ def main() -> int:
         return 0
 
     from reflectmm_cli.evaluation.expressive import oracle_model
-    from reflectmm_cli.finetune.model_solve import SolveConfig, alternate, with_solved
+    from reflectmm_cli.finetune.model_solve import SolveConfig, with_solved
     from reflectmm_cli.finetune.refine import RefineConfig
     from reflectmm_cli.finetune.shards import load_shards
     from reflectmm_cli.finetune.train import load_models
@@ -217,11 +303,13 @@ def main() -> int:
         elif a.load is not None:
             m = with_solved(model, dict(np.load(a.load / f"{name}.npz")))
         else:
-            cfg = SolveConfig(rounds=a.rounds, max_pixels=a.max_pixels, cg_iterations=a.cg_iterations, **kw)
-            t = time.process_time()
-            arrays, rep = alternate(model, light, ss, cfg, mesh=(fm.mean_shape, fm.triangles),
-                                    log=lambda s: print(s, file=sys.stderr, flush=True), keep_best=False)
-            row["cpu_s"] = time.process_time() - t
+            cfg = SolveConfig(rounds=a.rounds, max_pixels=a.max_pixels, cg_iterations=a.cg_iterations,
+                              **({"shard_images": a.shard_images} | kw))
+            t, w = time.process_time(), time.perf_counter()
+            arrays, rep = solve_variant(model, light, ss, cfg, (fm.mean_shape, fm.triangles), threads=a.threads,
+                                        log=lambda s: print(s, file=sys.stderr, flush=True))
+            row["cpu_s"], row["wall_s"] = time.process_time() - t, time.perf_counter() - w
+            row["shard_images"] = cfg.shard_images
             row["report"] = {"rounds": rep.rounds, "best_round": rep.best_round}
             m = with_solved(model, arrays)
             if a.save is not None:
