@@ -68,3 +68,11 @@ def bp_sh_ref(p, l):
     a, _ = quad(g, 0, 1 - width, epsabs=1e-14, epsrel=1e-13, limit=400) if width < 1 else (0.0, 0)
     b, _ = quad(g, max(0.0, 1 - width), 1, epsabs=1e-14, epsrel=1e-13, limit=400)
     return 2 * np.pi * f * (a + b)
+
+
+def random_lighting(seed, order):
+    """(3, (order+1)²) SH light coefficients: normal draws damped by 1 + band, plus 3 on the constant term."""
+    rng = np.random.default_rng(seed)
+    K = rng.normal(size=(3, (order + 1) ** 2)) / (1 + np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1))
+    K[:, 0] += 3.0
+    return K

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from _shading_ref import real_sh_matrix_ref
+from _shading_ref import random_lighting as _lighting, real_sh_matrix_ref
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading import env as E
 from reflectmm_cli.shading import shade_env
@@ -15,13 +15,6 @@ needs_numba = pytest.mark.skipif(E.compiled_kernel() is None, reason="numba is n
 
 #: max |compiled − numpy| / max |numpy| allowed: the two sum the basis rows in different orders
 TOL = {np.float32: 1e-6, np.float64: 1e-12}
-
-
-def _lighting(seed, order):
-    rng = np.random.default_rng(seed)
-    K = rng.normal(size=(3, (order + 1) ** 2)) / (1 + np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1))
-    K[:, 0] += 3.0
-    return K
 
 
 def _rel(a, b):

@@ -5,20 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from _shading_ref import bp_norm_ref, hemisphere_quadrature, real_sh_matrix_ref
+from _shading_ref import bp_norm_ref, hemisphere_quadrature, random_lighting as _lighting, real_sh_matrix_ref
 from reflectmm_cli.shading import EnvBasis, shade_env
 from reflectmm_cli.shading import env as E
 from reflectmm_cli.shading.sh import blinn_phong_sh_coeffs
 
 torch = pytest.importorskip("torch")
 P = np.array([1.0, 8.0, 64.0])
-
-
-def _lighting(seed, order):
-    rng = np.random.default_rng(seed)
-    K = rng.normal(size=(3, (order + 1) ** 2)) / (1 + np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1))
-    K[:, 0] += 3.0
-    return K
 
 
 def _unit(rng, n):
