@@ -42,8 +42,8 @@ from reflectmm_cli.recipes.executors import OrderedMap
 from reflectmm_cli.threads import torch_threads
 
 from .model_solve import (SolveConfig, SolveProblem, SolveReport, _expand, _fit_coefficients, _harmonic_basis,
-                          _pixel_basis, _render, _theta, build_problem, merge_problems, pull_norms, robust_weights,
-                          solve_model)
+                          _pixel_basis, _render, _theta, fitted_problem, merge_problems, pull_norms, robust_weights,
+                          round_record, solve_model, vertex_arrays)
 
 __all__ = ["ShardTask", "run_shard", "normal_equations", "solve_normal_equations", "alternate_sharded",
            "shard_groups"]
@@ -106,13 +106,7 @@ def run_shard(task: ShardTask) -> dict:
         out = {"objective": np.asarray(obj)}
         if task.mode == "val":
             return out | {"cpu_s": time.process_time() - cpu}
-        probs, k = [], 0
-        for gb in gbs:
-            n = gb.n_images
-            probs.append(build_problem(params, task.light, gb, beta[k:k + n], gamma[k:k + n], z[k:k + n],
-                                       max_pixels=task.max_pixels))
-            k += n
-        prob = merge_problems(probs, 1)
+        prob = fitted_problem(params, task.light, gbs, beta, gamma, z, task.max_pixels, 1)
         out.update(beta=_numpy(beta), gamma=_numpy(gamma), z=_numpy(z), pixels=int(prob.vid.shape[0]), left_out=0.0)
         if task.mode == "pixels":
             out["problem"] = {k: _numpy(v) for k, v in vars(prob).items()}
@@ -314,9 +308,7 @@ def alternate_sharded(model, light, shards, config: SolveConfig, *, refine=None,
             return mapper(run_shard, tasks)
 
         best = _rounds(run, train, val, theta0, basis, cfg, keep_best, log or (lambda s: None), batch_size)
-    am, ab, wm, wb = (t.detach().cpu().numpy().astype(np.float32) for t in best[1])
-    return {"vertex_albedo_mean": am, "vertex_albedo_basis": ab, "vertex_weights_mean": wm,
-            "vertex_weights_basis": wb}, best[0]
+    return vertex_arrays(best[1]), best[0]
 
 
 def _rounds(run, train, val, theta0, basis, cfg: SolveConfig, keep_best: bool, say, batch_size: int):
@@ -338,10 +330,7 @@ def _rounds(run, train, val, theta0, basis, cfg: SolveConfig, keep_best: bool, s
         obj = np.concatenate([r["objective"] for r in res])
         theta, info, left_out = _reduce(res, len(train), theta, cfg, basis, theta0)
         v = val_objective(theta)
-        report.rounds.append({"round": rnd, "train_refined_objective": float(np.mean(obj)),
-                              "solve_start": info["f_start"], "solve_end": info["f_end"],
-                              "cg_iterations": info["iterations"], "cg_rel_residual": info["rel_residual"],
-                              "val_objective": v, "pixels_left_out": left_out})
+        report.rounds.append(round_record(rnd, obj, info, v, left_out))
         say(f"model solve: round {rnd}: training objective {info['f_start']:.5g} -> {info['f_end']:.5g}, "
             f"validation objective {v:.5g}")
         if not (v >= best[0]) or not keep_best:

@@ -455,6 +455,32 @@ def _fit_coefficients(params, light, shards, idx, refine, batch_size, device, st
     return cat(out_b), cat(out_g), cat(out_z), np.concatenate(obj), gbs
 
 
+def fitted_problem(params, light, gbs, beta, gamma, z, max_pixels: int, n_images: int) -> SolveProblem:
+    """The packed pixels of the refined images (:func:`build_problem` per refinement batch ``gbs``, in order, with
+    their (β, γ, z) rows) merged with weights over ``n_images``."""
+    probs, k = [], 0
+    for gb in gbs:
+        n = gb.n_images
+        probs.append(build_problem(params, light, gb, beta[k:k + n], gamma[k:k + n], z[k:k + n],
+                                   max_pixels=max_pixels))
+        k += n
+    return merge_problems(probs, n_images)
+
+
+def round_record(rnd: int, train_objective: np.ndarray, info: dict, val_objective: float, left_out: float) -> dict:
+    """One round's entry of :attr:`SolveReport.rounds`."""
+    return {"round": rnd, "train_refined_objective": float(np.mean(train_objective)), "solve_start": info["f_start"],
+            "solve_end": info["f_end"], "cg_iterations": info["iterations"], "cg_rel_residual": info["rel_residual"],
+            "val_objective": val_objective, "pixels_left_out": left_out}
+
+
+def vertex_arrays(theta: list) -> dict:
+    """The ``vertex_*`` arrays (float32 numpy) of θ = [am, ab, wm, wb]."""
+    am, ab, wm, wb = (t.detach().cpu().numpy().astype(np.float32) for t in theta)
+    return {"vertex_albedo_mean": am, "vertex_albedo_basis": ab, "vertex_weights_mean": wm,
+            "vertex_weights_basis": wb}
+
+
 def with_solved(model, arrays: dict):
     """A copy of ``model`` with the arrays :func:`alternate` solved put in: each mean replaced, and the first rows
     of each ``*basis`` (the components the solve saw) replaced, the later ones kept (basis arrays float32 like the model)."""
@@ -512,13 +538,7 @@ def alternate(model, light, shards, config: SolveConfig | None = None, *, refine
     for rnd in range(1, cfg.rounds + 1):
         beta, gamma, z, obj, gbs = _fit_coefficients(params, light, shards, train, rcfg, batch_size, device, start)
         start = (beta, gamma, z)
-        probs, k = [], 0
-        for gb in gbs:
-            n = gb.n_images
-            probs.append(build_problem(params, light, gb, beta[k:k + n], gamma[k:k + n], z[k:k + n],
-                                       max_pixels=cfg.max_pixels))
-            k += n
-        prob = merge_problems(probs, len(train))
+        prob = fitted_problem(params, light, gbs, beta, gamma, z, cfg.max_pixels, len(train))
         left_out = 0.0
         if cfg.robust > 0:
             prob.weight, left_out = robust_weights(prob, _theta(params), cfg.robust)
@@ -527,15 +547,10 @@ def alternate(model, light, shards, config: SolveConfig | None = None, *, refine
                                   pull_scale=cfg.pull_scale)
         params.albedo_mean, params.albedo_basis, params.weights_mean, params.weights_basis = theta
         v = val_objective()
-        rec = {"round": rnd, "train_refined_objective": float(np.mean(obj)), "solve_start": info["f_start"],
-               "solve_end": info["f_end"], "cg_iterations": info["iterations"], "cg_rel_residual":
-               info["rel_residual"], "val_objective": v, "pixels_left_out": left_out}
-        report.rounds.append(rec)
+        report.rounds.append(round_record(rnd, obj, info, v, left_out))
         say(f"model solve: round {rnd}: training objective {info['f_start']:.5g} -> {info['f_end']:.5g} "
             f"({info['iterations']} CG iterations), validation objective {v:.5g}")
         if not (v >= best[0]) or not keep_best:  # lower, or no validation split (NaN): keep this round
             best = (v, [t.clone() for t in theta], rnd)
     report.best_round = best[2]
-    am, ab, wm, wb = (t.detach().cpu().numpy().astype(np.float32) for t in best[1])
-    return {"vertex_albedo_mean": am, "vertex_albedo_basis": ab, "vertex_weights_mean": wm,
-            "vertex_weights_basis": wb}, report
+    return vertex_arrays(best[1]), report
