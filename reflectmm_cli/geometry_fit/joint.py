@@ -37,10 +37,11 @@ import torch
 
 from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.geometry.camera import axis_angle_to_matrix
+from reflectmm_cli.geometry.camera import axis_angle_to_matrix, matrix_to_axis_angle
 from reflectmm_cli.geometry_fit.fit import (FitConfig, ViewSet, _FitProblem, _FlashPairs, _flash_objective,
                                             _sub_mesh, _SubMesh, _usable_flashes, _view_flash_rms, lbfgs_minimise)
 from reflectmm_cli.geometry_fit.init import place_by_rig
+from reflectmm_cli.geometry_fit.placement import data_cut_psd
 from reflectmm_cli.geometry_fit.model import ShapeModel
 
 log = logging.getLogger("reflectmm")
@@ -207,10 +208,7 @@ class _Shared:
     def theta_of(self, k: int, R: np.ndarray, c: np.ndarray) -> np.ndarray:
         """(6,) θ of camera ``k`` that puts it at the rig pose R (3, 3), c (3,) (the inverse of :meth:`rig_pose`)."""
         u, dist = self.opts.unit_mm, float(self.dist[k, 0])
-        D = np.asarray(R, np.float64) @ self.R0[k].numpy().T
-        ang = math.acos(max(-1.0, min(1.0, (np.trace(D) - 1) / 2)))
-        w = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
-        w = w * ang / (2 * math.sin(ang)) if ang > 1e-12 else w / 2
+        w = matrix_to_axis_angle(np.asarray(R, np.float64) @ self.R0[k].numpy().T)
         return np.concatenate([w * dist / u, (np.asarray(c, np.float64) - self.c0[k].numpy()) / u])
 
     def prior(self) -> torch.Tensor:
@@ -291,9 +289,7 @@ def _curvature(total, shared: _Shared, wbar: float, h: float = 0.2) -> np.ndarra
     out = np.zeros((Cu, 6, 6))
     try:
         for k in range(Cu):
-            Hp = grads(lambda: shared.prior() / wbar, k)
-            w, U = np.linalg.eigh(grads(total, k) - Hp)
-            out[k] = ((U * np.clip(w, 0.0, None)) @ U.T + Hp) * wbar
+            out[k] = data_cut_psd(grads(total, k), grads(lambda: shared.prior() / wbar, k)) * wbar
     finally:
         with torch.no_grad():
             shared.theta.copy_(base)

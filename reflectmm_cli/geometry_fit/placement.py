@@ -20,7 +20,7 @@ import torch
 
 from reflectmm_cli.geometry.camera import camera_centers
 
-__all__ = ["pose_curvature", "pose_sigmas", "view_evidence", "rig_shift"]
+__all__ = ["pose_curvature", "data_cut_psd", "pose_sigmas", "view_evidence", "rig_shift"]
 
 
 def _fd_curvature(prob, loss, views, steps: np.ndarray) -> np.ndarray:
@@ -62,9 +62,16 @@ def pose_curvature(prob, views, h_rot: float = 2.0, h_mm: float = 2.0) -> np.nda
     prior = _fd_curvature(prob, lambda: prob.prior(*prob.poses()), views, steps)
     H = np.full_like(total, np.nan)
     for v in views:
-        w, U = np.linalg.eigh(total[v] - prior[v])
-        H[v] = (U * np.clip(w, 0.0, None)) @ U.T + prior[v]
+        H[v] = data_cut_psd(total[v], prior[v])
     return H * prob.wsum
+
+
+def data_cut_psd(total: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """(n, n) curvature ``total`` with its data part (``total − prior``) cut to its positive semi-definite part
+    (negative eigenvalues set to 0), plus the ``prior`` curvature: what the Laplace approximations of a pose
+    use where the image terms curve down."""
+    w, U = np.linalg.eigh(total - prior)
+    return (U * np.clip(w, 0.0, None)) @ U.T + prior
 
 
 def pose_sigmas(H: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
