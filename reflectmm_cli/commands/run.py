@@ -59,6 +59,7 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
     are listed on stderr and the exit status is 1; rerunning resumes.
     """
     from reflectmm_cli.recipes import run_recipe
+    from reflectmm_cli.recipes.executors import executor_kind
 
     if recipe is None:
         if force not in (None, "*") and (force.endswith(".toml") or Path(force).is_file()):
@@ -67,7 +68,7 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
             raise click.UsageError("Missing argument 'RECIPE'.")
     ws = (workspace or default_workspace()).resolve()
     if executor == "auto":
-        executor = "dask" if scheduler else ("pool" if jobs > 1 else "serial")
+        executor = executor_kind("auto", jobs, scheduler)
     id_list = parse_ids(ids) if ids is not None else None
     if ids is not None and not id_list:
         raise ReflectmmError("--ids: no identity given")

@@ -420,7 +420,7 @@ class OrderedMap:
         self.kind = executor_kind(executor, jobs, scheduler)
         self.jobs = max(1, int(jobs))
         self.scheduler = scheduler
-        self._pool: ProcessPoolExecutor | None = None
+        self._pool: PoolExecutor | None = None
         self._dask: DaskExecutor | None = None
 
     def __enter__(self) -> "OrderedMap":
@@ -431,7 +431,7 @@ class OrderedMap:
 
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool.close()
             self._pool = None
         if self._dask is not None:
             self._dask.close()
@@ -443,10 +443,9 @@ class OrderedMap:
             return [fn(x) for x in items]
         if self.kind == "pool":
             if self._pool is None:
-                self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=_mp_context(),
-                                                 initializer=_worker_init,
-                                                 initargs=(os.getpid(), _proc_start(os.getpid())))
-            futures = [self._pool.submit(fn, x) for x in items]
+                self._pool = PoolExecutor(self.jobs)
+            pool = self._pool._get_pool()
+            futures = [pool.submit(fn, x) for x in items]
             try:
                 return [f.result() for f in futures]
             except BrokenProcessPool:
@@ -457,10 +456,3 @@ class OrderedMap:
             self._dask = DaskExecutor(self.jobs, self.scheduler)
         client = self._dask._get_client()
         return client.gather([client.submit(fn, x, pure=False, retries=0) for x in items])
-
-
-def map_in_order(fn: Callable[[Any], Any], items: list[Any], *, executor: str = "serial", jobs: int = 1,
-                 scheduler: str | None = None) -> list[Any]:
-    """One :class:`OrderedMap` call: ``[fn(x) for x in items]`` on the executor, in the items' order."""
-    with OrderedMap(executor, jobs, scheduler) as run:
-        return run(fn, items)
