@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
-from reflectmm_cli.geometry_fit.joint import JointOptions, check_pairs
+from reflectmm_cli.geometry_fit.joint import JointOptions, check_pairs, register_calibration
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
@@ -108,7 +108,6 @@ def run(ctx: StageContext) -> list[Path]:
                                   progress_fn=progress)
     if geos:  # the cameras no identity annotates: one pose each, by the flash images of every identity
         from reflectmm_cli.geometry import load_face_model
-        from reflectmm_cli.geometry_fit.joint import register_calibration
         from reflectmm_cli.geometry_fit.model import ShapeModel
 
         opts = JointOptions(center_sigma_mm=p.get("joint_sigma") or _JOINT.center_sigma_mm,
