@@ -674,6 +674,14 @@ class _FlashPairs:
         self.use_t = torch.as_tensor(usable, dtype=torch.long, device=device)
         self.log_gain = torch.zeros(self.F, dtype=prob.dtype, device=device, requires_grad=prob.cfg.flash_gains)
 
+    def images(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """The pairs' flash images (P, h, w, 3) float32 and saturation masks (P, h, w) bool (None without them)."""
+        views = self.prob.views
+        raw = np.asarray(views.flash_images[self.pv, self.pf], dtype=np.float32)
+        sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[self.pv, self.pf],
+                                                                      dtype=bool)
+        return raw, sat
+
     def log_gains(self) -> torch.Tensor:
         """(F,) log relative flash gains, geometric mean 1 over the flashes in the term."""
         return self.log_gain - self.log_gain[self.use_t].mean()
@@ -787,8 +795,7 @@ def _register_unmarked(prob: _FitProblem, sm: _SubMesh) -> np.ndarray | None:
                     "are not registered by the flash images")
         return None
     fp = _FlashPairs(prob, usable)  # every view: the per-vertex albedo comes mostly from the views with landmarks
-    raw = np.asarray(views.flash_images[fp.pv, fp.pf], dtype=np.float32)
-    sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[fp.pv, fp.pf], dtype=bool)
+    raw, sat = fp.images()
     before = _view_flash_rms(prob, sm, fp, raw, sat)
     saved = prob.dw.detach().clone(), prob.dtr.detach().clone()
     mask = prob.tt(um.astype(np.float64))[:, None]
@@ -829,10 +836,16 @@ def _view_flash_rms(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.
     flash, images_t, weight = _flash_objective(prob, sm, fp, raw, 0.0, sat)
     with torch.no_grad():
         r = flash(images_t)[0][1].cpu().numpy()
-    out = np.full(prob.V, np.nan)
-    for v in range(prob.V):
-        m = weight[fp.pv == v]
-        out[v] = float(np.sqrt((r[fp.pv == v][m] ** 2).mean())) if m.any() else np.nan
+    return _rms_per_view(r, weight, fp.pv, prob.V)
+
+
+def _rms_per_view(r: np.ndarray, weight: np.ndarray, pv: np.ndarray, V: int) -> np.ndarray:
+    """(V,) RMS of the residuals ``r`` (P, S) over each view's weighted samples (``weight`` (P, S), pairs of view
+    ``pv`` (P,)); NaN for a view without one."""
+    out = np.full(V, np.nan)
+    for v in range(V):
+        m = weight[pv == v]
+        out[v] = float(np.sqrt((r[pv == v][m] ** 2).mean())) if m.any() else np.nan
     return out
 
 
@@ -849,10 +862,8 @@ def _flash_stage(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarra
     # views): they follow the rig under the head; :func:`_register_unmarked` places them afterwards
     held = ~prob.marked
     fp = _FlashPairs(prob, usable, seen_by=~held)
-    pv, pf = fp.pv, fp.pf
     blurs = _round_blurs(cfg, cfg.flash_rounds)
-    raw = np.asarray(fimg[pv, pf], dtype=np.float32)  # (P, h, w, 3)
-    sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[pv, pf], dtype=bool)
+    raw, sat = fp.images()  # (P, h, w, 3), (P, h, w)
     res = np.full(V, np.nan)
     for rnd in range(cfg.flash_rounds):
         flash, images_t, weight = _flash_objective(prob, sm, fp, raw, blurs[rnd], sat)
@@ -866,7 +877,5 @@ def _flash_stage(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarra
                        f"flash round {rnd + 1}")
         with torch.no_grad():
             r = flash(torch.as_tensor(raw, device=device))[0][1].cpu().numpy()
-        for v in range(V):
-            m = weight[pv == v]
-            res[v] = float(np.sqrt((r[pv == v][m] ** 2).mean())) if m.any() else np.nan
+        res = _rms_per_view(r, weight, fp.pv, V)
     return res, fp.gains()

@@ -181,8 +181,7 @@ def hold(model: ShapeModel, views: ViewSet, shape_coeffs: np.ndarray, exp_coeffs
         raise ReflectmmError(f"identity {name}: no flash sits on a camera of its views: the joint registration has "
                              "no flash evidence", source)
     fp = _FlashPairs(prob, usable)
-    raw = np.asarray(views.flash_images[fp.pv, fp.pf], dtype=np.float32)
-    sat = None if views.flash_saturated is None else np.asarray(views.flash_saturated[fp.pv, fp.pf], dtype=bool)
+    raw, sat = fp.images()
     names = list(views.names)
     view_of = np.array([names.index(c) if c in names and not marked[names.index(c)] else -1 for c in cameras],
                        dtype=np.int64)
