@@ -144,6 +144,12 @@ def _index_of(names: Sequence[str], wanted: Sequence[str], what: str, where) -> 
     return np.array(idx, dtype=np.int64)
 
 
+def _names(value: str | Sequence[str]) -> list[str]:
+    """Names from a comma string or a list, stripped, empty ones dropped."""
+    items = value.split(",") if isinstance(value, str) else value
+    return [str(x).strip() for x in items if str(x).strip()]
+
+
 def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[str] | None = None) -> list[str]:
     """The capture views whose images enter the reflectance fit.
 
@@ -154,7 +160,7 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
 
     have = [str(v) for v in np.asarray(capture["view_names"]).reshape(-1)]
     if views is not None:
-        vs = [str(v).strip() for v in (views.split(",") if isinstance(views, str) else views) if str(v).strip()]
+        vs = _names(views)
         return have if vs == ["all"] else vs
     keep = [v for v in have if v not in RAISED_CAMERAS]
     if not keep:
@@ -224,11 +230,11 @@ def reflectance_flashes(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     ids, or ``"landmarked"`` (:func:`landmarked_flashes`).  Refuses an empty selection in one line."""
     if flashes is None:
         return None
-    fs = [str(f).strip() for f in (flashes.split(",") if isinstance(flashes, str) else flashes) if str(f).strip()]
-    have = [str(f) for f in np.asarray(capture["flash_ids"]).reshape(-1)]
+    fs = _names(flashes)
     if fs == ["all"]:
         return None
     if fs == [LANDMARKED]:
+        have = [str(f) for f in np.asarray(capture["flash_ids"]).reshape(-1)]
         placed = set(landmarked_flashes(geometry, geometry_path))
         fs = [f for f in have if f in placed]
         left = [f for f in have if f not in placed]
