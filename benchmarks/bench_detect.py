@@ -10,6 +10,10 @@ The settings run interleaved image by image, so both see the same machine load.
 With ``--wild DIR`` (``synth wild`` output) the images are its renders, the truth its ``landmarks_true`` and the
 rows are grouped by absolute yaw (0–15°, 15–30°, 30° and more) instead of by camera.
 
+A second table says where the error of the faces found with ``auto`` lies: per point group (jaw, brows, inner
+points) and as the scale of the best similarity between the detector's points and the synthetic ones, a bias
+that a bundle adjustment reads as a different face size or distance.
+
     python benchmarks/bench_detect.py CAPTURE_DIR [CAPTURE_DIR ...] [--upsample 1]
     python benchmarks/bench_detect.py --wild SYNTH_WILD_DIR
 """
@@ -57,7 +61,7 @@ def measure(items: list[tuple[Path, str, np.ndarray]], upsample: int) -> dict:
     from reflectmm_cli.artifacts import read_image_u8
     from reflectmm_cli.detection import detect_landmarks, pick_face
 
-    out = {s: {"found": Counter(), "err": [], "sec": []} for s in SETTINGS}
+    out = {s: {"found": Counter(), "err": [], "sec": [], "pairs": []} for s in SETTINGS}
     for p, group, truth in items:
         img = read_image_u8(p)
         for s in SETTINGS:
@@ -68,7 +72,45 @@ def measure(items: list[tuple[Path, str, np.ndarray]], upsample: int) -> dict:
                 continue
             out[s]["found"][group] += 1
             out[s]["err"].append(np.linalg.norm(face.landmarks - truth, axis=1).mean() / _iod(truth))
+            out[s]["pairs"].append((face.landmarks, truth))
     return out
+
+
+def similarity_scale(points: np.ndarray, ref: np.ndarray) -> float:
+    """The scale of the least-squares similarity taking ``ref`` (n, 2) to ``points`` (n, 2) (rotation and shift free):
+    ``sqrt(Σ|p − p̄|² / Σ|r − r̄|²)`` times the cosine factor of the best rotation (Umeyama)."""
+    p, r = points - points.mean(0), ref - ref.mean(0)
+    cov = p.T @ r
+    sv = np.linalg.svd(cov, compute_uv=False)
+    d = np.sign(np.linalg.det(cov)) or 1.0
+    return float((sv[0] + d * sv[1]) / (r * r).sum())
+
+
+#: Point sets of the bias table (iBUG-68, 0-based).
+SUBSETS = {"all 68": np.r_[0:68], "without the jaw": np.r_[17:68], "inner (nose, eyes, mouth)": np.r_[27:68]}
+
+
+def bias_table(pairs: list[tuple[np.ndarray, np.ndarray]]) -> str:
+    """Markdown: where the detector's landmarks differ from the synthetic ones, per found face — the mean error
+    of the jaw (0–16), brows (17–26) and inner points (27–67) over the inter-ocular distance, the brows' vertical
+    offset (negative: the detector's are higher), and the similarity scale of the detector's points against the
+    synthetic ones for three point sets (1 = the same size); median (10th–90th percentile)."""
+    rows = {"jaw error / IOD": [], "brow error / IOD": [], "inner error / IOD": [], "brow vertical offset / IOD": []}
+    rows |= {f"scale, {k}": [] for k in SUBSETS}
+    for det, syn in pairs:
+        iod = _iod(syn)
+        err = np.linalg.norm(det - syn, axis=1) / iod
+        rows["jaw error / IOD"].append(err[0:17].mean())
+        rows["brow error / IOD"].append(err[17:27].mean())
+        rows["inner error / IOD"].append(err[27:68].mean())
+        rows["brow vertical offset / IOD"].append((det[17:27, 1] - syn[17:27, 1]).mean() / iod)
+        for k, idx in SUBSETS.items():
+            rows[f"scale, {k}"].append(similarity_scale(det[idx], syn[idx]))
+    out = ["| measure | median (10th–90th percentile) |", "|---|---|"]
+    for k, v in rows.items():
+        v = np.asarray(v)
+        out.append(f"| {k} | {np.median(v):.3f} ({np.percentile(v, 10):.3f}–{np.percentile(v, 90):.3f}) |")
+    return "\n".join(out)
 
 
 def main(argv=None):
@@ -93,6 +135,9 @@ def main(argv=None):
         found = " | ".join(f"{r['found'][c]}/{per_cam[c]}" for c in cams)
         print(f"| {s} | {sum(r['found'].values())} / {len(items)} | {found} | {err} | "
               f"{np.median(r['sec']):.3f} |")
+    if res["auto"]["pairs"]:
+        print(f"\nWhere the error is (exposure auto, {len(res['auto']['pairs'])} faces):\n")
+        print(bias_table(res["auto"]["pairs"]))
 
 
 if __name__ == "__main__":
