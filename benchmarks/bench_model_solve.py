@@ -230,6 +230,29 @@ def changes_table(ws: Path, load: Path, names: list[str]) -> str:
     return "\n".join(out)
 
 
+def load_workspace(ws: Path):
+    """What the model-update benchmarks read from a finished demo workspace: (initial model, light model, shards,
+    face model, the synth wild truth of :func:`~reflectmm_cli.stages.evaluate_expressive.load_wild_truth`, the
+    held-out identities' truth {albedo, weights, skin} stacked, the oracle model of the training identities)."""
+    from reflectmm_cli.evaluation.expressive import oracle_model
+    from reflectmm_cli.finetune.shards import load_shards
+    from reflectmm_cli.finetune.train import load_models
+    from reflectmm_cli.geometry.face_model import load_face_model
+    from reflectmm_cli.stages.evaluate_expressive import load_wild_truth
+
+    model, light = load_models(ws / "build-pca" / "build-pca.npz", ws / "build-light-pca" / "build-light-pca.npz")
+    ss = load_shards(sorted((ws / "prepare-wild").glob("shard_*.npz")))
+    fm = load_face_model(ws / "synth-wild" / "face_model.npz")
+    tr = load_wild_truth(ws / "synth-wild")
+    held = tr["heldout"]
+    truth = {"albedo": np.stack([tr["albedo"][i] for i in held]).astype(np.float64),
+             "weights": np.stack([tr["weights"][i] for i in held]).astype(np.float64),
+             "skin": np.stack([tr["skin"][i] for i in held]).astype(bool)}
+    oracle = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),
+                          np.stack([tr["weights"][i] for i in tr["train"]]), model.exponents, model.n_components)
+    return model, light, ss, fm, tr, truth, oracle
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workspace", type=Path, default=Path("work"))
@@ -271,26 +294,13 @@ def main() -> int:
         print(encoder_table(a.workspace, a.encoder))
         return 0
 
-    from reflectmm_cli.evaluation.expressive import oracle_model
     from reflectmm_cli.finetune.model_solve import SolveConfig, with_solved
     from reflectmm_cli.finetune.refine import RefineConfig
-    from reflectmm_cli.finetune.shards import load_shards
     from reflectmm_cli.finetune.train import load_models
-    from reflectmm_cli.geometry.face_model import load_face_model
-    from reflectmm_cli.stages.evaluate_expressive import load_wild_truth
 
     torch.set_num_threads(a.threads)
     ws = a.workspace
-    model, light = load_models(ws / "build-pca" / "build-pca.npz", ws / "build-light-pca" / "build-light-pca.npz")
-    ss = load_shards(sorted((ws / "prepare-wild").glob("shard_*.npz")))
-    fm = load_face_model(ws / "synth-wild" / "face_model.npz")
-    tr = load_wild_truth(ws / "synth-wild")
-    held = tr["heldout"]
-    truth = {"albedo": np.stack([tr["albedo"][i] for i in held]).astype(np.float64),
-             "weights": np.stack([tr["weights"][i] for i in held]).astype(np.float64),
-             "skin": np.stack([tr["skin"][i] for i in held]).astype(bool)}
-    oracle = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),
-                          np.stack([tr["weights"][i] for i in tr["train"]]), model.exponents, model.n_components)
+    model, light, ss, fm, tr, truth, oracle = load_workspace(ws)
     refine = RefineConfig()
     for spec in a.variant:
         name, kw = _variant(spec)

@@ -294,24 +294,20 @@ def main() -> int:
     import torch
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from bench_model_solve import _measure
+    from bench_model_solve import _measure, load_workspace
 
     from reflectmm_cli.artifacts import read_artifact
-    from reflectmm_cli.evaluation.expressive import gap_closed, oracle_model, projection_residuals
+    from reflectmm_cli.evaluation.expressive import gap_closed, projection_residuals
     from reflectmm_cli.finetune.model_mapreduce import normal_equations, solve_normal_equations
     from reflectmm_cli.finetune.model_solve import (SolveConfig, _fit_coefficients, _harmonic_basis, _theta,
                                                     fitted_problem, solve_model, vertex_arrays, with_solved)
     from reflectmm_cli.finetune.refine import RefineConfig
     from reflectmm_cli.finetune.render import ModelParams
-    from reflectmm_cli.finetune.shards import load_shards
-    from reflectmm_cli.finetune.train import load_models
-    from reflectmm_cli.geometry.face_model import load_face_model
-    from reflectmm_cli.stages.evaluate_expressive import load_wild_truth
 
     torch.set_num_threads(a.threads)
     ws = a.workspace
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
-    model, light_full = load_models(ws / "build-pca" / "build-pca.npz", ws / "build-light-pca" / "build-light-pca.npz")
+    model, light_full, ss, fm, tr, truth, oracle = load_workspace(ws)
     light = light_full
     if a.light_components:  # the update's refinements fit only the first N light components (the test's all)
         import dataclasses
@@ -320,18 +316,9 @@ def main() -> int:
         light = dataclasses.replace(light_full, bases=light_full.bases[:n], sigma=light_full.sigma[:n],
                                     explained_variance=light_full.explained_variance[:n],
                                     explained_variance_ratio=light_full.explained_variance_ratio[:n])
-    ss = load_shards(sorted((ws / "prepare-wild").glob("shard_*.npz")))
-    fm = load_face_model(ws / "synth-wild" / "face_model.npz")
-    tr = load_wild_truth(ws / "synth-wild")
     man = read_artifact(ws / "synth-wild" / "manifest.npz")
     ident_of = dict(zip(np.asarray(man["names"]).astype(str).tolist(),
                         np.asarray(man["identity"]).astype(int).tolist()))
-    held = tr["heldout"]
-    truth = {"albedo": np.stack([tr["albedo"][i] for i in held]).astype(np.float64),
-             "weights": np.stack([tr["weights"][i] for i in held]).astype(np.float64),
-             "skin": np.stack([tr["skin"][i] for i in held]).astype(bool)}
-    oracle = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),
-                          np.stack([tr["weights"][i] for i in tr["train"]]), model.exponents, model.n_components)
     mu = np.asarray(model.vertex_albedo_mean, np.float64)
     B = np.asarray(model.vertex_albedo_basis, np.float64)
     sg = np.asarray(model.sigma, np.float64)

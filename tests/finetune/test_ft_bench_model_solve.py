@@ -1,14 +1,13 @@
 """benchmarks/bench_model_solve.py's solve options (docs/benchmarks.md, "The exact minimiser against the
 early-stopped CG"): its exact solve equals the map-reduce's and the CG's run to convergence, its default equals
 the one-process CG, and its paired table computes the gains it says."""
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import stats
 
+from _benchmarks import load_benchmark
 from _shards import make_dataset, wrong_initial
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune import model_mapreduce as MR
@@ -16,14 +15,9 @@ from reflectmm_cli.finetune import model_solve as MS
 from reflectmm_cli.finetune.shards import load_shards
 from reflectmm_cli.threads import torch_threads
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_model_solve.py"
-
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_model_solve", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_model_solve")
 
 
 @pytest.fixture(scope="module")

@@ -2,13 +2,12 @@
 coefficients are the projection of evaluate expressive, the matched images are the numpy SH shader's rendering of
 the truth, the identity-group refinement ends at a stationary point of the summed objective (finite differences)
 and holds a fixed β, and the form ceiling recovers a change the training identities were made with."""
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from _benchmarks import load_benchmark
 from _shards import make_dataset
 from reflectmm_cli.evaluation.expressive import projection_residuals
 from reflectmm_cli.finetune import refine as RF
@@ -17,14 +16,9 @@ from reflectmm_cli.finetune.shards import load_shards
 from reflectmm_cli.model.light import light_from_coeffs
 from reflectmm_cli.shading import shade_env
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_update_ceiling.py"
-
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_update_ceiling", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_update_ceiling")
 
 
 @pytest.fixture(scope="module")

@@ -1,21 +1,16 @@
 """benchmarks/bench_detect.py's bias table (docs/benchmarks.md, "detect-landmarks on dim captures"): the similarity
 scale it reports is the scale of a known similarity, whatever the rotation and shift, and its table reads the
 offsets it is given."""
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_detect.py"
+from _benchmarks import load_benchmark
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_detect", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_detect")
 
 
 @settings(max_examples=60, deadline=None)
