@@ -420,8 +420,12 @@ def main() -> int:
                 else:
                     H, gv, f = normal_equations(prob, theta, basis)
                     theta, info = solve_normal_equations(H, gv, f, theta, theta0, basis, pull=a.pull)
-            infos.append({"f_start": info["f_start"], "f_end": info["f_end"]})
-            say(f"{name}: round {len(infos)}: objective {info['f_start']:.5g} -> {info['f_end']:.5g}")
+            r_round = projection_residuals(theta[0].detach().numpy(), theta[1].detach().numpy(), sg,
+                                           truth["albedo"], truth["skin"], prior=1e-3).mean()
+            infos.append({"f_start": info["f_start"], "f_end": info["f_end"], "albedo_residual": float(r_round),
+                          "gap_closed": gap([r_round])})
+            say(f"{name}: round {len(infos)}: objective {info['f_start']:.5g} -> {info['f_end']:.5g}, albedo "
+                f"residual {r_round:.4f} (gap closed {100 * gap([r_round]):+.0f} %)")
         cpu = time.process_time() - t1 + t_refine
         row = {"kind": "update", "variant": name, "initial_albedo_residual": float(r_init.mean()), "pull": a.pull,
                "w_coef": a.w_coef, "matched_weights": a.matched_weights, "light_components": light.n_components,
