@@ -77,13 +77,11 @@ def measure(items: list[tuple[Path, str, np.ndarray]], upsample: int) -> dict:
 
 
 def similarity_scale(points: np.ndarray, ref: np.ndarray) -> float:
-    """The scale of the least-squares similarity taking ``ref`` (n, 2) to ``points`` (n, 2) (rotation and shift free):
-    ``sqrt(Σ|p − p̄|² / Σ|r − r̄|²)`` times the cosine factor of the best rotation (Umeyama)."""
-    p, r = points - points.mean(0), ref - ref.mean(0)
-    cov = p.T @ r
-    sv = np.linalg.svd(cov, compute_uv=False)
-    d = np.sign(np.linalg.det(cov)) or 1.0
-    return float((sv[0] + d * sv[1]) / (r * r).sum())
+    """The scale of the least-squares similarity taking ``ref`` (n, 2) to ``points`` (n, 2), rotation and shift free
+    (:func:`~reflectmm_cli.geometry.align.rigid_align`'s Umeyama scale)."""
+    from reflectmm_cli.geometry.align import rigid_align
+
+    return rigid_align(ref, points, scale=True)[2]
 
 
 #: Point sets of the bias table (iBUG-68, 0-based).
