@@ -55,16 +55,13 @@ import numpy as np
 
 
 def true_coefficients(mean, basis, sigma, albedo, skin, prior: float = 1e-3) -> tuple[float, np.ndarray]:
-    """(scale s, β) of one identity's true albedo projected onto a model part,
-    ``albedo ≈ s (mean + Σ β_m σ_m B_m)``
-    over its skin vertices, the prior ``prior ‖t‖² ‖x_β‖²`` of ``evaluate expressive``."""
-    r = np.asarray(skin, bool)
-    M = basis.shape[0]
-    A = np.concatenate([mean[r].reshape(-1, 1), (basis[:, r] * sigma[:, None, None]).reshape(M, -1).T], 1)
-    t = np.asarray(albedo, np.float64)[r].reshape(-1)
-    H = A.T @ A
-    H[1:, 1:] += prior * float(t @ t) * np.eye(M)
-    x = np.linalg.solve(H, A.T @ t)
+    """(scale s, β) of one identity's true albedo projected onto a model part, ``albedo ≈ s (mean + Σ β_m σ_m B_m)``
+    over its skin vertices: ``evaluate expressive``'s projection
+    (:func:`~reflectmm_cli.evaluation.expressive.projection_coefficients`, its prior)."""
+    from reflectmm_cli.evaluation.expressive import projection_coefficients
+
+    x = projection_coefficients(mean, basis, sigma, np.asarray(albedo, np.float64)[None], np.asarray(skin, bool),
+                                prior=prior)[0]
     return float(x[0]), x[1:] / x[0]
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["projection_residuals", "oracle_model", "gap_closed", "PRIOR_WEIGHT"]
+__all__ = ["projection_residuals", "projection_coefficients", "oracle_model", "gap_closed", "PRIOR_WEIGHT"]
 
 #: λ of the projection (relative data term): a coefficient of 3σ costs 0.009, as much as a relative residual of 0.095.
 PRIOR_WEIGHT = 1e-3
@@ -38,6 +38,17 @@ def projection_residuals(mean, basis, sigma, truth, region=None, *, prior: float
     Returns:
         (N,) float64 relative residuals (0 = the truth is in the span).
     """
+    return _project(mean, basis, sigma, truth, region, prior)[1]
+
+
+def projection_coefficients(mean, basis, sigma, truth, region=None, *, prior: float = PRIOR_WEIGHT) -> np.ndarray:
+    """The minimisers (s, c) of the projection (module docstring) of each identity's truth, arguments as
+    :func:`projection_residuals`: (N, M+1) float64, column 0 the scale s, then c = s β (so β = c / s)."""
+    return _project(mean, basis, sigma, truth, region, prior)[0]
+
+
+def _project(mean, basis, sigma, truth, region, prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """((N, M+1) minimisers (s, c), (N,) relative residuals) of the projection, inputs checked."""
     mu = np.asarray(mean, np.float64)
     B = np.asarray(basis, np.float64)
     sg = np.asarray(sigma, np.float64).reshape(-1)
@@ -54,6 +65,7 @@ def projection_residuals(mean, basis, sigma, truth, region=None, *, prior: float
     N, V = T.shape[:2]
     R = np.ones((N, V), bool) if region is None else np.broadcast_to(np.asarray(region, bool), (N, V))
     M = B.shape[0]
+    X = np.empty((N, M + 1))
     out = np.empty(N)
     for i in range(N):
         r = R[i]
@@ -66,8 +78,9 @@ def projection_residuals(mean, basis, sigma, truth, region=None, *, prior: float
         H[1:, 1:] += prior * np.eye(M)
         x = np.linalg.solve(H + 1e-12 * np.eye(M + 1) * max(np.trace(H), 1e-300), A.T @ t / tt)
         res = A @ x - t
+        X[i] = x
         out[i] = float(np.sqrt(res @ res / tt))
-    return out
+    return X, out
 
 
 def oracle_model(albedos, weights, exponents, components: int, ids: Sequence[str] | None = None) -> dict:

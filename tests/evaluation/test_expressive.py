@@ -6,7 +6,7 @@ from hypothesis import given, settings, strategies as st
 from scipy.optimize import minimize
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.evaluation.expressive import gap_closed, oracle_model, projection_residuals
+from reflectmm_cli.evaluation.expressive import gap_closed, oracle_model, projection_coefficients, projection_residuals
 
 
 def _part(rng, V=40, C=3, M=4):
@@ -31,6 +31,9 @@ def test_projection_matches_a_general_optimiser():
         x = minimize(f, np.r_[1.0, np.zeros(4)], method="BFGS", options={"gtol": 1e-12}).x
         pred = x[0] * mu[r] + np.tensordot(x[1:] * sg, B[:, r], 1)
         np.testing.assert_allclose(got[i], np.sqrt(((pred - t[i][r]) ** 2).sum() / tt), rtol=1e-5)
+        # the minimiser itself, (s, c)
+        np.testing.assert_allclose(projection_coefficients(mu, B, sg, t, region, prior=lam)[i], x, rtol=1e-4,
+                                   atol=1e-6)
 
 
 @settings(max_examples=20, deadline=None)
@@ -41,6 +44,8 @@ def test_truth_in_the_span_has_zero_residual(seed, scale):
     beta = rng.normal(0, 1, 4)
     t = scale * (mu + np.tensordot(beta * sg, B, 1))
     assert projection_residuals(mu, B, sg, t[None], prior=0.0)[0] < 1e-8
+    np.testing.assert_allclose(projection_coefficients(mu, B, sg, t[None], prior=0.0)[0], np.r_[scale, scale * beta],
+                               rtol=1e-6, atol=1e-8)
     # the prior only ever raises the residual
     assert projection_residuals(mu, B, sg, t[None], prior=0.1)[0] >= -1e-12
 
