@@ -6,25 +6,19 @@ import numpy as np
 import pytest
 import torch
 
-from _shards import make_dataset, wrong_initial
+from _shards import wrong_initial
 from reflectmm_cli.finetune import model_mapreduce as MR
 from reflectmm_cli.finetune import model_solve as MS
-from reflectmm_cli.finetune.render import ModelParams, batch_gbuffer
-from reflectmm_cli.finetune.shards import load_shards
 from reflectmm_cli.threads import torch_threads
-from test_ft_model_solve import _dense_system, _harmonic_columns, _relative_reg
+from test_ft_model_solve import _dense_system, _harmonic_columns, _relative_reg, small_data
 
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     from reflectmm_cli.geometry.harmonics import mesh_harmonics
 
-    d = make_dataset(tmp_path_factory.mktemp("mapreduce"), n_images=8, size=16, mesh_n=5, seed=2)
-    ss = load_shards(d["shards"])
-    gb = batch_gbuffer(ss.batch([0, 1, 2, 3]), dtype=torch.float64)
-    gb.skin[:] = True
-    p = ModelParams(d["truth"], dtype=torch.float64)
-    beta, gamma, z = (torch.tensor(d[k][:4]) for k in ("betas", "gammas", "zs"))
+    s = small_data(tmp_path_factory.mktemp("mapreduce"), 8)
+    d, ss, gb, p, beta, gamma, z = (s[k] for k in ("d", "ss", "gb", "p", "beta", "gamma", "z"))
     rng = np.random.default_rng(7)
     prob = MS.build_problem(p, d["light"], gb, beta, gamma, z, max_pixels=0)
     prob.target = prob.target + torch.tensor(rng.normal(0, 0.02, tuple(prob.target.shape)))

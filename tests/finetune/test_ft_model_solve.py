@@ -10,15 +10,21 @@ from reflectmm_cli.finetune.render import ModelParams, batch_gbuffer, lighting, 
 from reflectmm_cli.finetune.shards import load_shards
 
 
-@pytest.fixture(scope="module")
-def small(tmp_path_factory):
-    d = make_dataset(tmp_path_factory.mktemp("msolve"), n_images=4, size=16, mesh_n=5, seed=2)
+def small_data(folder, n_images: int) -> dict:
+    """A small data set (16² images of a 5×5 cap) and its first 4 images packed as one float64 batch, every pixel
+    counted as skin, with their true coefficients."""
+    d = make_dataset(folder, n_images=n_images, size=16, mesh_n=5, seed=2)
     ss = load_shards(d["shards"])
     gb = batch_gbuffer(ss.batch([0, 1, 2, 3]), dtype=torch.float64)
     gb.skin[:] = True
     p = ModelParams(d["truth"], dtype=torch.float64)
-    beta, gamma, z = (torch.tensor(d[k]) for k in ("betas", "gammas", "zs"))
+    beta, gamma, z = (torch.tensor(d[k][:4]) for k in ("betas", "gammas", "zs"))
     return dict(d=d, ss=ss, gb=gb, p=p, beta=beta, gamma=gamma, z=z)
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    return small_data(tmp_path_factory.mktemp("msolve"), 4)
 
 
 def _theta(p):
