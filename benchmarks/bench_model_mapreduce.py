@@ -40,6 +40,9 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests", "finetune"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # its sibling bench_model_solve
+
+from bench_model_solve import append_jsonl  # noqa: E402
 
 
 def _model(V, m: int):
@@ -173,9 +176,7 @@ def main() -> int:
                        "max_diff_vs_exact": _diff(arrays, got["one process, CG to 1e-12"])
                        if "one process, CG to 1e-12" in got else None, "rounds": rep.rounds}
                 print(json.dumps(row), flush=True)
-                if a.jsonl is not None:
-                    with open(a.jsonl, "a") as f:
-                        f.write(json.dumps(row) + "\n")
+                append_jsonl(a.jsonl, row)
     return 0
 
 

@@ -137,15 +137,15 @@ def summarise(paths: list[Path]) -> str:
 
 
 def pairs(paths: list[Path], specs: list[str]) -> str:
-    """``A − B`` for each ``A:B`` of ``specs`` (rows of the ``--jsonl`` files): the per-test-image gain in refined
+    """:func:`pair_table` of the rows of the ``--jsonl`` files (a later row of a variant replaces an earlier one)."""
+    return pair_table([json.loads(line) for p in paths for line in open(p) if line.strip()], specs)
+
+
+def pair_table(row_list: list[dict], specs: list[str]) -> str:
+    """``A − B`` for each ``A:B`` of ``specs`` (rows named by their ``variant``): the per-test-image gain in refined
     PSNR and SSIM, the per-held-out-identity change of the albedo and lobe-weight residuals (negative: closer to the
     truth) and the change of the gap closed, each as mean ± 95 % CI (Student t)."""
-    rows = {}
-    for p in paths:
-        for line in open(p):
-            if line.strip():
-                r = json.loads(line)
-                rows[r["variant"]] = r
+    rows = {r["variant"]: r for r in row_list}
     ini = rows.get("initial")
     out = ["| pair | Δ PSNR | Δ SSIM | Δ albedo residual | Δ lobe-weight residual | Δ albedo gap closed | "
            "Δ lobe-weight gap closed |", "|---|---|---|---|---|---|---|"]
@@ -228,6 +228,13 @@ def changes_table(ws: Path, load: Path, names: list[str]) -> str:
                 cells.append(f"{100 * np.linalg.norm(x - x0) / np.linalg.norm(x0):.3g}")
         out.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(out)
+
+
+def append_jsonl(path: Path | None, row: dict) -> None:
+    """Append ``row`` as one JSON line to ``path`` (nothing when None): the ``--jsonl`` files of the benchmarks."""
+    if path is not None:
+        with open(path, "a") as f:
+            f.write(json.dumps(row) + "\n")
 
 
 def load_workspace(ws: Path):
@@ -329,9 +336,7 @@ def main() -> int:
         print(json.dumps({k: v for k, v in row.items() if k not in ("psnr", "ssim")} |
                          {"psnr_mean": float(np.mean(row["psnr"])), "ssim_mean": float(np.mean(row["ssim"]))}),
               flush=True)
-        if a.jsonl is not None:
-            with open(a.jsonl, "a") as f:
-                f.write(json.dumps(row) + "\n")
+        append_jsonl(a.jsonl, row)
     return 0
 
 

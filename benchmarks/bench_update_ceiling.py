@@ -53,6 +53,8 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling bench_model_solve, also when loaded by path
+
 
 def true_coefficients(mean, basis, sigma, albedo, skin, prior: float = 1e-3) -> tuple[float, np.ndarray]:
     """(scale s, β) of one identity's true albedo projected onto a model part, ``albedo ≈ s (mean + Σ β_m σ_m B_m)``
@@ -121,33 +123,33 @@ def refine_identity_groups(params, light, gbs, beta, gamma, z, groups, cfg, batc
     return beta, gamma, z
 
 
-def matched_batches(params, light, gbs, gamma, z, ident, truth_albedo, truth_weights, batch_size: int):
+def matched_batches(params, light, gbs, gamma, z, ident, truth_albedo, truth_weights):
     """The G-buffer batches with every skin pixel's target replaced by the model's own shading of the image's
     identity's *true* per-vertex albedo and lobe weights, lit by the image's refined light (γ, z): a world the
-    shading model explains exactly (no environment map, shadow or GGX lobe), noise-free."""
+    shading model explains exactly (no environment map, shadow or GGX lobe), noise-free. The light transport is
+    the model solve's (:func:`~reflectmm_cli.finetune.model_solve.build_problem` over every skin pixel)."""
     import dataclasses
 
     import torch
 
-    from reflectmm_cli.finetune.refine import _light_tensors, pixel_transport
+    from reflectmm_cli.finetune.model_solve import build_problem
 
-    dt = torch.float64
-    lt = _light_tensors(light, int(gamma.shape[1]), dt, "cpu")
     out, k = [], 0
     for gb in gbs:
+        n = gb.n_images
+        prob = build_problem(params, light, gb, torch.zeros((n, params.n_components), dtype=torch.float64),
+                             gamma[k:k + n], z[k:k + n], max_pixels=0)
+        shaded = torch.empty_like(prob.D)
+        for b in range(n):
+            p = prob.image == b
+            bw = prob.bary[p][..., None]
+            a = (torch.as_tensor(truth_albedo[ident[k + b]], dtype=bw.dtype)[prob.vid[p]] * bw).sum(1)
+            w = (torch.as_tensor(truth_weights[ident[k + b]], dtype=bw.dtype)[prob.vid[p]] * bw).sum(1)
+            shaded[p] = a * prob.D[p] + torch.einsum("pi,ipc->pc", w, prob.S[:, p])
         new = gb.target.clone()
-        for b in range(gb.n_images):
-            s0, s1 = int(gb.offsets[b]), int(gb.offsets[b + 1])
-            sel = torch.nonzero(gb.skin[s0:s1]).reshape(-1) + s0
-            tr = pixel_transport(gb.normal[sel].to(dt), gb.view[sel].to(dt), params.exponents, light.order)
-            K = z[k].to(dt)[:, None] * (lt.mu + torch.einsum("k,kcn->cn", gamma[k].to(dt), lt.L))
-            D, S = tr.Yd @ K.T, tr.Ys @ K.T
-            bw = gb.bary[sel].to(dt)[..., None]
-            a = (torch.as_tensor(truth_albedo[ident[k]], dtype=dt)[gb.vert_ids[sel]] * bw).sum(1)
-            w = (torch.as_tensor(truth_weights[ident[k]], dtype=dt)[gb.vert_ids[sel]] * bw).sum(1)
-            new[sel] = (a * D + torch.einsum("pi,ipc->pc", w, S)).to(new.dtype)
-            k += 1
+        new[torch.nonzero(gb.skin).reshape(-1)] = shaded.to(new.dtype)  # the packed pixels: each image's skin, in order
         out.append(dataclasses.replace(gb, target=new))
+        k += n
     return out
 
 
@@ -238,10 +240,7 @@ def _form(q: int) -> str:
 def summarise(path: Path) -> str:
     """The rows of a ``--jsonl`` file: the form ceilings, then the updates with their paired differences against
     ``image`` (bench_model_solve.py's CIs: per test image, per held-out identity)."""
-    import tempfile
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_model_solve import pairs
+    from bench_model_solve import pair_table
 
     rows = [json.loads(line) for line in open(path) if line.strip()]
     forms = [r for r in rows if r["kind"] == "form"]
@@ -255,11 +254,9 @@ def summarise(path: Path) -> str:
             f"{r['albedo_residual']:.4f} "
             f"({100 * r['gap_closed']:+.0f} %) | {r['weights_residual']:.4f} | {np.mean(r['psnr']):.2f} | "
             f"{np.mean(r['ssim']):.4f} | {r['cpu_s']:.0f} |" for r in upd]
-    with tempfile.NamedTemporaryFile("w", suffix=".jsonl", delete=False) as f:
-        f.write("".join(json.dumps(r) + "\n" for r in upd))
     names = [r["variant"] for r in upd]
     specs = [f"{n}:image" for n in names if n != "image"] if "image" in names else []
-    return "\n".join(out) + ("\n\n" + pairs([Path(f.name)], specs) if specs else "")
+    return "\n".join(out) + ("\n\n" + pair_table(upd, specs) if specs else "")
 
 
 def main() -> int:
@@ -290,8 +287,7 @@ def main() -> int:
         return 0
     import torch
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from bench_model_solve import _measure, load_workspace
+    from bench_model_solve import _measure, append_jsonl, load_workspace
 
     from reflectmm_cli.artifacts import read_artifact
     from reflectmm_cli.evaluation.expressive import gap_closed, projection_residuals
@@ -326,9 +322,7 @@ def main() -> int:
 
     def emit(row):
         print(json.dumps(row), flush=True)
-        if a.jsonl is not None:
-            with open(a.jsonl, "a") as f:
-                f.write(json.dumps(row) + "\n")
+        append_jsonl(a.jsonl, row)
 
     # 3. the form's ceiling (truth only)
     for row in form_ceiling(mu, B, sg, [tr["albedo"][i] for i in tr["train"]], [tr["skin"][i] for i in tr["train"]],
@@ -366,7 +360,7 @@ def main() -> int:
         m_weights = {g: true_s[g] * (wm + np.einsum("m,mvk->vk", true_b[g] * sg, wb)) for g in groups_ids}
     else:
         m_weights = tr["weights"]
-    mg = matched_batches(params, light, gbs, gamma, z, ident, tr["albedo"], m_weights, 8) \
+    mg = matched_batches(params, light, gbs, gamma, z, ident, tr["albedo"], m_weights) \
         if any(v.startswith("matched") for v in a.variants.split(",")) else None
     fixed = [true_b[gid] for gid in groups_ids]
 
@@ -408,7 +402,6 @@ def main() -> int:
         for _ in range(a.rounds):
             b, g, zz, batches = coefficients(name, theta, prev)
             prev = (b, g, zz)
-            params.albedo_mean, params.albedo_basis, params.weights_mean, params.weights_basis = theta
             with torch.no_grad():
                 prob = fitted_problem(params, light, batches, b, g, zz, a.max_pixels, len(train))
                 if basis is None:  # per vertex: the one-process CG (finetune/model_solve.py; autograd products)

@@ -63,7 +63,7 @@ def test_matched_targets_are_the_sh_shader_of_the_truth(data):
     gamma = torch.as_tensor(rng.normal(0, 1, (4, d["light"].n_components)))
     z = torch.as_tensor(rng.uniform(1.5, 2.5, (4, 3)))
     ident = np.array([0, 0, 1, 1])
-    out = _bench().matched_batches(params, d["light"], [gb], gamma, z, ident, albedo, weights, 4)[0]
+    out = _bench().matched_batches(params, d["light"], [gb], gamma, z, ident, albedo, weights)[0]
     exps = np.asarray(d["truth"].exponents, np.float64)
     for b in range(4):
         s0, s1 = int(gb.offsets[b]), int(gb.offsets[b + 1])
