@@ -132,8 +132,9 @@ def vertex_component_grid(model, vertices, triangles, n_components: int = 3, spr
     """Rows: component k; columns: diffuse albedo (sRGB) at −spread·σ, mean, +spread·σ, then lobe weights ×3 at the
     same β — the per-vertex model rendered flat (no shading) on the face model's mean shape."""
     from reflectmm_cli.model.pca import sample_model
-    from reflectmm_cli.model.preview import BG, srgb_preview, render_vertex_colors
+    from reflectmm_cli.model.preview import BG, VertexSplat, srgb_preview
 
+    splat = VertexSplat(vertices, triangles, width)
     rows = []
     for k in range(min(n_components, model.n_components)):
         cells_a, cells_w = [], []
@@ -143,7 +144,7 @@ def vertex_component_grid(model, vertices, triangles, n_components: int = 3, spr
             a, w = sample_model(model, beta, space="vertex")
             wv = w if w.shape[1] == 3 else np.repeat(w.sum(1, keepdims=True), 3, 1)
             for vals, cells, tf in ((a, cells_a, srgb_preview), (np.clip(wv * 3, 0, 1), cells_w, lambda x: x)):
-                img = render_vertex_colors(vertices, triangles, vals, width)
+                img = splat.render(vals)
                 img = np.where(np.isnan(img), BG, tf(np.nan_to_num(img)))
                 cells.append(np.pad(img, ((1, 1), (1, 1), (0, 0)), constant_values=1.0))
         rows.append(np.concatenate(cells_a + cells_w, 1))

@@ -20,7 +20,7 @@ from reflectmm_cli.errors import ReflectmmError
 
 from .pca import ReflectanceModel, sample_model
 
-__all__ = ["srgb_preview", "weights_to_rgb", "component_grid", "render_vertex_colors", "render_samples"]
+__all__ = ["srgb_preview", "weights_to_rgb", "component_grid", "VertexSplat", "render_vertex_colors", "render_samples"]
 
 BG = 0.5
 
@@ -78,46 +78,82 @@ def _frontal_camera(vertices: np.ndarray, width: int, distance: float = 600.0):
     return eye, centre, f
 
 
+class VertexSplat:
+    """The visibility of a z-buffered splat of a mesh, worked out once and reused for any per-vertex colours.
+
+    Dense barycentric samples of every triangle are projected by a pinhole camera at ``eye`` looking down −z
+    (focal ``focal`` px, principal point at the image centre); each pixel keeps its nearest sample (ties: the
+    first triangle). Only the colours change between the renders of one figure, so :meth:`render` interpolates
+    the kept samples' vertex colours and touches no geometry.
+
+    Args:
+        vertices: (N, 3) positions (mm).
+        triangles: (F, 3) vertex indices.
+        width: image side (px).
+        eye, focal: the camera; both None frames the mesh from the front (600 mm in front of its nose).
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, width: int = 160, eye: np.ndarray | None = None,
+                 focal: float | None = None):
+        V = np.asarray(vertices, np.float64)
+        T = np.asarray(triangles, np.int64)
+        if eye is None or focal is None:
+            eye, _, focal = _frontal_camera(V, width)
+        c = width / 2.0
+        rel = V - eye
+        z = -rel[:, 2]
+        if np.any(z <= 1e-6):
+            raise ReflectmmError("render: vertices behind the preview camera")
+        px = np.stack([focal * rel[:, 0] / z + c - 0.5, -focal * rel[:, 1] / z + c - 0.5], -1)
+        # subdivision level from the largest projected edge so every covered pixel gets a sample
+        e = np.concatenate([np.linalg.norm(px[T[:, a]] - px[T[:, b]], axis=1) for a, b in ((0, 1), (1, 2), (2, 0))])
+        n = int(np.clip(np.ceil(np.percentile(e, 99.5) * 1.5), 1, 64))
+        ij = np.array([(i, j) for i in range(n + 1) for j in range(n + 1 - i)], np.float64) / n
+        bary = np.stack([1 - ij.sum(1), ij[:, 0], ij[:, 1]], -1)  # (B,3)
+        B = len(bary)
+        zbuf = np.full(width * width, np.inf)
+        winner = np.full(width * width, -1, np.int64)  # flat sample index triangle * B + b
+        step = max(1, 200000 // B)
+        for a in range(0, T.shape[0], step):
+            t = T[a:a + step]
+            p = np.einsum("bk,tkd->tbd", bary, px[t]).reshape(-1, 2)
+            zz = np.einsum("bk,tk->tb", bary, z[t]).reshape(-1)
+            sid = a * B + np.arange(zz.size)
+            ix = np.rint(p).astype(np.int64)
+            ok = (ix[:, 0] >= 0) & (ix[:, 0] < width) & (ix[:, 1] >= 0) & (ix[:, 1] < width)
+            lin = ix[ok, 1] * width + ix[ok, 0]
+            zz, sid = zz[ok], sid[ok]
+            order = np.lexsort((zz, lin))
+            lin, zz, sid = lin[order], zz[order], sid[order]
+            first = np.ones(lin.size, bool)
+            first[1:] = lin[1:] != lin[:-1]
+            lin, zz, sid = lin[first], zz[first], sid[first]
+            closer = zz < zbuf[lin]
+            zbuf[lin[closer]] = zz[closer]
+            winner[lin[closer]] = sid[closer]
+        self.width = int(width)
+        self.pixels = np.flatnonzero(winner >= 0)
+        won = winner[self.pixels]
+        self.corners = T[won // B]  # (P,3) vertex indices of the kept samples' triangles
+        self.bary = bary[won % B]  # (P,3)
+        self.n_vertices = V.shape[0]
+
+    def render(self, colors: np.ndarray) -> np.ndarray:
+        """(N, C) per-vertex colours → (width, width, C), NaN where nothing is visible."""
+        C = np.asarray(colors, np.float64)
+        if C.ndim != 2 or C.shape[0] != self.n_vertices:
+            raise ReflectmmError(f"render: colours of shape {C.shape}, expected ({self.n_vertices}, C)")
+        out = np.full((self.width * self.width, C.shape[1]), np.nan)
+        out[self.pixels] = np.einsum("pk,pkd->pd", self.bary, C[self.corners])
+        return out.reshape(self.width, self.width, C.shape[1])
+
+
 def render_vertex_colors(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray, width: int = 160,
                          eye: np.ndarray | None = None, focal: float | None = None, centre=None) -> np.ndarray:
     """Z-buffered splat of per-vertex colours (N,C) over dense barycentric samples of the triangles, seen by a
-    pinhole camera at ``eye`` looking down −z. Returns (width, width, C) with NaN where nothing is visible."""
-    V = np.asarray(vertices, np.float64)
-    T = np.asarray(triangles, np.int64)
-    C = np.asarray(colors, np.float64)
-    if eye is None or focal is None:
-        eye, centre, focal = _frontal_camera(V, width)
-    c = width / 2.0
-    rel = V - eye
-    z = -rel[:, 2]
-    if np.any(z <= 1e-6):
-        raise ReflectmmError("render: vertices behind the preview camera")
-    px = np.stack([focal * rel[:, 0] / z + c - 0.5, -focal * rel[:, 1] / z + c - 0.5], -1)
-    # subdivision level from the largest projected edge so every covered pixel gets a sample
-    e = np.concatenate([np.linalg.norm(px[T[:, a]] - px[T[:, b]], axis=1) for a, b in ((0, 1), (1, 2), (2, 0))])
-    n = int(np.clip(np.ceil(np.percentile(e, 99.5) * 1.5), 1, 64))
-    ij = np.array([(i, j) for i in range(n + 1) for j in range(n + 1 - i)], np.float64) / n
-    bary = np.stack([1 - ij.sum(1), ij[:, 0], ij[:, 1]], -1)  # (B,3)
-    out = np.full((width * width, C.shape[1]), np.nan)
-    zbuf = np.full(width * width, np.inf)
-    for a in range(0, T.shape[0], max(1, 200000 // len(bary))):
-        t = T[a:a + max(1, 200000 // len(bary))]
-        p = np.einsum("bk,tkd->tbd", bary, px[t]).reshape(-1, 2)
-        zz = np.einsum("bk,tk->tb", bary, z[t]).reshape(-1)
-        col = np.einsum("bk,tkd->tbd", bary, C[t]).reshape(-1, C.shape[1])
-        ix = np.rint(p).astype(np.int64)
-        ok = (ix[:, 0] >= 0) & (ix[:, 0] < width) & (ix[:, 1] >= 0) & (ix[:, 1] < width)
-        lin = ix[ok, 1] * width + ix[ok, 0]
-        zz, col = zz[ok], col[ok]
-        order = np.lexsort((zz, lin))
-        lin, zz, col = lin[order], zz[order], col[order]
-        first = np.ones(lin.size, bool)
-        first[1:] = lin[1:] != lin[:-1]
-        lin, zz, col = lin[first], zz[first], col[first]
-        closer = zz < zbuf[lin]
-        zbuf[lin[closer]] = zz[closer]
-        out[lin[closer]] = col[closer]
-    return out.reshape(width, width, C.shape[1])
+    pinhole camera at ``eye`` looking down −z. Returns (width, width, C) with NaN where nothing is visible.
+    Several colourings of one mesh and camera: build one :class:`VertexSplat` and call its ``render``."""
+    return VertexSplat(vertices, triangles, width, eye, focal).render(colors)
 
 
 def render_samples(model: ReflectanceModel, vertices: np.ndarray, triangles: np.ndarray, n: int = 30,
@@ -159,6 +195,7 @@ def render_samples(model: ReflectanceModel, vertices: np.ndarray, triangles: np.
         nrm = np.asarray(vertex_normals(V, triangles), np.float64)
         ld = eye - V
         E = intensity / np.sum(ld * ld, -1)
+        splat = VertexSplat(V, triangles, width, eye, focal)
     for beta in betas:
         if scene is not None:
             alb, wts = sample_model(model, beta)
@@ -169,7 +206,7 @@ def render_samples(model: ReflectanceModel, vertices: np.ndarray, triangles: np.
             alb, wts = sample_model(model, beta, space="vertex")
             alb, wts = np.clip(alb, 0, None), np.clip(wts, 0, None)
             s = shade_directional(alb, wts, model.exponents, nrm, ld, ld, np.repeat(E[:, None], 3, -1))
-            img = render_vertex_colors(V, triangles, s, width, eye, focal, centre)
+            img = splat.render(s)
             img = np.where(np.isnan(img), BG, srgb_preview(np.nan_to_num(img)))
         tiles.append(np.pad(img, ((1, 1), (1, 1), (0, 0)), constant_values=1.0))
     while len(tiles) % cols:

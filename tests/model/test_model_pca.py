@@ -234,6 +234,42 @@ def test_splat_renderer_covers_and_interpolates():
     assert np.max(np.abs(got - expect)) <= 500 / f * 0.75  # within the splat's pixel snapping
 
 
+def _plane(g, half, z0):
+    x, y = np.meshgrid(np.linspace(-half, half, g), np.linspace(-half, half, g))
+    V = np.stack([x.ravel(), y.ravel(), np.full(g * g, z0)], -1)
+    T = [t for r in range(g - 1) for c in range(g - 1)
+         for t in ((r * g + c, r * g + c + 1, (r + 1) * g + c), (r * g + c + 1, (r + 1) * g + c + 1, (r + 1) * g + c))]
+    return V, np.array(T)
+
+
+def test_splat_keeps_the_nearest_surface_and_reuses_its_visibility():
+    """Two parallel planes, the smaller one 100 mm nearer the camera: where both project, the nearer one's colour
+    is seen, elsewhere the far one's; one VertexSplat rendering two colourings gives what rendering each from
+    scratch gives, and a colouring of the wrong size is refused."""
+    from reflectmm_cli.errors import ReflectmmError
+    from reflectmm_cli.model.preview import VertexSplat, render_vertex_colors
+
+    Vf, Tf = _plane(9, 50.0, 0.0)
+    Vn, Tn = _plane(5, 10.0, 100.0)
+    V = np.concatenate([Vf, Vn])
+    T = np.concatenate([Tf, Tn + len(Vf)])
+    far = np.r_[np.ones(len(Vf)), np.zeros(len(Vn))][:, None]
+    W, eye, f = 64, np.array([0.0, 0.0, 500.0]), 300.0
+    splat = VertexSplat(V, T, W, eye, f)
+    img = splat.render(far)[..., 0]
+    c = W / 2
+    near_half = f * 10 / 400  # the near plane's projected half width (px)
+    inner = slice(int(c - near_half + 1), int(c + near_half - 1))
+    assert np.all(img[inner, inner] == 0.0)  # the near plane hides the far one
+    far_half = f * 50 / 500
+    ring = img[int(c), int(c - far_half + 2):int(c - near_half - 1)]
+    assert ring.size and np.all(ring == 1.0)
+    for colours in (far, 1.0 - far, np.random.default_rng(0).random((len(V), 3))):
+        np.testing.assert_array_equal(splat.render(colours), render_vertex_colors(V, T, colours, W, eye, f))
+    with pytest.raises(ReflectmmError, match="colours of shape"):
+        splat.render(far[:-1])
+
+
 def test_trainable_torch_model_gets_gradients():
     import torch
 
