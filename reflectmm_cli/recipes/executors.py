@@ -121,7 +121,8 @@ def refused_task(spec: TaskSpec, message: str) -> dict[str, Any]:
     return _result(spec, FAILED, error=message)
 
 
-OnResult = Callable[[dict[str, Any]], None]
+#: Called with each task's result; may return more task specs to run (see :meth:`Executor.run`).
+OnResult = Callable[[dict[str, Any]], "list[TaskSpec] | None"]
 
 
 class Executor:
@@ -139,7 +140,12 @@ class Executor:
         pass
 
     def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
-        """Run ``specs`` (topologically ordered; ``deps`` name specs in the same list)."""
+        """Run ``specs`` (topologically ordered; ``deps`` name specs of this run).
+
+        ``on_result`` is called with each result as it arrives; it may return more specs, which join the run
+        (their ``deps`` name specs given earlier in it, finished or not): a runner plans the stages that wait
+        for their upstream's outputs as soon as those exist, while the other tasks go on.
+        """
         raise NotImplementedError
 
 
@@ -150,10 +156,12 @@ class SerialExecutor(Executor):
 
     def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
         results: dict[str, dict[str, Any]] = {}
-        for spec in specs:
+        queue = list(specs)
+        while queue:
+            spec = queue.pop(0)
             res = execute_task(spec, *[results[d] for d in spec.deps])
             results[spec.tid] = res
-            on_result(res)
+            queue += on_result(res) or []
         return results
 
 
@@ -248,12 +256,13 @@ class PoolExecutor(Executor):
         pool = self._get_pool() if specs else None
         while pending or running:
             still: list[TaskSpec] = []
-            for spec in pending:
+            while pending:
+                spec = pending.pop(0)
                 if all(d in results for d in spec.deps):
                     blocked = blocked_by(spec, [results[d] for d in spec.deps])
                     if blocked is not None:
                         results[spec.tid] = blocked
-                        on_result(blocked)
+                        pending += on_result(blocked) or []
                     else:
                         running[pool.submit(execute_task, spec)] = spec
                 else:
@@ -275,13 +284,13 @@ class PoolExecutor(Executor):
                 except Exception as exc:  # noqa: BLE001 - e.g. the task spec could not be sent
                     res = _result(spec, FAILED, error=f"worker process failed: {_error_message(exc)}")
                 results[spec.tid] = res
-                on_result(res)
+                pending += on_result(res) or []
             if broken:
                 # every task running in the broken pool is lost; the remaining ones go to a new pool
                 for fut, spec in list(running.items()):
                     res = _result(spec, FAILED, error="worker pool broke while running this task")
                     results[spec.tid] = res
-                    on_result(res)
+                    pending += on_result(res) or []
                 running.clear()
                 self._pool.shutdown(wait=False, cancel_futures=True)
                 self._pool = None
@@ -354,7 +363,8 @@ class DaskExecutor(Executor):
         token = os.urandom(4).hex()
         futures: dict[str, Any] = {}
         by_key: dict[str, TaskSpec] = {}
-        for spec in specs:
+
+        def submit(spec: TaskSpec):
             res = {}
             for k, v in (spec.resources or {}).items():
                 if k in known:
@@ -370,15 +380,19 @@ class DaskExecutor(Executor):
                                     resources=res or None, retries=0)
             futures[spec.tid] = fut
             by_key[fut.key] = spec
+            return fut
+
+        done = as_completed([submit(spec) for spec in specs])
         results: dict[str, dict[str, Any]] = {}
-        for fut in as_completed(list(futures.values())):
+        for fut in done:
             spec = by_key[fut.key]
             try:
                 res = fut.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker, a deserialisation error...
                 res = _result(spec, FAILED, error=f"dask: {_error_message(exc)}")
             results[spec.tid] = res
-            on_result(res)
+            for more in on_result(res) or []:
+                done.add(submit(more))
         return results
 
 

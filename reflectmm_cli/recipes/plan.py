@@ -38,6 +38,7 @@ RUNLOG_FILE = "runlog.jsonl"
 # task actions
 RUN, SKIP, BLOCKED, ERROR, DEFERRED, FAILED = "run", "skip", "blocked", "error", "deferred", "failed"
 DONE = "ok"  # a prior status (make_plan's ``prior``): the task ran successfully earlier in this run
+RUNNING = "running"  # a prior status: the task is running now (its outputs are not to be looked at yet)
 
 
 def state_dir(workspace: Path) -> Path:
@@ -152,7 +153,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
             depend on per-identity stages are then not run.
         hash_memo: the stat-keyed sha256 memo (updated in place).
         prior: task id -> status from an earlier round of the same run (failed tasks are
-            not retried, their dependents are blocked).
+            not retried, their dependents are blocked; ``"running"`` tasks stay to run, unexamined).
     """
     workspace = Path(workspace).resolve()
     prior = prior or {}
@@ -213,6 +214,9 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
             if t.tid in prior and prior[t.tid] in (FAILED, BLOCKED):
                 t.action = FAILED if prior[t.tid] == FAILED else BLOCKED
                 t.reason = f"{'failed' if t.action == FAILED else 'blocked'} earlier in this run"
+                continue
+            if prior.get(t.tid) == RUNNING:
+                t.action, t.reason = RUN, "running"
                 continue
             if prior.get(t.tid) == DONE:
                 # ran earlier in this run: its outputs are fresh, so it neither runs again (even when

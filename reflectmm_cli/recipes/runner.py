@@ -25,6 +25,7 @@ from reflectmm_cli.recipes.executors import FAILED as R_FAILED
 from reflectmm_cli.recipes.executors import OK, Executor, TaskSpec, make_executor
 from reflectmm_cli.recipes.plan import (BLOCKED, DEFERRED, ERROR, FAILED, RUN, RUNLOG_FILE, SKIP, Plan, make_plan,
                                         load_hash_memo, save_hash_memo, state_dir, write_record)
+from reflectmm_cli.recipes.plan import RUNNING as RUNNING_PRIOR
 from reflectmm_cli.recipes.recipe import Recipe, load_recipe
 
 log = logging.getLogger("reflectmm")
@@ -224,36 +225,112 @@ def workspace_lock(workspace: Path) -> Iterator[bool | str]:
 def _run_locked(recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Plan, plan_seconds: float, *,
                 force: str | None, only: str | None, ids: list[str] | None, executor: str | Executor, jobs: int,
                 scheduler: str | None) -> RunReport:
-    runlog = RunLog(workspace, recipe.name)
-    outcomes: dict[str, TaskOutcome] = {}
-    prior: dict[str, str] = {}
     own_executor = not isinstance(executor, Executor)
     ex = make_executor(executor, jobs, scheduler) if own_executor else executor
+    run = _Run(recipe, workspace, memo, plan, RunLog(workspace, recipe.name),
+               dict(force=force, only=only, ids=ids))
     t1 = time.perf_counter()
     try:
         while True:
-            batch = _outcomes_from_plan(plan, outcomes, runlog)
+            batch = run.take_batch()
             if batch:
-                _execute(plan, batch, ex, memo, outcomes, runlog)
+                run.execute(batch, ex)
             _save_memo(workspace, memo)
-            if not plan.deferred or not batch:
+            if any(t.action == RUN and t.tid not in run.outcomes for t in run.plan.selected()):
+                continue  # planned while the last batch ran but not taken by its executor
+            if not run.plan.deferred or not batch:
                 break
             # some stages discover their identities from upstream outputs: plan again
-            prior = {tid: o.status for tid, o in outcomes.items()}
-            t0 = time.perf_counter()
-            plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo, prior=prior)
-            plan_seconds += time.perf_counter() - t0
-        for s in plan.deferred:
-            o = TaskOutcome(s, None, R_BLOCKED, _deferred_reason(plan, s), error=_deferred_reason(plan, s))
-            outcomes[s] = o
-            runlog.write(o)
+            run.replan()
+        for s in run.plan.deferred:
+            o = TaskOutcome(s, None, R_BLOCKED, _deferred_reason(run.plan, s), error=_deferred_reason(run.plan, s))
+            run.outcomes[s] = o
+            run.runlog.write(o)
     finally:
         if own_executor:
             ex.close()
+    plan = run.plan
     order = {tid: i for i, tid in enumerate(plan.tasks)}
-    ordered = sorted(outcomes.values(), key=lambda o: order.get(o.tid, len(order)))
-    return RunReport(recipe.name, workspace, False, ordered, plan_seconds, time.perf_counter() - t1,
-                     empty=list(plan.empty))
+    ordered = sorted(run.outcomes.values(), key=lambda o: order.get(o.tid, len(order)))
+    return RunReport(recipe.name, workspace, False, ordered, plan_seconds + run.plan_seconds,
+                     time.perf_counter() - t1, empty=list(plan.empty))
+
+
+class _Run:
+    """The state of one run: its current plan, the outcomes so far and the tasks handed to the executor.
+
+    A stage whose identities are found in its upstream's outputs is planned as soon as those outputs exist —
+    when the last task of its upstream stages finishes — and its tasks join the running batch, so the other
+    cores do not wait for the whole batch to end (:meth:`on_result`)."""
+
+    def __init__(self, recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Plan, runlog: RunLog,
+                 plan_kwargs: dict[str, Any]):
+        self.recipe, self.workspace, self.memo, self.plan, self.runlog = recipe, workspace, memo, plan, runlog
+        self.plan_kwargs = plan_kwargs
+        self.outcomes: dict[str, TaskOutcome] = {}
+        self.submitted: set[str] = set()
+        self.tried: set[str] = set()  # deferred stages planned again once their upstream had finished
+        self.plan_seconds = 0.0
+        self.total = 0
+        self.finished = 0
+
+    def take_batch(self) -> list[TaskSpec]:
+        """Record the plan's skipped/erroneous tasks; return the specs to execute that are not handed out yet."""
+        batch = _outcomes_from_plan(self.plan, self.outcomes, self.runlog, self.submitted)
+        self.submitted.update(spec.tid for spec in batch)
+        self.total += len(batch)
+        return batch
+
+    def replan(self) -> None:
+        running = {tid: RUNNING_PRIOR for tid in self.submitted if tid not in self.outcomes}
+        prior = {tid: o.status for tid, o in self.outcomes.items()} | running
+        t0 = time.perf_counter()
+        self.plan = make_plan(self.recipe, self.workspace, hash_memo=self.memo, prior=prior, **self.plan_kwargs)
+        self.plan_seconds += time.perf_counter() - t0
+
+    def _ready(self) -> list[str]:
+        """Deferred stages whose upstream stages are planned and all finished (not tried yet)."""
+        plan = self.plan
+        ready = []
+        for s in plan.deferred:
+            ups = plan.recipe.stages[s].upstream()
+            if s not in self.tried and all(u not in plan.deferred and all(
+                    tid in self.outcomes for tid in plan.stage_tasks.get(u, [])) for u in ups):
+                ready.append(s)
+        return ready
+
+    def execute(self, batch: list[TaskSpec], ex: Executor) -> None:
+        log.info("running %d task(s) with the %s executor", len(batch), ex.name)
+        ex.run(batch, self.on_result)
+
+    def on_result(self, res: dict[str, Any]) -> list[TaskSpec]:
+        t = self.plan.tasks[res["tid"]]
+        status = res["status"]
+        self.finished += 1
+        o = TaskOutcome(t.stage_name, t.identity, status, t.reason, res.get("cache_key"), res.get("duration", 0.0),
+                        res.get("error"), list(res.get("outputs") or []), res.get("worker"))
+        if status == OK:
+            for path, entry in (res.get("hashes") or {}).items():  # digests of the inputs the worker hashed
+                self.memo[path] = entry
+            try:
+                write_record(self.workspace, t.stage_name, t.identity, res["cache_key"], res.get("key_doc"),
+                             [Path(p) for p in t.outputs], self.memo)
+            except (OSError, ReflectmmError) as exc:
+                log.warning("%s: cannot write its record: %s", t.tid, exc)
+            log.info("[%d/%d] done %s (%.2f s)", self.finished, self.total, t.tid, o.duration)
+        else:
+            log.info("[%d/%d] %s %s: %s", self.finished, self.total, status.upper(), t.tid, o.error)
+        self.outcomes[t.tid] = o
+        self.runlog.write(o)
+        ready = self._ready()
+        if not ready:
+            return []
+        self.tried.update(ready)
+        self.replan()
+        more = self.take_batch()
+        if more:
+            log.info("planned %s: %d more task(s)", ", ".join(ready), len(more))
+        return more
 
 
 def _deferred_reason(plan: Plan, stage: str) -> str:
@@ -264,12 +341,14 @@ def _deferred_reason(plan: Plan, stage: str) -> str:
     return f"identities are found once {', '.join(ups) or 'upstream'} has run"
 
 
-def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: RunLog) -> list[TaskSpec]:
-    """Record skipped/erroneous tasks; return the specs to execute."""
+def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: RunLog,
+                        handed_out: set[str] | frozenset[str] = frozenset()) -> list[TaskSpec]:
+    """Record skipped/erroneous tasks; return the specs to execute (not those ``handed_out`` already, which
+    still count as upstream of the new ones)."""
     batch: list[TaskSpec] = []
     runnable = {t.tid for t in plan.selected() if t.action == RUN and t.tid not in outcomes}
     for t in plan.selected():
-        if t.tid in outcomes:
+        if t.tid in outcomes or t.tid in handed_out:
             continue
         if t.action == SKIP:
             o = TaskOutcome(t.stage_name, t.identity, SKIPPED, t.reason, t.cache_key,
@@ -289,32 +368,3 @@ def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: Ru
         if t.action != SKIP or t.reason != "not selected":
             runlog.write(o)
     return batch
-
-
-def _execute(plan: Plan, batch: list[TaskSpec], ex: Executor, memo: dict[str, Any],
-             outcomes: dict[str, TaskOutcome], runlog: RunLog) -> None:
-    total = len(batch)
-    finished = [0]
-    log.info("running %d task(s) with the %s executor", total, ex.name)
-
-    def on_result(res: dict[str, Any]) -> None:
-        t = plan.tasks[res["tid"]]
-        status = res["status"]
-        finished[0] += 1
-        o = TaskOutcome(t.stage_name, t.identity, status, t.reason, res.get("cache_key"), res.get("duration", 0.0),
-                        res.get("error"), list(res.get("outputs") or []), res.get("worker"))
-        if status == OK:
-            for path, entry in (res.get("hashes") or {}).items():  # digests of the inputs the worker hashed
-                memo[path] = entry
-            try:
-                write_record(plan.workspace, t.stage_name, t.identity, res["cache_key"], res.get("key_doc"),
-                             [Path(p) for p in t.outputs], memo)
-            except (OSError, ReflectmmError) as exc:
-                log.warning("%s: cannot write its record: %s", t.tid, exc)
-            log.info("[%d/%d] done %s (%.2f s)", finished[0], total, t.tid, o.duration)
-        else:
-            log.info("[%d/%d] %s %s: %s", finished[0], total, status.upper(), t.tid, o.error)
-        outcomes[t.tid] = o
-        runlog.write(o)
-
-    ex.run(batch, on_result)

@@ -185,3 +185,72 @@ def test_a_worker_returns_the_digests_it_computed_and_the_run_keeps_them(tmp_pat
     plan = run_recipe(ws / "recipe.toml", ws, dry_run=True)
     assert {t.status for t in plan.tasks} == {"skip"} and calls == [], calls
     assert memo
+
+
+DISCOVERED = """
+schema = "reflectmm.recipe/1"
+[stages.first]
+verb = "checksum"
+inputs = { files = "data/001" }
+
+# reads a FIFO: it runs until the test feeds it
+[stages.hang]
+verb = "checksum"
+inputs = { files = ["@first.output", "blocks.fifo"] }
+
+[stages.manifest]
+verb = "checksum"
+foreach = ["002", "004"]
+inputs = { files = "data/{id}" }
+
+[stages.found]
+verb = "checksum"
+foreach = "all found"
+params = { discover = "manifest/*.npz" }
+inputs = { files = "@manifest.output" }
+"""
+
+
+@pytest.mark.parametrize("executor", ["pool", "dask"])
+def test_a_discovered_stage_starts_while_other_tasks_still_run(tmp_path, executor):
+    """A stage whose identities are found in its upstream's outputs is planned as soon as that upstream has
+    finished, and its tasks run on the free worker while a task of the first batch is still running."""
+    import threading
+    import time
+
+    ws = make_workspace(tmp_path / "ws")
+    (ws / "recipe.toml").write_text(DISCOVERED)
+    fifo = ws / "blocks.fifo"
+    os.mkfifo(fifo)
+    done = threading.Event()
+
+    def feed():  # once released: every open of the FIFO for reading gets one byte, then end of file
+        while not done.is_set():
+            try:
+                fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError:  # no reader yet
+                time.sleep(0.01)
+                continue
+            os.write(fd, b"x")
+            os.close(fd)
+            time.sleep(0.01)
+
+    reports = []
+    runner = threading.Thread(target=lambda: reports.append(run_recipe(ws / "recipe.toml", ws, executor=executor,
+                                                                       jobs=2)))
+    runner.start()
+    outputs = [ws / "found" / f"{i}.npz" for i in ("002", "004")]
+    deadline = time.monotonic() + 90
+    while not all(p.exists() for p in outputs) and time.monotonic() < deadline and runner.is_alive():
+        time.sleep(0.05)
+    found_first = all(p.exists() for p in outputs) and not (ws / "hang" / "hang.npz").exists()
+    feeder = threading.Thread(target=feed)
+    feeder.start()
+    runner.join(120)
+    done.set()
+    feeder.join()
+    assert found_first, "the discovered stage waited for the whole first batch"
+    rep = reports[0]
+    assert rep.ok and {t.tid: t.status for t in rep.tasks} == {
+        "first": "ok", "hang": "ok", "manifest/002": "ok", "manifest/004": "ok", "found/002": "ok",
+        "found/004": "ok"}
