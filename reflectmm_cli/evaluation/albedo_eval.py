@@ -96,8 +96,6 @@ def observation_normal_equations(model, obs: Mapping[str, np.ndarray], pairs: Se
     """
     from reflectmm_cli.shading import shade_directional
 
-    from .representation import _pair_geometry
-
     am = np.asarray(_get(model, "albedo_mean"), np.float64)
     S = am.shape[-1]
     if np.asarray(obs["mask"]).shape != (S, S):
@@ -106,42 +104,56 @@ def observation_normal_equations(model, obs: Mapping[str, np.ndarray], pairs: Se
     M = sigma.shape[0] if n_components is None else min(int(n_components), sigma.shape[0])
     exps = np.asarray(_get(model, "exponents"), np.float64).reshape(-1)
     K = exps.shape[0]
-    dom = np.asarray(_get(model, "mask"), bool) & np.asarray(obs["mask"], bool)
+    flat = lambda x: x.reshape(x.shape[:-2] + (S * S,))  # noqa: E731 - texels on one axis
+    dom = flat(np.asarray(_get(model, "mask"), bool) & np.asarray(obs["mask"], bool))
     J = np.asarray(obs["pair_flash"]).shape[0]
     pairs = list(range(J)) if pairs is None else [int(j) for j in pairs]
-    ab = np.asarray(_get(model, "albedo_basis"), np.float64)[:M]  # (M,3,S,S)
-    wb = np.asarray(_get(model, "weights_basis"), np.float64)[:M]  # (M,K,S,S)
-    wm = np.asarray(_get(model, "weights_mean"), np.float64)
-    nrm = np.asarray(obs["normal"], np.float64)
+    am = flat(am)  # (3,S²)
+    ab = flat(np.asarray(_get(model, "albedo_basis"), np.float64)[:M])  # (M,3,S²)
+    wb = flat(np.asarray(_get(model, "weights_basis"), np.float64)[:M])  # (M,K,S²)
+    wm = flat(np.asarray(_get(model, "weights_mean"), np.float64))
+    nrm = np.asarray(obs["normal"], np.float64).reshape(S * S, 3)
+    pos = np.asarray(obs["position"], np.float64).reshape(S * S, 3)
+    observed = np.asarray(obs["observed"], bool)
+    radiance = np.asarray(obs["radiance"])
+    flash_pos = np.asarray(obs["flash_pos"], np.float64)
+    cam_centers = np.asarray(obs["cam_centers"], np.float64)
+    intensity = np.asarray(obs["flash_intensity"], np.float64).reshape(-1)
+    # one shading call per pair gives the diffuse transport (slot 0: white albedo, no lobe) and each lobe's
+    # (slot 1 + i: lobe i of weight 1), broadcast over a (texels, 1 + K) leading shape
+    unit_c = np.zeros((1, K + 1, 3))
+    unit_c[0, 0] = 1.0
+    unit_w = np.zeros((1, K + 1, K))
+    unit_w[0, 1:] = np.eye(K)
     AtA = np.zeros((M, M))
     Aty = np.zeros(M)
     yty = sum_y2 = 0.0
     n = 0
-    seen = np.zeros((S, S), bool)
-    eye = np.eye(K)
+    seen = np.zeros(S * S, bool)
     for j in pairs:
-        sel = np.asarray(obs["observed"][j], bool) & dom
-        if not sel.any():
+        idx = np.flatnonzero(observed[j].reshape(-1) & dom)
+        if idx.size == 0:
             continue
-        seen |= sel
-        ld, vd, E = _pair_geometry(obs, j)
-        T = int(sel.sum())
-        nn, l_, v_ = nrm[sel], ld[sel], vd[sel]
-        Et = np.repeat(E[sel][:, None], 3, 1)
-        gd = shade_directional(np.ones((T, 3)), np.zeros((T, K)), exps, nn, l_, v_, Et)[:, 0]
-        gl = np.stack([shade_directional(np.zeros((T, 3)), np.repeat(eye[i][None], T, 0), exps, nn, l_, v_,
-                                         Et)[:, 0] for i in range(K)], 1)  # (T,K)
-        spec_mean = (wm[:, sel].T * gl).sum(1)  # (T,)
-        spec_basis = np.einsum("mkt,tk->tm", wb[:, :, sel], gl) * sigma[:M]  # (T,M)
-        rad = np.asarray(obs["radiance"][j], np.float64)[sel]  # (T,3)
+        seen[idx] = True
+        f, v = int(obs["pair_flash"][j]), int(obs["pair_view"][j])
+        p_ = pos[idx]
+        l_ = flash_pos[f] - p_
+        v_ = cam_centers[v] - p_
+        Et = np.repeat((intensity[f] / np.maximum(np.sum(l_ * l_, -1), 1e-12))[:, None], 3, 1)
+        g = shade_directional(unit_c, unit_w, exps, nrm[idx][:, None], l_[:, None], v_[:, None], Et[:, None])
+        gd, gl = g[:, 0, 0], g[:, 1:, 0]  # (T,), (T,K)
+        spec_mean = (wm[:, idx].T * gl).sum(1)  # (T,)
+        spec_basis = np.einsum("mkt,tk->tm", wb[:, :, idx], gl) * sigma[:M]  # (T,M)
+        rad = np.asarray(radiance[j].reshape(S * S, 3)[idx], np.float64)  # (T,3)
         for ch in range(3):
-            A = ab[:, ch, sel].T * sigma[:M] * gd[:, None] + spec_basis  # (T,M)
-            y = rad[:, ch] - (am[ch, sel] * gd + spec_mean)
+            A = ab[:, ch, idx].T * sigma[:M] * gd[:, None] + spec_basis  # (T,M)
+            y = rad[:, ch] - (am[ch, idx] * gd + spec_mean)
             AtA += A.T @ A
             Aty += A.T @ y
             yty += float(y @ y)
             sum_y2 += float(rad[:, ch] @ rad[:, ch])
-            n += T
+            n += idx.size
+    seen = seen.reshape(S, S)
     if n == 0:
         raise ReflectmmError("albedo eval: no observed texel inside the model domain in the pairs used")
     return NormalEquations(AtA, Aty, yty, n, sum_y2, seen)
