@@ -28,6 +28,7 @@ from typing import Any, Callable
 from reflectmm_cli import __version__
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages import StageContext
+from reflectmm_cli.threads import cpu_share, limit_process_threads
 
 log = logging.getLogger("reflectmm")
 
@@ -207,8 +208,10 @@ def _die_with(pid: int, start: str | None, period: float) -> None:
     os._exit(1)
 
 
-def _worker_init(parent_pid: int, parent_start: str | None, period: float = 0.5) -> None:
-    """Pool worker initializer: the worker dies with the run that started it, even under ``kill -9``.
+def _worker_init(parent_pid: int, parent_start: str | None, period: float = 0.5, threads: int | None = None
+                 ) -> None:
+    """Pool worker initializer: the worker dies with the run that started it, even under ``kill -9``, and holds
+    itself to ``threads`` threads (its share of the CPUs: :func:`reflectmm_cli.threads.limit_process_threads`).
 
     A worker's parent is the forkserver, so Linux's PR_SET_PDEATHSIG covers the forkserver's death only; a
     daemon thread watches the run's own process (pid + start time, so a recycled pid does not fool it) and
@@ -226,6 +229,10 @@ def _worker_init(parent_pid: int, parent_start: str | None, period: float = 0.5)
             pass
     threading.Thread(target=_die_with, args=(parent_pid, parent_start, period), daemon=True,
                      name="reflectmm-parent-watchdog").start()
+    if threads is not None:
+        from reflectmm_cli.threads import limit_process_threads
+
+        limit_process_threads(threads)
 
 
 class PoolExecutor(Executor):
@@ -241,7 +248,8 @@ class PoolExecutor(Executor):
         if self._pool is None:
             self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=_mp_context(),
                                              initializer=_worker_init,
-                                             initargs=(os.getpid(), _proc_start(os.getpid())))
+                                             initargs=(os.getpid(), _proc_start(os.getpid()), 0.5,
+                                                       cpu_share(self.jobs)))
         return self._pool
 
     def close(self) -> None:
@@ -330,6 +338,9 @@ class DaskExecutor(Executor):
                 self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
                                              dashboard_address=None)
                 self._client = Client(self._cluster)
+                # the workers share this machine's CPUs; an external cluster's workers are set up by whoever
+                # starts them (docs/recipes.md)
+                self._client.run(limit_process_threads, cpu_share(self.jobs))
             log.info("dask: %s", self._client.dashboard_link if self._client.dashboard_link else self._client)
         return self._client
 

@@ -49,3 +49,60 @@ def test_no_site_derives_its_own_default_thread_count():
                        if re.search(r"cpu_count\(|sched_getaffinity\(", p.read_text())
                        and str(p.relative_to(pkg)) != "threads.py")
     assert offenders == []
+
+
+def _thread_settings(_):
+    import os
+
+    from threadpoolctl import threadpool_info
+
+    from reflectmm_cli import threads
+
+    import torch
+
+    blas = [p["num_threads"] for p in threadpool_info()]
+    return (threads.available_cpus(), threads.default_threads(64), torch.get_num_threads(), blas,
+            os.environ.get("OMP_NUM_THREADS"))
+
+
+def test_a_pool_worker_holds_itself_to_its_share_of_the_cpus(monkeypatch):
+    """Two task processes on this machine's CPUs each get half of them (at least one): the toolkit's default
+    thread count, torch's pool and the loaded BLAS/OpenMP pools; the serial path keeps every CPU."""
+    from reflectmm_cli import threads
+    from reflectmm_cli.recipes.executors import OrderedMap
+
+    for v in threads.NATIVE_THREAD_ENV + (threads.CPU_SHARE_ENV,):
+        monkeypatch.delenv(v, raising=False)
+    share = max(1, threads.available_cpus() // 2)
+    with OrderedMap("pool", jobs=2) as pmap:
+        got = pmap(_thread_settings, [0, 1])
+    for cpus, default, torch_n, blas, omp in got:
+        assert cpus == default == torch_n == share and omp == str(share)
+        assert blas and all(b == share for b in blas)
+    cpus, default, *_ = OrderedMap("serial")(_thread_settings, [0])[0]
+    assert cpus == default == threads.available_cpus()
+
+
+def test_the_users_thread_settings_win(monkeypatch):
+    """With OMP_NUM_THREADS set by the user, the limit changes only the toolkit's own share, no library pool."""
+    from reflectmm_cli import threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "7")
+    monkeypatch.delenv(threads.CPU_SHARE_ENV, raising=False)
+    before = torch.get_num_threads()
+    threads.limit_process_threads(1)
+    try:
+        assert threads.available_cpus() == 1 and threads.default_threads(8) == 1
+        assert torch.get_num_threads() == before and __import__("os").environ["OMP_NUM_THREADS"] == "7"
+    finally:
+        monkeypatch.delenv(threads.CPU_SHARE_ENV)
+    assert threads.available_cpus() >= 1
+
+
+@pytest.mark.parametrize("share", ["0", "-2", "x", ""])
+def test_a_bad_share_is_ignored(monkeypatch, share):
+    from reflectmm_cli import threads
+
+    monkeypatch.setenv(threads.CPU_SHARE_ENV, share)
+    monkeypatch.setattr(__import__("os"), "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    assert threads.available_cpus() == 3
