@@ -51,36 +51,62 @@ def test_no_site_derives_its_own_default_thread_count():
     assert offenders == []
 
 
-def _thread_settings(_):
+def _share_in_worker(_):
     import os
-
-    from threadpoolctl import threadpool_info
 
     from reflectmm_cli import threads
 
-    import torch
-
-    blas = [p["num_threads"] for p in threadpool_info()]
-    return (threads.available_cpus(), threads.default_threads(64), torch.get_num_threads(), blas,
-            os.environ.get("OMP_NUM_THREADS"))
+    return threads.available_cpus(), threads.default_threads(64), os.environ.get(threads.CPU_SHARE_ENV)
 
 
-def test_a_pool_worker_holds_itself_to_its_share_of_the_cpus(monkeypatch):
-    """Two task processes on this machine's CPUs each get half of them (at least one): the toolkit's default
-    thread count, torch's pool and the loaded BLAS/OpenMP pools; the serial path keeps every CPU."""
+def test_a_pool_worker_gets_its_share_of_the_cpus():
+    """Two task processes on this machine's CPUs each get half of them (at least one) as the toolkit's default
+    thread count; the serial path keeps every CPU."""
     from reflectmm_cli import threads
     from reflectmm_cli.recipes.executors import OrderedMap
 
-    for v in threads.NATIVE_THREAD_ENV + (threads.CPU_SHARE_ENV,):
-        monkeypatch.delenv(v, raising=False)
     share = max(1, threads.available_cpus() // 2)
+    assert threads.cpu_share(2) == share and threads.cpu_share(1) == threads.available_cpus()
     with OrderedMap("pool", jobs=2) as pmap:
-        got = pmap(_thread_settings, [0, 1])
-    for cpus, default, torch_n, blas, omp in got:
-        assert cpus == default == torch_n == share and omp == str(share)
-        assert blas and all(b == share for b in blas)
-    cpus, default, *_ = OrderedMap("serial")(_thread_settings, [0])[0]
+        got = pmap(_share_in_worker, [0, 1])
+    assert got == [(share, share, str(share))] * 2
+    cpus, default, _ = OrderedMap("serial")(_share_in_worker, [0])[0]
     assert cpus == default == threads.available_cpus()
+
+
+_REPORT = """
+import json, os, sys
+{before}
+from reflectmm_cli import threads
+threads.limit_process_threads(1)
+{after}
+import torch
+from threadpoolctl import threadpool_info
+print(json.dumps([threads.default_threads(64), torch.get_num_threads(),
+                  [p["num_threads"] for p in threadpool_info()], os.environ.get("OMP_NUM_THREADS")]))
+"""
+
+
+@pytest.mark.parametrize("loaded_first", [True, False])
+def test_the_limit_holds_libraries_loaded_before_and_after(loaded_first):
+    """In a fresh process without thread settings: torch's pool and every loaded BLAS/OpenMP pool end at the
+    limit, whether the libraries were loaded before the limit (threadpoolctl, torch.set_num_threads) or after
+    it (the environment variables)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from reflectmm_cli import threads
+
+    env = {k: v for k, v in os.environ.items() if k not in threads.NATIVE_THREAD_ENV + (threads.CPU_SHARE_ENV,)}
+    code = _REPORT.format(before="import numpy, torch" if loaded_first else "",
+                          after="" if loaded_first else "import numpy")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    default, torch_n, pools, omp = json.loads(out.stdout.strip().splitlines()[-1])
+    assert default == torch_n == 1 and omp == "1"
+    assert pools and all(n == 1 for n in pools)
 
 
 def test_the_users_thread_settings_win(monkeypatch):
