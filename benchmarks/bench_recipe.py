@@ -10,6 +10,11 @@ and prints a markdown table with wall times, per-stage task durations (from the 
 command line that produced it.
 
 Usage: python benchmarks/bench_recipe.py [--workspace DIR] [--jobs 2] [--recipe recipes/synthetic.toml]
+       python benchmarks/bench_recipe.py --runlogs WS [WS ...] [--names A,B,...]
+
+``--runlogs`` runs nothing: it compares finished runs of the same recipe from their workspaces' run logs (the
+last run in each), one column per workspace: the span from the first task's start to the last task's end, the
+summed task time, and each stage's summed task time.
 """
 
 from __future__ import annotations
@@ -37,12 +42,55 @@ def run(args: list[str]) -> tuple[float, str]:
     return dt, proc.stdout
 
 
+def last_run(ws: Path) -> list[dict]:
+    """The run log lines of the last run in workspace ``ws`` whose tasks ran."""
+    log = [json.loads(line) for line in (ws / ".reflectmm" / "runlog.jsonl").read_text().splitlines()]
+    ran = [r for r in log if r.get("status") == "ok"]
+    if not ran:
+        sys.exit(f"{ws}: no task ran in its run log")
+    return [r for r in ran if r["run"] == ran[-1]["run"]]
+
+
+def run_summary(rows: list[dict]) -> tuple[float, float, dict[str, float]]:
+    """(span s, summed task s, stage -> summed task s) of one run's log lines. A line's time is its task's end
+    (whole seconds), so the span is the last end minus the earliest start (end − duration)."""
+    from datetime import datetime
+
+    ends = [datetime.fromisoformat(r["time"]).timestamp() for r in rows]
+    starts = [e - float(r.get("duration") or 0.0) for e, r in zip(ends, rows)]
+    per_stage: dict[str, float] = defaultdict(float)
+    for r in rows:
+        per_stage[r["stage"]] += float(r.get("duration") or 0.0)
+    return max(ends) - min(starts), sum(per_stage.values()), dict(per_stage)
+
+
+def compare_runlogs(workspaces: list[Path], names: list[str]) -> None:
+    runs = [run_summary(last_run(ws)) for ws in workspaces]
+    print(f"Command: `python benchmarks/bench_recipe.py --runlogs {' '.join(str(w) for w in workspaces)}`\n")
+    print("| | " + " | ".join(names) + " |")
+    print("|---|" + "---:|" * len(names))
+    print("| span of the tasks (s) | " + " | ".join(f"{r[0]:.0f}" for r in runs) + " |")
+    print("| summed task time (s) | " + " | ".join(f"{r[1]:.0f}" for r in runs) + " |")
+    stages = sorted({s for r in runs for s in r[2]}, key=lambda s: -max(r[2].get(s, 0.0) for r in runs))
+    for s in stages:
+        print(f"| {s} | " + " | ".join(f"{r[2][s]:.1f}" if s in r[2] else "–" for r in runs) + " |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workspace", type=Path, default=None)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--recipe", type=Path, default=ROOT / "recipes" / "synthetic.toml")
+    ap.add_argument("--runlogs", type=Path, nargs="+", default=None,
+                    help="compare the last runs of these workspaces instead of running")
+    ap.add_argument("--names", default=None, help="comma-separated column names for --runlogs")
     a = ap.parse_args()
+    if a.runlogs:
+        names = a.names.split(",") if a.names else [w.name for w in a.runlogs]
+        if len(names) != len(a.runlogs):
+            sys.exit(f"--names: {len(names)} names for {len(a.runlogs)} workspaces")
+        compare_runlogs(a.runlogs, names)
+        return
     ws = a.workspace or Path(tempfile.mkdtemp(prefix="reflectmm-bench-recipe-"))
     if ws.exists():
         shutil.rmtree(ws)
