@@ -25,6 +25,22 @@ inputs = { files = "@manifest.output" }
 """
 
 
+# per-identity manifests, then a stage whose identities are the manifests that exist ("all found": deferred until
+# the manifests are written)
+DISCOVER_STAGES = """
+[stages.manifest]
+verb = "checksum"
+foreach = ["002", "004"]
+inputs = { files = "data/{id}" }
+
+[stages.found]
+verb = "checksum"
+foreach = "all found"
+params = { discover = "manifest/*.npz" }  # identities = the manifests that exist
+inputs = { files = "@manifest.output" }
+"""
+
+
 def make_workspace(w: Path) -> Path:
     """data/<id>/{a,b}.txt for four identities and recipe.toml (BASIC)."""
     for i in IDS:

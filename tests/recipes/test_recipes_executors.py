@@ -7,7 +7,7 @@ import os
 import shutil
 
 import pytest
-from recipe_testdata import IDS, make_workspace
+from recipe_testdata import DISCOVER_STAGES, IDS, make_workspace
 
 from reflectmm_cli.recipes import run_recipe
 
@@ -197,18 +197,7 @@ inputs = { files = "data/001" }
 [stages.hang]
 verb = "checksum"
 inputs = { files = ["@first.output", "blocks.fifo"] }
-
-[stages.manifest]
-verb = "checksum"
-foreach = ["002", "004"]
-inputs = { files = "data/{id}" }
-
-[stages.found]
-verb = "checksum"
-foreach = "all found"
-params = { discover = "manifest/*.npz" }
-inputs = { files = "@manifest.output" }
-"""
+""" + DISCOVER_STAGES
 
 
 @pytest.mark.parametrize("executor", ["pool", "dask"])

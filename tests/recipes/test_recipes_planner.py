@@ -11,7 +11,7 @@ import pytest
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.recipes import plan_recipe, run_recipe
 
-from recipe_testdata import IDS, sha
+from recipe_testdata import DISCOVER_STAGES, IDS, sha
 
 
 def statuses(report):
@@ -232,19 +232,7 @@ inputs = { files = "@folder.outputs.folder" }
 
 
 def test_all_found_by_discovery_waits_for_upstream(ws):
-    (ws / "recipe.toml").write_text("""
-schema = "reflectmm.recipe/1"
-[stages.manifest]
-verb = "checksum"
-foreach = ["002", "004"]
-inputs = { files = "data/{id}" }
-
-[stages.found]
-verb = "checksum"
-foreach = "all found"
-params = { discover = "manifest/*.npz" }  # identities = the manifests that exist
-inputs = { files = "@manifest.output" }
-""")
+    (ws / "recipe.toml").write_text('schema = "reflectmm.recipe/1"\n' + DISCOVER_STAGES)
     plan = run_recipe(ws / "recipe.toml", ws, dry_run=True)
     assert statuses(plan)["found"] == "deferred"
     rep = run_recipe(ws / "recipe.toml", ws)

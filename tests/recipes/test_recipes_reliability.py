@@ -4,21 +4,11 @@ from __future__ import annotations
 
 import pytest
 
+from recipe_testdata import DISCOVER_STAGES
+
 from reflectmm_cli.recipes import run_recipe
 
-DISCOVER = """
-schema = "reflectmm.recipe/1"
-[stages.manifest]
-verb = "checksum"
-foreach = ["002", "004"]
-inputs = { files = "data/{id}" }
-
-[stages.found]
-verb = "checksum"
-foreach = "all found"
-params = { discover = "manifest/*.npz" }  # identities = the manifests that exist
-inputs = { files = "@manifest.output" }
-
+DISCOVER = 'schema = "reflectmm.recipe/1"\n' + DISCOVER_STAGES + """
 [stages.summary]
 verb = "checksum"
 inputs = { files = "@found.output" }
