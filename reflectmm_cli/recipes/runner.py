@@ -235,8 +235,9 @@ def _run_locked(recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Pla
             batch = run.take_batch()
             if batch:
                 run.execute(batch, ex)
+                run.submitted &= set(run.outcomes)  # handed out but not run by the executor: offer them again
             _save_memo(workspace, memo)
-            if any(t.action == RUN and t.tid not in run.outcomes for t in run.plan.selected()):
+            if batch and any(t.action == RUN and t.tid not in run.outcomes for t in run.plan.selected()):
                 continue  # planned while the last batch ran but not taken by its executor
             if not run.plan.deferred or not batch:
                 break

@@ -243,3 +243,30 @@ def test_a_discovered_stage_starts_while_other_tasks_still_run(tmp_path, executo
     assert rep.ok and {t.tid: t.status for t in rep.tasks} == {
         "first": "ok", "hang": "ok", "manifest/002": "ok", "manifest/004": "ok", "found/002": "ok",
         "found/004": "ok"}
+
+
+def test_an_executor_that_takes_no_specs_from_on_result_still_runs_every_task(tmp_path):
+    """Executors written before on_result could return more tasks ignore its return: the tasks planned while
+    their batch ran are then run in the next batch, none is lost and none runs twice."""
+    from reflectmm_cli.recipes import Executor
+    from reflectmm_cli.recipes.executors import execute_task
+
+    class OldStyle(Executor):
+        name = "old-style"
+        ran: list[str] = []
+
+        def run(self, specs, on_result):
+            results = {}
+            for spec in specs:
+                results[spec.tid] = execute_task(spec, *[results[d] for d in spec.deps])
+                self.ran.append(spec.tid)
+                on_result(results[spec.tid])  # its return value is dropped
+            return results
+
+    ws = make_workspace(tmp_path / "ws")
+    (ws / "recipe.toml").write_text('schema = "reflectmm.recipe/1"\n' + DISCOVER_STAGES)
+    ex = OldStyle()
+    rep = run_recipe(ws / "recipe.toml", ws, executor=ex)
+    assert rep.ok and {t.tid: t.status for t in rep.tasks} == {
+        "manifest/002": "ok", "manifest/004": "ok", "found/002": "ok", "found/004": "ok"}
+    assert sorted(ex.ran) == ["found/002", "found/004", "manifest/002", "manifest/004"]
