@@ -96,6 +96,8 @@ def observation_normal_equations(model, obs: Mapping[str, np.ndarray], pairs: Se
     """
     from reflectmm_cli.shading import shade_directional
 
+    from .representation import pair_geometry
+
     am = np.asarray(_get(model, "albedo_mean"), np.float64)
     S = am.shape[-1]
     if np.asarray(obs["mask"]).shape != (S, S):
@@ -113,12 +115,8 @@ def observation_normal_equations(model, obs: Mapping[str, np.ndarray], pairs: Se
     wb = flat(np.asarray(_get(model, "weights_basis"), np.float64)[:M])  # (M,K,S²)
     wm = flat(np.asarray(_get(model, "weights_mean"), np.float64))
     nrm = np.asarray(obs["normal"], np.float64).reshape(S * S, 3)
-    pos = np.asarray(obs["position"], np.float64).reshape(S * S, 3)
     observed = np.asarray(obs["observed"], bool)
     radiance = np.asarray(obs["radiance"])
-    flash_pos = np.asarray(obs["flash_pos"], np.float64)
-    cam_centers = np.asarray(obs["cam_centers"], np.float64)
-    intensity = np.asarray(obs["flash_intensity"], np.float64).reshape(-1)
     # one shading call per pair gives the diffuse transport (slot 0: white albedo, no lobe) and each lobe's
     # (slot 1 + i: lobe i of weight 1), broadcast over a (texels, 1 + K) leading shape
     unit_c = np.zeros((1, K + 1, 3))
@@ -135,11 +133,8 @@ def observation_normal_equations(model, obs: Mapping[str, np.ndarray], pairs: Se
         if idx.size == 0:
             continue
         seen[idx] = True
-        f, v = int(obs["pair_flash"][j]), int(obs["pair_view"][j])
-        p_ = pos[idx]
-        l_ = flash_pos[f] - p_
-        v_ = cam_centers[v] - p_
-        Et = np.repeat((intensity[f] / np.maximum(np.sum(l_ * l_, -1), 1e-12))[:, None], 3, 1)
+        l_, v_, E = pair_geometry(obs, j, idx)
+        Et = np.repeat(E[:, None], 3, 1)
         g = shade_directional(unit_c, unit_w, exps, nrm[idx][:, None], l_[:, None], v_[:, None], Et[:, None])
         gd, gl = g[:, 0, 0], g[:, 1:, 0]  # (T,), (T,K)
         spec_mean = (wm[:, idx].T * gl).sum(1)  # (T,)

@@ -98,8 +98,13 @@ def holdout_pairs(obs: Mapping[str, np.ndarray], holdout: Sequence[str] = DEFAUL
     return hold_f[np.asarray(obs["pair_flash"], np.int64)]
 
 
-def _pair_geometry(obs, j):
+def pair_geometry(obs, j, texels=None):
+    """Light direction (to the flash), view direction (to the camera), both unnormalised, and the flash's
+    irradiance at normal incidence (inverse square) of pair ``j`` at every texel ((S,S,3), (S,S,3), (S,S)), or at
+    the flat texel indices ``texels`` only ((T,3), (T,3), (T,))."""
     pos = np.asarray(obs["position"], np.float64)
+    if texels is not None:
+        pos = pos.reshape(-1, 3)[texels]
     f = int(obs["pair_flash"][j])
     v = int(obs["pair_view"][j])
     ld = np.asarray(obs["flash_pos"], np.float64)[f] - pos
@@ -126,7 +131,7 @@ def render_pairs_uv(albedo: np.ndarray, weights: np.ndarray | None, exponents: S
         w, p = np.moveaxis(np.asarray(weights, np.float64), 0, -1), np.asarray(exponents, np.float64)
     out = np.zeros((len(pairs),) + c.shape, np.float64)
     for i, j in enumerate(pairs):
-        ld, vd, E = _pair_geometry(obs, j)
+        ld, vd, E = pair_geometry(obs, j)
         s = shade_directional(c, w, p, nrm, ld, vd, np.repeat(E[..., None], 3, -1))
         out[i] = np.where(mask[..., None], s, 0.0)
     return out
