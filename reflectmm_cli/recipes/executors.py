@@ -230,8 +230,6 @@ def _worker_init(parent_pid: int, parent_start: str | None, period: float = 0.5,
     threading.Thread(target=_die_with, args=(parent_pid, parent_start, period), daemon=True,
                      name="reflectmm-parent-watchdog").start()
     if threads is not None:
-        from reflectmm_cli.threads import limit_process_threads
-
         limit_process_threads(threads)
 
 
