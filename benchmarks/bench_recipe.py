@@ -101,11 +101,9 @@ def main() -> None:
     counts = json.loads(out)["counts"]
     if counts.get("ok", 0) or counts.get("failed", 0):
         sys.exit(f"a rerun with nothing changed executed tasks: {counts}")
-    log = [json.loads(line) for line in (ws / ".reflectmm" / "runlog.jsonl").read_text().splitlines()]
     per_stage: dict[str, list[float]] = defaultdict(list)
-    for r in log:
-        if r.get("status") == "ok":
-            per_stage[r["stage"]].append(float(r.get("duration") or 0.0))
+    for r in last_run(ws):  # the first run's tasks (the rerun ran none)
+        per_stage[r["stage"]].append(float(r.get("duration") or 0.0))
 
     # change one identity's image: one pixel of one flash shot of the second identity
     import cv2
