@@ -338,6 +338,91 @@ def _truth_at_size(a: np.ndarray, size: int, interpolation: str = "linear") -> n
     return warp_to_crop(a, A, size, interpolation=interpolation)
 
 
+def _aligned_crop(inp: WildInput, img: np.ndarray, lm: np.ndarray, face_model, cfg: PrepareConfig, S: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The S×S crop of an image, its landmarks in crop pixels and the 2×3 image → crop transform.
+
+    ``--aligned`` / ``--from-truth`` images are square crops already, only rescaled (pixel-centre convention);
+    others are aligned by their landmarks to the face model's."""
+    from reflectmm_cli.finetune.align import align_image, warp_to_crop
+
+    if cfg.aligned or cfg.from_truth:
+        if img.shape[0] != img.shape[1]:
+            raise ReflectmmError(f"--aligned image is {img.shape[1]}x{img.shape[0]}, not square", inp.image)
+        k = S / img.shape[0]
+        A = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2]])    # pixel-centre rescale
+        crop = img if k == 1 else np.clip(np.round(warp_to_crop(img, A, S)), 0, 255).astype(np.uint8)
+        lm_c = lm * k + (k - 1) / 2
+    else:
+        al = align_image(img, lm, face_model, S)
+        crop, lm_c, A = al.image, al.landmarks, al.transform
+    if not np.isfinite(lm_c).all():
+        raise ReflectmmError("landmarks are not finite", inp.landmarks)
+    return crop, lm_c, A
+
+
+def _image_geometry(face_model, cfg: PrepareConfig, tr, lm_c: np.ndarray, lin: np.ndarray, K_crop: np.ndarray,
+                    S: int) -> tuple[np.ndarray, ...]:
+    """``(shape, expression, R, t, K)`` of one crop: the synth-wild truth rescaled to S (``--from-truth``), or
+    fitted to the crop's landmarks (and photometric rounds, when asked)."""
+    if cfg.from_truth:
+        K0 = np.asarray(tr["K"], np.float64)
+        kk = S / int(tr["face_mask"].shape[0])
+        K = K0.copy()
+        K[0, 0], K[1, 1] = K0[0, 0] * kk, K0[1, 1] * kk
+        K[:2, 2] = (K0[:2, 2] + 0.5) * kk - 0.5       # pixel-centre convention (Camera.with_size)
+        return (np.asarray(tr["shape"], np.float64), np.asarray(tr["expression"], np.float64),
+                np.asarray(tr["R"], np.float64), np.asarray(tr["t"], np.float64), K)
+    from reflectmm_cli.finetune.align import fit_single_image
+    from reflectmm_cli.geometry_fit.fit import FitConfig
+
+    fc = FitConfig(landmark_iters=cfg.fit_landmark_iters, photo_rounds=cfg.fit_photo_rounds,
+                   photo_iters=cfg.fit_photo_iters, photo_blur_px=(1.0,), photo_vertices=1500)
+    fit = fit_single_image(face_model, lm_c, lin if cfg.fit_photo_rounds > 0 else None, K_crop, config=fc, size=S)
+    return fit.shape_coeffs, fit.exp_coeffs, fit.R[0], fit.t[0], K_crop
+
+
+def _skin_mask(inp: WildInput, A: np.ndarray, gb: Mapping[str, np.ndarray], face_model, cfg: PrepareConfig, tr,
+               lin: np.ndarray, S: int) -> np.ndarray:
+    """Skin pixels of the crop that the fitted face covers: from a label image when one is given, from the
+    synth-wild truth with ``--from-truth``, else the model's skin region where the crop's colour is skin-like."""
+    from reflectmm_cli.finetune.align import skin_mask_from_labels, skin_mask_from_model, warp_to_crop
+
+    vis_px = np.zeros((S, S), bool)
+    yx = gb["pix_yx"][gb["visible"]].astype(np.int64)
+    vis_px[yx[:, 0], yx[:, 1]] = True
+    if inp.mask is not None:
+        lab_c = warp_to_crop(read_image_u8(inp.mask)[..., 0], A, S, interpolation="nearest")
+        return skin_mask_from_labels(lab_c) & vis_px
+    if tr is not None and cfg.from_truth:
+        return _truth_at_size(np.asarray(tr["skin_mask"], np.uint8), S, "nearest").astype(bool) & vis_px
+    return skin_mask_from_model(gb, face_model.skin_mask, lin) & vis_px
+
+
+def _vertex_errors(face_model, tr, verts: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+    """RMS distance (mm) of the fitted vertices to the true ones in camera space, and the same after removing
+    each set's centroid."""
+    vt = face_model.vertices(tr["shape"], tr["expression"]).astype(np.float64)
+    cam_t = vt @ np.asarray(tr["R"]).T + np.asarray(tr["t"])
+    cam_f = verts @ R.T + t
+    d = (cam_f - cam_f.mean(0)) - (cam_t - cam_t.mean(0))
+    return (float(np.sqrt(np.mean(np.sum((cam_f - cam_t) ** 2, -1)))),
+            float(np.sqrt(np.mean(np.sum(d * d, -1)))))
+
+
+def _truth_arrays(tr, identity_truth, S: int) -> dict[str, np.ndarray]:
+    """The ``truth_*`` shard arrays of one image: its light, its identity's per-vertex reflectance and its true
+    diffuse and specular images at the crop size."""
+    ia = identity_truth
+    return {"truth_sh": np.asarray(tr["sh"], np.float32),
+            "truth_vertex_albedo": np.asarray(ia["vertex_albedo"], np.float16),
+            "truth_vertex_weights": np.asarray(ia["vertex_weights"], np.float16),
+            "truth_vertex_spec_albedo": np.asarray(ia["vertex_spec_albedo"], np.float16),
+            "truth_vertex_roughness": np.asarray(ia["vertex_roughness"], np.float16),
+            "truth_diffuse": _truth_at_size(np.asarray(tr["diffuse"], np.float32), S).astype(np.float16),
+            "truth_specular": _truth_at_size(np.asarray(tr["specular"], np.float32), S).astype(np.float16)}
+
+
 def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareConfig, *,
                         truth_dir: str | Path | None = None, splits: Mapping[str, str] | None = None,
                         progress_fn=None) -> tuple[dict[str, np.ndarray], dict, list[str]]:
@@ -349,11 +434,9 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
     """
     import time
 
-    from reflectmm_cli.finetune.align import (align_image, fit_single_image, skin_mask_from_labels,
-                                              skin_mask_from_model, warp_to_crop)
     from reflectmm_cli.geometry import RayScene, deep3d_camera
-    from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, pack_gbuffers
     from reflectmm_cli.geometry.camera import Camera
+    from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, pack_gbuffers
     from reflectmm_cli.geometry.raycast import rasterize
     from reflectmm_cli.landmarks import check_in_frame, read_landmarks
 
@@ -378,67 +461,23 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
             if not img.any():
                 raise ReflectmmError("image is all black (nothing to reconstruct)", inp.image)
             lm = check_in_frame(read_landmarks(inp.landmarks), img.shape[1], img.shape[0], inp.landmarks)
-            encoding = cfg.encoding
             tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
-            if tr is not None:
-                encoding = tr.meta.get("encoding", encoding)
-            if cfg.aligned or cfg.from_truth:
-                if img.shape[0] != img.shape[1]:
-                    raise ReflectmmError(f"--aligned image is {img.shape[1]}x{img.shape[0]}, not square", inp.image)
-                k = S / img.shape[0]
-                A = np.array([[k, 0, (k - 1) / 2], [0, k, (k - 1) / 2]])    # pixel-centre rescale
-                crop = img if k == 1 else np.clip(np.round(warp_to_crop(img, A, S)), 0, 255).astype(np.uint8)
-                lm_c = lm * k + (k - 1) / 2
-            else:
-                al = align_image(img, lm, face_model, S)
-                crop, lm_c, A = al.image, al.landmarks, al.transform
-            if not np.isfinite(lm_c).all():
-                raise ReflectmmError("landmarks are not finite", inp.landmarks)
+            encoding = tr.meta.get("encoding", cfg.encoding) if tr is not None else cfg.encoding
+            crop, lm_c, A = _aligned_crop(inp, img, lm, face_model, cfg, S)
             lin = linearize(crop, encoding)
-            if cfg.from_truth:
-                shape = np.asarray(tr["shape"], np.float64)
-                exp = np.asarray(tr["expression"], np.float64)
-                R, t = np.asarray(tr["R"], np.float64), np.asarray(tr["t"], np.float64)
-                K0 = np.asarray(tr["K"], np.float64)
-                kk = S / int(tr["face_mask"].shape[0])
-                K = K0.copy()
-                K[0, 0], K[1, 1] = K0[0, 0] * kk, K0[1, 1] * kk
-                K[:2, 2] = (K0[:2, 2] + 0.5) * kk - 0.5       # pixel-centre convention (Camera.with_size)
-            else:
-                from reflectmm_cli.geometry_fit.fit import FitConfig
-
-                fc = FitConfig(landmark_iters=cfg.fit_landmark_iters, photo_rounds=cfg.fit_photo_rounds,
-                               photo_iters=cfg.fit_photo_iters, photo_blur_px=(1.0,), photo_vertices=1500)
-                fit = fit_single_image(face_model, lm_c, lin if cfg.fit_photo_rounds > 0 else None, K_crop,
-                                       config=fc, size=S)
-                shape, exp, R, t, K = fit.shape_coeffs, fit.exp_coeffs, fit.R[0], fit.t[0], K_crop
+            shape, exp, R, t, K = _image_geometry(face_model, cfg, tr, lm_c, lin, K_crop, S)
             verts = face_model.vertices(shape, exp).astype(np.float64)
-            scene = RayScene(verts, face_model.triangles)
             cam = Camera(K, R, t, S, S, inp.name)
-            gb = gbuffer_from_raster(rasterize(scene, cam), face_model.triangles, cam)
+            gb = gbuffer_from_raster(rasterize(RayScene(verts, face_model.triangles), cam), face_model.triangles,
+                                     cam)
             if not gb["face_mask"].any():
                 raise ReflectmmError("the fitted face covers no pixel of the crop", inp.image)
             proj, _ = cam.project(verts[face_model.landmarks])
             rep_lm = float(np.sqrt(np.mean(np.sum((proj - lm_c) ** 2, -1))))
-            vis_px = np.zeros((S, S), bool)
-            yx = gb["pix_yx"][gb["visible"]].astype(np.int64)
-            vis_px[yx[:, 0], yx[:, 1]] = True
-            if inp.mask is not None:
-                lab = read_image_u8(inp.mask)[..., 0]
-                lab_c = warp_to_crop(lab, A, S, interpolation="nearest")
-                skin = skin_mask_from_labels(lab_c) & vis_px
-            elif tr is not None and cfg.from_truth:
-                skin = _truth_at_size(np.asarray(tr["skin_mask"], np.uint8), S, "nearest").astype(bool) & vis_px
-            else:
-                skin = skin_mask_from_model(gb, face_model.skin_mask, lin) & vis_px
-            verr = float("nan")
+            skin = _skin_mask(inp, A, gb, face_model, cfg, tr, lin, S)
+            verr, verr_centred, truth_row = float("nan"), None, None
             if tr is not None:
-                vt = face_model.vertices(tr["shape"], tr["expression"]).astype(np.float64)
-                cam_t = vt @ np.asarray(tr["R"]).T + np.asarray(tr["t"])
-                cam_f = verts @ R.T + t
-                verr = float(np.sqrt(np.mean(np.sum((cam_f - cam_t) ** 2, -1))))
-                d = (cam_f - cam_f.mean(0)) - (cam_t - cam_t.mean(0))
-                rep.setdefault("vertex_error_centred_mm", []).append(float(np.sqrt(np.mean(np.sum(d * d, -1)))))
+                verr, verr_centred = _vertex_errors(face_model, tr, verts, R, t)
                 if cfg.from_truth:
                     ident = int(tr.meta["identity"])
                     if ident not in id_cache:
@@ -446,17 +485,7 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
 
                         id_cache.clear()
                         id_cache[ident] = read_artifact(truth_dir / "identities" / f"id{ident:05d}.npz", "wild-truth")
-                    ia = id_cache[ident]
-                    for k_, v_ in (("truth_sh", np.asarray(tr["sh"], np.float32)),
-                                   ("truth_vertex_albedo", np.asarray(ia["vertex_albedo"], np.float16)),
-                                   ("truth_vertex_weights", np.asarray(ia["vertex_weights"], np.float16)),
-                                   ("truth_vertex_spec_albedo", np.asarray(ia["vertex_spec_albedo"], np.float16)),
-                                   ("truth_vertex_roughness", np.asarray(ia["vertex_roughness"], np.float16)),
-                                   ("truth_diffuse", _truth_at_size(np.asarray(tr["diffuse"], np.float32),
-                                                                    S).astype(np.float16)),
-                                   ("truth_specular", _truth_at_size(np.asarray(tr["specular"], np.float32),
-                                                                     S).astype(np.float16))):
-                        truth.setdefault(k_, []).append(v_)
+                    truth_row = _truth_arrays(tr, id_cache[ident], S)
         except ReflectmmError as exc:
             errors.append(str(exc).splitlines()[0])
             continue
@@ -469,17 +498,20 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
         per["expression"].append(np.asarray(exp, np.float32))
         per["R"].append(R), per["t"].append(t), per["K"].append(K)
         gbs.append(gb)
+        for k_, v_ in (truth_row or {}).items():
+            truth.setdefault(k_, []).append(v_)
         rep["names"].append(inp.name)
         rep["landmark_rmse_px"].append(rep_lm)
         rep["vertex_error_mm"].append(verr)
+        if verr_centred is not None:
+            rep.setdefault("vertex_error_centred_mm", []).append(verr_centred)
         rep["seconds"].append(time.perf_counter() - t0)
     arrays: dict[str, np.ndarray] = {}
     if gbs:
         arrays = {k: np.array(v) if k in ("names", "split") else np.stack(v) for k, v in per.items()}
         arrays["shape"] = arrays["shape"].astype(np.float32)
         arrays["expression"] = arrays["expression"].astype(np.float32)
-        packed = pack_gbuffers(gbs)
-        arrays.update(packed)
+        arrays.update(pack_gbuffers(gbs))
         arrays.update({k: np.stack(v) for k, v in truth.items()})
     return arrays, rep, errors
 

@@ -247,6 +247,171 @@ def reflectance_flashes(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     return fs
 
 
+@dataclass
+class _PairInputs:
+    """The capture's images and the geometry's cameras and flashes, aligned view by view and flash by flash."""
+
+    views: list[str]
+    flashes: list[str]
+    K: np.ndarray            # (V, 3, 3)
+    R: np.ndarray            # (V, 3, 3)
+    t: np.ndarray            # (V, 3)
+    cam_centers: np.ndarray  # (V, 3)
+    flash_pos: np.ndarray    # (F, 3)
+    flash_int: np.ndarray    # (F,)
+    olat: np.ndarray         # (V, F, h, w, 3)
+    saturated: np.ndarray    # (V, F, h, w)
+    crop: np.ndarray         # (V, 2)
+
+
+def _pair_inputs(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
+                 select_views: Sequence[str] | None, select_flashes: Sequence[str] | None,
+                 geometry_path, capture_path) -> _PairInputs:
+    """Select the views and flashes to unwrap, match them to the geometry's, and check the capture's shapes."""
+    views = [str(v) for v in capture["view_names"]]
+    if select_views is not None:
+        keep = _positions(views, select_views, "view(s)", capture_path)
+        V0 = len(views)
+        capture = {k: (np.asarray(capture[k])[keep] if k in ("olat", "saturated", "crop_origin", "view_names")
+                       and np.asarray(capture[k]).shape[:1] == (V0,) else capture[k]) for k in capture}
+        views = [str(v) for v in capture["view_names"]]
+    if select_flashes is not None:
+        capture = _select_flashes(capture, select_flashes, capture_path)
+    flashes = [str(f) for f in capture["flash_ids"]]
+    gv = _index_of(geometry["view_names"], views, "view", geometry_path)
+    gf = _index_of(geometry["flash_ids"], flashes, "flash", geometry_path)
+    cap_size = np.asarray(capture["image_size"]).reshape(-1)
+    geo_size = np.asarray(geometry["image_size"]).reshape(-1)
+    if geo_size.size >= 2 and tuple(cap_size[:2]) != tuple(geo_size[:2]):
+        raise ReflectmmError(f"geometry image_size {tuple(geo_size[:2])} differs from the capture's "
+                             f"{tuple(cap_size[:2])}", geometry_path)
+    olat = capture["olat"]
+    satur = capture["saturated"]
+    crop = np.asarray(capture.get("crop_origin", np.zeros((len(views), 2))), dtype=np.float64)
+    V, F = len(views), len(flashes)
+    if olat.ndim != 5 or olat.shape[:2] != (V, F) or olat.shape[4] != 3:
+        raise ReflectmmError(f"capture 'olat' has shape {olat.shape}, expected ({V}, {F}, h, w, 3)", capture_path)
+    if satur.shape != olat.shape[:4]:
+        raise ReflectmmError(f"capture 'saturated' has shape {satur.shape}, expected {olat.shape[:4]}", capture_path)
+    if crop.shape != (V, 2):
+        raise ReflectmmError(f"capture 'crop_origin' has shape {crop.shape}, expected ({V}, 2)", capture_path)
+    return _PairInputs(
+        views=views, flashes=flashes,
+        K=np.asarray(geometry["K"], dtype=np.float64)[gv], R=np.asarray(geometry["R"], dtype=np.float64)[gv],
+        t=np.asarray(geometry["t"], dtype=np.float64)[gv],
+        cam_centers=np.asarray(geometry["cam_centers"], dtype=np.float64)[gv],
+        flash_pos=np.asarray(geometry["flash_pos"], dtype=np.float64)[gf],
+        flash_int=np.asarray(geometry["flash_intensity"], dtype=np.float64).reshape(-1)[gf],
+        olat=olat, saturated=satur, crop=crop)
+
+
+def _view_visibility(scene, x: np.ndarray, n: np.ndarray, inp: _PairInputs, cos_cut: float
+                     ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """Which texels each view sees, and where (``vis (V, N)``, ``pix (V, N, 2)`` in stored-image pixels).
+
+    A texel is seen when it faces the camera within the grazing cut-off, lies in front of it, its ray to the
+    camera centre is unblocked, and all four taps of its bilinear footprint see the same surface (not a silhouette
+    or an occluding edge, where the sample would mix surfaces)."""
+    from reflectmm_cli.geometry import visibility
+
+    V, N = len(inp.views), x.shape[0]
+    vis = np.zeros((V, N), bool)
+    pix_all = np.zeros((V, N, 2))
+    counts = {"rays_view": 0, "rays_depth": 0, "footprint_rejected": 0}
+    h, w = inp.olat.shape[2], inp.olat.shape[3]
+    for vi in range(V):
+        dv = inp.cam_centers[vi] - x
+        ndv = np.einsum("nk,nk->n", n, dv) / np.linalg.norm(dv, axis=1)
+        pix, Z = project(x, inp.K[vi], inp.R[vi], inp.t[vi])
+        pix -= inp.crop[vi][None, :]
+        pix_all[vi] = pix
+        cand = np.flatnonzero((ndv > cos_cut) & (Z > 0))
+        ok = visibility(scene, x[cand], n[cand], inp.cam_centers[vi])
+        counts["rays_view"] += cand.size
+        ci = cand[ok]
+        good, nr = _footprint_on_surface(scene, pix[ci], Z[ci], ndv[ci], inp.K[vi], inp.R[vi], inp.t[vi],
+                                         inp.crop[vi], h, w)
+        counts["rays_depth"] += nr
+        counts["footprint_rejected"] += int((~good).sum())
+        vis[vi, ci[good]] = True
+    return vis, pix_all, counts
+
+
+def _flash_lighting(scene, x: np.ndarray, n: np.ndarray, flash_pos: np.ndarray, seen: np.ndarray
+                    ) -> tuple[np.ndarray, dict[str, int]]:
+    """Which texels each flash lights (``lit (F, N)``): facing it and unshadowed.  No shadow ray is traced for a
+    texel facing away from the flash or seen by no view."""
+    from reflectmm_cli.geometry import shadow_mask
+
+    F, N = flash_pos.shape[0], x.shape[0]
+    lit = np.zeros((F, N), bool)
+    counts = {"rays_shadow": 0, "skipped_backfacing_light": 0, "skipped_unseen": 0}
+    for fi in range(F):
+        ndl = np.einsum("nk,nk->n", n, flash_pos[fi] - x)
+        front = ndl > 0
+        counts["skipped_backfacing_light"] += int((~front).sum())
+        counts["skipped_unseen"] += int((front & ~seen).sum())
+        ci = np.flatnonzero(front & seen)
+        lit[fi, ci] = shadow_mask(scene, x[ci], n[ci], flash_pos[fi])
+        counts["rays_shadow"] += ci.size
+    return lit, counts
+
+
+def _sample_pairs(inp: _PairInputs, vis: np.ndarray, lit: np.ndarray, pix_all: np.ndarray, idx: np.ndarray,
+                  S: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Bilinear samples of every (view, flash) pair at its texels: ``radiance (P, S², 3)`` float16, ``observed``
+    and ``saturated (P, S²)`` (P = V·F, view-major), and which texels fall inside any stored image."""
+    V, F = len(inp.views), len(inp.flashes)
+    P = V * F
+    radiance = np.zeros((P, S * S, 3), dtype=np.float16)
+    observed = np.zeros((P, S * S), bool)
+    saturated = np.zeros((P, S * S), bool)
+    inside_any = np.zeros(idx.size, bool)
+    for vi in range(V):
+        ci = np.flatnonzero(vis[vi])
+        vals, inside, sat = bilinear(np.asarray(inp.olat[vi], dtype=np.float32), pix_all[vi][ci],
+                                     inp.saturated[vi])
+        inside_any[ci] |= inside
+        tex = idx[ci]
+        for fi in range(F):
+            p = vi * F + fi
+            ob = lit[fi, ci] & inside & ~sat[fi]
+            observed[p, tex] = ob
+            saturated[p, tex] = sat[fi]
+            radiance[p, tex] = np.where(ob[:, None], vals[fi], 0.0)
+    return radiance, observed, saturated, inside_any
+
+
+def _conditioning_maps(arrays: Mapping[str, np.ndarray], exponents: Sequence[float]) -> dict[str, np.ndarray]:
+    """Per-texel conditioning of the reflectance design (``conditioning``, ``conditioning_exponents``,
+    ``observability``), for the texels with at least one observation.
+
+    The texels are independent, so interleaved rows run in threads (numpy releases the GIL in the per-texel
+    linear algebra); texels without observations stay 0."""
+    from reflectmm_cli.reflectance.design import conditioning
+
+    S = arrays["mask"].shape[0]
+    need = arrays["mask"] & (arrays["obs_count"] > 0)
+    workers = default_threads(2)
+    rows = np.arange(S)[:, None]
+    masks = [need & (rows % workers == k) for k in range(workers)]
+
+    def part(mk):
+        return conditioning(arrays["position"], arrays["normal"], arrays["cam_centers"], arrays["flash_pos"],
+                            arrays["flash_intensity"], arrays["pair_view"], arrays["pair_flash"],
+                            arrays["observed"], exponents, mask=mk)
+
+    with ThreadPoolExecutor(workers) as ex:
+        parts = list(ex.map(part, masks))
+    cond_map = np.zeros((S, S), np.float32)
+    obsv = np.zeros((len(exponents), S, S), np.float32)
+    for mk, c in zip(masks, parts):
+        cond_map[mk] = c.conditioning[mk]
+        obsv[:, mk] = c.observability[:, mk]
+    return {"conditioning": cond_map, "conditioning_exponents": np.asarray(parts[0].exponents, dtype=np.float32),
+            "observability": obsv}
+
+
 def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
                         triangles: np.ndarray, uv: np.ndarray, *, uv_size: int = 256, grazing_deg: float = 80.0,
                         exponents: Sequence[float] = DEFAULT_EXPONENTS, geometry_path=None, capture_path=None,
@@ -254,6 +419,9 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
                         select_flashes: Sequence[str] | None = None
                         ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Build the ``uv-observations`` arrays of docs/pipeline.md.
+
+    Steps: select and check the inputs, rasterise the mesh in UV space, find what each view sees and each flash
+    lights (Embree rays), sample every (view, flash) pair, then the per-texel conditioning.
 
     Args:
         capture: arrays of a ``capture`` artifact (``olat``, ``saturated``, ``view_names``, ``flash_ids``,
@@ -275,147 +443,47 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     if np.asarray(uv).shape[0] != verts.shape[0]:
         raise ReflectmmError(f"geometry has {verts.shape[0]} vertices but the face model has "
                              f"{np.asarray(uv).shape[0]}", geometry_path)
-    views = [str(v) for v in capture["view_names"]]
-    if select_views is not None:
-        keep = _positions(views, select_views, "view(s)", capture_path)
-        V0 = len(views)
-        capture = {k: (np.asarray(capture[k])[keep] if k in ("olat", "saturated", "crop_origin", "view_names")
-                       and np.asarray(capture[k]).shape[:1] == (V0,) else capture[k]) for k in capture}
-        views = [str(v) for v in capture["view_names"]]
-    if select_flashes is not None:
-        capture = _select_flashes(capture, select_flashes, capture_path)
-    flashes = [str(f) for f in capture["flash_ids"]]
-    gv = _index_of(geometry["view_names"], views, "view", geometry_path)
-    gf = _index_of(geometry["flash_ids"], flashes, "flash", geometry_path)
-    cap_size = np.asarray(capture["image_size"]).reshape(-1)
-    geo_size = np.asarray(geometry["image_size"]).reshape(-1)
-    if geo_size.size >= 2 and tuple(cap_size[:2]) != tuple(geo_size[:2]):
-        raise ReflectmmError(f"geometry image_size {tuple(geo_size[:2])} differs from the capture's "
-                             f"{tuple(cap_size[:2])}", geometry_path)
-    K = np.asarray(geometry["K"], dtype=np.float64)[gv]
-    R = np.asarray(geometry["R"], dtype=np.float64)[gv]
-    t = np.asarray(geometry["t"], dtype=np.float64)[gv]
-    cam_centers = np.asarray(geometry["cam_centers"], dtype=np.float64)[gv]
-    flash_pos = np.asarray(geometry["flash_pos"], dtype=np.float64)[gf]
-    flash_int = np.asarray(geometry["flash_intensity"], dtype=np.float64).reshape(-1)[gf]
-    olat = capture["olat"]
-    satur = capture["saturated"]
-    crop = np.asarray(capture.get("crop_origin", np.zeros((len(views), 2))), dtype=np.float64)
-    V, F = len(views), len(flashes)
-    if olat.ndim != 5 or olat.shape[:2] != (V, F) or olat.shape[4] != 3:
-        raise ReflectmmError(f"capture 'olat' has shape {olat.shape}, expected ({V}, {F}, h, w, 3)", capture_path)
-    if satur.shape != olat.shape[:4]:
-        raise ReflectmmError(f"capture 'saturated' has shape {satur.shape}, expected {olat.shape[:4]}", capture_path)
-    if crop.shape != (V, 2):
-        raise ReflectmmError(f"capture 'crop_origin' has shape {crop.shape}, expected ({V}, 2)", capture_path)
+    inp = _pair_inputs(capture, geometry, select_views, select_flashes, geometry_path, capture_path)
+    V, F = len(inp.views), len(inp.flashes)
     S = int(uv_size)
 
-    from reflectmm_cli.geometry import RayScene, shadow_mask, vertex_normals, visibility
+    from reflectmm_cli.geometry import RayScene, vertex_normals
 
     vnorm = vertex_normals(verts, triangles)
     g = uv_geometry(verts, triangles, uv, S, vnorm)
-    m = g.mask.reshape(-1)
-    idx = np.flatnonzero(m)
-    N = idx.size
+    idx = np.flatnonzero(g.mask.reshape(-1))
     x = g.position.reshape(-1, 3)[idx].astype(np.float64)
     n = g.normal.reshape(-1, 3)[idx].astype(np.float64)
     scene = RayScene(verts, triangles, vnorm)
-    cos_cut = math.cos(math.radians(grazing_deg))
 
-    vis = np.zeros((V, N), bool)
-    pix_all = np.zeros((V, N, 2))
-    rays_view = rays_depth = footprint_rejected = 0
-    for vi in range(V):
-        dv = cam_centers[vi] - x
-        ndv = np.einsum("nk,nk->n", n, dv) / np.linalg.norm(dv, axis=1)
-        pix, Z = project(x, K[vi], R[vi], t[vi])
-        pix -= crop[vi][None, :]
-        pix_all[vi] = pix
-        cand = np.flatnonzero((ndv > cos_cut) & (Z > 0))
-        ok = visibility(scene, x[cand], n[cand], cam_centers[vi])
-        rays_view += cand.size
-        ci = cand[ok]
-        # depth test of the bilinear footprint: all four taps must see this surface (not a silhouette or an
-        # occluding edge), else the sample would mix surfaces
-        good, nr = _footprint_on_surface(scene, pix[ci], Z[ci], ndv[ci], K[vi], R[vi], t[vi], crop[vi],
-                                         olat.shape[2], olat.shape[3])
-        rays_depth += nr
-        footprint_rejected += int((~good).sum())
-        vis[vi, ci[good]] = True
+    vis, pix_all, view_counts = _view_visibility(scene, x, n, inp, math.cos(math.radians(grazing_deg)))
     seen = vis.any(0)
-    lit = np.zeros((F, N), bool)
-    rays_flash = skipped_back = skipped_unseen = 0
-    for fi in range(F):
-        dl = flash_pos[fi] - x
-        ndl = np.einsum("nk,nk->n", n, dl)
-        front = ndl > 0
-        skipped_back += int((~front).sum())
-        skipped_unseen += int((front & ~seen).sum())
-        ci = np.flatnonzero(front & seen)
-        lit[fi, ci] = shadow_mask(scene, x[ci], n[ci], flash_pos[fi])
-        rays_flash += ci.size
+    lit, flash_counts = _flash_lighting(scene, x, n, inp.flash_pos, seen)
+    radiance, observed, saturated, inside_any = _sample_pairs(inp, vis, lit, pix_all, idx, S)
 
     P = V * F
-    pair_view = np.repeat(np.arange(V, dtype=np.int32), F)
-    pair_flash = np.tile(np.arange(F, dtype=np.int32), V)
-    radiance = np.zeros((P, S * S, 3), dtype=np.float16)
-    observed = np.zeros((P, S * S), bool)
-    saturated = np.zeros((P, S * S), bool)
-    inside_any = np.zeros(N, bool)
-    for vi in range(V):
-        ci = np.flatnonzero(vis[vi])
-        vals, inside, sat = bilinear(np.asarray(olat[vi], dtype=np.float32), pix_all[vi][ci], satur[vi])
-        inside_any[ci] |= inside
-        tex = idx[ci]
-        for fi in range(F):
-            p = vi * F + fi
-            ob = lit[fi, ci] & inside & ~sat[fi]
-            observed[p, tex] = ob
-            saturated[p, tex] = sat[fi]
-            radiance[p, tex] = np.where(ob[:, None], vals[fi], 0.0)
-    obs_count = observed.sum(0).astype(np.int32).reshape(S, S)
     arrays: dict[str, np.ndarray] = {
         "position": g.position, "normal": g.normal, "mask": g.mask,
-        "view_names": np.array(views, dtype=str), "flash_ids": np.array(flashes, dtype=str),
-        "cam_centers": cam_centers.astype(np.float32), "flash_pos": flash_pos.astype(np.float32),
-        "flash_intensity": flash_int.astype(np.float32),
-        "pair_view": pair_view, "pair_flash": pair_flash,
+        "view_names": np.array(inp.views, dtype=str), "flash_ids": np.array(inp.flashes, dtype=str),
+        "cam_centers": inp.cam_centers.astype(np.float32), "flash_pos": inp.flash_pos.astype(np.float32),
+        "flash_intensity": inp.flash_int.astype(np.float32),
+        "pair_view": np.repeat(np.arange(V, dtype=np.int32), F), "pair_flash": np.tile(np.arange(F, dtype=np.int32), V),
         "radiance": radiance.reshape(P, S, S, 3), "observed": observed.reshape(P, S, S),
         "visible": _scatter(vis, idx, S), "lit": _scatter(lit, idx, S),
-        "saturated": saturated.reshape(P, S, S), "obs_count": obs_count,
+        "saturated": saturated.reshape(P, S, S),
+        "obs_count": observed.sum(0).astype(np.int32).reshape(S, S),
     }
-    report = {"texels": int(N), "uv_size": S, "views": V, "flashes": F, "grazing_deg": float(grazing_deg),
-              "rays_view": int(rays_view), "rays_shadow": int(rays_flash), "rays_depth": int(rays_depth),
-              "footprint_rejected": int(footprint_rejected),
-              "skipped_backfacing_light": int(skipped_back), "skipped_unseen": int(skipped_unseen),
+    report = {"texels": int(idx.size), "uv_size": S, "views": V, "flashes": F, "grazing_deg": float(grazing_deg),
+              "rays_view": int(view_counts["rays_view"]), "rays_shadow": int(flash_counts["rays_shadow"]),
+              "rays_depth": int(view_counts["rays_depth"]),
+              "footprint_rejected": int(view_counts["footprint_rejected"]),
+              "skipped_backfacing_light": int(flash_counts["skipped_backfacing_light"]),
+              "skipped_unseen": int(flash_counts["skipped_unseen"]),
               "texels_unseen": int((~seen).sum()), "texels_outside_images": int((seen & ~inside_any).sum()),
               "observed_pairs": int(observed.sum()), "saturated_pairs": int(saturated.sum()),
               "ray_engine": "embree"}
     if with_conditioning:
-        from reflectmm_cli.reflectance.design import conditioning
-
-        # texels without observations are 0 anyway; the texels are independent, so interleaved rows run in
-        # threads (numpy releases the GIL in the per-texel linear algebra)
-        need = g.mask & (obs_count > 0)
-        workers = default_threads(2)
-        rows = np.arange(S)[:, None]
-        masks = [need & (rows % workers == k) for k in range(workers)]
-
-        def part(mk):
-            return conditioning(arrays["position"], arrays["normal"], arrays["cam_centers"], arrays["flash_pos"],
-                                arrays["flash_intensity"], pair_view, pair_flash, arrays["observed"], exponents,
-                                mask=mk)
-
-        with ThreadPoolExecutor(workers) as ex:
-            parts = list(ex.map(part, masks))
-        cond_map = np.zeros((S, S), np.float32)
-        obsv = np.zeros((len(exponents), S, S), np.float32)
-        for mk, c in zip(masks, parts):
-            cond_map[mk] = c.conditioning[mk]
-            obsv[:, mk] = c.observability[:, mk]
-        arrays["conditioning"] = cond_map
-        arrays["conditioning_exponents"] = np.asarray(parts[0].exponents, dtype=np.float32)
-        arrays["observability"] = obsv
+        arrays.update(_conditioning_maps(arrays, exponents))
     return arrays, report
 
 
