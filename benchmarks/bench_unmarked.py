@@ -17,7 +17,7 @@ landmarks), the wall time of calibrate-rig + fit-geometry, and with ``--reflecta
 
     python benchmarks/bench_unmarked.py --workspace W [--identities 3] [--size 320x240] [--radius 1300]
         [--focal 500] [--skin single] [--seed 1] [--sets all,side,detect] [--fit-args "..."] [--reflectance]
-        [--unwrap-views landmarks] [--unwrap-flashes landmarked]
+        [--unwrap-views landmarks] [--unwrap-flashes landmarked] [--table-distance-scale 0.9] [--cal-args "..."]
 
 On the workspace of such a run (sets ``all`` and ``side``), the cameras no identity annotates
 (docs/benchmarks.md, "Issue 23 §1: joint registration"): ``--cameras`` (centre and aim errors per path: control,
@@ -56,6 +56,9 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--sets", default="all,side,detect")
     ap.add_argument("--fit-args", default=FIT_ARGS)
+    ap.add_argument("--cal-args", default="", help="extra calibrate-rig arguments (e.g. '--distance-sigma 0.01')")
+    ap.add_argument("--table-distance-scale", type=float, default=0.9,
+                    help="the nominal table's camera distances against the true rig's (1 = a measured distance)")
     ap.add_argument("--tag", default="", help="suffix of the result folders (to compare fit arguments)")
     ap.add_argument("--reflectance", action="store_true")
     ap.add_argument("--unwrap-flashes", default=None, choices=("landmarked",),
@@ -133,7 +136,7 @@ def run(args) -> dict:
     W, H = (int(x) for x in args.size.lower().split("x"))
     true = build_default_rig(radius=args.radius, focal_px=args.focal, width=W, height=H)
     save_rig(true, ws / "true_rig.toml", "true rig of the benchmark")
-    save_rig(perturb_rig(true, distance_scale=0.9, angle_deg=3.0, raised_offset_mm=300.0, seed=args.seed),
+    save_rig(perturb_rig(true, distance_scale=args.table_distance_scale, angle_deg=3.0, raised_offset_mm=300.0, seed=args.seed),
              ws / "nominal_rig.toml", "nominal rig of the benchmark (deliberately wrong)")
     views = list(DEFAULT_VIEWS) + list(RAISED_CAMERAS)
     ids = [f"{i:03d}" for i in range(1, args.identities + 1)]
@@ -185,7 +188,7 @@ def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> di
         geos = [read_artifact(out / "geo" / f"{i}.npz", "geometry") for i in ids]
         return _summary(args, ws, out, ids, views, geos, marked, float("nan"), cli, read_artifact)
     cli("calibrate-rig", *[a for c in caps for a in ("--capture", c)], "--face-model", ws / "syn" / "face_model.npz",
-        "--rig", ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px, "-o", out / "cal" / "rig.npz")
+        "--rig", ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px, "-o", out / "cal" / "rig.npz", *shlex.split(args.cal_args))
     geos = []
     for i, c in zip(ids, caps):
         g = out / "geo" / f"{i}.npz"
@@ -263,7 +266,7 @@ def camera_table(args) -> None:
                                           *[a for i in ids for a in ("--geometry", side / "geo" / f"{i}.npz")],
                                           "--face-model", ws / "syn" / "face_model.npz", "--rig",
                                           ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px,
-                                          "-o", joint], catch_exceptions=False)
+                                          "-o", joint, *shlex.split(args.cal_args)], catch_exceptions=False)
         if r.exit_code:
             raise SystemExit(r.output)
     secs = time.perf_counter() - t0

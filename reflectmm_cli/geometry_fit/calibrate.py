@@ -54,7 +54,7 @@ log = logging.getLogger("reflectmm")
 
 __all__ = ["CalibrationConfig", "RigCalibration", "calibrate_rig", "calibrate_from_captures", "landmarks_from_captures",
            "write_rig_calibration", "read_rig_calibration", "rig_calibration_arrays", "expected_face_size",
-           "simulate_landmarks", "perturb_rig", "rodrigues", "LMOptions", "RIG_KIND"]
+           "simulate_landmarks", "perturb_rig", "table_distance_ratio", "rodrigues", "LMOptions", "RIG_KIND"]
 
 RIG_KIND = "rig"
 FOCAL_MODES = ("fixed", "shared", "per-camera")
@@ -76,7 +76,8 @@ class CalibrationConfig:
         decrease below which it stops.
     n_shape / n_exp: number of model components used (None: all).
     anchor_scale / distance_sigma_rel: fix the scene's scale by the model's mean face size, fused with the nominal
-        table's size (its camera spread) of relative uncertainty ``distance_sigma_rel`` (0: the faces only).
+        table's camera distances from the head (:func:`table_distance_ratio`) of relative uncertainty
+        ``distance_sigma_rel`` (0: the faces only).
     """
 
     focal: str = "shared"
@@ -647,6 +648,31 @@ def _levenberg_marquardt(prob: _Problem, st: _State, opts: LMOptions, progress_f
     return _LMResult(st, history, converged)
 
 
+def table_distance_ratio(c_table: np.ndarray, c_fit: np.ndarray, head: np.ndarray, seen: np.ndarray
+                         ) -> tuple[float, np.ndarray]:
+    """The nominal table's size against a fit's: the median over the cameras ``seen`` (bool (C,)) of
+    ``‖c_table‖ / ‖c_fit − head‖``, each camera's distance from the head in the table (whose head sits at the
+    origin) over its distance from the fit's mean head position.
+
+    Distances are what a user measures of a rig, and they do not change when a table entry is only turned about
+    the head (a camera's direction a few degrees off), which changes the spread of a few near-frontal cameras
+    by per cents; the median leaves out a guessed entry (a raised camera placed hundreds of millimetres off).  A
+    camera no landmark places stays where the table put it and says nothing of the scale, so only seen ones count.
+
+    Args:
+        c_table: (C, 3) centres of the nominal table (mm), head at the origin.
+        c_fit: (C, 3) fitted centres; head (3,) the fit's mean head position in the same frame.
+        seen: (C,) bool, the cameras with landmarks.
+    Returns:
+        ``(ratio, used)``: the median ratio and the cameras it was taken over (bool (C,)).
+    """
+    c_table = np.asarray(c_table, np.float64)
+    c_fit = np.asarray(c_fit, np.float64)
+    used = np.asarray(seen, bool) & (np.linalg.norm(c_fit - head, axis=1) > 0)
+    r = np.linalg.norm(c_table[used], axis=1) / np.linalg.norm(c_fit[used] - head, axis=1)
+    return float(np.median(r)), used
+
+
 def _scale_anchor(model: ShapeModel, prob: _Problem, st: _State, setup: _RigSetup, cfg: CalibrationConfig
                   ) -> tuple[float, str | None]:
     """Scale factor for the whole scene, and its note (None when not anchored).
@@ -655,7 +681,7 @@ def _scale_anchor(model: ShapeModel, prob: _Problem, st: _State, setup: _RigSetu
     is a smaller face (size is a norm of the coefficients), so the joint optimum puts the rig too close by a few per
     cent.  The landmarks fix the scene only up to a similarity; its scale is chosen so that the identities' mean face
     size equals the model's expected size under its prior, fused (in log scale, by inverse variances) with the
-    nominal table's camera spread of relative σ ``cfg.distance_sigma_rel``.  Scaling the whole scene (centres, head
+    nominal table's camera distances (:func:`table_distance_ratio`) of relative σ ``cfg.distance_sigma_rel``.  Scaling the whole scene (centres, head
     positions, faces) leaves every projection unchanged.
     """
     Ks, N, C = setup.Ks, setup.N, setup.C
@@ -669,13 +695,12 @@ def _scale_anchor(model: ShapeModel, prob: _Problem, st: _State, setup: _RigSetu
     note = (f"scale: the identities' mean landmark-face size set to the model's expected {target:.2f} mm "
             f"(x{s_face:.4f}, ±{100 * sig_f:.1f} %)")
     if cfg.distance_sigma_rel and cfg.distance_sigma_rel > 0 and C >= 2:
-        c0 = setup.c0
-        spread_fit = math.sqrt(((st.c - st.c.mean(0)) ** 2).sum())
-        spread_nom = math.sqrt(((c0 - c0.mean(0)) ** 2).sum())
-        s_nom = spread_nom / max(spread_fit, 1e-12)
+        seen = np.isfinite(setup.lm).all(-1).any(-1).any(0)                          # cameras with landmarks
+        s_nom, used = table_distance_ratio(setup.c0, st.c, st.th.mean(0), seen)
         wf, wn = 1.0 / sig_f ** 2, 1.0 / cfg.distance_sigma_rel ** 2
         logs = (wf * math.log(s_face) + wn * math.log(s_nom)) / (wf + wn)
-        note += (f", fused with the nominal table's size (x{s_nom:.4f}, ±{100 * cfg.distance_sigma_rel:.1f} %) "
+        note += (f", fused with the nominal table's distances (x{s_nom:.4f}, ±{100 * cfg.distance_sigma_rel:.1f} %, "
+                 f"the median over camera(s) {', '.join(setup.names[k] for k in np.flatnonzero(used))}) "
                  f"at weight {wn / (wf + wn):.2f}")
     anchor = math.exp(logs)
     return anchor, note + f": x{anchor:.4f} on the bundle-adjustment optimum"

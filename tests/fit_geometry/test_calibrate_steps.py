@@ -11,7 +11,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit.calibrate import (
     CalibrationConfig, LMOptions, _gauge_free_cov, _initial_state, _levenberg_marquardt, _place_flashes, _Problem,
     _reframe, _residuals, _rig_target, _scale_anchor, _setup, _uncertainty, expected_face_size, rodrigues,
-    simulate_landmarks)
+    simulate_landmarks, table_distance_ratio)
 from reflectmm_cli.geometry_fit.model import ShapeModel
 from reflectmm_cli.rig import DEFAULT_VIEWS, load_rig
 
@@ -126,11 +126,67 @@ def test_scale_anchor_closed_forms(model, small):
     # fused with the nominal spread: the inverse-variance weighted mean of the two log scales
     cfg2 = CalibrationConfig(distance_sigma_rel=0.05)
     fused, _ = _scale_anchor(model, prob, st, setup, cfg2)
-    spread_ratio = (np.linalg.norm(setup.c0 - setup.c0.mean(0)) / np.linalg.norm(st.c - st.c.mean(0)))
+    dist_ratio = np.median(np.linalg.norm(setup.c0, axis=1) / np.linalg.norm(st.c - st.th.mean(0), axis=1))
     wf, wn = (setup.N / (spread / target) ** 2), 1 / 0.05 ** 2
-    ref = math.exp((wf * math.log(target / size) + wn * math.log(spread_ratio)) / (wf + wn))
+    ref = math.exp((wf * math.log(target / size) + wn * math.log(dist_ratio)) / (wf + wn))
     assert fused == pytest.approx(ref, rel=1e-9)
     assert _scale_anchor(model, prob, st, setup, CalibrationConfig(anchor_scale=False)) == (1.0, None)
+
+
+def test_table_distance_ratio_ignores_turned_and_guessed_entries():
+    rng = np.random.default_rng(3)
+    a = np.linspace(-0.5, 0.5, 7)                                     # near-frontal cameras, head at the origin
+    table = np.stack([1300 * np.sin(a), rng.normal(0, 60, 7), 1300 * np.cos(a)], 1)
+    head = np.array([12.0, -5.0, 30.0])
+    fit = table / 1.08 + head                                          # the fit's scene, 8 % smaller
+    seen = np.ones(7, bool)
+    assert table_distance_ratio(table, fit, head, seen)[0] == pytest.approx(1.08, rel=1e-12)
+    # the table's entries turned about the head by 3°: the spread of these cameras changes, their distances do not
+    turned = np.stack([rodrigues(rng.normal(size=3) * math.radians(3.0) / math.sqrt(3)) @ c for c in table])
+    spread = lambda c: np.linalg.norm(c - c.mean(0))
+    assert abs(spread(turned) / spread(table) - 1) > 0.02
+    assert table_distance_ratio(turned, fit, head, seen)[0] == pytest.approx(1.08, rel=1e-12)
+    # two guessed entries 300 mm off, and a camera no landmark places (left at a wrong table place): the median holds
+    guessed = table.copy()
+    guessed[[1, 5]] += np.array([[0.0, 300.0, 0.0], [250.0, 0.0, -200.0]])
+    blind = seen.copy()
+    blind[3] = False
+    fit_b = fit.copy()
+    fit_b[3] = guessed[3] * 0.5
+    r, used = table_distance_ratio(guessed, fit_b, head, blind)
+    assert np.array_equal(used, blind)
+    ok = np.delete(np.arange(7), [1, 3, 5])
+    assert np.median(np.r_[np.full(ok.size, 1.08), np.linalg.norm(guessed[[1, 5]], axis=1)
+                           / np.linalg.norm(fit[[1, 5]] - head, axis=1)]) == pytest.approx(r, rel=1e-12)
+    assert r == pytest.approx(1.08, rel=1e-12)
+
+
+def test_scale_anchor_uses_the_table_distances_of_the_cameras_landmarks_place(model):
+    from reflectmm_cli.rig import RAISED_CAMERAS
+
+    rig = load_rig()
+    views = list(DEFAULT_VIEWS) + list(RAISED_CAMERAS)
+    lm = simulate_landmarks(model, rig, views, 3, seed=7, noise_px=0.5)["landmarks"]
+    blind = [views.index("09_0"), views.index("20_0")]
+    lm[:, blind] = np.nan
+    cfg = CalibrationConfig(max_iters=8, distance_sigma_rel=0.0)
+    setup = _setup(model, lm, views, (640, 480), rig, cfg, None)
+    prob = _Problem(model, setup.lm, setup.R0, setup.c0, setup.f0, setup.pp, cfg, setup.Ks, setup.Ke)
+    st = _levenberg_marquardt(prob, _initial_state(prob, setup.R0, setup.c0), LMOptions.from_config(cfg)).state
+    seen = np.ones(len(views), bool)
+    seen[blind] = False
+    ratios = np.linalg.norm(setup.c0, axis=1) / np.linalg.norm(st.c - st.th.mean(0), axis=1)
+    target, spread = expected_face_size(model, setup.Ks, return_std=True)
+    L = np.stack([model.vertices(st.z[i, :setup.Ks] * model.shape_sigma[:setup.Ks],
+                                 np.zeros(model.n_exp))[model.landmarks] for i in range(setup.N)])
+    size = np.sqrt(((L - L.mean(1, keepdims=True)) ** 2).sum(-1).mean(-1)).mean()
+    wf, wn = (setup.N / (spread / target) ** 2), 1 / 0.01 ** 2
+    ref = math.exp((wf * math.log(target / size) + wn * math.log(np.median(ratios[seen]))) / (wf + wn))
+    anchor, note = _scale_anchor(model, prob, st, setup, CalibrationConfig(distance_sigma_rel=0.01))
+    assert anchor == pytest.approx(ref, rel=1e-9)
+    assert "09_0" not in note and "20_0" not in note and "13_0, 14_0" in note
+    # the blind cameras, left at their table places, would pull the median: they are not in it
+    assert abs(math.log(np.median(ratios) / np.median(ratios[seen]))) > 1e-4
 
 
 def test_reframe_centres_the_heads_and_keeps_every_projection(model, small):
