@@ -413,6 +413,9 @@ def _nominal_cameras(nominal: Rig, names: Sequence[str], image_size: np.ndarray,
             raise ReflectmmError(f"nominal rig camera {n} is {cam.width}x{cam.height} but its images are {W}x{H}: "
                                  "give a rig table for this image size (its focal in pixels depends on it)",
                                  nominal.source)
+        if not np.linalg.norm(cam.center) > 0:
+            raise ReflectmmError(f"nominal rig camera {n} sits at the origin of model space, where the head is "
+                                 "(the table's positions are relative to the head)", nominal.source)
         R.append(cam.R)
         c.append(cam.center)
         f.append(cam.focal_px if cfg.focal_px is None else cfg.focal_px)

@@ -189,6 +189,21 @@ def test_scale_anchor_uses_the_table_distances_of_the_cameras_landmarks_place(mo
     assert abs(math.log(np.median(ratios) / np.median(ratios[seen]))) > 1e-4
 
 
+def test_setup_refuses_a_table_camera_at_the_head(model, small, tmp_path):
+    from reflectmm_cli.rig import save_rig
+
+    rig, lm = small
+    import dataclasses
+
+    cams = [dataclasses.replace(c, position=np.zeros(3), look_at=np.array([0.0, 0.0, -100.0]))
+            if c.name == VIEWS[2] else c for c in rig.cameras]
+    path = tmp_path / "rig.toml"
+    save_rig(type(rig)(cams, rig.flashes, None), path, "a camera at the head")
+    bad = load_rig(path)
+    with pytest.raises(ReflectmmError, match=f"rig.toml: nominal rig camera {VIEWS[2]} sits at the origin"):
+        _setup(model, lm, VIEWS, (640, 480), bad, CalibrationConfig(), None)
+
+
 def test_reframe_centres_the_heads_and_keeps_every_projection(model, small):
     rig, lm = small
     cfg, setup, prob = _problem(model, rig, lm)
