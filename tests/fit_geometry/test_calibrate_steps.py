@@ -112,24 +112,30 @@ def test_levenberg_marquardt_decreases_the_cost_and_leaves_its_start(model, smal
     assert len(costs) == opts.max_iters or out.converged
 
 
-def test_scale_anchor_closed_forms(model, small):
-    rig, lm = small
-    cfg, setup, prob = _problem(model, rig, lm, distance_sigma_rel=0.0)
-    st = _levenberg_marquardt(prob, _initial_state(prob, setup.R0, setup.c0), LMOptions.from_config(cfg)).state
+def _fused_scale(model, setup, st, table_ratio, sigma):
+    """The scale anchor by its closed form: the faces' size against the model's expected size (Monte-Carlo σ / √N),
+    fused in log scale by inverse variances with the table's ratio of relative σ ``sigma`` (0: faces only)."""
     Ks = setup.Ks
     L = np.stack([model.vertices(st.z[i, :Ks] * model.shape_sigma[:Ks], np.zeros(model.n_exp))[model.landmarks]
                   for i in range(setup.N)])
     size = np.sqrt(((L - L.mean(1, keepdims=True)) ** 2).sum(-1).mean(-1)).mean()
     target, spread = expected_face_size(model, Ks, return_std=True)
+    if not sigma:
+        return target / size
+    wf, wn = (setup.N / (spread / target) ** 2), 1 / sigma ** 2
+    return math.exp((wf * math.log(target / size) + wn * math.log(table_ratio)) / (wf + wn))
+
+
+def test_scale_anchor_closed_forms(model, small):
+    rig, lm = small
+    cfg, setup, prob = _problem(model, rig, lm, distance_sigma_rel=0.0)
+    st = _levenberg_marquardt(prob, _initial_state(prob, setup.R0, setup.c0), LMOptions.from_config(cfg)).state
     anchor, note = _scale_anchor(model, prob, st, setup, cfg)
-    assert anchor == pytest.approx(target / size, rel=1e-9) and note is not None
-    # fused with the nominal spread: the inverse-variance weighted mean of the two log scales
-    cfg2 = CalibrationConfig(distance_sigma_rel=0.05)
-    fused, _ = _scale_anchor(model, prob, st, setup, cfg2)
+    assert anchor == pytest.approx(_fused_scale(model, setup, st, None, 0.0), rel=1e-9) and note is not None
+    # fused with the nominal distances: the inverse-variance weighted mean of the two log scales
+    fused, _ = _scale_anchor(model, prob, st, setup, CalibrationConfig(distance_sigma_rel=0.05))
     dist_ratio = np.median(np.linalg.norm(setup.c0, axis=1) / np.linalg.norm(st.c - st.th.mean(0), axis=1))
-    wf, wn = (setup.N / (spread / target) ** 2), 1 / 0.05 ** 2
-    ref = math.exp((wf * math.log(target / size) + wn * math.log(dist_ratio)) / (wf + wn))
-    assert fused == pytest.approx(ref, rel=1e-9)
+    assert fused == pytest.approx(_fused_scale(model, setup, st, dist_ratio, 0.05), rel=1e-9)
     assert _scale_anchor(model, prob, st, setup, CalibrationConfig(anchor_scale=False)) == (1.0, None)
 
 
@@ -176,12 +182,7 @@ def test_scale_anchor_uses_the_table_distances_of_the_cameras_landmarks_place(mo
     seen = np.ones(len(views), bool)
     seen[blind] = False
     ratios = np.linalg.norm(setup.c0, axis=1) / np.linalg.norm(st.c - st.th.mean(0), axis=1)
-    target, spread = expected_face_size(model, setup.Ks, return_std=True)
-    L = np.stack([model.vertices(st.z[i, :setup.Ks] * model.shape_sigma[:setup.Ks],
-                                 np.zeros(model.n_exp))[model.landmarks] for i in range(setup.N)])
-    size = np.sqrt(((L - L.mean(1, keepdims=True)) ** 2).sum(-1).mean(-1)).mean()
-    wf, wn = (setup.N / (spread / target) ** 2), 1 / 0.01 ** 2
-    ref = math.exp((wf * math.log(target / size) + wn * math.log(np.median(ratios[seen]))) / (wf + wn))
+    ref = _fused_scale(model, setup, st, np.median(ratios[seen]), 0.01)
     anchor, note = _scale_anchor(model, prob, st, setup, CalibrationConfig(distance_sigma_rel=0.01))
     assert anchor == pytest.approx(ref, rel=1e-9)
     assert "09_0" not in note and "20_0" not in note and "13_0, 14_0" in note
