@@ -23,7 +23,7 @@ def detect_landmarks_cmd(images, out, workspace, as_json, **kw):
     """Detect the face and its 68 iBUG landmarks in each image (files or folders); write OUT/NAME.pts.
 
     Images without a (selected) face are reported one line each and the others are still written; the exit
-    status is then 1.
+    status is then 1, unless --allow-missing (then they are listed in OUT/no_face.txt and the status is 0).
     """
     paths = run_stage_cli(VERB, workspace=workspace, params=given_params(kw, PARAMS),
                           inputs={"images": list(images)}, output=out)

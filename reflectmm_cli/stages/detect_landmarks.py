@@ -3,7 +3,10 @@ docs/wild.md).
 
 Not per identity.  Input role ``images``: image files and/or folders (a folder gives its images, sorted).
 Output: ``<stem>.pts`` per image in the explicit output folder, else ``<workspace>/<stage_name>/``.  Images
-without a (selected) face are reported one line each, the others are written, and the run then fails.
+without a (selected) face are reported one line each, the others are written, and the run then fails; with
+``allow_missing`` the run succeeds and lists them in ``no_face.txt`` in the same folder (its primary output,
+written even when empty), so that the stage can feed ``preprocess-multipie`` in a recipe, where the side views
+of a capture have no face a frontal detector finds.
 """
 
 from __future__ import annotations
@@ -26,7 +29,14 @@ PARAMS = (
     Param("exposure", "str", "auto", choices=EXPOSURES,
           help="auto: brighten dim images before detecting (99.5th percentile of the brightest channel to 255; "
                "no pixel moves); none: detect on the image as given."),
+    Param("allow_missing", "bool", False,
+          help="Succeed when some images have no face: list them in no_face.txt beside the landmarks (capture "
+               "views beyond a frontal detector's reach; preprocess-multipie leaves them without landmarks)."),
 )
+
+#: With ``allow_missing``: the images without a face, one ``image<TAB>reason`` line each (the stage's primary
+#: output).
+NO_FACE = "no_face.txt"
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
@@ -53,8 +63,21 @@ def image_files(ctx: StageContext) -> list[Path]:
     return out
 
 
+def _no_face_stems(listing: Path) -> set[str]:
+    """The image stems a ``no_face.txt`` lists (``image<TAB>reason`` lines); empty when it does not exist."""
+    if not listing.is_file():
+        return set()
+    return {Path(line.split("\t", 1)[0]).stem for line in listing.read_text().splitlines() if line.strip()}
+
+
 def _outputs(ctx: StageContext) -> list[Path]:
-    return [out_dir(ctx) / f"{p.stem}.pts" for p in image_files(ctx)]
+    images = image_files(ctx)
+    if ctx.params.get("allow_missing"):
+        # the list first, then the .pts of every image it does not name (all of them before the first run)
+        listing = out_dir(ctx) / NO_FACE
+        absent = _no_face_stems(listing)
+        return [listing] + [out_dir(ctx) / f"{p.stem}.pts" for p in images if p.stem not in absent]
+    return [out_dir(ctx) / f"{p.stem}.pts" for p in images]
 
 
 def _files(ctx: StageContext) -> dict[str, list[Path]]:
@@ -71,6 +94,18 @@ def run(ctx: StageContext) -> list[Path]:
     written, errors = detect_landmark_files(images, out_dir(ctx), face_index=ctx.params.get("face_index"),
                                             upsample=ctx.params["upsample"], exposure=ctx.params["exposure"],
                                             progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
+    if ctx.params.get("allow_missing"):
+        from reflectmm_cli.artifacts import atomic_write_text
+
+        for e in errors:
+            log.warning(f"{VERB}: {e}")
+        have = {Path(p).stem for p in written}
+        lines = [f"{p}\t{next((e for e in errors if str(p) in e), 'no landmarks written')}\n"
+                 for p in images if p.stem not in have]
+        summary = atomic_write_text(out_dir(ctx) / NO_FACE, "".join(lines))
+        log.info(f"{VERB}: {len(written)} of {len(images)} image(s) with landmarks; the {len(errors)} without are "
+                 f"listed in {summary}")
+        return [summary] + written
     for e in errors:
         log.error(f"{VERB}: {e}")
     if errors:

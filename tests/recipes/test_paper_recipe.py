@@ -152,3 +152,25 @@ def test_paper_values_are_the_declared_defaults(verb):
         if k in ("device", "rotations"):
             continue
         assert resolved[k] == (list(v) if isinstance(v, list) else v), (verb, k)
+
+
+def test_the_commented_multipie_detector_stage_plans_before_preprocess(cli, tmp_path):
+    """The recipe's commented detect-landmarks-multipie stage, enabled as its comment says, runs on the room-light
+    shots and feeds preprocess-multipie."""
+    ws = make_layout(tmp_path)
+    text = RECIPE.read_text()
+    block = [ln[2:] for ln in text.splitlines()
+             if ln.startswith("# [stages.detect-landmarks-multipie]") or ln.startswith("# verb = \"detect-landmarks\"")
+             or ln.startswith("# inputs = { images = \"data/multipie") or ln.startswith("# params = { allow_missing")]
+    assert len(block) == 4, block
+    text = text.replace('inputs = { root = "data/multipie" }',
+                        'inputs = { root = "data/multipie", landmarks = "@detect-landmarks-multipie.dir" }')
+    text = text.replace("[stages.preprocess-multipie]", "\n".join(block) + "\n\n[stages.preprocess-multipie]")
+    (ws / "r.toml").write_text(text)
+    r = cli("run", ws / "r.toml", "-w", ws, "--dry-run")
+    assert r.exit_code == 0, r.stderr
+    rows = [ln.split(None, 3) for ln in r.stdout.splitlines()[2:]]
+    acts = {(row[0], row[1]): row[2] for row in rows}
+    assert acts[("detect-landmarks-multipie", "-")] == "run"
+    # the identities are found once the detector has run (its folder is an input of preprocess-multipie)
+    assert acts[("preprocess-multipie", "-")] == "deferred"

@@ -91,3 +91,21 @@ def test_dim_photo_is_found_after_exposure_normalisation(tmp_path, cli):
     res = cli("detect-landmarks", tmp_path / "dim.png", "--out", tmp_path / "auto")
     assert res.exit_code == 0, res.stderr
     assert np.allclose(read_landmarks(tmp_path / "auto" / "dim.pts"), found.landmarks)
+
+
+def test_allow_missing_lists_the_images_without_a_face_and_succeeds(tmp_path, cli):
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+    write_png(tmp_path / "a.png", data.astronaut())
+    write_png(tmp_path / "blank.png", np.full((120, 160, 3), 0.5))
+    res = cli("detect-landmarks", tmp_path / "a.png", tmp_path / "blank.png", "--out", tmp_path / "lm",
+              "--allow-missing")
+    assert res.exit_code == 0, res.stderr
+    lines = (tmp_path / "lm" / "no_face.txt").read_text().splitlines()
+    assert len(lines) == 1 and "blank.png" in lines[0] and "no face" in lines[0]
+    assert (tmp_path / "lm" / "a.pts").is_file() and not (tmp_path / "lm" / "blank.pts").exists()
+    # every image with a face: the list is written, empty
+    res = cli("detect-landmarks", tmp_path / "a.png", "--out", tmp_path / "lm2", "--allow-missing")
+    assert res.exit_code == 0, res.stderr
+    assert (tmp_path / "lm2" / "no_face.txt").read_text() == ""

@@ -136,3 +136,30 @@ def test_detect_landmarks_is_a_recipe_stage_over_a_folder(tmp_path, cli):
     (tmp_path / "r.toml").write_text((tmp_path / "r.toml").read_text().replace("upsample = 1", "upsample = 4"))
     res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path)
     assert res.exit_code == 1 and "upsample: 4 is above the maximum 3" in res.stderr
+
+
+def test_detect_landmarks_with_allow_missing_feeds_a_recipe_and_reruns_nothing(tmp_path, cli):
+    """A capture's side views have no face a frontal detector finds: with allow_missing the stage succeeds, its
+    no_face.txt lists them, a rerun is a no-op, and a deleted landmark file makes it run again."""
+    pytest.importorskip("dlib")
+    import numpy as np
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+
+    write_png(tmp_path / "photos" / "astronaut.png", data.astronaut())
+    write_png(tmp_path / "photos" / "side.png", np.full((120, 160, 3), 0.4))
+    (tmp_path / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.detect-landmarks]\n'
+                                     'inputs = { images = "photos" }\nparams = { allow_missing = true }\n')
+    res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path, "--json")
+    assert res.exit_code == 0, res.stderr
+    out = tmp_path / "detect-landmarks"
+    assert set(json.loads(res.stdout)["outputs"]) == {str(out / "no_face.txt"), str(out / "astronaut.pts")}
+    assert "side.png" in (out / "no_face.txt").read_text() and not (out / "side.pts").exists()
+    res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path, "--json")
+    assert {t["status"] for t in json.loads(res.stdout)["tasks"]} == {"skipped"}
+    (out / "astronaut.pts").unlink()
+    res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path, "--json")
+    assert res.exit_code == 0, res.stderr
+    assert {t["status"] for t in json.loads(res.stdout)["tasks"]} == {"ok"}
+    assert (out / "astronaut.pts").is_file()
