@@ -684,8 +684,8 @@ def _scale_anchor(model: ShapeModel, prob: _Problem, st: _State, setup: _RigSetu
     is a smaller face (size is a norm of the coefficients), so the joint optimum puts the rig too close by a few per
     cent.  The landmarks fix the scene only up to a similarity; its scale is chosen so that the identities' mean face
     size equals the model's expected size under its prior, fused (in log scale, by inverse variances) with the
-    nominal table's camera distances (:func:`table_distance_ratio`) of relative σ ``cfg.distance_sigma_rel``.  Scaling the whole scene (centres, head
-    positions, faces) leaves every projection unchanged.
+    nominal table's camera distances (:func:`table_distance_ratio`) of relative σ ``cfg.distance_sigma_rel``.
+    Scaling the whole scene (centres, head positions, faces) leaves every projection unchanged.
     """
     Ks, N, C = setup.Ks, setup.N, setup.C
     if not (cfg.anchor_scale and Ks > 0):

@@ -100,8 +100,19 @@ def run(ctx: StageContext) -> list[Path]:
         for e in errors:
             log.warning(f"{VERB}: {e}")
         have = {Path(p).stem for p in written}
-        lines = [f"{p}\t{next((e for e in errors if str(p) in e), 'no landmarks written')}\n"
-                 for p in images if p.stem not in have]
+        reasons = {}
+        for e in errors:       # each error reads "<image>: <reason>"
+            head, _, why = e.partition(": ")
+            reasons[head] = why or e
+        lines = []
+        for p in images:
+            if p.stem in have:
+                continue
+            lines.append(f"{p}\t{reasons.get(str(p), 'no landmarks written')}\n")
+            stale = out_dir(ctx) / f"{p.stem}.pts"
+            if stale.is_file():  # an earlier run's landmarks for an image this run finds no face in
+                stale.unlink()
+                log.warning(f"{VERB}: removed {stale} (written by an earlier run; no face now)")
         summary = atomic_write_text(out_dir(ctx) / NO_FACE, "".join(lines))
         log.info(f"{VERB}: {len(written)} of {len(images)} image(s) with landmarks; the {len(errors)} without are "
                  f"listed in {summary}")

@@ -103,8 +103,14 @@ def test_allow_missing_lists_the_images_without_a_face_and_succeeds(tmp_path, cl
               "--allow-missing")
     assert res.exit_code == 0, res.stderr
     lines = (tmp_path / "lm" / "no_face.txt").read_text().splitlines()
-    assert len(lines) == 1 and "blank.png" in lines[0] and "no face" in lines[0]
+    assert lines == [f"{tmp_path / 'blank.png'}\tno face found"]
     assert (tmp_path / "lm" / "a.pts").is_file() and not (tmp_path / "lm" / "blank.pts").exists()
+    # landmarks an earlier run wrote for an image that has no face now are removed, not left to be read
+    (tmp_path / "lm" / "blank.pts").write_text((tmp_path / "lm" / "a.pts").read_text())
+    res = cli("detect-landmarks", tmp_path / "a.png", tmp_path / "blank.png", "--out", tmp_path / "lm",
+              "--allow-missing")
+    assert res.exit_code == 0 and "removed" in res.stderr
+    assert not (tmp_path / "lm" / "blank.pts").exists()
     # every image with a face: the list is written, empty
     res = cli("detect-landmarks", tmp_path / "a.png", "--out", tmp_path / "lm2", "--allow-missing")
     assert res.exit_code == 0, res.stderr
