@@ -109,10 +109,10 @@ def run(ctx: StageContext) -> list[Path]:
             if p.stem in have:
                 continue
             lines.append(f"{p}\t{reasons.get(str(p), 'no landmarks written')}\n")
-            stale = out_dir(ctx) / f"{p.stem}.pts"
-            if stale.is_file():  # an earlier run's landmarks for an image this run finds no face in
-                stale.unlink()
-                log.warning(f"{VERB}: removed {stale} (written by an earlier run; no face now)")
+            other = out_dir(ctx) / f"{p.stem}.pts"
+            if other.is_file():  # an earlier run's, or the user's own: never deleted, but said
+                log.warning(f"{VERB}: {other} exists, but this run finds no face in {p}: it is left as it is "
+                            "and will be read downstream; delete it if it is stale")
         summary = atomic_write_text(out_dir(ctx) / NO_FACE, "".join(lines))
         log.info(f"{VERB}: {len(written)} of {len(images)} image(s) with landmarks; the {len(errors)} without are "
                  f"listed in {summary}")

@@ -105,12 +105,14 @@ def test_allow_missing_lists_the_images_without_a_face_and_succeeds(tmp_path, cl
     lines = (tmp_path / "lm" / "no_face.txt").read_text().splitlines()
     assert lines == [f"{tmp_path / 'blank.png'}\tno face found"]
     assert (tmp_path / "lm" / "a.pts").is_file() and not (tmp_path / "lm" / "blank.pts").exists()
-    # landmarks an earlier run wrote for an image that has no face now are removed, not left to be read
-    (tmp_path / "lm" / "blank.pts").write_text((tmp_path / "lm" / "a.pts").read_text())
+    # landmarks already in the folder for an image without a face (hand-made, or an earlier run's) are kept, and
+    # the run says that they will be read
+    own = (tmp_path / "lm" / "a.pts").read_text()
+    (tmp_path / "lm" / "blank.pts").write_text(own)
     res = cli("detect-landmarks", tmp_path / "a.png", tmp_path / "blank.png", "--out", tmp_path / "lm",
               "--allow-missing")
-    assert res.exit_code == 0 and "removed" in res.stderr
-    assert not (tmp_path / "lm" / "blank.pts").exists()
+    assert res.exit_code == 0 and "blank.pts exists, but this run finds no face" in res.stderr
+    assert (tmp_path / "lm" / "blank.pts").read_text() == own
     # every image with a face: the list is written, empty
     res = cli("detect-landmarks", tmp_path / "a.png", "--out", tmp_path / "lm2", "--allow-missing")
     assert res.exit_code == 0, res.stderr
