@@ -83,6 +83,16 @@ class Artifact:
             raise ArtifactError(f"{self.kind} artifact has no array '{name}' "
                                 f"(has: {', '.join(sorted(self.arrays))})", self.path) from None
 
+    def __contains__(self, name: object) -> bool:
+        return name in self.arrays
+
+    def keys(self):
+        return self.arrays.keys()
+
+    def get(self, name: str, default: Any = None) -> Any:
+        """The array ``name``, or ``default`` when the artifact has none (as ``dict.get``)."""
+        return self.arrays.get(name, default)
+
     @property
     def params(self) -> dict[str, Any]:
         return self.meta.get("params", {})

@@ -199,3 +199,15 @@ def test_written_files_get_normal_permissions(tmp_path):
     mask = os.umask(0o022)
     os.umask(mask)
     assert (p.stat().st_mode & 0o777) == (0o666 & ~mask)
+
+
+def test_an_artifact_answers_membership_and_get_like_a_mapping(tmp_path):
+    """Library functions take ``Mapping[str, ndarray]``: an artifact read from disk answers ``in``, ``get`` and
+    ``keys`` by its arrays (``in`` used to fall back to indexing by 0, 1, … and raise)."""
+    from reflectmm_cli.artifacts import read_artifact, write_artifact
+
+    p = write_artifact(tmp_path / "a.npz", "checksum", {"x": np.arange(3), "y": np.ones(2)})
+    a = read_artifact(p, "checksum")
+    assert "x" in a and "z" not in a and 0 not in a
+    assert set(a.keys()) == {"x", "y"}
+    assert np.array_equal(a.get("x"), np.arange(3)) and a.get("z") is None and a.get("z", 5) == 5
