@@ -1,7 +1,8 @@
 """Views without landmarks (issue 23 §1): the capture half with landmarks only where a detector finds a face.
 
 One rendered world per run: a true rig (``--radius`` mm, ``--focal`` px at ``--size``), a nominal table as a user
-has it (10 % too close, positions and aims off by 3°, raised cameras another 300 mm; the focal given), GGX faces
+has it (10 % too close — ``--table-distance-scale`` — positions and aims off by 3°, raised cameras another
+300 mm; the focal given), GGX faces
 rendered by ``synth multipie`` (``--skin``) on the paper's 9 views + the raised 08_1 / 19_1 with the 11 default
 flashes, 1 px landmark noise.  Landmark sets, each through the real chain (``preprocess-multipie --landmarks DIR``
 → ``calibrate-rig`` from the nominal table → ``fit-geometry`` on the calibrated rig):
@@ -136,8 +137,8 @@ def run(args) -> dict:
     W, H = (int(x) for x in args.size.lower().split("x"))
     true = build_default_rig(radius=args.radius, focal_px=args.focal, width=W, height=H)
     save_rig(true, ws / "true_rig.toml", "true rig of the benchmark")
-    save_rig(perturb_rig(true, distance_scale=args.table_distance_scale, angle_deg=3.0, raised_offset_mm=300.0, seed=args.seed),
-             ws / "nominal_rig.toml", "nominal rig of the benchmark (deliberately wrong)")
+    save_rig(perturb_rig(true, distance_scale=args.table_distance_scale, angle_deg=3.0, raised_offset_mm=300.0,
+                         seed=args.seed), ws / "nominal_rig.toml", "nominal rig of the benchmark (deliberately wrong)")
     views = list(DEFAULT_VIEWS) + list(RAISED_CAMERAS)
     ids = [f"{i:03d}" for i in range(1, args.identities + 1)]
     syn = ws / "syn"
@@ -188,7 +189,8 @@ def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> di
         geos = [read_artifact(out / "geo" / f"{i}.npz", "geometry") for i in ids]
         return _summary(args, ws, out, ids, views, geos, marked, float("nan"), cli, read_artifact)
     cli("calibrate-rig", *[a for c in caps for a in ("--capture", c)], "--face-model", ws / "syn" / "face_model.npz",
-        "--rig", ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px, "-o", out / "cal" / "rig.npz", *shlex.split(args.cal_args))
+        "--rig", ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px, "-o", out / "cal" / "rig.npz",
+        *shlex.split(args.cal_args))
     geos = []
     for i, c in zip(ids, caps):
         g = out / "geo" / f"{i}.npz"
