@@ -3,8 +3,9 @@
 One rendered world per run: a true rig (``--radius`` mm, ``--focal`` px at ``--size``), a nominal table as a user
 has it (10 % too close — ``--table-distance-scale`` — positions and aims off by 3°, raised cameras another
 300 mm; the focal given), GGX faces rendered by ``synth multipie`` (``--skin``) on the paper's 9 views + the
-raised 08_1 / 19_1 with the 11 default flashes, 1 px landmark noise.  Landmark sets, each through the real chain (``preprocess-multipie --landmarks DIR``
-→ ``calibrate-rig`` from the nominal table → ``fit-geometry`` on the calibrated rig):
+raised 08_1 / 19_1 with the 11 default flashes, 1 px landmark noise.  Landmark sets, each through the real
+chain (``preprocess-multipie --landmarks DIR`` → ``calibrate-rig`` from the nominal table → ``fit-geometry`` on
+the calibrated rig):
 
 * ``all``: the synthetic landmarks of every view (the control);
 * ``side``: none on the views beyond ±30° of yaw (09_0, 08_0, 19_0, 20_0) nor on the raised 08_1 / 19_1;
