@@ -91,10 +91,11 @@ def run(ctx: StageContext) -> list[Path]:
     images = image_files(ctx)
     if not images:
         raise ReflectmmError(f"{VERB}: no images (png/jpg/bmp/tif/webp) in the input")
-    written, errors = detect_landmark_files(images, out_dir(ctx), face_index=ctx.params.get("face_index"),
-                                            upsample=ctx.params["upsample"], exposure=ctx.params["exposure"],
-                                            progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
-    if ctx.params.get("allow_missing"):
+    written, errors, faceless = detect_landmark_files(
+        images, out_dir(ctx), face_index=ctx.params.get("face_index"), upsample=ctx.params["upsample"],
+        exposure=ctx.params["exposure"], progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
+    unreadable = len(errors) - len(faceless)
+    if ctx.params.get("allow_missing") and unreadable == 0:
         from reflectmm_cli.artifacts import atomic_write_text
 
         for e in errors:
@@ -120,7 +121,9 @@ def run(ctx: StageContext) -> list[Path]:
     for e in errors:
         log.error(f"{VERB}: {e}")
     if errors:
-        raise ReflectmmError(f"{len(errors)} of {len(images)} image(s) without landmarks (listed above); "
+        why = (f" ({unreadable} could not be read: --allow-missing covers images without a face, not bad files)"
+               if ctx.params.get("allow_missing") else "")
+        raise ReflectmmError(f"{len(errors)} of {len(images)} image(s) without landmarks (listed above){why}; "
                              "the others were written")
     return written
 

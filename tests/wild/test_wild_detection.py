@@ -117,3 +117,16 @@ def test_allow_missing_lists_the_images_without_a_face_and_succeeds(tmp_path, cl
     res = cli("detect-landmarks", tmp_path / "a.png", "--out", tmp_path / "lm2", "--allow-missing")
     assert res.exit_code == 0, res.stderr
     assert (tmp_path / "lm2" / "no_face.txt").read_text() == ""
+
+
+def test_allow_missing_still_refuses_an_unreadable_image(tmp_path, cli):
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+    write_png(tmp_path / "a.png", data.astronaut())
+    (tmp_path / "broken.png").write_bytes(b"not a png at all")
+    res = cli("detect-landmarks", tmp_path / "a.png", tmp_path / "broken.png", "--out", tmp_path / "lm",
+              "--allow-missing")
+    assert res.exit_code == 1
+    assert "broken.png" in res.stderr and "1 could not be read" in res.stderr
+    assert not (tmp_path / "lm" / "no_face.txt").exists()
