@@ -123,14 +123,15 @@ def pick_face(faces: list[Face], index: int | None = None) -> Face | None:
 
 
 def detect_landmark_files(images, out_dir, *, face_index: int | None = None, upsample: int = 1,
-                          exposure: str = "auto", progress_fn=None) -> tuple[list[Path], list[str], list[Path]]:
+                          exposure: str = "auto", progress_fn=None
+                          ) -> tuple[list[Path], list[str], list[tuple[Path, str]]]:
     """Detect the face of each image file and write ``out_dir/<stem>.pts`` (68 iBUG points, pixel-centre
     convention; read by ``preprocess-multipie`` and ``prepare-wild``).
 
     Returns ``(written .pts paths, one-line errors, images without the selected face)``: an unreadable image or
     one without the selected face is an error naming the file, and the other images are still written; the
-    third list holds the images that were read but have no (selected) face.  A missing optional extra is raised
-    at once (it would fail every image).
+    third list holds the images that were read but have no (selected) face, each with its reason.  A missing
+    optional extra is raised at once (it would fail every image).
     """
     from reflectmm_cli.artifacts import read_image_u8
     from reflectmm_cli.landmarks import write_pts
@@ -138,16 +139,17 @@ def detect_landmark_files(images, out_dir, *, face_index: int | None = None, ups
     _models()
     written: list[Path] = []
     errors: list[str] = []
-    faceless: list[Path] = []
+    faceless: list[tuple[Path, str]] = []
     for p in (progress_fn(images) if progress_fn else images):
         p = Path(p)
         try:
             faces = detect_landmarks(read_image_u8(p), upsample=upsample, exposure=exposure)
             f = pick_face(faces, face_index)
             if f is None:
-                faceless.append(p)
-                raise ReflectmmError("no face found" if not faces else
-                                     f"face index {face_index} but only {len(faces)} face(s) found", p)
+                why = ("no face found" if not faces else
+                       f"face index {face_index} but only {len(faces)} face(s) found")
+                faceless.append((p, why))
+                raise ReflectmmError(why, p)
             written.append(write_pts(Path(out_dir) / f"{p.stem}.pts", f.landmarks))
         except ReflectmmError as exc:
             errors.append(str(exc).splitlines()[0])

@@ -100,16 +100,9 @@ def run(ctx: StageContext) -> list[Path]:
 
         for e in errors:
             log.warning(f"{VERB}: {e}")
-        have = {Path(p).stem for p in written}
-        reasons = {}
-        for e in errors:       # each error reads "<image>: <reason>"
-            head, _, why = e.partition(": ")
-            reasons[head] = why or e
         lines = []
-        for p in images:
-            if p.stem in have:
-                continue
-            lines.append(f"{p}\t{reasons.get(str(p), 'no landmarks written')}\n")
+        for p, why in faceless:
+            lines.append(f"{p}\t{why}\n")
             other = out_dir(ctx) / f"{p.stem}.pts"
             if other.is_file():  # an earlier run's, or the user's own: never deleted, but said
                 log.warning(f"{VERB}: {other} exists, but this run finds no face in {p}: it is left as it is "
