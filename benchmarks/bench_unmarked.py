@@ -18,7 +18,8 @@ landmarks), the wall time of calibrate-rig + fit-geometry, and with ``--reflecta
 
     python benchmarks/bench_unmarked.py --workspace W [--identities 3] [--size 320x240] [--radius 1300]
         [--focal 500] [--skin single] [--seed 1] [--sets all,side,detect] [--fit-args "..."] [--reflectance]
-        [--unwrap-views landmarks] [--unwrap-flashes landmarked] [--table-distance-scale 0.9] [--cal-args "..."]
+        [--unwrap-views landmarks] [--unwrap-flashes landmarked] [--edge-margin M] [--table-distance-scale 0.9]
+        [--cal-args "..."] [--reuse]
 
 On the workspace of such a run (sets ``all`` and ``side``), the cameras no identity annotates
 (docs/benchmarks.md, "Issue 23 §1: joint registration"): ``--cameras`` (centre and aim errors per path: control,
@@ -66,6 +67,8 @@ def main(argv=None):
                     help="unwrap-uv --flashes: only the flashes on cameras that landmarks placed")
     ap.add_argument("--unwrap-views", default="default", choices=("default", "landmarks"),
                     help="views of unwrap-uv: its default (the paper's 9) or those of them with landmarks")
+    ap.add_argument("--edge-margin", type=int, default=None,
+                    help="unwrap-uv --edge-margin (default: unwrap-uv's own); the results go to folders ending _mM")
     ap.add_argument("--reuse", action="store_true", help="reuse the fitted geometry of an earlier run (no times)")
     ap.add_argument("--scale", action="store_true",
                     help="only the split of the control's camera errors: along / across each optical axis, distance "
@@ -94,7 +97,7 @@ def main(argv=None):
           f"{args.focal:g} px; load average {os.getloadavg()[0]:.1f}\n")
     print("| landmarks | views with landmarks | vertex RMS mm (median / max) | × all-landmarks (median id) | camera "
           "centre err mm, max: all views / views without landmarks | calibrate-rig + fit-geometry s | albedo rel. "
-          "err (median) |")
+          "err (median): observable / all texels |")
     print("|---|---|---|---|---|---|---|")
     base = rows.get("all")
     base = None if base is None or "error" in base else base
@@ -106,7 +109,8 @@ def main(argv=None):
                  if base is not None else "")
         um = f"{r['cam_unmarked']:.1f}" if np.isfinite(r["cam_unmarked"]) else "–"
         secs = f"{r['seconds']:.0f}" if np.isfinite(r["seconds"]) else "–"
-        alb = f"{np.median(r['albedo']):.3f}" if r["albedo"] else "–"
+        alb = (f"{np.median([a for a, _ in r['albedo']]):.3f} / {np.median([b for _, b in r['albedo']]):.3f}"
+               if r["albedo"] else "–")
         print(f"| {name} | {r['marked']} / {r['views']} | {np.median(r['vert']):.2f} / {r['vert'].max():.2f} | "
               f"{ratio} | {r['cam_all']:.1f} / {um} | {secs} | {alb} |")
     for name, r in rows.items():
@@ -114,6 +118,9 @@ def main(argv=None):
             continue
         print(f"\n{name}: per view (largest camera error over identities, mm; evidence of identity 001): "
               + ", ".join(f"{v} {e:.1f} ({ev})" for v, e, ev in r["per_view"]))
+        if r["albedo"]:
+            print(f"{name}: albedo rel. err per identity (observable / all texels): "
+                  + ", ".join(f"{a:.3f} / {b:.3f}" for a, b in r["albedo"]))
 
 
 def run(args) -> dict:
@@ -208,7 +215,8 @@ def _summary(args, ws, out, ids, views, geos, marked, seconds, cli, read_artifac
     if args.reflectance:
         for i, g in zip(ids, geos):
             sub = ("" if args.unwrap_views == "default" else "_lmviews") + \
-                ("" if args.unwrap_flashes is None else f"_{args.unwrap_flashes}")
+                ("" if args.unwrap_flashes is None else f"_{args.unwrap_flashes}") + \
+                ("" if args.edge_margin is None else f"_m{args.edge_margin}")
             o, mp, ev = (out / f"obs{sub}" / f"{i}.npz", out / f"maps{sub}" / f"{i}.npz",
                          out / f"eval{sub}" / f"{i}.npz")
             uv = []
@@ -217,13 +225,16 @@ def _summary(args, ws, out, ids, views, geos, marked, seconds, cli, read_artifac
                                           if str(v) in DEFAULT_VIEWS and str(e).startswith("landmarks"))]
             if args.unwrap_flashes is not None:
                 uv += ["--flashes", args.unwrap_flashes]
+            if args.edge_margin is not None:
+                uv += ["--edge-margin", str(args.edge_margin)]
             cli("unwrap-uv", "--id", i, "--capture", ws / "cap9" / f"{i}.npz", "--geometry", g.path, "--face-model",
                 ws / "syn" / "face_model.npz", "--output", o, *uv)
             cli("fit-reflectance", "--id", i, "--input", o, "--output", mp)
             cli("evaluate", "truth", "--id", i, "--maps", mp, "--truth", ws / "syn" / "truth" / f"{i}.npz",
                 "--output", ev)
             e = read_artifact(ev).meta["errors"]
-            albedo.append((e["reflectance"] if "reflectance" in e else e)["raw"]["observable"]["albedo_rel"])
+            raw = (e["reflectance"] if "reflectance" in e else e)["raw"]
+            albedo.append((raw["observable"]["albedo_rel"], raw["all"]["albedo_rel"]))
     cam = np.array([np.asarray(g["err_cam_center_mm"]) for g in geos])                      # (N, V)
     um = np.array([[not str(e).startswith("landmarks") for e in g["view_evidence"]] for g in geos])
     vnames = [str(v) for v in geos[0]["view_names"]]

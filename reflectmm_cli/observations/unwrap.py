@@ -101,37 +101,81 @@ def _footprint_on_surface(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray
     M = pix.shape[0]
     if M == 0:
         return np.zeros(0, bool), 0
-    x0 = np.floor(pix[:, 0]).astype(np.int64)
-    y0 = np.floor(pix[:, 1]).astype(np.int64)
-    taps_x = np.stack([x0, x0 + 1, x0, x0 + 1], 1)
-    taps_y = np.stack([y0, y0, y0 + 1, y0 + 1], 1)
+    taps_x, taps_y = _taps(pix)
     inwin = (taps_x >= 0) & (taps_x < W) & (taps_y >= 0) & (taps_y < H)
     key = np.where(inwin, taps_y * W + taps_x, -1)
     uniq, inv = np.unique(key[inwin], return_inverse=True)
     # one primary ray per distinct tap pixel (full-frame pixel centre = window pixel + crop origin)
-    px = (uniq % W).astype(np.float64) + crop[0]
-    py = (uniq // W).astype(np.float64) + crop[1]
-    Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
-    d_cam = np.stack([px, py, np.ones_like(px)], 1) @ Kinv.T
-    d = d_cam @ np.asarray(R, dtype=np.float64)  # camera → model: Rᵀ d
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    c = -np.asarray(R, dtype=np.float64).T @ np.asarray(t, dtype=np.float64)
-    hit = scene.intersect(np.broadcast_to(c, d.shape), d)
-    tri = hit["tri"]
-    ok = tri >= 0
-    # a tap that sees the back of a triangle (through a hole of an open mesh: mouth, eyes) is not this surface
-    tv = scene.vertices[scene.triangles[np.where(ok, tri, 0)]]
-    gn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
-    ok &= np.einsum("ij,ij->i", gn, d) < 0
-    depth = np.where(ok, hit["t"].astype(np.float64) * (d @ np.asarray(R, dtype=np.float64)[2]), np.inf)
+    depth = _pixel_depths(scene, (uniq % W).astype(np.float64) + crop[0], (uniq // W).astype(np.float64) + crop[1],
+                          K, R, t)
     tap_depth = np.full(key.shape, np.inf)
     tap_depth[inwin] = depth[inv]
+    tol = _depth_tolerance(Z, ndv, K, 1.0)
+    good = np.all(np.where(inwin, np.abs(tap_depth - Z[:, None]) <= tol[:, None], True), axis=1)
+    return good, int(uniq.size)
+
+
+def _taps(pix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Integer pixel columns and rows ``(M, 4)`` of the four bilinear taps around each point of ``pix (M, 2)``."""
+    x0 = np.floor(pix[:, 0]).astype(np.int64)
+    y0 = np.floor(pix[:, 1]).astype(np.int64)
+    return np.stack([x0, x0 + 1, x0, x0 + 1], 1), np.stack([y0, y0, y0 + 1, y0 + 1], 1)
+
+
+def _depth_tolerance(Z: np.ndarray, ndv: np.ndarray, K, reach_px: float) -> np.ndarray:
+    """Depth tolerance ``(Z/f)·(1 + 1.5·√2·reach·tanθ)`` of a surface point seen at depth ``Z`` under the angle θ
+    (``cos θ = ndv``), for a pixel up to ``√2·reach`` pixels away: the surface's own depth change there, with slack."""
     f = float(np.asarray(K)[1, 1])
     cosv = np.clip(ndv, 1e-3, 1.0)
     tan = np.sqrt(np.clip(1.0 - cosv ** 2, 0.0, None)) / cosv
-    tol = (Z / f) * (1.0 + 1.5 * math.sqrt(2.0) * tan)
-    good = np.all(np.where(inwin, np.abs(tap_depth - Z[:, None]) <= tol[:, None], True), axis=1)
-    return good, int(uniq.size)
+    return (Z / f) * (1.0 + 1.5 * math.sqrt(2.0) * reach_px * tan)
+
+
+def _pixel_depths(scene, px: np.ndarray, py: np.ndarray, K, R, t) -> np.ndarray:
+    """Camera depth ``(M,)`` of the front surface that the primary ray through each full-frame pixel centre
+    ``(px, py)`` hits; ``inf`` where it misses the mesh or sees the back of a triangle (through a hole of an open
+    mesh: mouth, eyes), which is not a surface of the face."""
+    R = np.asarray(R, dtype=np.float64)
+    Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
+    d_cam = np.stack([px, py, np.ones_like(px)], 1) @ Kinv.T
+    d = d_cam @ R  # camera → model: Rᵀ d
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c = -R.T @ np.asarray(t, dtype=np.float64)
+    hit = scene.intersect(np.broadcast_to(c, d.shape), d)
+    tri = hit["tri"]
+    ok = tri >= 0
+    tv = scene.vertices[scene.triangles[np.where(ok, tri, 0)]]
+    gn = np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0])
+    ok &= np.einsum("ij,ij->i", gn, d) < 0
+    return np.where(ok, hit["t"].astype(np.float64) * (d @ R[2]), np.inf)
+
+
+def _away_from_edges(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, R, t, crop, H: int, W: int,
+                     margin: int) -> tuple[np.ndarray, int]:
+    """(M,) bool: every pixel within ``margin`` pixels of the four bilinear taps around ``pix`` (crop-window
+    pixels) sees the front of the mesh at the texel's depth (the tolerance of :func:`_depth_tolerance` for that
+    reach).  So a sample keeps ``margin`` pixels from the mesh's open border, from its silhouette and from the
+    occluding edges in front of it: a registration error of that size still samples this surface, not the
+    background, hair or the nose.  Pixels outside the window repeat its edge.  Returns the mask and the number of
+    rays cast (one per window pixel)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    M = pix.shape[0]
+    if M == 0 or margin <= 0:
+        return np.ones(M, bool), 0
+    yy, xx = np.mgrid[0:H, 0:W]
+    depth = _pixel_depths(scene, xx.reshape(-1).astype(np.float64) + crop[0],
+                          yy.reshape(-1).astype(np.float64) + crop[1], K, R, t).reshape(H, W)
+    size = 2 * int(margin) + 1
+    lo = minimum_filter(depth, size=size, mode="nearest")
+    hi = maximum_filter(depth, size=size, mode="nearest")
+    taps_x, taps_y = _taps(pix)
+    taps_x = np.clip(taps_x, 0, W - 1)
+    taps_y = np.clip(taps_y, 0, H - 1)
+    near = lo[taps_y, taps_x].min(axis=1)
+    far = hi[taps_y, taps_x].max(axis=1)
+    tol = _depth_tolerance(Z, ndv, K, 1.0 + margin)
+    return (Z - near <= tol) & (far - Z <= tol), H * W
 
 
 def _index_of(names: Sequence[str], wanted: Sequence[str], what: str, where) -> np.ndarray:
@@ -305,19 +349,20 @@ def _pair_inputs(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.nd
         olat=olat, saturated=satur, crop=crop)
 
 
-def _view_visibility(scene, x: np.ndarray, n: np.ndarray, inp: _PairInputs, cos_cut: float
+def _view_visibility(scene, x: np.ndarray, n: np.ndarray, inp: _PairInputs, cos_cut: float, edge_margin: int = 0
                      ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Which texels each view sees, and where (``vis (V, N)``, ``pix (V, N, 2)`` in stored-image pixels).
 
     A texel is seen when it faces the camera within the grazing cut-off, lies in front of it, its ray to the
     camera centre is unblocked, and all four taps of its bilinear footprint see the same surface (not a silhouette
-    or an occluding edge, where the sample would mix surfaces)."""
+    or an occluding edge, where the sample would mix surfaces).  With ``edge_margin`` > 0 every pixel within that
+    many pixels of the taps must see it too (:func:`_away_from_edges`)."""
     from reflectmm_cli.geometry import visibility
 
     V, N = len(inp.views), x.shape[0]
     vis = np.zeros((V, N), bool)
     pix_all = np.zeros((V, N, 2))
-    counts = {"rays_view": 0, "rays_depth": 0, "footprint_rejected": 0}
+    counts = {"rays_view": 0, "rays_depth": 0, "footprint_rejected": 0, "edge_rejected": 0}
     h, w = inp.olat.shape[2], inp.olat.shape[3]
     for vi in range(V):
         dv = inp.cam_centers[vi] - x
@@ -333,7 +378,14 @@ def _view_visibility(scene, x: np.ndarray, n: np.ndarray, inp: _PairInputs, cos_
                                          inp.crop[vi], h, w)
         counts["rays_depth"] += nr
         counts["footprint_rejected"] += int((~good).sum())
-        vis[vi, ci[good]] = True
+        ci = ci[good]
+        if edge_margin > 0:
+            away, nr = _away_from_edges(scene, pix[ci], Z[ci], ndv[ci], inp.K[vi], inp.R[vi], inp.t[vi],
+                                        inp.crop[vi], h, w, edge_margin)
+            counts["rays_depth"] += nr
+            counts["edge_rejected"] += int((~away).sum())
+            ci = ci[away]
+        vis[vi, ci] = True
     return vis, pix_all, counts
 
 
@@ -414,6 +466,7 @@ def _conditioning_maps(arrays: Mapping[str, np.ndarray], exponents: Sequence[flo
 
 def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
                         triangles: np.ndarray, uv: np.ndarray, *, uv_size: int = 256, grazing_deg: float = 80.0,
+                        edge_margin: int = 1,
                         exponents: Sequence[float] = DEFAULT_EXPONENTS, geometry_path=None, capture_path=None,
                         with_conditioning: bool = True, select_views: Sequence[str] | None = None,
                         select_flashes: Sequence[str] | None = None
@@ -430,6 +483,8 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
             ``cam_centers``, ``flash_ids``, ``flash_pos``, ``flash_intensity``, ``image_size``).
         triangles, uv: the face model's topology and texture coordinates.
         grazing_deg: views with ``n·v ≤ cos(grazing_deg)`` do not see the texel.
+        edge_margin: pixels that a view's sample keeps from the mesh's border, silhouette and occluding edges
+            (0: only its bilinear footprint must lie on the surface; the stage's default is 1).
         select_views: the capture views to unwrap (default all; the stage leaves out 08_1 / 19_1).
         select_flashes: the capture flashes to unwrap (default all).
     Returns:
@@ -437,6 +492,8 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     """
     if not 0.0 < grazing_deg <= 90.0:
         raise ReflectmmError(f"--grazing-deg must be in (0, 90], got {grazing_deg}")
+    if int(edge_margin) != edge_margin or edge_margin < 0:
+        raise ReflectmmError(f"--edge-margin must be a whole number of pixels ≥ 0, got {edge_margin}")
     verts = np.asarray(geometry["vertices"], dtype=np.float64)
     if verts.ndim != 2 or verts.shape[1] != 3:
         raise ReflectmmError(f"geometry 'vertices' must be (N, 3), got {verts.shape}", geometry_path)
@@ -456,7 +513,8 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
     n = g.normal.reshape(-1, 3)[idx].astype(np.float64)
     scene = RayScene(verts, triangles, vnorm)
 
-    vis, pix_all, view_counts = _view_visibility(scene, x, n, inp, math.cos(math.radians(grazing_deg)))
+    vis, pix_all, view_counts = _view_visibility(scene, x, n, inp, math.cos(math.radians(grazing_deg)),
+                                                 int(edge_margin))
     seen = vis.any(0)
     lit, flash_counts = _flash_lighting(scene, x, n, inp.flash_pos, seen)
     radiance, observed, saturated, inside_any = _sample_pairs(inp, vis, lit, pix_all, idx, S)
@@ -477,6 +535,7 @@ def unwrap_observations(capture: Mapping[str, np.ndarray], geometry: Mapping[str
               "rays_view": int(view_counts["rays_view"]), "rays_shadow": int(flash_counts["rays_shadow"]),
               "rays_depth": int(view_counts["rays_depth"]),
               "footprint_rejected": int(view_counts["footprint_rejected"]),
+              "edge_margin": int(edge_margin), "edge_rejected": int(view_counts["edge_rejected"]),
               "skipped_backfacing_light": int(flash_counts["skipped_backfacing_light"]),
               "skipped_unseen": int(flash_counts["skipped_unseen"]),
               "texels_unseen": int((~seen).sum()), "texels_outside_images": int((seen & ~inside_any).sum()),

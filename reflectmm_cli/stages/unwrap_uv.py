@@ -25,6 +25,9 @@ PARAMS = (
     Param("uv_size", "int", 256, range=(8, MAX_UV_SIZE), unit="texels", help="UV map size S."),
     Param("grazing_deg", "float", 80.0, range=(0.0, 90.0), low_open=True, unit="degrees",
           help="A view sees a texel only if the angle between normal and view direction is below this."),
+    Param("edge_margin", "int", 1, range=(0, 64), unit="px",
+          help="Pixels a view's sample keeps from the mesh's border, silhouette and occluding edges, so that a "
+               "registration error of that size does not sample the background, hair or another surface."),
     replace(EXPONENTS, help="Lobe exponents used for the conditioning map."),
     Param("views", "strs", None,
           help="Capture views to unwrap, comma separated, or 'all' (default: every view but the raised 08_1 / "
@@ -91,6 +94,7 @@ def run(ctx: StageContext) -> list[Path]:
                                          select_flashes=reflectance_flashes(cap.arrays, geo.arrays,
                                                                             p.get("flashes"), geo_path),
                                          uv_size=p["uv_size"], grazing_deg=p["grazing_deg"],
+                                         edge_margin=p["edge_margin"],
                                          exponents=tuple(p["exponents"]),
                                          geometry_path=geo_path, capture_path=cap_path)
     out, prev = _outputs(ctx)
@@ -107,5 +111,6 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 # version 2: the raised cameras 08_1 / 19_1 are left out by default (issue 13)
-STAGE = Stage(VERB, version=2, run=run, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
+# version 3: samples keep 1 px from the mesh's border, silhouette and occluding edges (--edge-margin)
+STAGE = Stage(VERB, version=3, run=run, per_identity=True, outputs=_outputs, input_files=_resolved_inputs,
               params=PARAMS, help="capture + geometry -> per-texel OLAT observations in UV space", inputs=INPUTS)

@@ -90,7 +90,7 @@ def test_occluder_visibility_and_shadow(tmp_path, cli):
     d = (flash - top) / np.linalg.norm(flash - top)
     occ = quad(top + 25 * d, d, 14.0)
     scene = make_scene(tmp_path / "mp", tmp_path / "ws", occluder=occ)
-    obs = _pipeline(cli, tmp_path, scene)
+    obs = _pipeline(cli, tmp_path, scene, "--edge-margin", 0)  # the footprint test alone (the margin: below)
     geo = scene["geometry"]
     m = obs["mask"]
     x = obs["position"][m].astype(np.float64)
@@ -223,3 +223,62 @@ def test_bilinear_saturation_any_of_four():
     assert inside.all()
     # taps: (1..2,1..2) touches (2,2); (2..3,2..3) touches; (0..1,0..1) does not; (2..3, 1..2) touches (2,2)
     assert s[0].tolist() == [True, True, False, True]
+
+
+def _bad_pixels(geo, vi, occ, H, W, crop):
+    """(H, W) bool, independent of the unwrapper's rays: the pixel centre's ray misses the cap (analytic sphere
+    outside the cap's square) or the occluder hides the point it hits."""
+    K, R, c = geo["K"][vi], geo["R"][vi], geo["cam_centers"][vi]
+    ys, xs = np.mgrid[0:H, 0:W].astype(float)
+    px = np.stack([xs + crop[0], ys + crop[1], np.ones_like(xs)], -1).reshape(-1, 3)
+    d = (px @ np.linalg.inv(K).T) @ R
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    b = d @ c
+    disc = b * b - (c @ c - RADIUS ** 2)
+    t = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), np.nan)
+    x = c + np.nan_to_num(t)[:, None] * d
+    on_cap = (disc > 0) & (np.abs(x[:, 0]) <= 0.65 * RADIUS) & (np.abs(x[:, 1]) <= 0.65 * RADIUS)
+    return (~on_cap | seg_hits_quad(x, c, occ[0])).reshape(H, W)
+
+
+def test_edge_margin_keeps_samples_away_from_borders_and_outlines(tmp_path, cli):
+    """--edge-margin m: no seen texel has a pixel that misses the cap or sees the occluder within m pixels of its
+    bilinear taps (checked against analytic rays), the texels far from every edge stay seen, and the margin only
+    removes texels."""
+    flash = np.array([250.0, 180.0, 300.0])
+    top = np.array([0.0, 0.0, RADIUS])
+    d = (flash - top) / np.linalg.norm(flash - top)
+    occ = quad(top + 25 * d, d, 14.0)
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws", occluder=occ)
+    base = _pipeline(cli, tmp_path, scene, "--edge-margin", 0)
+    assert base.meta["report"]["edge_rejected"] == 0
+    m = 2
+    obs = _pipeline(cli, tmp_path, scene, "--edge-margin", m)
+    assert obs.params["edge_margin"] == m and obs.meta["report"]["edge_rejected"] > 0
+    assert not (obs["visible"] & ~base["visible"]).any()
+    cap = read_artifact(tmp_path / "ws" / "preprocess-multipie" / "001.npz", "capture")
+    H, W = cap["olat"].shape[2:4]
+    geo = scene["geometry"]
+    mask = obs["mask"]
+    x = obs["position"][mask].astype(np.float64)
+    for vi in range(2):
+        crop = cap["crop_origin"][vi]
+        bad = _bad_pixels(geo, vi, occ, H, W, crop)
+        # Chebyshev distance of every pixel to the nearest bad pixel
+        from scipy.ndimage import distance_transform_cdt
+        dist = distance_transform_cdt(~bad, metric="chessboard")
+        pix, _ = project(x, geo["K"][vi], geo["R"][vi], geo["t"][vi])
+        pix -= crop
+        x0 = np.clip(np.floor(pix[:, 0]).astype(int), 0, W - 2)
+        y0 = np.clip(np.floor(pix[:, 1]).astype(int), 0, H - 2)
+        near = np.min([dist[y0 + j, x0 + i] for j in (0, 1) for i in (0, 1)], axis=0)  # taps to nearest bad
+        seen = obs["visible"][vi][mask]
+        seen0 = base["visible"][vi][mask]
+        assert seen.sum() > 0.5 * seen0.sum()
+        # the window of the taps dilated by m holds no bad pixel (a facet of the mesh may differ from the sphere
+        # by a fraction of a pixel along the cap's border)
+        assert np.mean(near[seen] <= m) < 0.003, (vi, np.mean(near[seen] <= m))
+        assert (near[seen] >= m).all()
+        # far from every edge the margin changes nothing
+        far = near > m + 1
+        assert (seen[far] == seen0[far]).mean() > 0.997
