@@ -157,8 +157,11 @@ def fit_diffuse_only(obs: Mapping[str, np.ndarray], pair_mask: np.ndarray | None
     observations pooled with weight ``symmetry`` (as fit-reflectance's mirror pooling: in ``symmetry_mode``
     ``ill-posed`` only for texels without an observation of their own — C alone needs one —, ``all``: every
     texel; ``adaptive`` is treated as ``ill-posed`` by this baseline: it has no per-texel noise estimate to
-    measure asymmetry with). Returns (3,S,S)."""
+    measure asymmetry with). Texels of the mask with no observation of their own or of their mirror are filled
+    from their solved neighbours, as fit-reflectance fills its flagged texels (:func:`fill_flagged`), so that the
+    baselines cover the same texels. Returns (3,S,S)."""
     from reflectmm_cli.reflectance.design import design_columns, mirror_index
+    from reflectmm_cli.reflectance.fit import fill_flagged
 
     S = np.asarray(obs["position"]).shape[0]
     P = np.asarray(obs["pair_view"]).shape[0]
@@ -196,7 +199,12 @@ def fit_diffuse_only(obs: Mapping[str, np.ndarray], pair_mask: np.ndarray | None
             out[:, ch] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
     out = np.clip(out, 0.0, None)
     out[~mask] = 0.0
-    return out.T.reshape(3, S, S)
+    out = out.T.reshape(3, S, S)
+    solved = (ok.any(1) & mask).reshape(S, S)
+    empty = mask.reshape(S, S) & ~solved
+    if empty.any() and solved.any():
+        out, _ = fill_flagged(out, solved, empty, 0.0, np.zeros_like(out))
+    return out
 
 
 @dataclass

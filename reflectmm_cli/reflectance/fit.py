@@ -59,8 +59,8 @@ NORMAL_STEPS = 2
 #: Default σ (degrees) of the normal refinement's prior towards the geometric normal.
 DEFAULT_NORMAL_SIGMA = 5.0
 
-__all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution", "FitMapsConfig",
-           "SolverConfig", "SymmetryConfig", "PriorConfig", "AdamConfig", "NormalRefinementConfig"]
+__all__ = ["ReflectanceMaps", "fit_maps", "render_uv", "maps_from_arrays", "normalized_convolution", "fill_flagged",
+           "FitMapsConfig", "SolverConfig", "SymmetryConfig", "PriorConfig", "AdamConfig", "NormalRefinementConfig"]
 
 
 @dataclass
@@ -399,9 +399,11 @@ class _Problem:
         return out
 
 
-def _fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, symmetry: float,
+def fill_flagged(xmap: np.ndarray, solved: np.ndarray, flagged: np.ndarray, symmetry: float,
                   fallback: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Fill flagged texels of (m,S,S) ``xmap`` from the mirror, then solved neighbours, then ``fallback``."""
+    """Fill the ``flagged (S,S)`` texels of ``xmap (m,S,S)`` from their mirror texel where it is ``solved``,
+    then by the normalised convolution of the solved neighbours (σ = 1.5 texels, doubled until reached), then
+    from ``fallback (m,S,S)``.  Returns the filled map and the counts of each kind."""
     out = xmap.copy()
     todo = flagged.copy()
     n_mirror = 0
@@ -896,14 +898,14 @@ def _adam(tp: _TexelProblem) -> tuple[np.ndarray, dict]:
 
 
 def _filled_maps(tp: _TexelProblem, x: np.ndarray, prior_map: np.ndarray | None) -> tuple[np.ndarray, dict]:
-    """The solution (m, S, S) with the flagged texels filled (:func:`_fill_flagged`; the fallback is the prior
+    """The solution (m, S, S) with the flagged texels filled (:func:`fill_flagged`; the fallback is the prior
     map, else the median solution), clipped at 0, zero outside the mask; and the fill statistics."""
     to_map, mask = tp.texels.to_map, tp.texels.mask
     m = x.shape[1]
     xmap = to_map(x)  # (m,S,S)
     fallback = prior_map if prior_map is not None else np.broadcast_to(
         np.median(x[tp.solve], axis=0)[:, None, None] if tp.solve.any() else np.zeros((m, 1, 1)), xmap.shape)
-    xfill, finfo = _fill_flagged(xmap, to_map(tp.solve.astype(float)) > 0, to_map(tp.flag.astype(float)) > 0,
+    xfill, finfo = fill_flagged(xmap, to_map(tp.solve.astype(float)) > 0, to_map(tp.flag.astype(float)) > 0,
                                  tp.mirror.sym, fallback)
     return np.where(mask[None], np.maximum(xfill, 0.0), 0.0), finfo
 

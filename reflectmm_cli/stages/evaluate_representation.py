@@ -180,5 +180,6 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 # version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail version 4: adaptive
-STAGE = Stage(VERB, version=5, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
+# version 6: the diffuse-only baseline fills the texels without data from their neighbours (as fit-reflectance)
+STAGE = Stage(VERB, version=6, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
               help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes", inputs=INPUTS)

@@ -254,3 +254,27 @@ def test_albedo_rel_median_is_the_typical_texel_not_the_rms():
     assert e["albedo_rel_median"] == pytest.approx(0.02)
     rms = np.sqrt(((C - Ct) ** 2).mean()) / np.sqrt((Ct ** 2).mean())
     assert e["albedo_rel"] == pytest.approx(rms) and e["albedo_rel"] > 1.0
+
+
+def test_diffuse_only_fills_texels_without_data_from_neighbours():
+    """A texel with no observation of its own or of its mirror takes its solved neighbours' albedo (as
+    fit-reflectance's flagged texels), not 0: on a constant albedo the filled value is that constant."""
+    S = 16
+    obs, truth = simulate_observations(size=S, seed=3, weights=np.zeros((3, S, S)), dtype=np.float32,
+                                       return_truth=True)
+    obs = dict(obs)
+    const = np.array([0.5, 0.35, 0.3])[:, None, None] * np.ones((3, S, S))
+    # radiance of a constant albedo: scale each observation by const / truth
+    ratio = np.where(truth["albedo"] > 0, const / np.where(truth["albedo"] > 0, truth["albedo"], 1), 0)
+    obs["radiance"] = (obs["radiance"] * ratio.transpose(1, 2, 0)[None]).astype(np.float32)
+    hole = np.zeros((S, S), bool)
+    hole[6:9, 6:10] = True  # symmetric about the vertical axis: the mirror has no data either
+    hole |= hole[:, ::-1]
+    obs["observed"] = obs["observed"] & ~hole[None]
+    empty = hole & obs["mask"]
+    assert empty.sum() >= 12
+    a = fit_diffuse_only(obs, symmetry=1.0, loss="l2")
+    np.testing.assert_allclose(a[:, empty], const[:, empty], rtol=1e-3)
+    seen = obs["observed"].any(0)
+    np.testing.assert_allclose(a[:, seen], const[:, seen], rtol=1e-3)
+    assert (a[:, ~obs["mask"]] == 0).all()
