@@ -19,7 +19,7 @@ landmarks), the wall time of calibrate-rig + fit-geometry, and with ``--reflecta
     python benchmarks/bench_unmarked.py --workspace W [--identities 3] [--size 320x240] [--radius 1300]
         [--focal 500] [--skin single] [--seed 1] [--sets all,side,detect] [--fit-args "..."] [--reflectance]
         [--unwrap-views landmarks] [--unwrap-flashes landmarked] [--edge-margin M] [--table-distance-scale 0.9]
-        [--cal-args "..."] [--reuse]
+        [--cal-args "..."] [--reuse] [--detect-face-model FM] [--detect-args "..."] [--tag T]
 
 On the workspace of such a run (sets ``all`` and ``side``), the cameras no identity annotates
 (docs/benchmarks.md, "Issue 23 §1: joint registration"): ``--cameras`` (centre and aim errors per path: control,
@@ -62,6 +62,12 @@ def main(argv=None):
     ap.add_argument("--table-distance-scale", type=float, default=0.9,
                     help="the nominal table's camera distances against the true rig's (1 = a measured distance)")
     ap.add_argument("--tag", default="", help="suffix of the result folders (to compare fit arguments)")
+    ap.add_argument("--detect-face-model", default=None,
+                    help="face model of the detect set (e.g. one from `face-model embed-landmarks`); the others "
+                         "keep the world's")
+    ap.add_argument("--detect-args", default="",
+                    help="extra calibrate-rig and fit-geometry arguments of the detect set (e.g. "
+                         "'--landmark-weights jaw=0')")
     ap.add_argument("--reflectance", action="store_true")
     ap.add_argument("--unwrap-flashes", default=None, choices=("landmarked",),
                     help="unwrap-uv --flashes: only the flashes on cameras that landmarks placed")
@@ -195,15 +201,20 @@ def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> di
     if args.reuse and all((out / "geo" / f"{i}.npz").is_file() for i in ids):
         geos = [read_artifact(out / "geo" / f"{i}.npz", "geometry") for i in ids]
         return _summary(args, ws, out, ids, views, geos, marked, float("nan"), cli, read_artifact)
-    cli("calibrate-rig", *[a for c in caps for a in ("--capture", c)], "--face-model", ws / "syn" / "face_model.npz",
+    fm = ws / "syn" / "face_model.npz"
+    extra = []
+    if name == "detect":
+        fm = Path(args.detect_face_model) if args.detect_face_model else fm
+        extra = shlex.split(args.detect_args)
+    cli("calibrate-rig", *[a for c in caps for a in ("--capture", c)], "--face-model", fm,
         "--rig", ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px, "-o", out / "cal" / "rig.npz",
-        *shlex.split(args.cal_args))
+        *shlex.split(args.cal_args), *extra)
     geos = []
     for i, c in zip(ids, caps):
         g = out / "geo" / f"{i}.npz"
-        cli("fit-geometry", "--id", i, "--capture", c, "--face-model", ws / "syn" / "face_model.npz", "--rig",
+        cli("fit-geometry", "--id", i, "--capture", c, "--face-model", fm, "--rig",
             out / "cal" / "rig.toml", "--truth", ws / "syn" / "truth" / f"{i}.npz", "--no-overlay", "-o", g,
-            *shlex.split(args.fit_args))
+            *shlex.split(args.fit_args), *extra)
         geos.append(read_artifact(g, "geometry"))
     return _summary(args, ws, out, ids, views, geos, marked, time.perf_counter() - t0, cli, read_artifact)
 

@@ -5,6 +5,8 @@
 * ``face-model import BFM.mat --out FILE`` — BFM09 ``01_MorphableModel.mat`` (+ ``Exp_Pca.bin``) or
   Deep3DFaceRecon ``BFM_model_front.mat`` → ``face-model`` artifact, computing a symmetric UV layout if the model
   has none and reporting its distortion (stage ``face-model-import``);
+* ``face-model embed-landmarks --face-model FM --capture C… --geometry G… --out FILE`` — the landmark vertices
+  moved to where a detector puts the points, measured on views of known geometry (stage ``face-model-embed``);
 * ``face-model export FILE --out mesh.obj|.ply`` — a mesh with UVs through trimesh (optionally for given
   shape/expression coefficients);
 * ``face-model info FILE`` — sizes and provenance.
@@ -22,7 +24,7 @@ from reflectmm_cli.commands._common import (emit, given_params, json_option, par
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.face_model_tools import export_mesh
 from reflectmm_cli.geometry.render_face import parse_coeffs
-from reflectmm_cli.stages import face_model_create, face_model_import
+from reflectmm_cli.stages import face_model_create, face_model_embed, face_model_import
 
 
 @click.group("face-model")
@@ -65,6 +67,29 @@ def import_cmd(source, out, exp, exp_std, exp_index, landmarks, workspace, as_js
             inputs[role] = [p]
     paths = run_stage_cli(face_model_import.VERB, workspace=workspace, output=out, inputs=inputs,
                           params=given_params(kw, face_model_import.PARAMS))
+    emit(paths, as_json)
+
+
+@face_model_group.command("embed-landmarks")
+@click.option("--face-model", "face_model", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="The face model whose landmark vertices move (artifact or BFM .mat).")
+@click.option("--capture", "-i", "captures", multiple=True, required=True,
+              type=click.Path(dir_okay=False, path_type=Path),
+              help="A capture artifact whose landmarks come from the detector (repeatable).")
+@click.option("--geometry", "geometries", multiple=True, required=True,
+              type=click.Path(dir_okay=False, path_type=Path),
+              help="The geometry of a capture's identity: fitted from trusted landmarks, or the truth "
+                   "(fit-geometry --from-truth) on synthetic data (repeatable; matched by identity).")
+@click.option("--out", "-o", "out", type=click.Path(dir_okay=False, path_type=Path), required=True)
+@param_options(face_model_embed.PARAMS)
+@workspace_option
+@json_option
+def embed_cmd(face_model, captures, geometries, out, workspace, as_json, **kw):
+    """Move a face model's landmark vertices to where a detector puts the 68 points, measured on views whose
+    geometry is known; the jaw keeps its vertices by default."""
+    inputs = {"face_model": [face_model], "capture": list(captures), "geometry": list(geometries)}
+    paths = run_stage_cli(face_model_embed.VERB, workspace=workspace, output=out, inputs=inputs,
+                          params=given_params(kw, face_model_embed.PARAMS))
     emit(paths, as_json)
 
 

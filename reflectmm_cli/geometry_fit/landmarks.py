@@ -56,6 +56,39 @@ def landmark_weights(group_weights: dict[str, float] | None = None) -> np.ndarra
     return w
 
 
+def parse_group_weights(items) -> dict[str, float]:
+    """``["jaw=0", "eyes=2,brows=0.5"]`` or a mapping → ``{group: weight}`` for :func:`landmark_weights`.
+
+    Groups are those of :data:`GROUPS`; a weight is a finite number ≥ 0 (0 leaves the group out of the fit)."""
+    from collections.abc import Mapping
+
+    from reflectmm_cli.params import parse_list
+
+    if isinstance(items, Mapping):
+        pairs = [(str(k), v) for k, v in items.items()]
+    else:
+        pairs = []
+        for it in ([items] if isinstance(items, str) else items or []):
+            for tok in parse_list(str(it), "--landmark-weights", allow_empty=True):
+                if "=" not in tok:
+                    raise ReflectmmError(f"--landmark-weights {tok!r}: expected GROUP=WEIGHT (e.g. jaw=0); groups: "
+                                         f"{', '.join(GROUPS)}")
+                k, v = tok.split("=", 1)
+                pairs.append((k.strip(), v.strip()))
+    out: dict[str, float] = {}
+    for k, v in pairs:
+        if k not in GROUPS:
+            raise ReflectmmError(f"--landmark-weights {k}={v}: unknown group {k!r}; groups: {', '.join(GROUPS)}")
+        try:
+            w = float(v)
+        except (TypeError, ValueError):
+            w = float("nan")
+        if not np.isfinite(w) or w < 0:
+            raise ReflectmmError(f"--landmark-weights {k}={v}: the weight must be a number ≥ 0")
+        out[k] = w
+    return out
+
+
 def find_landmark_file(folder: str | Path, view_name: str) -> Path | None:
     """The landmark file of a view in ``folder``: ``<view>.{pts,txt,npy}`` or a Multi-PIE style
     ``*_<CCC>_00_lm.{pts,txt,npy}`` (searched recursively); None if there is none."""

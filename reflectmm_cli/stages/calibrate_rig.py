@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
+from reflectmm_cli.geometry_fit.landmarks import parse_group_weights
 from reflectmm_cli.geometry_fit.joint import JointOptions, check_pairs, register_calibration
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
@@ -61,6 +62,8 @@ PARAMS = (
          help="assumed landmark noise: balances landmarks against the shape/expression prior."),
     _cfg("outlier_px", "float", range=(0.0, None), low_open=True, unit="px",
          help="landmarks further than this from the fit are reported as outliers."),
+    Param("landmark_weights", "custom", {}, convert=parse_group_weights, multiple=True, metavar="GROUP=W",
+          help="Weight of a landmark group (as fit-geometry's; repeatable or comma separated); 0 leaves it out."),
     _cfg("max_iters", "int", range=(1, 100000), option="", help="Levenberg-Marquardt iterations."),
     _cfg("distance_sigma_rel", "float", range=(0.0, None), option="--distance-sigma",
          help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "
@@ -91,7 +94,8 @@ def config_from_params(p: dict) -> CalibrationConfig:
         mode = "fixed" if p.get("focal") is not None else "shared"
     return CalibrationConfig(focal=mode, focal_px=p.get("focal"), loss=p["loss"], loss_scale_px=p["loss_scale_px"],
                              landmark_sigma_px=p["landmark_sigma_px"], outlier_px=p["outlier_px"],
-                             max_iters=p["max_iters"], distance_sigma_rel=p["distance_sigma_rel"])
+                             max_iters=p["max_iters"], distance_sigma_rel=p["distance_sigma_rel"],
+                             group_weights=dict(p["landmark_weights"]) or None)
 
 
 def run(ctx: StageContext) -> list[Path]:

@@ -18,6 +18,7 @@ from reflectmm_cli.artifacts import check_identity, path_for_meta, read_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit import FitConfig
 from reflectmm_cli.geometry_fit.identity import fit_identity, geometry_from_truth
+from reflectmm_cli.geometry_fit.landmarks import parse_group_weights
 from reflectmm_cli.params import Param
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
@@ -56,6 +57,10 @@ PARAMS = (
     _cfg("photo_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per photometric round."),
     _cfg("landmark_sigma_px", "float", range=(1e-3, None), option="--landmark-sigma", unit="px",
          help="assumed landmark noise: balances landmarks against the priors."),
+    Param("landmark_weights", "custom", {}, convert=parse_group_weights, multiple=True, metavar="GROUP=W",
+          help="Weight of a landmark group (jaw, brows, nose_bridge, nose_base, eyes, mouth_outer, mouth_inner; "
+               "repeatable or comma separated); 0 leaves it out. jaw=0 for a detector's landmarks, whose jaw "
+               "follows the silhouette."),
     _cfg("huber_px", "float", range=(0.0, None), low_open=True, option="", unit="px",
          help="Huber threshold of the landmark residual."),
     _cfg("w_landmark", "float", range=(0.0, None), option="", help="weight of the landmark term."),
@@ -132,6 +137,8 @@ def _outputs(ctx: StageContext) -> list[Path]:
 def config_from_params(params: dict) -> FitConfig:
     """The FitConfig of resolved stage params."""
     kw = {k: v for k, v in params.items() if k in _CONFIG_FIELDS and v is not None}
+    if params.get("landmark_weights"):
+        kw["group_weights"] = dict(params["landmark_weights"])
     for k in ("photo_blur_px", "register_blur_px"):
         if k in kw:
             kw[k] = tuple(float(x) for x in kw[k])
@@ -165,6 +172,7 @@ def run(ctx: StageContext) -> list[Path]:
         rig_in = ctx.input_list("rig", required=False)
         arrays, report = geometry_from_truth(truth_path, rig_path=rig_in[0] if rig_in else None, **kw)
         report["truth_file"] = path_for_meta(truth_path, out)
+        report["identity"] = str(identity)  # as a fitted geometry records it (later stages match by identity)
         write_artifact(out, "geometry", arrays, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                        producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
         log.info("fit-geometry %s: ground-truth geometry from %s (%d views)", identity, truth_path, report["views"])

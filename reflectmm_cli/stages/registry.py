@@ -27,6 +27,7 @@ STAGE_MODULES: dict[str, str] = {
     "prepare-wild": "prepare_wild",
     "face-model-create": "face_model_create",
     "face-model-import": "face_model_import",
+    "face-model-embed": "face_model_embed",
     "preprocess-multipie": "preprocess_multipie",
     "calibrate-rig": "calibrate_rig",
     "fit-geometry": "fit_geometry",

@@ -344,3 +344,55 @@ def test_flash_rounds_need_flash_images(world, cli, tmp_path):
     msg = _err(r)
     assert "flash images ('olat')" in msg and str(bad) in msg
     assert not out.exists()
+
+
+def test_face_model_embed_landmarks_end_to_end(world, cli, tmp_path):
+    """face-model embed-landmarks: a 'detector' whose inner points are other vertices of the true mesh (each
+    landmark moved to the vertex nearest 6 mm above it) is measured back through the CLI, from the capture's
+    landmarks and the true geometry; the jaw keeps its vertices; a capture without a geometry of its identity is
+    a one-line error and writes nothing."""
+    truth = read_artifact(world / "syn" / "truth" / "001.npz", "synth-truth")
+    fm_path = world / "syn" / "face_model.npz"
+    fm = read_artifact(fm_path, "face-model")
+    mean, lmk = np.asarray(fm["mean_shape"], float), np.asarray(fm["landmarks"])
+    front = mean[:, 2] > np.percentile(mean[:, 2], 40)
+    det = lmk.copy()
+    for j in range(17, 68):
+        p = mean[lmk[j]] + [0.0, 6.0, 0.0]
+        det[j] = np.flatnonzero(front)[np.argmin(((mean[front] - p) ** 2).sum(1))]
+    cap = read_artifact(world / "preprocess-multipie" / "001.npz", "capture")
+    names = list(truth["camera_names"])
+    lm = np.full((len(cap["view_names"]), 68, 2), np.nan)
+    for k, v in enumerate(cap["view_names"]):
+        i = names.index(str(v))
+        lm[k] = project(np.asarray(truth["vertices"], float)[det], truth["K"][i], truth["R"][i], truth["t"][i])[0]
+    arrays = dict(cap.arrays)
+    arrays["landmarks"] = lm
+    cap2 = write_artifact(tmp_path / "cap_det.npz", "capture", arrays, extra_meta={"report": {"identity": "001"}})
+    geo = tmp_path / "gt.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--from-truth", world / "syn" / "truth" / "001.npz",
+            "-o", geo)
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "fm_det.npz"
+    r = cli("face-model", "embed-landmarks", "--face-model", fm_path, "--capture", cap2, "--geometry", geo,
+            "-o", out, "-w", tmp_path)
+    assert r.exit_code == 0, r.stderr
+    new = read_artifact(out, "face-model")
+    got = np.asarray(new["landmarks"])
+    # a sample point of a vertex is hit within its triangle fan: the nearest vertex is the detector's, or one at
+    # most a grid step away on this 2000-vertex model
+    err = np.linalg.norm(mean[got[17:]] - mean[det[17:]], axis=1)
+    assert np.median(err) == 0.0 and err.max() < 4.0, err
+    np.testing.assert_array_equal(got[:17], lmk[:17])
+    emb = new.meta["info"]["landmark_embedding"]
+    assert emb["views"] == 5 and emb["per_group"]["eyes"]["moved"] >= 10
+    np.testing.assert_array_equal(new["mean_shape"], fm["mean_shape"])
+    # a capture whose identity has no geometry: refused, nothing written
+    arrays_other = dict(arrays)
+    cap3 = write_artifact(tmp_path / "cap_other.npz", "capture", arrays_other,
+                          extra_meta={"report": {"identity": "002"}})
+    bad = tmp_path / "never.npz"
+    r = cli("face-model", "embed-landmarks", "--face-model", fm_path, "--capture", cap3, "--geometry", geo,
+            "-o", bad, "-w", tmp_path)
+    assert r.exit_code != 0 and "no geometry of identity 002" in r.stderr and not bad.exists()
+    assert len(r.stderr.strip().splitlines()) == 1

@@ -217,3 +217,41 @@ def test_photometric_stage_improves_a_noisy_landmark_fit():
     assert np.all(np.isnan(lm_only.photo_residual))
     assert np.all(photo.photo_residual < 0.01) and np.all(photo.visible_count > 100)
     assert err(photo) < 0.7 * err(lm_only), (err(photo), err(lm_only))
+
+
+def test_zero_group_weight_equals_leaving_the_group_out():
+    """--landmark-weights jaw=0: jaw points pushed 25 px outwards (a detector's jaw on the silhouette) change
+    nothing; the fit equals the one with the jaw points missing, and with their default weight the push shows."""
+    from reflectmm_cli.geometry_fit.landmarks import GROUPS
+
+    m, zs, ze, verts, K, R, t, Rn, tn, lm = _scene()
+    a, b = GROUPS["jaw"]
+    pushed = lm.copy()
+    centre = lm[:, 27:68].mean(1, keepdims=True)
+    out = pushed[:, a:b] - centre
+    pushed[:, a:b] = centre + out * (1 + 25.0 / np.linalg.norm(out, axis=-1, keepdims=True))
+    missing = lm.copy()
+    missing[:, a:b] = np.nan
+    off = _fit(m, K, Rn, tn, pushed, group_weights={"jaw": 0.0})
+    gone = _fit(m, K, Rn, tn, missing)
+    kept = _fit(m, K, Rn, tn, pushed)
+    # (the two start from slightly different poses: the initial pose uses every point; optimiser tolerance)
+    np.testing.assert_allclose(off.vertices, gone.vertices, atol=0.01)
+    np.testing.assert_allclose(off.cam_centers, gone.cam_centers, atol=0.05)
+    err = lambda f: np.sqrt(((f.vertices - verts) ** 2).sum(-1).mean())  # noqa: E731
+    assert err(kept) > 3 * err(off), (err(kept), err(off))
+
+
+def test_parse_group_weights():
+    from reflectmm_cli.geometry_fit.landmarks import landmark_weights, parse_group_weights
+
+    assert parse_group_weights(["jaw=0", "eyes=2.5,brows=1"]) == {"jaw": 0.0, "eyes": 2.5, "brows": 1.0}
+    assert parse_group_weights({"jaw": 0}) == {"jaw": 0.0}
+    assert parse_group_weights("jaw=0") == {"jaw": 0.0}
+    w = landmark_weights(parse_group_weights(["jaw=0"]))
+    assert (w[:17] == 0).all() and (w[17:] > 0).all()
+    for bad, msg in (("chin=0", "unknown group 'chin'"), ("jaw", "expected GROUP=WEIGHT"),
+                     ("jaw=-1", "must be a number ≥ 0"), ("jaw=x", "must be a number ≥ 0"),
+                     ("jaw=nan", "must be a number ≥ 0")):
+        with pytest.raises(ReflectmmError, match=msg):
+            parse_group_weights([bad])

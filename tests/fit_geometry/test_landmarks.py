@@ -60,3 +60,19 @@ def test_weights_by_group():
     assert landmark_weights({"jaw": 0.0})[:17].sum() == 0.0
     with pytest.raises(ReflectmmError, match="unknown landmark group"):
         landmark_weights({"ears": 1.0})
+
+
+def test_landmark_weights_reach_both_stages_configs():
+    """fit-geometry and calibrate-rig take --landmark-weights (CLI or recipe) into their configs' group weights;
+    a bad group is refused the same way in both."""
+    from reflectmm_cli.params import resolve_params
+    from reflectmm_cli.stages import calibrate_rig, fit_geometry
+
+    for stage in (fit_geometry, calibrate_rig):
+        p = resolve_params(stage.PARAMS, {"landmark_weights": ["jaw=0", "eyes=3"]})
+        assert stage.config_from_params(p).group_weights == {"jaw": 0.0, "eyes": 3.0}
+        p = resolve_params(stage.PARAMS, {"landmark_weights": {"jaw": 0}})  # a recipe's inline table
+        assert stage.config_from_params(p).group_weights == {"jaw": 0.0}
+        assert not stage.config_from_params(resolve_params(stage.PARAMS, {})).group_weights
+        with pytest.raises(Exception, match="unknown group 'chin'"):
+            resolve_params(stage.PARAMS, {"landmark_weights": ["chin=1"]})

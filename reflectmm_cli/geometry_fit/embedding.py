@@ -1,0 +1,146 @@
+"""Where a landmark detector puts the 68 iBUG points on a face model: a static landmark embedding.
+
+A face model names one vertex per iBUG landmark (``FaceModel.landmarks``). A detector has its own idea of each
+point (where a corner of the eye is on a shaded face, how far the brow line runs), and the fit then pulls the face
+until the model's vertices sit on the detector's points: a systematic offset of a few millimetres per point
+becomes a wrong face size and wrong camera distances. Every 3DMM pipeline fixes the embedding for the detector it
+uses; this module measures it from views whose geometry is known.
+
+Each detected point of such a view (a fitted or true mesh in model space and the view's ``K, R, t``) is cast as a
+ray through its pixel onto that mesh. The hit, as a triangle and barycentric coordinates, is carried to the
+model's mean shape (the topology is shared), so every identity and view votes in one frame. Per landmark the
+component-wise median of those places, snapped to the nearest mean-shape vertex, is the new landmark vertex.
+
+The jaw points (0–16) of a detector follow the face's silhouette, not a surface point; a static embedding cannot
+hold them, so by default they keep their vertices (fit them with ``--landmark-weights jaw=0``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry_fit.landmarks import GROUPS
+from reflectmm_cli.landmarks import N_LANDMARKS
+
+__all__ = ["LandmarkEmbedding", "landmark_hits", "embed_landmarks", "DEFAULT_EMBED_GROUPS"]
+
+#: The groups that a static embedding can hold (every group but the jaw's silhouette points).
+DEFAULT_EMBED_GROUPS: tuple[str, ...] = tuple(g for g in GROUPS if g != "jaw")
+
+
+@dataclass
+class LandmarkEmbedding:
+    """The result of :func:`embed_landmarks` (68 entries each, iBUG order)."""
+
+    indices: np.ndarray    # (68,) int32 landmark vertices: moved where ``embedded``, the old ones elsewhere
+    embedded: np.ndarray   # (68,) bool: in a chosen group and placed by at least ``min_views`` views
+    moved_mm: np.ndarray   # (68,) distance on the mean shape from the old vertex to the new one (0 where kept)
+    spread_mm: np.ndarray  # (68,) median distance of the per-view places from their median (NaN: no view)
+    views: np.ndarray      # (68,) int: views whose ray hit the mesh's front for this landmark
+
+    def summary(self) -> dict:
+        """Per group: landmarks moved, median move and spread (mm) — for reports and artifact metadata."""
+        out = {}
+        for name, (a, b) in GROUPS.items():
+            e = self.embedded[a:b]
+            out[name] = {"moved": int(e.sum()), "of": b - a,
+                         "median_move_mm": float(np.median(self.moved_mm[a:b][e])) if e.any() else 0.0,
+                         "median_spread_mm": float(np.nanmedian(self.spread_mm[a:b]))
+                         if np.isfinite(self.spread_mm[a:b]).any() else float("nan"),
+                         "median_views": float(np.median(self.views[a:b]))}
+        return out
+
+
+def landmark_hits(vertices: np.ndarray, triangles: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                  points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh point under each image point of one view.
+
+    Args:
+        vertices: (N, 3) the view's mesh in model space; triangles: (T, 3).
+        K, R, t: the view's intrinsics and world-to-camera pose (``x_cam = R x + t``).
+        points: (L, 2) pixel coordinates (pixel centres at integers), NaN for a missing point.
+    Returns:
+        ``tri (L,)`` int (−1: missing point, a miss, or the back of a triangle seen through a hole of the open
+        mesh) and ``bary (L, 3)`` barycentric coordinates of the hit in that triangle.
+    """
+    from reflectmm_cli.geometry import RayScene
+
+    pts = np.asarray(points, dtype=np.float64)
+    L = pts.shape[0]
+    ok = np.isfinite(pts).all(1)
+    R = np.asarray(R, dtype=np.float64)
+    d = np.c_[np.where(ok[:, None], pts, 0.0), np.ones(L)] @ np.linalg.inv(np.asarray(K, dtype=np.float64)).T @ R
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c = -R.T @ np.asarray(t, dtype=np.float64)
+    V = np.asarray(vertices, dtype=np.float64)
+    tris = np.asarray(triangles)
+    hit = RayScene(V, tris).intersect(np.broadcast_to(c, d.shape), d, retry=True)
+    tri = np.where(ok, hit["tri"], -1).astype(np.int64)
+    tv = V[tris[np.maximum(tri, 0)]]
+    front = np.einsum("ij,ij->i", np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0]), d) < 0
+    tri = np.where(front, tri, -1)
+    u = np.asarray(hit["u"], dtype=np.float64)
+    v = np.asarray(hit["v"], dtype=np.float64)
+    bary = np.stack([1.0 - u - v, u, v], 1)
+    return tri, np.where(tri[:, None] >= 0, bary, np.nan)
+
+
+def embed_landmarks(mean_shape: np.ndarray, triangles: np.ndarray, landmarks: np.ndarray,
+                    views: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], *,
+                    groups: Sequence[str] = DEFAULT_EMBED_GROUPS, min_views: int = 3) -> LandmarkEmbedding:
+    """The landmark vertices where a detector's points fall on the model (module docstring).
+
+    Args:
+        mean_shape: (N, 3) the model's mean shape; triangles: (T, 3); landmarks: (68,) its landmark vertices.
+        views: ``(vertices (N, 3), K, R, t, points (68, 2))`` per view: that identity's mesh in model space, the
+            view's camera and the detector's points in its full-frame pixels (NaN: missing).
+        groups: the landmark groups to move (:data:`~reflectmm_cli.geometry_fit.landmarks.GROUPS`).
+        min_views: a landmark placed by fewer views keeps its vertex.
+    Raises:
+        ReflectmmError: an unknown group, ``min_views`` < 1, or no view at all.
+    """
+    unknown = sorted(set(groups) - set(GROUPS))
+    if unknown:
+        raise ReflectmmError(f"unknown landmark group(s) {unknown}; groups: {', '.join(GROUPS)}")
+    if min_views < 1:
+        raise ReflectmmError(f"min_views must be ≥ 1, got {min_views}")
+    mean = np.asarray(mean_shape, dtype=np.float64)
+    tris = np.asarray(triangles)
+    old = np.asarray(landmarks, dtype=np.int64).reshape(-1)
+    if old.shape != (N_LANDMARKS,):
+        raise ReflectmmError(f"the face model has {old.size} landmark vertices, expected {N_LANDMARKS}")
+    places: list[np.ndarray] = []
+    for verts, K, R, t, pts in views:
+        if np.asarray(verts).shape != mean.shape:
+            raise ReflectmmError(f"a view's mesh has {np.asarray(verts).shape[0]} vertices, the face model "
+                                 f"{mean.shape[0]}")
+        tri, bary = landmark_hits(verts, tris, K, R, t, pts)
+        p = np.full((N_LANDMARKS, 3), np.nan)
+        hit = tri >= 0
+        p[hit] = np.einsum("lk,lkj->lj", bary[hit], mean[tris[tri[hit]]])
+        places.append(p)
+    if not places:
+        raise ReflectmmError("no view with landmarks to embed them from")
+    P = np.stack(places)                                         # (views, 68, 3)
+    n = np.isfinite(P).all(-1).sum(0)
+    chosen = np.zeros(N_LANDMARKS, bool)
+    for g in groups:
+        a, b = GROUPS[g]
+        chosen[a:b] = True
+    embedded = chosen & (n >= min_views)
+    new = old.copy()
+    moved = np.zeros(N_LANDMARKS)
+    spread = np.full(N_LANDMARKS, np.nan)
+    for j in np.flatnonzero(n > 0):
+        pj = P[:, j][np.isfinite(P[:, j]).all(-1)]
+        med = np.median(pj, axis=0)
+        spread[j] = float(np.median(np.linalg.norm(pj - med, axis=1)))
+        if embedded[j]:
+            new[j] = int(np.argmin(((mean - med) ** 2).sum(1)))
+            moved[j] = float(np.linalg.norm(mean[new[j]] - mean[old[j]]))
+    return LandmarkEmbedding(indices=new.astype(np.int32), embedded=embedded, moved_mm=moved, spread_mm=spread,
+                             views=n.astype(np.int64))

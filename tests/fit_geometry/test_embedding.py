@@ -1,0 +1,97 @@
+"""The landmark embedding (face-model embed-landmarks) on the independent toy model: a detector whose points sit
+on other vertices than the model's is measured back exactly, from projections alone."""
+
+import numpy as np
+import pytest
+
+import toy
+from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry.camera import project
+from reflectmm_cli.geometry_fit.embedding import embed_landmarks, landmark_hits
+from reflectmm_cli.geometry_fit.landmarks import GROUPS
+
+AZ = [-20, 0, 20]
+
+
+def _detector_vertices(m, shift_mm=8.0):
+    """A 'detector convention': each landmark vertex replaced by the vertex nearest to a point shift_mm away on
+    the front of the face (up for brows and eyes, sideways for the mouth), an independent choice of vertices."""
+    mean = m.mean
+    target = mean[m.landmarks].copy()
+    target[17:48, 1] += shift_mm
+    target[48:68, 0] *= 1.3
+    target[48:68, 1] -= 5.0
+    det = np.array([np.argmin(((mean - p) ** 2).sum(1) + 1e6 * (mean[:, 2] < p[2] - 15)) for p in target])
+    return det
+
+
+def _views(m, det, n_id=3, noise=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    K, R, t = toy.arc_cameras(AZ)
+    out = []
+    for _ in range(n_id):
+        verts = m.vertices(rng.normal(size=m.n_shape) * m.shape_sigma * 0.8,
+                           rng.normal(size=m.n_exp) * m.exp_sigma * 0.5)
+        for v in range(len(AZ)):
+            pts = project(verts[det], K[v], R[v], t[v])[0] + rng.normal(size=(68, 2)) * noise
+            out.append((verts, K[v], R[v], t[v], pts))
+    return out
+
+
+def test_exact_projections_give_the_detector_vertices():
+    m = toy.toy_model()
+    det = _detector_vertices(m)
+    assert (det[17:] != m.landmarks[17:]).mean() > 0.8  # most points really move
+    emb = embed_landmarks(m.mean, m.triangles, m.landmarks, _views(m, det), groups=tuple(GROUPS))
+    inner = np.arange(17, 68)
+    np.testing.assert_array_equal(emb.indices[inner], det[inner])
+    moved = np.linalg.norm(m.mean[det] - m.mean[m.landmarks], axis=1)
+    np.testing.assert_allclose(emb.moved_mm[inner], moved[inner], atol=1e-9)
+    # (a point hidden behind the nose in a side view, or a ray through an edge of the open grid, may not vote)
+    assert (emb.views[inner] >= 8).all() and np.nanmax(emb.spread_mm[inner]) < 1e-3
+
+
+def test_noisy_points_land_near_and_the_jaw_keeps_its_vertices_by_default():
+    m = toy.toy_model()
+    det = _detector_vertices(m)
+    emb = embed_landmarks(m.mean, m.triangles, m.landmarks, _views(m, det, n_id=6, noise=1.0, seed=2))
+    jaw = slice(*GROUPS["jaw"])
+    np.testing.assert_array_equal(emb.indices[jaw], m.landmarks[jaw])
+    assert not emb.embedded[jaw].any() and (emb.moved_mm[jaw] == 0).all()
+    # 1 px at 1000 px focal and 1.3 m is 1.3 mm on the face; the median of 18 views is well within a few mm
+    err = np.linalg.norm(m.mean[emb.indices[17:]] - m.mean[det[17:]], axis=1)
+    assert np.median(err) < 1.5 and err.max() < 5.0, (np.median(err), err.max())
+    assert np.nanmedian(emb.spread_mm[17:]) > 0.3  # the noise shows in the spread
+
+
+def test_missing_and_off_mesh_points_do_not_vote():
+    m = toy.toy_model()
+    det = _detector_vertices(m)
+    views = _views(m, det)
+    verts, K, R, t, pts0 = views[1]
+    tri, bary = landmark_hits(verts, m.triangles, K, R, t, pts0)
+    assert (tri[17:] >= 0).all() and np.allclose(np.nansum(bary, 1)[tri >= 0], 1)
+    pts = views[1][4].copy()
+    pts[40] = np.nan
+    pts[41] = [-5000.0, -5000.0]  # outside the image: the ray misses the head
+    tri2, _ = landmark_hits(verts, m.triangles, K, R, t, pts)
+    assert tri2[40] == -1 and tri2[41] == -1
+    # only two views have landmark 36: with min_views 3 it keeps its vertex, the others move
+    sparse = [(v, K, R, t, np.where(np.arange(68)[:, None] == 36, np.nan, p) if k > 1 else p)
+              for k, (v, K, R, t, p) in enumerate(views)]
+    emb = embed_landmarks(m.mean, m.triangles, m.landmarks, sparse, min_views=3)
+    assert emb.views[36] == 2 and not emb.embedded[36] and emb.indices[36] == m.landmarks[36]
+    assert emb.indices[37] == det[37]
+
+
+def test_bad_arguments_are_refused():
+    m = toy.toy_model()
+    views = _views(m, _detector_vertices(m), n_id=1)
+    with pytest.raises(ReflectmmError, match="unknown landmark group"):
+        embed_landmarks(m.mean, m.triangles, m.landmarks, views, groups=("chin",))
+    with pytest.raises(ReflectmmError, match="min_views"):
+        embed_landmarks(m.mean, m.triangles, m.landmarks, views, min_views=0)
+    with pytest.raises(ReflectmmError, match="no view"):
+        embed_landmarks(m.mean, m.triangles, m.landmarks, [])
+    with pytest.raises(ReflectmmError, match="vertices"):
+        embed_landmarks(m.mean, m.triangles, m.landmarks, [(m.mean[:10],) + views[0][1:]])
