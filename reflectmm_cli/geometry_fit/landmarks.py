@@ -59,10 +59,11 @@ def landmark_weights(group_weights: dict[str, float] | None = None) -> np.ndarra
 def parse_group_weights(items) -> dict[str, float]:
     """``["jaw=0", "eyes=2,brows=0.5"]`` or a mapping → ``{group: weight}`` for :func:`landmark_weights`.
 
-    Groups are those of :data:`GROUPS`; a weight is a finite number ≥ 0 (0 leaves the group out of the fit)."""
+    Groups are those of :data:`GROUPS`; a weight is a finite number ≥ 0 (0 leaves the group out of the fit).
+    Raises :class:`~reflectmm_cli.params.ParamError` (a recipe's error then names its file and stage)."""
     from collections.abc import Mapping
 
-    from reflectmm_cli.params import parse_list
+    from reflectmm_cli.params import ParamError, parse_list
 
     if isinstance(items, Mapping):
         pairs = [(str(k), v) for k, v in items.items()]
@@ -71,20 +72,20 @@ def parse_group_weights(items) -> dict[str, float]:
         for it in ([items] if isinstance(items, str) else items or []):
             for tok in parse_list(str(it), "--landmark-weights", allow_empty=True):
                 if "=" not in tok:
-                    raise ReflectmmError(f"--landmark-weights {tok!r}: expected GROUP=WEIGHT (e.g. jaw=0); groups: "
+                    raise ParamError(f"--landmark-weights {tok!r}: expected GROUP=WEIGHT (e.g. jaw=0); groups: "
                                          f"{', '.join(GROUPS)}")
                 k, v = tok.split("=", 1)
                 pairs.append((k.strip(), v.strip()))
     out: dict[str, float] = {}
     for k, v in pairs:
         if k not in GROUPS:
-            raise ReflectmmError(f"--landmark-weights {k}={v}: unknown group {k!r}; groups: {', '.join(GROUPS)}")
+            raise ParamError(f"--landmark-weights {k}={v}: unknown group {k!r}; groups: {', '.join(GROUPS)}")
         try:
             w = float(v)
         except (TypeError, ValueError):
             w = float("nan")
         if not np.isfinite(w) or w < 0:
-            raise ReflectmmError(f"--landmark-weights {k}={v}: the weight must be a number ≥ 0")
+            raise ParamError(f"--landmark-weights {k}={v}: the weight must be a number ≥ 0")
         out[k] = w
     return out
 

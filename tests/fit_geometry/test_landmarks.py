@@ -76,3 +76,15 @@ def test_landmark_weights_reach_both_stages_configs():
         assert not stage.config_from_params(resolve_params(stage.PARAMS, {})).group_weights
         with pytest.raises(Exception, match="unknown group 'chin'"):
             resolve_params(stage.PARAMS, {"landmark_weights": ["chin=1"]})
+
+
+def test_a_bad_landmark_weight_in_a_recipe_names_the_file_and_stage(cli, tmp_path):
+    recipe = tmp_path / "r.toml"
+    recipe.write_text('schema = "reflectmm.recipe/1"\n[stages.fit-geometry]\nforeach = ["001"]\n'
+                      'inputs = { capture = "c.npz", face_model = "f.npz" }\n'
+                      'params = { landmark_weights = { chin = 0 } }\n')
+    r = cli("run", recipe, "-w", tmp_path, "--dry-run")
+    assert r.exit_code != 0
+    line = r.stderr.strip()
+    assert len(line.splitlines()) == 1 and str(recipe) in line and "[stages.fit-geometry]" in line
+    assert "landmark_weights: unknown group 'chin'" in line

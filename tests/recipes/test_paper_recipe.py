@@ -166,6 +166,9 @@ def test_the_commented_multipie_detector_stage_plans_before_preprocess(cli, tmp_
     text = text.replace('inputs = { root = "data/multipie" }',
                         'inputs = { root = "data/multipie", landmarks = "@detect-landmarks-multipie.dir" }')
     text = text.replace("[stages.preprocess-multipie]", "\n".join(block) + "\n\n[stages.preprocess-multipie]")
+    assert "landmark_weights = { jaw = 0 }" in text  # the comment's fit-geometry setting, applied as it says
+    text = text.replace("params = { flash_intensity = 1.0, rig_sigma_mm = 50.0 }",
+                        "params = { flash_intensity = 1.0, rig_sigma_mm = 50.0, landmark_weights = { jaw = 0 } }")
     (ws / "r.toml").write_text(text)
     r = cli("run", ws / "r.toml", "-w", ws, "--dry-run")
     assert r.exit_code == 0, r.stderr
