@@ -95,3 +95,32 @@ def test_bad_arguments_are_refused():
         embed_landmarks(m.mean, m.triangles, m.landmarks, [])
     with pytest.raises(ReflectmmError, match="vertices"):
         embed_landmarks(m.mean, m.triangles, m.landmarks, [(m.mean[:10],) + views[0][1:]])
+
+
+def test_mutated_points_never_break_the_embedding():
+    """Hypothesis: detector points with NaNs, far-off or huge values give a valid embedding: indices in range,
+    no landmark moved with fewer votes than min_views, votes never more than the views."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    m = toy.toy_model()
+    base = _views(m, _detector_vertices(m), n_id=1)
+
+    @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(st.lists(st.tuples(st.integers(0, 2), st.integers(0, 67),
+                              st.sampled_from([np.nan, np.inf, -1e9, 1e9, 0.0, 320.0])), max_size=40),
+           st.integers(1, 3))
+    def check(edits, min_views):
+        views = [list(v) for v in base]
+        for v in views:
+            v[4] = v[4].copy()
+        for vi, j, val in edits:
+            views[vi][4][j] = val
+        emb = embed_landmarks(m.mean, m.triangles, m.landmarks, [tuple(v) for v in views], min_views=min_views)
+        assert emb.indices.shape == (68,) and (emb.indices >= 0).all() and (emb.indices < len(m.mean)).all()
+        assert (emb.views <= len(views)).all()
+        assert not (emb.embedded & (emb.views < min_views)).any()
+        assert (emb.indices[~emb.embedded] == m.landmarks[~emb.embedded]).all()
+        assert np.isfinite(emb.moved_mm).all()
+
+    check()
