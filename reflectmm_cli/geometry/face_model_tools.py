@@ -14,8 +14,11 @@ log = logging.getLogger("reflectmm")
 __all__ = ["preview_image", "preview_sheet", "export_mesh", "create_model", "read_landmark_indices", "import_model"]
 
 
-def preview_image(model, width: int = 320, height: int = 400, yaws=(0.0, 45.0, 90.0), vertices=None) -> np.ndarray:
-    """A shaded grey preview (front, 45°, profile) with landmarks in red; float (H, W·3, 3) in [0, 1]."""
+def preview_image(model, width: int = 320, height: int = 400, yaws=(0.0, 45.0, 90.0), vertices=None,
+                  marks=None) -> np.ndarray:
+    """A shaded grey preview (front, 45°, profile) with landmarks in red; float (H, W·3, 3) in [0, 1].
+
+    ``marks``: ``[(vertex ids, (r, g, b)), …]`` drawn in that order instead of the landmarks in red."""
     from reflectmm_cli.geometry import RayScene, orbit_camera, rasterize
 
     v = model.mean_shape if vertices is None else vertices
@@ -32,12 +35,14 @@ def preview_image(model, width: int = 320, height: int = 400, yaws=(0.0, 45.0, 9
         skin = r.interpolate(model.skin_mask.astype(np.float32)[:, None], model.triangles)[..., 0]
         col = np.stack([shade, shade * (0.75 + 0.25 * skin), shade * (0.65 + 0.35 * skin)], -1) * r.mask[..., None]
         img = np.where(r.mask[..., None], col, 0.08)
-        if model.landmarks.size:
-            uv, _ = cam.project(v[model.landmarks])
+        for ids, color in (marks if marks is not None else [(model.landmarks, (1.0, 0.1, 0.1))]):
+            if not np.asarray(ids).size:
+                continue
+            uv, _ = cam.project(v[np.asarray(ids)])
             vis_ok = np.isfinite(uv).all(1)
             for (x, y) in uv[vis_ok]:
                 xi, yi = int(round(x)), int(round(y))
-                img[max(yi - 1, 0):yi + 2, max(xi - 1, 0):xi + 2] = (1.0, 0.1, 0.1)
+                img[max(yi - 1, 0):yi + 2, max(xi - 1, 0):xi + 2] = color
         tiles.append(img)
     return np.concatenate(tiles, axis=1)
 

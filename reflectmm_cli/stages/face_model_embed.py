@@ -40,7 +40,9 @@ INPUTS = (
 
 
 def outputs(ctx: StageContext) -> list[Path]:
-    return [ctx.output_path()]
+    """The face model and its preview: the old landmark vertices in cyan, the new ones in red."""
+    out = ctx.output_path()
+    return [out, out.with_suffix(".png")]
 
 
 def _views(captures: list[Path], geometries: list[Path]):
@@ -76,7 +78,9 @@ def _views(captures: list[Path], geometries: list[Path]):
 
 
 def run(ctx: StageContext) -> list[Path]:
+    from reflectmm_cli.artifacts import write_png
     from reflectmm_cli.geometry.face_model import load_face_model, save_face_model
+    from reflectmm_cli.geometry.face_model_tools import preview_image
 
     fm_path = ctx.input("face_model")
     caps = [Path(p) for p in ctx.inputs.get("capture") or []]
@@ -100,6 +104,8 @@ def run(ctx: StageContext) -> list[Path]:
     new = dataclasses.replace(model, landmarks=emb.indices, info=info)
     save_face_model(new, out, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                     producer=ctx.producer(), cache_key=ctx.cache_key)
+    png = write_png(out.with_suffix(".png"), preview_image(
+        new, yaws=(0.0, 30.0), marks=[(np.asarray(model.landmarks), (0.1, 0.9, 1.0)), (emb.indices, (1.0, 0.1, 0.1))]))
     for name, s in emb.summary().items():
         if s["moved"]:
             log.info("face-model embed-landmarks: %s: %d of %d moved, median %.1f mm (spread %.1f mm over %d views)",
@@ -111,7 +117,7 @@ def run(ctx: StageContext) -> list[Path]:
     if kept.size:
         log.warning("face-model embed-landmarks: landmark(s) %s seen by fewer than %d views keep their vertices",
                     ", ".join(str(j) for j in kept), p["min_views"])
-    return [out]
+    return [out, png]
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=outputs, params=PARAMS,

@@ -377,6 +377,7 @@ def test_face_model_embed_landmarks_end_to_end(world, cli, tmp_path):
     r = cli("face-model", "embed-landmarks", "--face-model", fm_path, "--capture", cap2, "--geometry", geo,
             "-o", out, "-w", tmp_path)
     assert r.exit_code == 0, r.stderr
+    assert r.stdout.split() == [str(out), str(out.with_suffix(".png"))]
     new = read_artifact(out, "face-model")
     got = np.asarray(new["landmarks"])
     # a sample point of a vertex is hit within its triangle fan: the nearest vertex is the detector's, or one at
