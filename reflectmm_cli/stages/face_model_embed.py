@@ -45,12 +45,16 @@ def outputs(ctx: StageContext) -> list[Path]:
     return [out, out.with_suffix(".png")]
 
 
-def _views(captures: list[Path], geometries: list[Path]):
+def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
     """(vertices, K, R, t, points) of every view that a capture gives landmarks for and its identity's geometry
     has, captures and geometries matched by identity."""
     geos = {}
     for g in geometries:
         art = read_artifact(g, "geometry")
+        n = np.asarray(art["vertices"]).shape[0]
+        if n != n_vertices:
+            raise ReflectmmError(f"has {n} vertices but the face model has {n_vertices}: a geometry of another "
+                                 "face model", g)
         ident = artifact_identity(art)
         if ident is None:
             raise ReflectmmError("records no identity: cannot match it to a capture", g)
@@ -91,7 +95,7 @@ def run(ctx: StageContext) -> list[Path]:
     model = load_face_model(fm_path)
     if np.asarray(model.landmarks).size != 68:
         raise ReflectmmError("the face model has no 68 landmark vertices to move", fm_path)
-    views = _views(caps, geos)
+    views = _views(caps, geos, int(np.asarray(model.mean_shape).shape[0]))
     p = ctx.params
     emb = embed_landmarks(model.mean_shape, model.triangles, model.landmarks, views, groups=tuple(p["groups"]),
                           min_views=p["min_views"])

@@ -397,3 +397,10 @@ def test_face_model_embed_landmarks_end_to_end(world, cli, tmp_path):
             "-o", bad, "-w", tmp_path)
     assert r.exit_code != 0 and "no geometry of identity 002" in r.stderr and not bad.exists()
     assert len(r.stderr.strip().splitlines()) == 1
+    # a geometry of another face model (fewer vertices): refused, naming that file
+    g = read_artifact(geo, "geometry")
+    small = write_artifact(tmp_path / "gt_small.npz", "geometry", {**g.arrays, "vertices": g["vertices"][:100]},
+                           extra_meta={"report": {"identity": "001"}})
+    r = cli("face-model", "embed-landmarks", "--face-model", fm_path, "--capture", cap2, "--geometry", small,
+            "-o", bad, "-w", tmp_path)
+    assert r.exit_code != 0 and str(small) in r.stderr and "has 100 vertices" in r.stderr and not bad.exists()
