@@ -58,6 +58,24 @@ def parse_list(text: Any, what: str = "value", item: Callable[[str], Any] = str,
     return out
 
 
+def parse_pairs(items: Any, option: str, usage: str, *, error: type[ReflectmmError] = ParamError
+                ) -> list[tuple[str, Any]]:
+    """``KEY=VALUE`` settings: a mapping (a recipe's inline table), a ``"a=1,b=2"`` string or a list of such
+    strings (a repeated option) → ``[(key, value), …]``, keys and string values stripped.
+
+    A token without ``=`` raises ``error`` naming ``option``, the token and the ``usage`` expected."""
+    if isinstance(items, Mapping):
+        return [(str(k), v) for k, v in items.items()]
+    pairs = []
+    for it in ([items] if isinstance(items, str) else items or []):
+        for tok in parse_list(str(it), option, allow_empty=True):
+            if "=" not in tok:
+                raise error(f"{option} {tok!r}: expected {usage}")
+            k, v = tok.split("=", 1)
+            pairs.append((k.strip(), v.strip()))
+    return pairs
+
+
 def _as_int(v: Any) -> int:
     if isinstance(v, bool):
         raise ValueError("a boolean, expected an integer")

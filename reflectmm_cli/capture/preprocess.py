@@ -25,7 +25,7 @@ from reflectmm_cli.capture.transfer import Transfer, parse_transfer
 from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import N_LANDMARKS, check_in_frame, read_landmarks
-from reflectmm_cli.params import parse_list
+from reflectmm_cli.params import parse_pairs
 from reflectmm_cli.threads import default_threads
 
 log = logging.getLogger("reflectmm")
@@ -63,18 +63,8 @@ class CaptureOptions:
 
 def parse_rotate(items) -> dict[str, int]:
     """``["08_1=90", ...]`` or a mapping → ``{camera: degrees clockwise}`` (0/90/180/270)."""
-    if isinstance(items, Mapping):
-        pairs = list(items.items())
-    else:
-        pairs = []
-        for it in items or []:
-            for tok in parse_list(str(it), "--rotate", allow_empty=True):
-                if "=" not in tok:
-                    raise ReflectmmError(f"--rotate {tok!r}: expected CAMERA=DEGREES (e.g. 08_1=90)")
-                k, v = tok.split("=", 1)
-                pairs.append((k.strip(), v.strip()))
     out = {}
-    for k, v in pairs:
+    for k, v in parse_pairs(items, "--rotate", "CAMERA=DEGREES (e.g. 08_1=90)", error=ReflectmmError):
         try:
             deg = int(v) % 360
         except ValueError:

@@ -61,23 +61,11 @@ def parse_group_weights(items) -> dict[str, float]:
 
     Groups are those of :data:`GROUPS`; a weight is a finite number ≥ 0 (0 leaves the group out of the fit).
     Raises :class:`~reflectmm_cli.params.ParamError` (a recipe's error then names its file and stage)."""
-    from collections.abc import Mapping
+    from reflectmm_cli.params import ParamError, parse_pairs
 
-    from reflectmm_cli.params import ParamError, parse_list
-
-    if isinstance(items, Mapping):
-        pairs = [(str(k), v) for k, v in items.items()]
-    else:
-        pairs = []
-        for it in ([items] if isinstance(items, str) else items or []):
-            for tok in parse_list(str(it), "--landmark-weights", allow_empty=True):
-                if "=" not in tok:
-                    raise ParamError(f"--landmark-weights {tok!r}: expected GROUP=WEIGHT (e.g. jaw=0); groups: "
-                                         f"{', '.join(GROUPS)}")
-                k, v = tok.split("=", 1)
-                pairs.append((k.strip(), v.strip()))
     out: dict[str, float] = {}
-    for k, v in pairs:
+    for k, v in parse_pairs(items, "--landmark-weights",
+                            f"GROUP=WEIGHT (e.g. jaw=0); groups: {', '.join(GROUPS)}"):
         if k not in GROUPS:
             raise ParamError(f"--landmark-weights {k}={v}: unknown group {k!r}; groups: {', '.join(GROUPS)}")
         try:
