@@ -23,7 +23,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.geometry_fit.landmarks import GROUPS
+from reflectmm_cli.geometry_fit.landmarks import GROUPS, group_mask
 from reflectmm_cli.landmarks import N_LANDMARKS
 
 __all__ = ["LandmarkEmbedding", "landmark_hits", "embed_landmarks", "DEFAULT_EMBED_GROUPS"]
@@ -103,9 +103,7 @@ def embed_landmarks(mean_shape: np.ndarray, triangles: np.ndarray, landmarks: np
     Raises:
         ReflectmmError: an unknown group, ``min_views`` < 1, or no view at all.
     """
-    unknown = sorted(set(groups) - set(GROUPS))
-    if unknown:
-        raise ReflectmmError(f"unknown landmark group(s) {unknown}; groups: {', '.join(GROUPS)}")
+    chosen = group_mask(groups)
     if min_views < 1:
         raise ReflectmmError(f"min_views must be ≥ 1, got {min_views}")
     mean = np.asarray(mean_shape, dtype=np.float64)
@@ -127,10 +125,6 @@ def embed_landmarks(mean_shape: np.ndarray, triangles: np.ndarray, landmarks: np
         raise ReflectmmError("no view with landmarks to embed them from")
     P = np.stack(places)                                         # (views, 68, 3)
     n = np.isfinite(P).all(-1).sum(0)
-    chosen = np.zeros(N_LANDMARKS, bool)
-    for g in groups:
-        a, b = GROUPS[g]
-        chosen[a:b] = True
     embedded = chosen & (n >= min_views)
     new = old.copy()
     moved = np.zeros(N_LANDMARKS)

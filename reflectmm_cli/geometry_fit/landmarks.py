@@ -56,6 +56,17 @@ def landmark_weights(group_weights: dict[str, float] | None = None) -> np.ndarra
     return w
 
 
+def group_mask(groups) -> np.ndarray:
+    """(68,) bool: the landmarks of the named groups (:data:`GROUPS`)."""
+    unknown = sorted(set(groups) - set(GROUPS))
+    if unknown:
+        raise ReflectmmError(f"unknown landmark group(s) {unknown}; groups: {', '.join(GROUPS)}")
+    m = np.zeros(N_LANDMARKS, bool)
+    for g in groups:
+        m[slice(*GROUPS[g])] = True
+    return m
+
+
 def parse_group_weights(items) -> dict[str, float]:
     """``["jaw=0", "eyes=2,brows=0.5"]`` or a mapping → ``{group: weight}`` for :func:`landmark_weights`.
 

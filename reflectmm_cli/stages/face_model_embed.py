@@ -15,7 +15,7 @@ import numpy as np
 from reflectmm_cli.artifacts import artifact_identity, read_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit.embedding import DEFAULT_EMBED_GROUPS, embed_landmarks
-from reflectmm_cli.geometry_fit.landmarks import GROUPS
+from reflectmm_cli.geometry_fit.landmarks import GROUPS, group_mask
 from reflectmm_cli.params import Param
 from reflectmm_cli.stages.base import Input, Stage, StageContext
 
@@ -114,10 +114,7 @@ def run(ctx: StageContext) -> list[Path]:
         if s["moved"]:
             log.info("face-model embed-landmarks: %s: %d of %d moved, median %.1f mm (spread %.1f mm over %d views)",
                      name, s["moved"], s["of"], s["median_move_mm"], s["median_spread_mm"], s["median_views"])
-    chosen = np.zeros(68, bool)
-    for g in p["groups"]:
-        chosen[slice(*GROUPS[g])] = True
-    kept = np.flatnonzero(chosen & ~emb.embedded)
+    kept = np.flatnonzero(group_mask(p["groups"]) & ~emb.embedded)
     if kept.size:
         log.warning("face-model embed-landmarks: landmark(s) %s seen by fewer than %d views keep their vertices",
                     ", ".join(str(j) for j in kept), p["min_views"])
