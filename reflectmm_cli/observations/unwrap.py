@@ -93,26 +93,31 @@ def bilinear(images: np.ndarray, uv: np.ndarray, saturated: np.ndarray | None = 
     return val, inside, sat
 
 
-def _footprint_on_surface(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, R, t, crop, H: int, W: int
-                          ) -> tuple[np.ndarray, int]:
+def _footprint_on_surface(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, R, t, crop, H: int, W: int,
+                          depth_image: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """(M,) bool: each of the four bilinear taps around ``pix`` (crop-window pixels) sees the front of a triangle
     at the texel's depth ``Z`` within ``tol = (Z/f)·(1 + 1.5·√2·tanθ)`` (θ = angle between normal and view). Taps outside
-    the window count as failing here only if they miss the mesh.  Returns the mask and the number of rays cast."""
+    the window count as failing here only if they miss the mesh.  ``depth_image (H, W)``: the window's depths
+    (:func:`_window_depths`) instead of casting rays.  Returns the mask and the number of rays cast."""
     M = pix.shape[0]
     if M == 0:
         return np.zeros(0, bool), 0
     taps_x, taps_y = _taps(pix)
     inwin = (taps_x >= 0) & (taps_x < W) & (taps_y >= 0) & (taps_y < H)
     key = np.where(inwin, taps_y * W + taps_x, -1)
-    uniq, inv = np.unique(key[inwin], return_inverse=True)
-    # one primary ray per distinct tap pixel (full-frame pixel centre = window pixel + crop origin)
-    depth = _pixel_depths(scene, (uniq % W).astype(np.float64) + crop[0], (uniq // W).astype(np.float64) + crop[1],
-                          K, R, t)
     tap_depth = np.full(key.shape, np.inf)
-    tap_depth[inwin] = depth[inv]
+    if depth_image is not None:  # the window's depths are already cast (the edge margin needs them all)
+        tap_depth[inwin] = depth_image[taps_y[inwin], taps_x[inwin]]
+        n_rays = 0
+    else:
+        uniq, inv = np.unique(key[inwin], return_inverse=True)
+        # one primary ray per distinct tap pixel (full-frame pixel centre = window pixel + crop origin)
+        tap_depth[inwin] = _pixel_depths(scene, (uniq % W).astype(np.float64) + crop[0],
+                                         (uniq // W).astype(np.float64) + crop[1], K, R, t)[inv]
+        n_rays = int(uniq.size)
     tol = _depth_tolerance(Z, ndv, K, 1.0)
     good = np.all(np.where(inwin, np.abs(tap_depth - Z[:, None]) <= tol[:, None], True), axis=1)
-    return good, int(uniq.size)
+    return good, n_rays
 
 
 def _taps(pix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -150,22 +155,27 @@ def _pixel_depths(scene, px: np.ndarray, py: np.ndarray, K, R, t) -> np.ndarray:
     return np.where(ok, hit["t"].astype(np.float64) * (d @ R[2]), np.inf)
 
 
-def _away_from_edges(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, R, t, crop, H: int, W: int,
-                     margin: int) -> tuple[np.ndarray, int]:
+def _window_depths(scene, K, R, t, crop, H: int, W: int) -> np.ndarray:
+    """(H, W) :func:`_pixel_depths` of every pixel of a view's stored window (one primary ray each)."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    return _pixel_depths(scene, xx.reshape(-1).astype(np.float64) + crop[0],
+                         yy.reshape(-1).astype(np.float64) + crop[1], K, R, t).reshape(H, W)
+
+
+def _away_from_edges(depth: np.ndarray, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, margin: int
+                     ) -> np.ndarray:
     """(M,) bool: every pixel within ``margin`` pixels of the four bilinear taps around ``pix`` (crop-window
     pixels) sees the front of the mesh at the texel's depth (the tolerance of :func:`_depth_tolerance` for that
-    reach).  So a sample keeps ``margin`` pixels from the mesh's open border, from its silhouette and from the
-    occluding edges in front of it: a registration error of that size still samples this surface, not the
-    background, hair or the nose.  Pixels outside the window repeat its edge.  Returns the mask and the number of
-    rays cast (one per window pixel)."""
+    reach), by the window's depths ``depth (H, W)`` (:func:`_window_depths`).  So a sample keeps ``margin`` pixels
+    from the mesh's open border, from its silhouette and from the occluding edges in front of it: a registration
+    error of that size still samples this surface, not the background, hair or the nose.  Pixels outside the
+    window repeat its edge."""
     from scipy.ndimage import maximum_filter, minimum_filter
 
     M = pix.shape[0]
     if M == 0 or margin <= 0:
-        return np.ones(M, bool), 0
-    yy, xx = np.mgrid[0:H, 0:W]
-    depth = _pixel_depths(scene, xx.reshape(-1).astype(np.float64) + crop[0],
-                          yy.reshape(-1).astype(np.float64) + crop[1], K, R, t).reshape(H, W)
+        return np.ones(M, bool)
+    H, W = depth.shape
     size = 2 * int(margin) + 1
     lo = minimum_filter(depth, size=size, mode="nearest")
     hi = maximum_filter(depth, size=size, mode="nearest")
@@ -175,7 +185,7 @@ def _away_from_edges(scene, pix: np.ndarray, Z: np.ndarray, ndv: np.ndarray, K, 
     near = lo[taps_y, taps_x].min(axis=1)
     far = hi[taps_y, taps_x].max(axis=1)
     tol = _depth_tolerance(Z, ndv, K, 1.0 + margin)
-    return (Z - near <= tol) & (far - Z <= tol), H * W
+    return (Z - near <= tol) & (far - Z <= tol)
 
 
 def _index_of(names: Sequence[str], wanted: Sequence[str], what: str, where) -> np.ndarray:
@@ -374,15 +384,17 @@ def _view_visibility(scene, x: np.ndarray, n: np.ndarray, inp: _PairInputs, cos_
         ok = visibility(scene, x[cand], n[cand], inp.cam_centers[vi])
         counts["rays_view"] += cand.size
         ci = cand[ok]
+        depth = None
+        if edge_margin > 0:
+            depth = _window_depths(scene, inp.K[vi], inp.R[vi], inp.t[vi], inp.crop[vi], h, w)
+            counts["rays_depth"] += h * w
         good, nr = _footprint_on_surface(scene, pix[ci], Z[ci], ndv[ci], inp.K[vi], inp.R[vi], inp.t[vi],
-                                         inp.crop[vi], h, w)
+                                         inp.crop[vi], h, w, depth)
         counts["rays_depth"] += nr
         counts["footprint_rejected"] += int((~good).sum())
         ci = ci[good]
-        if edge_margin > 0:
-            away, nr = _away_from_edges(scene, pix[ci], Z[ci], ndv[ci], inp.K[vi], inp.R[vi], inp.t[vi],
-                                        inp.crop[vi], h, w, edge_margin)
-            counts["rays_depth"] += nr
+        if depth is not None:
+            away = _away_from_edges(depth, pix[ci], Z[ci], ndv[ci], inp.K[vi], edge_margin)
             counts["edge_rejected"] += int((~away).sum())
             ci = ci[away]
         vis[vi, ci] = True
