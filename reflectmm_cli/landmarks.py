@@ -15,6 +15,32 @@ from reflectmm_cli.errors import ReflectmmError
 
 N_LANDMARKS = 68
 
+#: iBUG-68 groups (0-based, half-open ranges).
+GROUPS: dict[str, tuple[int, int]] = {
+    "jaw": (0, 17),
+    "brows": (17, 27),
+    "nose_bridge": (27, 31),
+    "nose_base": (31, 36),
+    "eyes": (36, 48),
+    "mouth_outer": (48, 60),
+    "mouth_inner": (60, 68),
+}
+
+#: The groups of points on the face's surface: every group but the jaw, whose points a detector puts on the
+#: face's silhouette (which moves over the face with the view).
+SURFACE_GROUPS: tuple[str, ...] = tuple(g for g in GROUPS if g != "jaw")
+
+
+def group_mask(groups) -> np.ndarray:
+    """(68,) bool: the landmarks of the named groups (:data:`GROUPS`)."""
+    unknown = sorted(set(groups) - set(GROUPS))
+    if unknown:
+        raise ReflectmmError(f"unknown landmark group(s) {unknown}; groups: {', '.join(GROUPS)}")
+    m = np.zeros(N_LANDMARKS, bool)
+    for g in groups:
+        m[slice(*GROUPS[g])] = True
+    return m
+
 
 def _parse_pts(text: str) -> np.ndarray:
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]

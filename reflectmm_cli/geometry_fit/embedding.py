@@ -23,13 +23,12 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.geometry_fit.landmarks import GROUPS, group_mask
-from reflectmm_cli.landmarks import N_LANDMARKS
+from reflectmm_cli.landmarks import GROUPS, N_LANDMARKS, SURFACE_GROUPS, group_mask
 
 __all__ = ["LandmarkEmbedding", "landmark_hits", "embed_landmarks", "DEFAULT_EMBED_GROUPS"]
 
 #: The groups that a static embedding can hold (every group but the jaw's silhouette points).
-DEFAULT_EMBED_GROUPS: tuple[str, ...] = tuple(g for g in GROUPS if g != "jaw")
+DEFAULT_EMBED_GROUPS: tuple[str, ...] = SURFACE_GROUPS
 
 
 @dataclass

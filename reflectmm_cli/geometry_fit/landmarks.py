@@ -13,19 +13,9 @@ import numpy as np
 
 from reflectmm_cli.capture.layout import camera_code
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.landmarks import N_LANDMARKS, write_pts  # noqa: F401  (re-exported)
+from reflectmm_cli.landmarks import GROUPS, N_LANDMARKS, group_mask, write_pts  # noqa: F401  (re-exported)
 
 
-#: iBUG-68 groups (0-based, half-open ranges).
-GROUPS: dict[str, tuple[int, int]] = {
-    "jaw": (0, 17),
-    "brows": (17, 27),
-    "nose_bridge": (27, 31),
-    "nose_base": (31, 36),
-    "eyes": (36, 48),
-    "mouth_outer": (48, 60),
-    "mouth_inner": (60, 68),
-}
 
 #: Default weight per group.  Deep3DFaceRecon weights the nose bridge (28–30) and the inner mouth (last 8)
 #: 20× and everything else 1×; we keep its ordering (inner face > jaw) with milder ratios, since on
@@ -54,17 +44,6 @@ def landmark_weights(group_weights: dict[str, float] | None = None) -> np.ndarra
     for name, (a, b) in GROUPS.items():
         w[a:b] = gw[name]
     return w
-
-
-def group_mask(groups) -> np.ndarray:
-    """(68,) bool: the landmarks of the named groups (:data:`GROUPS`)."""
-    unknown = sorted(set(groups) - set(GROUPS))
-    if unknown:
-        raise ReflectmmError(f"unknown landmark group(s) {unknown}; groups: {', '.join(GROUPS)}")
-    m = np.zeros(N_LANDMARKS, bool)
-    for g in groups:
-        m[slice(*GROUPS[g])] = True
-    return m
 
 
 def parse_group_weights(items) -> dict[str, float]:

@@ -14,8 +14,7 @@ import numpy as np
 
 from reflectmm_cli.artifacts import artifact_identity, read_artifact
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.geometry_fit.embedding import DEFAULT_EMBED_GROUPS, embed_landmarks
-from reflectmm_cli.geometry_fit.landmarks import GROUPS, group_mask
+from reflectmm_cli.landmarks import GROUPS, SURFACE_GROUPS, group_mask
 from reflectmm_cli.params import Param
 from reflectmm_cli.stages.base import Input, Stage, StageContext
 
@@ -24,7 +23,7 @@ log = logging.getLogger("reflectmm")
 VERB = "face-model-embed"
 
 PARAMS = (
-    Param("groups", "strs", list(DEFAULT_EMBED_GROUPS), choices=tuple(GROUPS),
+    Param("groups", "strs", list(SURFACE_GROUPS), choices=tuple(GROUPS),
           help="Landmark groups to move (default every group but the jaw, whose detected points follow the "
                "silhouette)."),
     Param("min_views", "int", 3, range=(1, None), help="A landmark seen by fewer views keeps its vertex."),
@@ -48,6 +47,8 @@ def outputs(ctx: StageContext) -> list[Path]:
 def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
     """(vertices, K, R, t, points) of every view that a capture gives landmarks for and its identity's geometry
     has, captures and geometries matched by identity."""
+    from reflectmm_cli.geometry_fit.calibrate import landmarks_from_captures
+
     geos = {}
     for g in geometries:
         art = read_artifact(g, "geometry")
@@ -61,20 +62,18 @@ def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
         if ident in geos:
             raise ReflectmmError(f"a second geometry of identity {ident} (the first: {geos[ident].path})", g)
         geos[ident] = art
+    lm, idents, cams, _ = landmarks_from_captures(captures)  # (N, C, 68, 2), NaN where a capture lacks a view
     views = []
-    for c in captures:
-        cap = read_artifact(c, "capture")
-        ident = artifact_identity(cap)
+    for c, ident, lm_i in zip(captures, idents, lm):
         if ident not in geos:
             raise ReflectmmError(f"no geometry of identity {ident} among the --geometry files", c)
         geo = geos[ident]
         names = [str(v) for v in geo["view_names"]]
-        lm = np.asarray(cap["landmarks"], dtype=np.float64)
-        for k, v in enumerate(str(x) for x in cap["view_names"]):
-            if v not in names or not np.isfinite(lm[k]).all(-1).any():
+        for k, v in enumerate(cams):
+            if v not in names or not np.isfinite(lm_i[k]).all(-1).any():
                 continue
             j = names.index(v)
-            views.append((np.asarray(geo["vertices"]), geo["K"][j], geo["R"][j], geo["t"][j], lm[k]))
+            views.append((np.asarray(geo["vertices"]), geo["K"][j], geo["R"][j], geo["t"][j], lm_i[k]))
     if not views:
         raise ReflectmmError("no view has both detector landmarks (capture) and a geometry: nothing to embed from",
                              captures[0] if captures else None)
@@ -84,6 +83,7 @@ def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.artifacts import write_png
     from reflectmm_cli.geometry.face_model import load_face_model, save_face_model
+    from reflectmm_cli.geometry_fit.embedding import embed_landmarks
     from reflectmm_cli.geometry.face_model_tools import preview_image
 
     fm_path = ctx.input("face_model")
