@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from reflectmm_cli.geometry_fit.calibrate import FOCAL_MODES, LOSSES, CalibrationConfig
-from reflectmm_cli.geometry_fit.landmarks import parse_group_weights
 from reflectmm_cli.geometry_fit.joint import JointOptions, check_pairs, register_calibration
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
+from reflectmm_cli.stages.fit_geometry import LANDMARK_WEIGHTS
 
 log = logging.getLogger("reflectmm")
 
@@ -62,8 +62,7 @@ PARAMS = (
          help="assumed landmark noise: balances landmarks against the shape/expression prior."),
     _cfg("outlier_px", "float", range=(0.0, None), low_open=True, unit="px",
          help="landmarks further than this from the fit are reported as outliers."),
-    Param("landmark_weights", "custom", {}, convert=parse_group_weights, multiple=True, metavar="GROUP=W",
-          help="Weight of a landmark group (as fit-geometry's; repeatable or comma separated); 0 leaves it out."),
+    LANDMARK_WEIGHTS,
     _cfg("max_iters", "int", range=(1, 100000), option="", help="Levenberg-Marquardt iterations."),
     _cfg("distance_sigma_rel", "float", range=(0.0, None), option="--distance-sigma",
          help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "

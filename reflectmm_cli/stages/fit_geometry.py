@@ -18,7 +18,7 @@ from reflectmm_cli.artifacts import check_identity, path_for_meta, read_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit import FitConfig
 from reflectmm_cli.geometry_fit.identity import fit_identity, geometry_from_truth
-from reflectmm_cli.geometry_fit.landmarks import parse_group_weights
+from reflectmm_cli.geometry_fit.landmarks import GROUPS, parse_group_weights
 from reflectmm_cli.params import Param
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
@@ -48,6 +48,12 @@ def _cfg(name: str, kind: str, **kw: Any) -> Param:
     return Param.of_field(_CFG, name, kind, **kw)
 
 
+#: Per-group landmark weights (also calibrate-rig's).
+LANDMARK_WEIGHTS = Param(
+    "landmark_weights", "custom", {}, convert=parse_group_weights, multiple=True, metavar="GROUP=W",
+    help=f"Weight of a landmark group ({', '.join(GROUPS)}; repeatable or comma separated); 0 leaves it out. "
+         "jaw=0 for a detector's landmarks, whose jaw follows the silhouette.")
+
 PARAMS = (
     Param("focal", "float", None, range=(1e-3, None), unit="px", help="focal length (default: rig)."),
     _cfg("landmark_iters", "int", range=(0, 100000), option="",
@@ -57,10 +63,7 @@ PARAMS = (
     _cfg("photo_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per photometric round."),
     _cfg("landmark_sigma_px", "float", range=(1e-3, None), option="--landmark-sigma", unit="px",
          help="assumed landmark noise: balances landmarks against the priors."),
-    Param("landmark_weights", "custom", {}, convert=parse_group_weights, multiple=True, metavar="GROUP=W",
-          help="Weight of a landmark group (jaw, brows, nose_bridge, nose_base, eyes, mouth_outer, mouth_inner; "
-               "repeatable or comma separated); 0 leaves it out. jaw=0 for a detector's landmarks, whose jaw "
-               "follows the silhouette."),
+    LANDMARK_WEIGHTS,
     _cfg("huber_px", "float", range=(0.0, None), low_open=True, option="", unit="px",
          help="Huber threshold of the landmark residual."),
     _cfg("w_landmark", "float", range=(0.0, None), option="", help="weight of the landmark term."),
