@@ -25,7 +25,7 @@ from reflectmm_cli.capture.transfer import Transfer, parse_transfer
 from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import N_LANDMARKS, check_in_frame, read_landmarks
-from reflectmm_cli.params import parse_pairs
+from reflectmm_cli.params import ParamError, parse_pairs
 from reflectmm_cli.threads import default_threads
 
 log = logging.getLogger("reflectmm")
@@ -62,15 +62,17 @@ class CaptureOptions:
 
 
 def parse_rotate(items) -> dict[str, int]:
-    """``["08_1=90", ...]`` or a mapping → ``{camera: degrees clockwise}`` (0/90/180/270)."""
+    """``["08_1=90", ...]`` or a mapping → ``{camera: degrees clockwise}`` (0/90/180/270).
+
+    Raises :class:`~reflectmm_cli.params.ParamError` (a recipe's error then names its file and stage)."""
     out = {}
-    for k, v in parse_pairs(items, "--rotate", "CAMERA=DEGREES (e.g. 08_1=90)", error=ReflectmmError):
+    for k, v in parse_pairs(items, "--rotate", "CAMERA=DEGREES (e.g. 08_1=90)"):
         try:
             deg = int(v) % 360
         except ValueError:
             deg = -1
         if deg not in ROTATIONS:
-            raise ReflectmmError(f"--rotate {k}={v}: degrees must be 0, 90, 180 or 270 (clockwise)")
+            raise ParamError(f"--rotate {k}={v}: degrees must be 0, 90, 180 or 270 (clockwise); camera {k} has {v}")
         out[str(k)] = deg
     return out
 

@@ -63,7 +63,7 @@ def parse_group_weights(items) -> dict[str, float]:
         except (TypeError, ValueError):
             w = float("nan")
         if not np.isfinite(w) or w < 0:
-            raise ParamError(f"--landmark-weights {k}={v}: the weight must be a number ≥ 0")
+            raise ParamError(f"--landmark-weights {k}={v}: the weight must be a number ≥ 0; group {k} has {v}")
         out[k] = w
     return out
 
