@@ -33,7 +33,7 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Collection, Iterator, Mapping
 
 import numpy as np
 
@@ -503,8 +503,11 @@ def read_meta(path: str | Path) -> dict[str, Any]:
         return _meta_from_npz(npz, path)
 
 
-def read_artifact(path: str | Path, kind: str | None = None) -> Artifact:
-    """Read an NPZ (or EXR) artifact, refusing a wrong ``kind`` or a too-new schema."""
+def read_artifact(path: str | Path, kind: str | None = None, members: Collection[str] | None = None) -> Artifact:
+    """Read an NPZ (or EXR) artifact, refusing a wrong ``kind`` or a too-new schema.
+
+    ``members``: read only these arrays of an NPZ (those it has; the others are not decompressed), e.g. a capture's
+    landmarks without its image stack.  EXR files are always read whole."""
     path = Path(path)
     if path.suffix.lower() == ".exr":
         channels, meta = read_exr(path)
@@ -514,9 +517,10 @@ def read_artifact(path: str | Path, kind: str | None = None) -> Artifact:
         meta = _meta_from_npz(npz, path)
         found = check_schema(meta, kind, path)
         arrays = {}
+        wanted = None if members is None else set(members)
         try:
             for name in npz.files:
-                if name != META_KEY:
+                if name != META_KEY and (wanted is None or name in wanted):
                     arrays[name] = npz[name]
         except CORRUPT_ERRORS as exc:
             raise ArtifactError(f"truncated or corrupt NPZ member ({type(exc).__name__}: "

@@ -1112,7 +1112,7 @@ def landmarks_from_captures(capture_paths: Sequence[str | Path], views: Sequence
     names: list[str] = [] if views is None else list(views)
     size: dict[str, tuple[int, int]] = {}
     for p in capture_paths:
-        art = read_artifact(p, "capture")
+        art = read_artifact(p, "capture", members=("view_names", "landmarks", "image_size"))  # not the images
         vn = [str(v) for v in np.asarray(art["view_names"]).reshape(-1)]
         if "landmarks" not in art.arrays:
             raise ReflectmmError("capture has no landmarks (preprocess-multipie needs the landmark files)", p)

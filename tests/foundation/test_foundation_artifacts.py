@@ -116,6 +116,24 @@ def test_truncated_npz_gives_a_clear_error(tmp_path, keep):
     assert str(p) in str(ei.value)
 
 
+def test_members_reads_only_the_named_arrays(tmp_path):
+    """``members`` leaves the other arrays unread: a damaged image stack does not stop a read of the landmarks,
+    while a whole read still finds the damage."""
+    rng = np.random.default_rng(0)
+    p = write_artifact(tmp_path / "cap.npz", "capture", {"landmarks": rng.random((3, 68, 2)),
+                                                         "olat": rng.random((4, 64, 64))}, compress=False)
+    with zipfile.ZipFile(p) as z:
+        info = z.getinfo("olat.npy")
+        start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra) + info.file_size // 2
+    data = bytearray(p.read_bytes())
+    data[start:start + 64] = bytes(64)
+    p.write_bytes(bytes(data))
+    a = read_artifact(p, "capture", members=("landmarks", "not_there"))
+    assert set(a.arrays) == {"landmarks"} and a["landmarks"].shape == (3, 68, 2)
+    with pytest.raises(ArtifactError, match="truncated or corrupt"):
+        read_artifact(p, "capture")
+
+
 def test_npz_without_meta_is_not_an_artifact(tmp_path):
     p = tmp_path / "plain.npz"
     np.savez(p, x=np.zeros(3))
