@@ -68,6 +68,14 @@ def main(argv=None):
     ap.add_argument("--detect-args", default="",
                     help="extra calibrate-rig and fit-geometry arguments of the detect set (e.g. "
                          "'--landmark-weights jaw=0')")
+    ap.add_argument("--detect-fit-args", default="",
+                    help="extra fit-geometry arguments of the detect set only (e.g. '--jaw-contour', with "
+                         "'--landmark-weights jaw=0' for calibrate-rig in --detect-cal-args)")
+    ap.add_argument("--detect-cal-args", default="",
+                    help="extra calibrate-rig arguments of the detect set only")
+    ap.add_argument("--detect-synthetic", action="store_true",
+                    help="the detect set with the world's synthetic landmarks (1 px noise) on exactly the views where "
+                         "the detector found a face: what the view set alone costs (use with --tag)")
     ap.add_argument("--reflectance", action="store_true")
     ap.add_argument("--unwrap-flashes", default=None, choices=("landmarked",),
                     help="unwrap-uv --flashes: only the flashes on cameras that landmarks placed")
@@ -88,7 +96,13 @@ def main(argv=None):
     ap.add_argument("--cameras", action="store_true",
                     help="only the camera table of an earlier run's sets 'all' and 'side': control, nominal-only, "
                          "per-identity and joint registration (calibrate-rig --geometry on the side fits)")
+    ap.add_argument("--landmark-error", action="store_true",
+                    help="only the detector's landmarks (lm_detect) against the truth: inner points against the "
+                         "projected landmark vertices of --detect-face-model (or the world's), per group, and the "
+                         "cheek points' distance across the true face's outline (fit-geometry --jaw-contour)")
     args = ap.parse_args(argv)
+    if args.landmark_error:
+        return landmark_error(args)
     if args.cameras:
         return camera_table(args)
     if args.ceiling:
@@ -170,6 +184,13 @@ def run(args) -> dict:
     if not dirs["detect"].is_dir():
         rooms = sorted(p for p in syn.rglob("*_00.png") if "multiview" in str(p))
         cli("detect-landmarks", *rooms, "--out", dirs["detect"], ok=(0, 1))
+    if args.detect_synthetic:
+        found = {f.stem for f in dirs["detect"].glob("*.pts")}
+        dirs["detect"] = ws / "lm_detect_synthetic"
+        dirs["detect"].mkdir(exist_ok=True)
+        for f in lm_files:
+            if f.name[:-len("_lm.pts")] in found:
+                shutil.copy(f, dirs["detect"] / f.name)
     rows = {}
     for name in [s for s in args.sets.split(",") if s]:
         try:
@@ -182,7 +203,7 @@ def run(args) -> dict:
 def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> dict:
     from reflectmm_cli.rig import DEFAULT_VIEWS
 
-    base = ws / name
+    base = ws / (name + ("_synthetic" if name == "detect" and args.detect_synthetic else ""))
     caps = []
     for i in ids:
         c = base / "cap" / f"{i}.npz"
@@ -202,19 +223,20 @@ def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> di
         geos = [read_artifact(out / "geo" / f"{i}.npz", "geometry") for i in ids]
         return _summary(args, ws, out, ids, views, geos, marked, float("nan"), cli, read_artifact)
     fm = ws / "syn" / "face_model.npz"
-    extra = []
+    extra, fit_extra = [], []
     if name == "detect":
         fm = Path(args.detect_face_model) if args.detect_face_model else fm
         extra = shlex.split(args.detect_args)
+        fit_extra = shlex.split(args.detect_fit_args)
     cli("calibrate-rig", *[a for c in caps for a in ("--capture", c)], "--face-model", fm,
         "--rig", ws / "nominal_rig.toml", "--focal", true.camera("05_1").focal_px, "-o", out / "cal" / "rig.npz",
-        *shlex.split(args.cal_args), *extra)
+        *shlex.split(args.cal_args), *extra, *(shlex.split(args.detect_cal_args) if name == "detect" else []))
     geos = []
     for i, c in zip(ids, caps):
         g = out / "geo" / f"{i}.npz"
         cli("fit-geometry", "--id", i, "--capture", c, "--face-model", fm, "--rig",
             out / "cal" / "rig.toml", "--truth", ws / "syn" / "truth" / f"{i}.npz", "--no-overlay", "-o", g,
-            *shlex.split(args.fit_args), *extra)
+            *shlex.split(args.fit_args), *extra, *fit_extra)
         geos.append(read_artifact(g, "geometry"))
     return _summary(args, ws, out, ids, views, geos, marked, time.perf_counter() - t0, cli, read_artifact)
 
@@ -494,6 +516,40 @@ def _per_identity(folder, cal, ids, true):
                                     np.array([cal.camera(n).t for n in names]))
         out.append(_aligned((camera_centers(R, t) - th) @ Rh, R @ Rh, true, names, marked))
     return out
+
+
+def landmark_error(args) -> None:
+    """The detector's points against the truth of the world: each view's true mesh and camera."""
+    from reflectmm_cli.capture.layout import camera_name
+    from reflectmm_cli.geometry.camera import project
+    from reflectmm_cli.geometry_fit.contour import SLIDING, jaw_contour, slide
+    from reflectmm_cli.landmarks import GROUPS, read_landmarks
+
+    ws = Path(args.workspace)
+    fm = np.load(args.detect_face_model or ws / "syn" / "face_model.npz")
+    L, S = fm["landmarks"], list(SLIDING)
+    contour = jaw_contour(fm["mean_shape"], fm["triangles"], L)
+    inner, across = [], []
+    for f in sorted((ws / "lm_detect").glob("*.pts")):
+        parts = f.stem.split("_")
+        truth = np.load(ws / "syn" / "truth" / f"{parts[0]}.npz")
+        k = [str(c) for c in truth["camera_names"]].index(camera_name(parts[3]))
+        X, K, R, t = truth["vertices"].astype(np.float64), truth["K"][k], truth["R"][k], truth["t"][k]
+        det = read_landmarks(f)
+        inner.append(det - project(X[L], K, R, t)[0])
+        ids, nrm = slide(contour, X, K, R, t, det[S], L[S])
+        across.append(np.abs(((project(X[ids], K, R, t)[0] - det[S]) * nrm).sum(-1)))
+    D, A = np.array(inner), np.array(across)
+    print(f"{len(D)} views with the detector's landmarks; px, against the truth's projected landmark vertices")
+    print("| group | RMS | per-view shift of the group (RMS) | within the group, shift removed (RMS) |")
+    print("|---|---|---|---|")
+    for g, (a, b) in GROUPS.items():
+        x = D[:, a:b]
+        shift = x.mean(1)
+        print(f"| {g} | {np.sqrt((x ** 2).sum(-1).mean()):.2f} | {np.sqrt((shift ** 2).sum(-1).mean()):.2f} | "
+              f"{np.sqrt(((x - shift[:, None]) ** 2).sum(-1).mean()):.2f} |")
+    print(f"\ninner points (17-67) RMS {np.sqrt((D[:, 17:] ** 2).sum(-1).mean()):.2f} px; cheek points across the "
+          f"true outline: median {np.median(A):.2f}, 90th percentile {np.percentile(A, 90):.2f}, max {A.max():.2f} px")
 
 
 if __name__ == "__main__":

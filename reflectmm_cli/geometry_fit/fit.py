@@ -33,6 +33,7 @@ import torch
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import axis_angle_to_matrix, camera_centers, project
 from reflectmm_cli.geometry.rotations import skew
+from reflectmm_cli.geometry_fit.contour import CHIN, jaw_contour, slide
 from reflectmm_cli.geometry_fit.init import rigid_align
 from reflectmm_cli.geometry_fit.landmarks import landmark_weights
 from reflectmm_cli.geometry.face_model import vertex_normals
@@ -116,6 +117,12 @@ class FitConfig:
     albedo: str = "auto"            # "auto": model texture if any else per-vertex estimate; "texture",
                                     # "per-vertex", "constant"
     group_weights: dict[str, float] | None = None
+    jaw_contour: bool = False       # the jaw points 0–5 and 11–16 slide along the model's contour lines to each
+                                    # view's outline (a detector's jaw follows the silhouette; :mod:`.contour`)
+    contour_rounds: int = 2         # landmark fits after the first with the jaw vertices slid to the outline
+    contour_behind_mm: float = 70.0  # the contour lines reach this far behind the model's jaw ends (0, 16)
+    contour_gate_px: float = 0.0    # a sliding point further than this across the outline after a slide is left
+                                    # out until the next slide (0 = keep every point)
     dtype: str = "float64"
     threads: int = 1                # torch intra-op threads during the fit (the tensors are small: one thread
                                     # is several times faster than two on a loaded 2-core machine)
@@ -299,10 +306,17 @@ class _FitProblem:
         if not marked.any():
             raise ReflectmmError("no view has landmarks: at least one view needs them to place the face")
         wl = landmark_weights(cfg.group_weights)[None, :] * valid
-        self.wl_t = tt(wl)
+        if cfg.jaw_contour:  # the chin follows the jaw line above the neck: left out (:mod:`.contour`)
+            wl[:, list(CHIN)] = 0.0
+        self.wl_t = self.wl_all_t = tt(wl)
         self.wsum = float(wl.sum())
         self.obs_t = tt(np.where(valid[..., None], lm_obs, 0.0))
         self.K_t, self.R0_t, self.t0_t = tt(views.K), tt(views.R0), tt(views.t0)
+        self.jaw = (jaw_contour(model.mean, model.triangles, model.landmarks, behind_mm=cfg.contour_behind_mm)
+                    if cfg.jaw_contour else None)
+        self.lm_ids = np.tile(model.landmarks, (V, 1))  # (V, 68) each view's landmark vertices
+        self.lm_normals = np.zeros((V, 68, 2))  # sliding points: the outline's image normal (residual along it)
+        self._set_lm_ids(self.lm_ids, self.lm_normals)
         depth = np.abs(views.t0[:, 2]).mean()
         f = float(views.K[:, 0, 0].mean())
         self.t_unit = 10.0 * depth / f
@@ -366,6 +380,36 @@ class _FitProblem:
     def tt(self, a) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype, device=self.device)
 
+    def _set_lm_ids(self, ids: np.ndarray, normals: np.ndarray) -> None:
+        """Per-view landmark vertices (V, 68) and outline normals (V, 68, 2): the model restricted to the vertices'
+        union, each view's rows in it, and which residuals are measured across the outline only."""
+        self.lm_ids, self.lm_normals = np.asarray(ids, dtype=np.int64), np.asarray(normals, dtype=np.float64)
+        if self.jaw is None:
+            return
+        u, inv = np.unique(self.lm_ids, return_inverse=True)
+        self.lm_sub = self.ts.subset(u)
+        self.lm_rows_t = torch.as_tensor(inv.reshape(self.lm_ids.shape), dtype=torch.long, device=self.device)
+        self.lm_normals_t = self.tt(self.lm_normals)
+        self.lm_across_t = torch.as_tensor((self.lm_normals ** 2).sum(-1) > 0, device=self.device)[..., None]
+
+    def slide_jaw(self) -> None:
+        """Move each view's sliding jaw points to the outline of the current fit (:func:`.contour.slide`)."""
+        if self.jaw is None:
+            return
+        X, R, t = self.numpy_geometry()
+        ids, normals = self.lm_ids.copy(), self.lm_normals.copy()
+        pts = self.jaw.points
+        gate = np.ones((self.V, 68))
+        for v in np.nonzero(self.marked)[0]:
+            ids[v, pts], normals[v, pts] = slide(self.jaw, X, self.views.K[v], R[v], t[v],
+                                                 self.views.landmarks[v, pts], self.model.landmarks[pts])
+            if self.cfg.contour_gate_px > 0:
+                uv, _ = project(X[ids[v, pts]], self.views.K[v], R[v], t[v])
+                off = np.abs(((uv - self.views.landmarks[v, pts]) * normals[v, pts]).sum(-1))
+                gate[v, pts] = ~(off > self.cfg.contour_gate_px)
+        self._set_lm_ids(ids, normals)
+        self.wl_t = self.wl_all_t * self.tt(gate)
+
     def poses(self):
         """Per-view world-to-camera (R (V, 3, 3), t (V, 3)) at the current unknowns."""
         R = axis_angle_to_matrix(self.dw * self.r_unit) @ self.R0_t
@@ -395,14 +439,24 @@ class _FitProblem:
         return self.ts.vertices(self.zs, self.ze)
 
     def lm_loss(self, X, R, t, landmarks_only=False):
-        """Weighted Huber landmark term (divided by the weight sum and σ_lm²) and the projections (V, 68, 2)."""
-        L = X if landmarks_only else X[self.ts.landmarks]
-        uv, _ = project(L[None].expand(self.V, -1, -1), self.K_t, R, t)
+        """Weighted Huber landmark term (divided by the weight sum and σ_lm²) and the projections (V, 68, 2).
+        ``X``: the full mesh, or with ``landmarks_only`` the (68, 3) landmark vertices (or (V, 68, 3) per view)."""
+        if not landmarks_only:
+            L = X[self.ts.landmarks] if self.jaw is None else X[torch.as_tensor(self.lm_ids, device=X.device)]
+        else:
+            L = X
+        if L.dim() == 2:
+            L = L[None].expand(self.V, -1, -1)
+        uv, _ = project(L, self.K_t, R, t)
         d = uv - self.obs_t
+        if self.jaw is not None:  # a point on the outline: only its distance across the outline counts
+            d = torch.where(self.lm_across_t, (d * self.lm_normals_t).sum(-1, keepdim=True) * self.lm_normals_t, d)
         r = torch.sqrt((d * d).sum(-1) + 1e-12)
         return (self.wl_t * huber(r, self.cfg.huber_px)).sum() / (self.wsum * self.cfg.landmark_sigma_px ** 2), uv
 
     def landmark_term(self, R, t) -> torch.Tensor:
+        if self.jaw is not None:
+            return self.lm_loss(self.lm_sub.vertices(self.zs, self.ze)[self.lm_rows_t], R, t, True)[0]
         return self.lm_loss(self.ts.landmark_vertices(self.zs, self.ze), R, t, True)[0]
 
     def head(self):
@@ -489,12 +543,24 @@ def _sub_mesh(prob: _FitProblem) -> _SubMesh:
 
 
 def _landmark_stage(prob: _FitProblem) -> None:
-    """Stage 1: landmarks + priors over the coefficients and poses."""
+    """Stage 1: landmarks + priors over the coefficients and poses.  With the sliding jaw: first without the
+    sliding points, then ``contour_rounds`` fits, each after sliding them to the outline of the fit before."""
     def stage1():
         R, t = prob.poses()
         return prob.cfg.w_landmark * prob.landmark_term(R, t) + prob.prior(R, t)
 
-    prob.run_lbfgs([prob.zs, prob.ze] + prob.pose_params, stage1, prob.cfg.landmark_iters, "landmarks")
+    params = [prob.zs, prob.ze] + prob.pose_params
+    if prob.jaw is None:
+        prob.run_lbfgs(params, stage1, prob.cfg.landmark_iters, "landmarks")
+        return
+    off = torch.ones(68, dtype=prob.dtype, device=prob.device)
+    off[torch.as_tensor(prob.jaw.points, device=prob.device)] = 0.0
+    prob.wl_t = prob.wl_all_t * off  # the model's own jaw vertices are not where a detector puts the jaw
+    prob.run_lbfgs(params, stage1, prob.cfg.landmark_iters, "landmarks without the sliding jaw", tick=False)
+    for rnd in range(max(prob.cfg.contour_rounds, 1)):
+        prob.slide_jaw()
+        prob.run_lbfgs(params, stage1, prob.cfg.landmark_iters, f"landmarks, jaw on the outline {rnd + 1}",
+                       tick=rnd == max(prob.cfg.contour_rounds, 1) - 1)
 
 
 @dataclass
@@ -550,6 +616,7 @@ def _photometric_stage(prob: _FitProblem, sm: _SubMesh) -> _PhotoResult:
     blurs = _round_blurs(cfg, cfg.photo_rounds)
     out = _PhotoResult(None, None, np.full(V, np.nan), np.zeros(V, dtype=np.int64))
     for rnd in range(cfg.photo_rounds):
+        prob.slide_jaw()  # the outline of the fit so far (no-op without the sliding jaw)
         imgs_np = _blur(np.asarray(views.images, dtype=np.float32), blurs[rnd])
         images_t = tt(np.ascontiguousarray(imgs_np.transpose(0, 3, 1, 2)))
         vis, uv, nrm = _photo_visibility(prob, sm, Wc, Hc)
@@ -629,6 +696,9 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
         _, uv = prob.lm_loss(X, R, t)
     uv = uv.cpu().numpy().astype(np.float64)
     err = np.linalg.norm(uv - views.landmarks, axis=-1)
+    if prob.jaw is not None:  # points on the outline: their distance across it, as the fit measured them
+        across = (prob.lm_normals ** 2).sum(-1) > 0
+        err[across] = np.abs(((uv - views.landmarks) * prob.lm_normals).sum(-1))[across]
     rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) if valid[v].any() else math.nan for v in range(V)])
     zs_np = prob.zs.detach().cpu().numpy().astype(np.float64)
     ze_np = prob.ze.detach().cpu().numpy().astype(np.float64)
@@ -866,6 +936,7 @@ def _flash_stage(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarra
     raw, sat = fp.images()  # (P, h, w, 3), (P, h, w)
     res = np.full(V, np.nan)
     for rnd in range(cfg.flash_rounds):
+        prob.slide_jaw()  # the outline of the fit so far (no-op without the sliding jaw)
         flash, images_t, weight = _flash_objective(prob, sm, fp, raw, blurs[rnd], sat)
 
         def stage3():

@@ -64,6 +64,17 @@ PARAMS = (
     _cfg("landmark_sigma_px", "float", range=(1e-3, None), option="--landmark-sigma", unit="px",
          help="assumed landmark noise: balances landmarks against the priors."),
     LANDMARK_WEIGHTS,
+    _cfg("jaw_contour", "bool",
+         help="slide the jaw points 0-5 and 11-16 to each view's outline of the fitted face (landmark marching), "
+              "for a detector's landmarks, whose jaw follows the silhouette; the chin keeps its vertices."),
+    _cfg("contour_rounds", "int", range=(1, 20), option="",
+         help="landmark fits with the jaw slid to the outline of the fit before (with --jaw-contour)."),
+    _cfg("contour_gate_px", "float", range=(0.0, None), option="--contour-gate", unit="px",
+         help="with --jaw-contour: a cheek point further than this across the outline after a slide is left out "
+              "until the next slide (0 = keep every point)."),
+    _cfg("contour_behind_mm", "float", range=(0.0, None), option="", unit="mm",
+         help="how far behind the model's jaw ends (landmarks 0 and 16) the contour lines reach (with "
+              "--jaw-contour)."),
     _cfg("huber_px", "float", range=(0.0, None), low_open=True, option="", unit="px",
          help="Huber threshold of the landmark residual."),
     _cfg("w_landmark", "float", range=(0.0, None), option="", help="weight of the landmark term."),
