@@ -73,6 +73,9 @@ def main(argv=None):
                          "'--landmark-weights jaw=0' for calibrate-rig in --detect-cal-args)")
     ap.add_argument("--detect-cal-args", default="",
                     help="extra calibrate-rig arguments of the detect set only")
+    ap.add_argument("--raised-aim", default="kept", choices=("kept", "head"),
+                    help="the nominal table's raised cameras, moved 300 mm: keep their true aim direction (may look "
+                         "past the head) or look at the head from the wrong place (use with --tag)")
     ap.add_argument("--detect-synthetic", action="store_true",
                     help="the detect set with the world's synthetic landmarks (1 px noise) on exactly the views where "
                          "the detector found a face: what the view set alone costs (use with --tag)")
@@ -165,7 +168,8 @@ def run(args) -> dict:
     true = build_default_rig(radius=args.radius, focal_px=args.focal, width=W, height=H)
     save_rig(true, ws / "true_rig.toml", "true rig of the benchmark")
     save_rig(perturb_rig(true, distance_scale=args.table_distance_scale, angle_deg=3.0, raised_offset_mm=300.0,
-                         seed=args.seed), ws / "nominal_rig.toml", "nominal rig of the benchmark (deliberately wrong)")
+                         seed=args.seed, raised_aim=args.raised_aim),
+             ws / "nominal_rig.toml", "nominal rig of the benchmark (deliberately wrong)")
     views = list(DEFAULT_VIEWS) + list(RAISED_CAMERAS)
     ids = [f"{i:03d}" for i in range(1, args.identities + 1)]
     syn = ws / "syn"

@@ -1027,10 +1027,16 @@ def read_rig_calibration(path: str | Path):
 # --------------------------------------------------------------------------- synthetic data
 
 def perturb_rig(rig: Rig, *, distance_scale: float = 1.0, angle_deg: float = 0.0, raised_offset_mm: float = 0.0,
-                focal_scale: float = 1.0, seed: int = 0) -> Rig:
+                focal_scale: float = 1.0, seed: int = 0, raised_aim: str = "kept") -> Rig:
     """A deliberately wrong copy of ``rig``: every camera's distance scaled, its position turned about the head by
     ≈ ``angle_deg`` (random axis) and its aim turned by as much, the raised cameras moved by ``raised_offset_mm``
-    (random direction), every focal scaled.  Attached flashes move with their camera."""
+    (random direction), every focal scaled.  Attached flashes move with their camera.
+
+    ``raised_aim``: a moved raised camera keeps its true aim direction (``"kept"``: it may look past the head) or
+    looks at its true look-at point from its wrong place (``"head"``: a table written with a wrong position but
+    aimed at the subject), before the aim error."""
+    if raised_aim not in ("kept", "head"):
+        raise ReflectmmError(f"perturb_rig: raised_aim must be 'kept' or 'head', not {raised_aim!r}")
     rng = np.random.default_rng(seed)
     cams = []
     for cam in rig.cameras:
@@ -1042,7 +1048,8 @@ def perturb_rig(rig: Rig, *, distance_scale: float = 1.0, angle_deg: float = 0.0
             pos = pos + raised_offset_mm * d / np.linalg.norm(d)
         w2 = rng.normal(size=3)
         w2 *= math.radians(angle_deg) / max(np.linalg.norm(w2), 1e-12)
-        aim = rodrigues(w2) @ (np.asarray(cam.look_at) - cam.position)
+        moved = cam.name in RAISED_CAMERAS and raised_offset_mm > 0 and raised_aim == "head"
+        aim = rodrigues(w2) @ (np.asarray(cam.look_at) - (pos if moved else cam.position))
         cams.append(RigCamera(cam.name, pos, pos + aim, cam.up.copy(), cam.focal_px * focal_scale, cam.width,
                               cam.height))
     fls = []

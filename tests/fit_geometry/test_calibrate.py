@@ -232,3 +232,33 @@ def test_fewer_than_three_annotated_cameras_are_refused(model, world):
     lm[:, 2:] = np.nan
     with pytest.raises(ReflectmmError, match="no landmarks at all for camera\\(s\\) .* only 2 camera\\(s\\)"):
         calibrate_rig(model, lm, VIEWS, (640, 480), nominal)
+
+
+def test_perturbed_raised_cameras_keep_their_aim_or_look_at_the_head():
+    """perturb_rig's raised_aim: a raised camera moved 300 mm keeps its true aim direction ('kept', the default: it
+    then looks past the head), or looks at the head from its wrong place ('head'), each with the same 3° aim error;
+    the other cameras are the same either way."""
+    from reflectmm_cli.rig import RAISED_CAMERAS
+
+    true = load_rig()
+    kept = perturb_rig(true, angle_deg=3.0, raised_offset_mm=300.0, seed=4)
+    head = perturb_rig(true, angle_deg=3.0, raised_offset_mm=300.0, seed=4, raised_aim="head")
+
+    def miss_deg(cam, point):  # angle between the optical axis and the ray to ``point``
+        axis = np.asarray(cam.look_at, float) - cam.position
+        ray = np.asarray(point, float) - cam.position
+        return np.degrees(np.arccos(axis @ ray / np.linalg.norm(axis) / np.linalg.norm(ray)))
+
+    misses = []
+    for t in true.cameras:
+        k, h = kept.camera(t.name), head.camera(t.name)
+        np.testing.assert_allclose(k.position, h.position)
+        if t.name in RAISED_CAMERAS:
+            assert np.linalg.norm(k.position - t.position) > 250
+            assert miss_deg(h, t.look_at) < 3.0 + 1e-9
+            misses.append(miss_deg(k, t.look_at))
+        else:
+            np.testing.assert_allclose(k.look_at, h.look_at)
+    assert max(misses) > 8.0, misses  # (how far past the head depends on the direction of the move)
+    with pytest.raises(ReflectmmError, match="raised_aim"):
+        perturb_rig(true, raised_aim="up")
