@@ -25,3 +25,20 @@ def cli():
         return runner.invoke(main, [str(a) for a in args], catch_exceptions=False, **kwargs)
 
     return invoke
+
+
+@pytest.fixture
+def recipe_error(cli, tmp_path):
+    """recipe_error(stage, body) -> the one-line error of ``run --dry-run`` on a recipe with one stage
+    ``[stages.<stage>]`` whose TOML lines are ``body``; asserts a non-zero exit and that the line names the recipe's
+    file and the stage."""
+    def run(stage: str, body: str) -> str:
+        recipe = tmp_path / "r.toml"
+        recipe.write_text(f'schema = "reflectmm.recipe/1"\n[stages.{stage}]\n{body}')
+        r = cli("run", recipe, "-w", tmp_path, "--dry-run")
+        assert r.exit_code != 0
+        line = r.stderr.strip()
+        assert len(line.splitlines()) == 1 and str(recipe) in line and f"[stages.{stage}]" in line, line
+        return line
+
+    return run

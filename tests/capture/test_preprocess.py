@@ -295,15 +295,10 @@ def test_landmarks_far_outside_the_frame_are_refused(tmp_path, cli):
     assert run(cli, root, tmp_path / "ws2", "--id", "001").exit_code == 0
 
 
-def test_a_bad_rotation_in_a_recipe_names_the_file_and_stage(cli, tmp_path):
+def test_a_bad_rotation_in_a_recipe_names_the_file_and_stage(recipe_error):
     """The recipe's ``rotate`` goes through the same check as ``--rotate``, and its error names the recipe."""
-    recipe = tmp_path / "r.toml"
-    recipe.write_text('schema = "reflectmm.recipe/1"\n[stages.preprocess-multipie]\nforeach = ["001"]\n'
-                      'inputs = { root = "mp" }\nparams = { rotate = { "08_1" = 45 } }\n')
-    r = cli("run", recipe, "-w", tmp_path, "--dry-run")
-    assert r.exit_code != 0
-    line = r.stderr.strip()
-    assert len(line.splitlines()) == 1 and str(recipe) in line and "[stages.preprocess-multipie]" in line
+    line = recipe_error("preprocess-multipie",
+                        'foreach = ["001"]\ninputs = { root = "mp" }\nparams = { rotate = { "08_1" = 45 } }\n')
     assert "rotate: degrees must be 0, 90, 180 or 270 (clockwise); camera 08_1 has 45" in line
     assert parse_rotate("08_1=90, 19_1=-90") == {"08_1": 90, "19_1": 270}
     with pytest.raises(ParamError, match="expected CAMERA=DEGREES"):

@@ -80,13 +80,7 @@ def test_landmark_weights_reach_both_stages_configs():
             resolve_params(stage.PARAMS, {"landmark_weights": {"jaw": -1}})  # the group is named, as on the CLI
 
 
-def test_a_bad_landmark_weight_in_a_recipe_names_the_file_and_stage(cli, tmp_path):
-    recipe = tmp_path / "r.toml"
-    recipe.write_text('schema = "reflectmm.recipe/1"\n[stages.fit-geometry]\nforeach = ["001"]\n'
-                      'inputs = { capture = "c.npz", face_model = "f.npz" }\n'
-                      'params = { landmark_weights = { chin = 0 } }\n')
-    r = cli("run", recipe, "-w", tmp_path, "--dry-run")
-    assert r.exit_code != 0
-    line = r.stderr.strip()
-    assert len(line.splitlines()) == 1 and str(recipe) in line and "[stages.fit-geometry]" in line
+def test_a_bad_landmark_weight_in_a_recipe_names_the_file_and_stage(recipe_error):
+    line = recipe_error("fit-geometry", 'foreach = ["001"]\ninputs = { capture = "c.npz", face_model = "f.npz" }\n'
+                                        'params = { landmark_weights = { chin = 0 } }\n')
     assert "landmark_weights: unknown group 'chin'" in line
