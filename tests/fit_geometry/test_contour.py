@@ -5,7 +5,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy import ndimage
 
 import toy
 from reflectmm_cli.geometry.camera import camera_centers, project
