@@ -117,8 +117,9 @@ class FitConfig:
     albedo: str = "auto"            # "auto": model texture if any else per-vertex estimate; "texture",
                                     # "per-vertex", "constant"
     group_weights: dict[str, float] | None = None
-    jaw_contour: bool = False       # the jaw points 0–5 and 11–16 slide along the model's contour lines to each
-                                    # view's outline (a detector's jaw follows the silhouette; :mod:`.contour`)
+    jaw_contour: bool = False       # the cheek points 0–4 and 12–16 slide along the model's contour lines to each
+                                    # view's outline, 5–11 are left out (a detector's jaw follows the silhouette;
+                                    # :mod:`.contour`)
     contour_rounds: int = 2         # landmark fits after the first with the jaw vertices slid to the outline
     contour_behind_mm: float = 70.0  # the contour lines reach this far behind the model's jaw ends (0, 16)
     contour_gate_px: float = 0.0    # a sliding point further than this across the outline after a slide is left
