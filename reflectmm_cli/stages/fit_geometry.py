@@ -65,8 +65,9 @@ PARAMS = (
          help="assumed landmark noise: balances landmarks against the priors."),
     LANDMARK_WEIGHTS,
     _cfg("jaw_contour", "bool",
-         help="slide the jaw points 0-5 and 11-16 to each view's outline of the fitted face (landmark marching), "
-              "for a detector's landmarks, whose jaw follows the silhouette; the chin keeps its vertices."),
+         help="slide the cheek points 0-4 and 12-16 to each view's outline of the fitted face (landmark marching), "
+              "for a detector's landmarks, whose jaw follows the silhouette; the chin (5-11) is left out. Not yet "
+              "better than --landmark-weights jaw=0 with dlib (docs/fit-geometry.md)."),
     _cfg("contour_rounds", "int", range=(1, 20), option="",
          help="landmark fits with the jaw slid to the outline of the fit before (with --jaw-contour)."),
     _cfg("contour_gate_px", "float", range=(0.0, None), option="--contour-gate", unit="px",
