@@ -210,6 +210,21 @@ def test_flash_intensity_override_and_no_overlay(world, cli, tmp_path):
     assert np.median(g["landmark_rmse_px"]) < 1.5
 
 
+def test_jaw_contour_end_to_end(world, cli, tmp_path):
+    """--jaw-contour --contour-gate through the CLI: the options reach the artifact's params and the fit runs its
+    sliding rounds (named in the report's history)."""
+    out = tmp_path / "g.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--iters", "60", "--photo-rounds", "0", "--jaw-contour",
+            "--contour-gate", "3", "--no-overlay", "-o", out)
+    assert r.exit_code == 0, r.output
+    g = read_artifact(out, "geometry")
+    assert g.params["jaw_contour"] is True and g.params["contour_gate_px"] == 3.0
+    stages = [h["stage"] for h in g.meta["report"]["history"]]
+    assert stages[:3] == ["landmarks without the sliding jaw", "landmarks, jaw on the outline 1",
+                          "landmarks, jaw on the outline 2"]
+    assert np.all(np.isfinite(g["landmark_rmse_px"])) and float(g["err_vertex_rmse_iod"]) < 0.12
+
+
 def test_rerun_is_byte_identical(world, cli, tmp_path):
     outs = [tmp_path / "a" / "g.npz", tmp_path / "b" / "g.npz"]
     for out in outs:
