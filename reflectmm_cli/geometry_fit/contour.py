@@ -5,11 +5,11 @@ outline: on a turned or differently shaped face they sit on the occluding contou
 points of the skin.  A fixed model vertex per jaw point then pulls the face toward the wrong width
 (docs/fit-geometry.md, "Jaw points on the outline").
 
-Here each sliding jaw point owns one *contour line*: the model vertices of a thin horizontal slice of the face at
-that point's height, on its side.  For a view, the point's vertex is the slice's outermost vertex in the image
-(its extreme along the projected side axis): the extreme of a surface slice's projection lies on the occluding
-contour (or on the mesh border).  The fit alternates: fit with the current vertices, slide them to the new
-outline, fit again (:func:`slide`).
+Here each side of the cheeks is cut into thin horizontal slices of the model's vertices.  In a view, each slice's
+outermost vertex in the image (its extreme along the projected side axis) is on the outline: the extreme of a
+surface slice's projection lies on the occluding contour (or on the mesh border) (:func:`outline`).  Each sliding
+point takes the outline vertex nearest to it, and its residual is measured across the outline.  The fit alternates:
+fit with the current vertices, slide them to the new outline, fit again (:func:`slide`).
 
 The axes come from the model's own landmarks (eyes, chin, nose tip, jaw ends), so no model frame is assumed.
 The lower jaw and chin (5–11) are left out: their outline is the jaw line above the neck, which is neither a fixed
@@ -71,8 +71,8 @@ def jaw_contour(mean: np.ndarray, triangles: np.ndarray, landmarks: np.ndarray, 
 
     Each side of the face is cut into horizontal slices ``band`` thick (default 1.5× the median edge length, at
     least 1 mm) from the chin's height to ``above_mm`` above the higher jaw end (0 or 16).  A slice holds that
-    side's vertices at most ``behind_mm`` behind the jaw end (toward the ear; 20 mm keeps it on the face for the
-    ±30° views a frontal detector annotates)."""
+    side's vertices at most ``behind_mm`` behind the jaw end (toward the ear: far enough for the near side's
+    outline of the ±30° views a frontal detector annotates, not so far that the lines reach under the jaw)."""
     mean = np.asarray(mean, dtype=np.float64)
     landmarks = np.asarray(landmarks, dtype=np.int64)
     side, up, front = model_axes(mean, landmarks)
@@ -122,8 +122,9 @@ def outline(contour: JawContour, vertices: np.ndarray, K: np.ndarray, R: np.ndar
 
 
 def slide(contour: JawContour, vertices: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-          observed: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The sliding points' vertices in one view and the outline's image normals there.
+          observed: np.ndarray, fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sliding points' vertices in one view, the outline's image normals there and the points' distances
+    across it.
 
     Each observed point takes the vertex of its side's :func:`outline` whose projection is nearest to it; the
     outline's unit normal in the image at that vertex (perpendicular to the chord between its neighbours) lets the
@@ -136,12 +137,14 @@ def slide(contour: JawContour, vertices: np.ndarray, K: np.ndarray, R: np.ndarra
         observed: (J, 2) the detector's points (pixels) of ``contour.points``; fixed: (J,) their model vertices.
 
     Returns:
-        (J,) vertex ids, (J, 2) unit image normals (zero where the point keeps its fixed vertex).
+        (J,) vertex ids, (J, 2) unit image normals (zero where the point keeps its fixed vertex), (J,) each
+        point's distance across the outline in pixels (NaN where it keeps its fixed vertex).
     """
     X = np.asarray(vertices, dtype=np.float64)
     sil = outline(contour, X, K, R, t)
     ids_out = np.asarray(fixed, dtype=np.int64).copy()
     normals = np.zeros((len(ids_out), 2))
+    across = np.full(len(ids_out), np.nan)
     for m, side in enumerate(contour.sides):
         ids = sil[side]
         if not np.isfinite(observed[m]).all() or len(ids) < 2:
@@ -155,4 +158,5 @@ def slide(contour: JawContour, vertices: np.ndarray, K: np.ndarray, R: np.ndarra
         if norm < 1e-9:
             continue
         ids_out[m], normals[m] = ids[j], n / norm
-    return ids_out, normals
+        across[m] = abs((uv[j] - observed[m]) @ normals[m])
+    return ids_out, normals, across

@@ -402,12 +402,10 @@ class _FitProblem:
         pts = self.jaw.points
         gate = np.ones((self.V, 68))
         for v in np.nonzero(self.marked)[0]:
-            ids[v, pts], normals[v, pts] = slide(self.jaw, X, self.views.K[v], R[v], t[v],
-                                                 self.views.landmarks[v, pts], self.model.landmarks[pts])
+            ids[v, pts], normals[v, pts], across = slide(self.jaw, X, self.views.K[v], R[v], t[v],
+                                                         self.views.landmarks[v, pts], self.model.landmarks[pts])
             if self.cfg.contour_gate_px > 0:
-                uv, _ = project(X[ids[v, pts]], self.views.K[v], R[v], t[v])
-                off = np.abs(((uv - self.views.landmarks[v, pts]) * normals[v, pts]).sum(-1))
-                gate[v, pts] = ~(off > self.cfg.contour_gate_px)
+                gate[v, pts] = ~(across > self.cfg.contour_gate_px)  # (NaN: a point that keeps its vertex stays)
         self._set_lm_ids(ids, normals)
         self.wl_t = self.wl_all_t * self.tt(gate)
 
@@ -558,10 +556,11 @@ def _landmark_stage(prob: _FitProblem) -> None:
     off[torch.as_tensor(prob.jaw.points, device=prob.device)] = 0.0
     prob.wl_t = prob.wl_all_t * off  # the model's own jaw vertices are not where a detector puts the jaw
     prob.run_lbfgs(params, stage1, prob.cfg.landmark_iters, "landmarks without the sliding jaw", tick=False)
-    for rnd in range(max(prob.cfg.contour_rounds, 1)):
+    rounds = max(prob.cfg.contour_rounds, 1)
+    for rnd in range(rounds):
         prob.slide_jaw()
         prob.run_lbfgs(params, stage1, prob.cfg.landmark_iters, f"landmarks, jaw on the outline {rnd + 1}",
-                       tick=rnd == max(prob.cfg.contour_rounds, 1) - 1)
+                       tick=rnd == rounds - 1)
 
 
 @dataclass

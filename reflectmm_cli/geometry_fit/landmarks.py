@@ -16,7 +16,6 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import GROUPS, N_LANDMARKS, group_mask, write_pts  # noqa: F401  (re-exported)
 
 
-
 #: Default weight per group.  Deep3DFaceRecon weights the nose bridge (28–30) and the inner mouth (last 8)
 #: 20× and everything else 1×; we keep its ordering (inner face > jaw) with milder ratios, since on
 #: Multi-PIE-like multi-view data the jaw line of the side views is the least reliable point set (a

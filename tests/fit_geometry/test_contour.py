@@ -128,12 +128,14 @@ def test_slide_keeps_points_not_observed():
     K, R, t = toy.arc_cameras([0.0])
     obs = np.full((len(SLIDING), 2), np.nan)
     fixed = m.landmarks[list(SLIDING)]
-    ids, normals = slide(c, m.mean, K[0], R[0], t[0], obs, fixed)
+    ids, normals, across = slide(c, m.mean, K[0], R[0], t[0], obs, fixed)
     np.testing.assert_array_equal(ids, fixed)
-    assert not normals.any()
+    assert not normals.any() and np.isnan(across).all()
     obs[0] = project(m.mean[fixed[0]][None], K[0], R[0], t[0])[0][0] + [-40.0, 0.0]
-    ids, normals = slide(c, m.mean, K[0], R[0], t[0], obs, fixed)
+    ids, normals, across = slide(c, m.mean, K[0], R[0], t[0], obs, fixed)
     assert ids[0] != fixed[0] and (ids[1:] == fixed[1:]).all() and not normals[1:].any()
+    uv = project(m.mean[ids[0]][None], K[0], R[0], t[0])[0][0]
+    assert abs(across[0] - abs((uv - obs[0]) @ normals[0])) < 1e-9 and np.isnan(across[1:]).all()
     assert ids[0] in outline(c, m.mean, K[0], R[0], t[0])[c.sides[0]]
     # the normal is across the outline: nearly horizontal on the side of a face seen from the front
     assert abs(np.linalg.norm(normals[0]) - 1) < 1e-12 and abs(normals[0, 0]) > 0.9
