@@ -219,8 +219,10 @@ def _one_set(args, ws, name, lm_dir, ids, views, true, cli, read_artifact) -> di
         if args.reflectance and not c9.is_file():
             cli("preprocess-multipie", "--root", ws / "syn", "--id", i, "--views", ",".join(DEFAULT_VIEWS),
                 "--output", c9)
-    marked = sum(int(np.isfinite(np.asarray(read_artifact(c, "capture")["landmarks"])).all(-1).any(-1).sum())
-                 for c in caps)
+    marked = 0
+    for c in caps:  # views with landmarks (only the landmarks are read, not the image stacks)
+        lm = np.asarray(read_artifact(c, "capture", members=("landmarks",))["landmarks"])
+        marked += int(np.isfinite(lm).all(-1).any(-1).sum())
     out = base / f"fit{args.tag}"
     t0 = time.perf_counter()
     if args.reuse and all((out / "geo" / f"{i}.npz").is_file() for i in ids):

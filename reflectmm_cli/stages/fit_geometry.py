@@ -172,7 +172,8 @@ def run(ctx: StageContext) -> list[Path]:
     truth_list = ctx.input_list("truth", required=False)
     truth_path = truth_list[0] if truth_list else None
     if ctx.params["from_truth"]:
-        capture = check_identity(read_artifact(capture_path, "capture"), identity) if capture_path.is_file() else None
+        capture = check_identity(read_artifact(capture_path, "capture", members=(  # not the image stacks
+            "view_names", "flash_ids", "image_size", "landmarks")), identity) if capture_path.is_file() else None
         kw: dict[str, Any] = {}
         if capture is not None:
             kw = {"view_names": _str_list(capture["view_names"]), "flash_ids": _str_list(capture["flash_ids"]),
