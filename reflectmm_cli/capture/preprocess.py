@@ -31,7 +31,7 @@ from reflectmm_cli.threads import default_threads
 log = logging.getLogger("reflectmm")
 
 CROP_MODES = ("auto", "landmarks", "signal", "none")
-#: Linear OLAT level above which a pixel counts as lit by a flash (signal crop).
+#: Linear OLAT level above which a pixel counts as lit by a flash (signal crop), after the averaging below.
 SIGNAL_THRESHOLD = 0.01
 
 
@@ -82,6 +82,28 @@ def _crop_box(box, width: int, height: int, margin: float):
     m = margin * max(x1 - x0, y1 - y0)
     return (max(0, int(np.floor(x0 - m))), max(0, int(np.floor(y0 - m))),
             min(width, int(np.ceil(x1 + m)) + 1), min(height, int(np.ceil(y1 + m)) + 1))
+
+
+def signal_box(olat: np.ndarray, margin: float) -> tuple[int, int, int, int]:
+    """The window ``(x0, y0, x1, y1)`` around the pixels that some flash lights, enlarged by ``margin`` of its
+    larger side on every side (the whole frame where nothing is lit).
+
+    Args:
+        olat: (F, H, W, 3) one view's flash-minus-room images, linear.
+    A pixel is lit where the brightest flash's mean over the channels, averaged over a square of about 1 % of the
+    frame's shorter side, exceeds :data:`SIGNAL_THRESHOLD`. Sensor noise alone exceeds the threshold somewhere in
+    every frame (the difference of two noisy shots, at every pixel, for every flash); averaging over the square
+    lowers it below, while a lit face, many squares wide, keeps its level.
+    """
+    import cv2
+
+    F, H, W = olat.shape[:3]
+    lit = np.asarray(olat, dtype=np.float32).mean(-1).max(0)
+    k = max(3, 2 * int(round(min(H, W) / 200.0)) + 1)
+    ys, xs = np.nonzero(cv2.blur(lit, (k, k), borderType=cv2.BORDER_REPLICATE) > SIGNAL_THRESHOLD)
+    if ys.size == 0:
+        return (0, 0, W, H)
+    return _crop_box((xs.min(), ys.min(), xs.max(), ys.max()), W, H, margin)
 
 
 def _common_windows(boxes, width: int, height: int) -> tuple[np.ndarray, int, int]:
@@ -184,11 +206,7 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
                 np.logical_or(fl.saturated, rsat, out=sat[vi, fi])
     rooms.clear()
     if origins is None:  # signal crop: the box of pixels some flash lights, per view, then one common window
-        boxes = []
-        for vi in range(V):
-            ys, xs = np.nonzero(olat[vi].max(axis=(0, 3)) > SIGNAL_THRESHOLD)
-            boxes.append((0, 0, W, H) if ys.size == 0 else
-                         _crop_box((xs.min(), ys.min(), xs.max(), ys.max()), W, H, 0.02))
+        boxes = [signal_box(olat[vi], opts.crop_margin / 2) for vi in range(V)]
         origins, cw, ch = _common_windows(boxes, W, H)
         win = [(slice(oy, oy + ch), slice(ox, ox + cw)) for ox, oy in origins]
         olat = np.stack([olat[v][:, ys, xs] for v, (ys, xs) in enumerate(win)])

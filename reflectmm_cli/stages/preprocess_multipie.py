@@ -32,7 +32,8 @@ PARAMS = (
     Param("crop", "str", "auto", choices=tuple(CROP_MODES),
           help="Store a face window (landmarks / lit pixels) or full frames (none)."),
     Param("crop_margin", "float", 0.6, range=(0.0, None),
-          help="Margin around the landmark box, as a fraction of its larger side."),
+          help="Margin around the landmark box, as a fraction of its larger side (around the lit box of the "
+               "signal crop: half of it, since that box already holds the whole head)."),
 )
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
@@ -114,6 +115,7 @@ def run(ctx: StageContext) -> list[Path]:
     return [out, sheet]
 
 
-# version 2: default views add 08_1 / 19_1 when flashes 14 / 18 are used (issue 13)
-STAGE = Stage(VERB, version=2, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
+# version 2: default views add 08_1 / 19_1 when flashes 14 / 18 are used (issue 13); 3: the signal crop averages
+# before its threshold (sensor noise had made it the whole frame) and takes half the crop margin
+STAGE = Stage(VERB, version=3, run=run, per_identity=True, outputs=_outputs, input_files=_input_files,
               discover_ids=_discover, params=PARAMS, help="Multi-PIE shots -> linear OLAT stack per identity", inputs=INPUTS)

@@ -303,3 +303,61 @@ def test_a_bad_rotation_in_a_recipe_names_the_file_and_stage(recipe_error):
     assert parse_rotate("08_1=90, 19_1=-90") == {"08_1": 90, "19_1": 270}
     with pytest.raises(ParamError, match="expected CAMERA=DEGREES"):
         parse_rotate(["08_1"])
+
+
+def _noisy_olat(rng, box, shape=(4, 240, 320), sigma=0.003, level=0.2):
+    """Flash-minus-room images of a lit rectangle ``box = (x0, y0, x1, y1)`` (inclusive), both shots with
+    Gaussian sensor noise of ``sigma``, clamped at 0 as preprocess stores them."""
+    F, H, W = shape
+    x0, y0, x1, y1 = box
+    lit = np.zeros((H, W, 3))
+    lit[y0:y1 + 1, x0:x1 + 1] = level
+    flash = lit + rng.normal(0, sigma, (F, H, W, 3))
+    room = rng.normal(0, sigma, (H, W, 3))
+    return np.maximum(flash - room, 0).astype(np.float16)
+
+
+def test_signal_box_ignores_sensor_noise():
+    from reflectmm_cli.capture.preprocess import SIGNAL_THRESHOLD, signal_box
+
+    rng = np.random.default_rng(3)
+    box = (110, 60, 189, 169)   # an 80 x 110 px face in a 320 x 240 frame
+    olat = _noisy_olat(rng, box)
+    # the noise alone passes the threshold somewhere: a box of single pixels would be the whole frame
+    ys, xs = np.nonzero(olat.max(axis=(0, 3)) > SIGNAL_THRESHOLD)
+    assert (xs.min(), ys.min(), xs.max(), ys.max()) == (0, 0, 319, 239)
+    # the averaged test finds the lit rectangle to within the averaging square (3 px here), plus the margin
+    x0, y0, x1, y1 = signal_box(olat, 0.0)
+    assert abs(x0 - 110) <= 2 and abs(y0 - 60) <= 2 and abs(x1 - 190) <= 2 and abs(y1 - 170) <= 2
+    m = 0.25 * 110  # the margin is a fraction of the larger side, on every side, clamped to the frame
+    x0, y0, x1, y1 = signal_box(olat, 0.25)
+    assert abs(x0 - (110 - m)) <= 3 and abs(y0 - (60 - m)) <= 3 and abs(x1 - (190 + m)) <= 3
+    assert abs(y1 - (170 + m)) <= 3
+    # nothing lit: the whole frame
+    dark = np.maximum(rng.normal(0, 0.003, (4, 240, 320, 3)), 0).astype(np.float16)
+    assert signal_box(dark, 0.3) == (0, 0, 320, 240)
+
+
+def test_signal_crop_of_a_noisy_capture_is_a_face_window(tmp_path):
+    """A view without landmarks makes `auto` crop to the lit pixels; 8-bit shots with sensor noise still give a
+    window around the lit face, not the whole frame (every view keeps its lit pixels)."""
+    root = tmp_path / "mp"
+    make_tree(root, ("001",), views=("05_1", "13_0"), flashes=("07", "05"), size=(320, 240), landmarks=False)
+    rng = np.random.default_rng(0)
+    tr = parse_transfer("gamma1.2")
+    yy, xx = np.mgrid[0:240, 0:320]
+    face = ((xx - 150) / 45.0) ** 2 + ((yy - 120) / 60.0) ** 2 < 1
+    for cam in ("05_1", "13_0"):
+        room = 0.05 + rng.normal(0, 0.004, (240, 320, 3))
+        write_png(shot_file(root, "001", cam, "00"), encode_linear(np.clip(room, 0, 1), tr, 8))
+        for f in ("07", "05"):
+            img = room + 0.3 * face[..., None] + rng.normal(0, 0.004, (240, 320, 3))
+            write_png(shot_file(root, "001", cam, f), encode_linear(np.clip(img, 0, 1), tr, 8))
+    a, _, rep = preprocess_identity(root, "001", CaptureOptions(views=("05_1", "13_0"), flashes=("07", "05")))
+    assert rep["crop"] == "signal"
+    ch, cw = a["olat"].shape[2:4]
+    # the face is 91 x 121 px; the default margin (0.6 / 2 of the larger side) makes the window about 164 x 194
+    assert 150 <= cw <= 180 and 180 <= ch <= 210, (cw, ch)
+    for v in range(2):
+        x0, y0 = a["crop_origin"][v]
+        assert x0 <= 105 and x0 + cw >= 195 and y0 <= 60 and y0 + ch >= 180
