@@ -5,6 +5,8 @@ Sections (each only when its outputs exist):
 
 * geometry (``fit-geometry/<id>.npz``): landmark RMSE (px, as stored by the fit), vertex error (mm, raw and
   rigidly aligned) and camera-centre error (mm) against ``truth/<id>.npz``;
+* the detector's chain (``fit-geometry-detected/<id>.npz``, optional): the same identities fitted from a
+  landmark detector's points where it found a face and from the images elsewhere, against the main fits;
 * reflectance (``fit-reflectance/<id>.npz``): diffuse albedo and specular albedo errors, observable and flagged
   texels, raw and after the global scale (:mod:`.truth`);
 * PCA model (``build-pca/*.npz``): explained variance, reconstruction error of the held-in maps (the training
@@ -24,7 +26,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .truth import geometry_errors, reflectance_errors
+from .truth import camera_errors_by_view, geometry_errors, reflectance_errors
 
 __all__ = ["build_report", "pca_reconstruction", "Read"]
 
@@ -211,19 +213,63 @@ def _representation_sections(representation: Iterable[Read], doc: dict[str, Any]
     return lines
 
 
+def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable,
+                      doc: dict[str, Any]) -> list[str]:
+    """The "Landmarks from a detector" section: fits whose landmarks a detector gave (none where it found no
+    face) against the run's main fits of the same identities (``doc["geometry"]``, landmarks on every view)."""
+    if not detected:
+        return []
+    main = doc.get("geometry", {})
+    rows, ratios, out = [], [], {}
+    for g, art in progress(detected, desc="geometry (detector)"):
+        ident = _ident(art, g)
+        tr = truth_by_id.get(ident)
+        e = geometry_errors(art.arrays, tr if tr is not None else {})
+        cams = camera_errors_by_view(art.arrays, tr) if tr is not None else {}
+        names = [str(x) for x in np.asarray(art["view_names"])]
+        marked = [str(x).startswith("landmarks") for x in np.asarray(art["view_evidence"])]
+        with_lm = [cams[n] for n, m in zip(names, marked) if m and n in cams]
+        without = [cams[n] for n, m in zip(names, marked) if not m and n in cams]
+        ref = main.get(ident, {}).get("vertex_rms_mm")
+        ratio = e["vertex_rms_mm"] / ref if ref and "vertex_rms_mm" in e else float("nan")
+        if np.isfinite(ratio):
+            ratios.append(ratio)
+        out[ident] = {**e, "views_with_landmarks": int(sum(marked)), "views": len(names),
+                      "vertex_rms_all_landmarks_mm": ref, "ratio": ratio,
+                      "camera_max_with_landmarks_mm": max(with_lm) if with_lm else None,
+                      "camera_max_without_landmarks_mm": max(without) if without else None}
+        rows.append(f"| {ident} | {sum(marked)} / {len(names)} | {_f(ref, '{:.2f}')} | "
+                    f"{_f(e.get('vertex_rms_mm'), '{:.2f}')} | {_f(ratio, '{:.2f}')} | "
+                    f"{_f(out[ident]['camera_max_with_landmarks_mm'], '{:.1f}')} | "
+                    f"{_f(out[ident]['camera_max_without_landmarks_mm'], '{:.1f}')} |")
+    med = float(np.median(ratios)) if ratios else float("nan")
+    doc["detected"] = {"identities": out, "median_ratio": med}
+    return ["## Landmarks from a detector", "",
+            "The same identities fitted from dlib's 68 points where it found a face on the room-light shot, and "
+            "from the images alone on every other view (`fit-geometry-detected`), against the fits above "
+            "(synthetic landmarks with 1 px noise on every view). The face model's landmark vertices are where dlib "
+            "puts the points (`face-model-embed`, measured on other identities of the run), and dlib's jaw points "
+            "have no weight (`landmark_weights = { jaw = 0 }`).", "",
+            "| identity | views with landmarks | vertex RMS (mm), landmarks on every view | vertex RMS (mm), "
+            "detector | × | camera centre error, max (mm): views with landmarks | views without |",
+            "|---|---:|---:|---:|---:|---:|---:|", *rows, "",
+            f"Median ratio {_f(med, '{:.2f}')} (the target is ≤ 1.3; docs/benchmarks.md, \"What limits the "
+            f"detector's set\", explains what is missing).", ""]
+
+
 def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), maps: Sequence[Read] = (),
                  models: Iterable[Read] = (), truth: Mapping[str, Any] | None = None,
                  representation: Iterable[Read] = (), progress: Callable = lambda it, **k: it,
                  reconstruction: Sequence[Read] = (), albedo: Sequence[Read] = (), relighting: Sequence[Read] = (),
                  finetune: Sequence[Path] = (), expressive: Sequence[Read] = (),
-                 viewer: Sequence[Path] = ()) -> tuple[str, dict[str, Any]]:
+                 viewer: Sequence[Path] = (), detected: Sequence[Read] = ()) -> tuple[str, dict[str, Any]]:
     """Markdown text and a document of numbers, from what the stage read (:data:`Read` pairs; nothing is read
     here).  ``geometry`` / ``maps``: geometry and reflectance-maps artifacts; ``truth``: identity → synth-truth
     arrays; ``models``: reflectance models; ``representation`` / ``reconstruction`` / ``albedo`` / ``relighting`` /
     ``expressive``: ``evaluation`` artifacts (each section takes those of its kind; "Paper vs reflectmm" is written
     when ``reconstruction`` or ``albedo`` is non-empty, i.e. when files were given, readable or not);
     ``finetune``: finetuned model paths (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
-    (linked)."""
+    (linked); ``detected``: geometry artifacts fitted from a detector's landmarks, compared with ``geometry``."""
     base = Path(out_md).parent
     truth_by_id = truth if truth is not None else {}
     doc: dict[str, Any] = {}
@@ -231,6 +277,7 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), m
     if not truth_by_id:
         lines += ["No ground truth found: errors against truth are not available.", ""]
     lines += _geometry_section(geometry, truth_by_id, progress, doc)
+    lines += _detected_section(detected, truth_by_id, progress, doc)
     refl_lines, maps_arrays = _reflectance_section(maps, truth_by_id, progress, doc, base)
     lines += refl_lines
     lines += _pca_sections(models, maps_arrays, doc, base)

@@ -139,6 +139,16 @@ def geometry_errors(geometry: Mapping[str, np.ndarray], truth: Mapping[str, np.n
     return out
 
 
+def camera_errors_by_view(geometry: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """Camera centre error (mm) of each view of a geometry artifact that the truth has, by view name."""
+    cams_t = _truth_cameras(truth)
+    if cams_t is None or "cam_centers" not in geometry:
+        return {}
+    names = [str(x) for x in np.asarray(geometry.get("view_names", []))]
+    cc = np.asarray(geometry["cam_centers"], np.float64)
+    return {n: float(np.linalg.norm(cc[i] - cams_t[n])) for i, n in enumerate(names) if n in cams_t}
+
+
 def _truth_cameras(truth: Mapping[str, np.ndarray]) -> dict[str, np.ndarray] | None:
     """name → camera centre from a truth mapping (``view_names``/``camera_names`` + ``cam_centers``, or R, t)."""
     names = None

@@ -29,6 +29,8 @@ _FOUND = Default("all", optional=True)
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
 INPUTS = (
     Input('geometry', 'geometry', upstream='fit-geometry', many=True, default=_FOUND),
+    Input('detected', 'geometry', upstream='fit-geometry', many=True,
+          help="fits of the same identities from a detector's landmarks, set against the geometry role's"),
     Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True, default=_FOUND),
     Input('model', 'reflectance-model', upstream='build-pca', many=True, default=_FOUND),
     Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True,
@@ -117,6 +119,7 @@ def run(ctx: StageContext) -> list[Path]:
                              finetune=ctx.input_list("finetune", required=False),
                              expressive=given("expressive", EVAL_KIND),
                              viewer=ctx.input_list("viewer", required=False),
+                             detected=given("detected", "geometry", skip=False),
                              progress=lambda it, **k: progress(it, **k))
     flat = flatten("", doc, {})
     names = sorted(flat)
@@ -128,6 +131,7 @@ def run(ctx: StageContext) -> list[Path]:
     return [out_md, out_npz]
 
 
-# version 4: + the finetuning gains of Table 2 and the expressive-power section; 5: + the viewer's link
-STAGE = Stage(VERB, version=5, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
+# version 4: + the finetuning gains of Table 2 and the expressive-power section; 5: + the viewer's link;
+# 6: + the detector's chain
+STAGE = Stage(VERB, version=6, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
               help="closing report of a run: errors of every stage against ground truth", inputs=INPUTS)

@@ -130,3 +130,25 @@ def test_allow_missing_still_refuses_an_unreadable_image(tmp_path, cli):
     assert res.exit_code == 1
     assert "broken.png" in res.stderr and "1 could not be read" in res.stderr
     assert not (tmp_path / "lm" / "no_face.txt").exists()
+
+
+def test_a_glob_in_the_images_input_is_expanded_when_the_images_exist(tmp_path):
+    """A recipe's `images = "@synth-multipie.dir/.../*_00.png"` is a pattern inside a folder that an upstream stage
+    fills: it lists nothing before that stage has run, its matches (images only, sorted) after."""
+    from reflectmm_cli.artifacts import write_png
+    from reflectmm_cli.errors import ReflectmmError
+    from reflectmm_cli.stages import get_stage
+    from reflectmm_cli.stages.detect_landmarks import image_files
+
+    stage = get_stage("detect-landmarks")
+    pattern = tmp_path / "data" / "*" / "*_00.png"
+    ctx = stage.context(workspace=tmp_path / "ws", inputs={"images": [pattern]}, params={"allow_missing": True})
+    assert image_files(ctx) == []
+    with pytest.raises(ReflectmmError, match=r"no images .*\*_00\.png"):
+        stage.run(ctx)
+    for cam in ("13_0", "05_1"):
+        for shot in ("00", "01"):
+            write_png(tmp_path / "data" / cam / f"001_{cam}_{shot}.png", np.full((8, 8, 3), 0.5))
+        (tmp_path / "data" / cam / f"001_{cam}_00_lm.pts").write_text("")
+    assert image_files(ctx) == [tmp_path / "data" / "05_1" / "001_05_1_00.png",
+                                tmp_path / "data" / "13_0" / "001_13_0_00.png"]
