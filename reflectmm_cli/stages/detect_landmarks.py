@@ -106,8 +106,8 @@ def run(ctx: StageContext) -> list[Path]:
     if ctx.params.get("allow_missing") and unreadable == 0:
         from reflectmm_cli.artifacts import atomic_write_text
 
-        for e in errors:
-            log.warning(f"{VERB}: {e}")
+        for e in errors:  # each one is in the listing; the summary below is the warning
+            log.debug(f"{VERB}: {e}")
         lines = []
         for p, why in faceless:
             lines.append(f"{p}\t{why}\n")
@@ -116,8 +116,9 @@ def run(ctx: StageContext) -> list[Path]:
                 log.warning(f"{VERB}: {other} exists, but this run finds no face in {p}: it is left as it is "
                             "and will be read downstream; delete it if it is stale")
         summary = atomic_write_text(out_dir(ctx) / NO_FACE, "".join(lines))
-        log.info(f"{VERB}: {len(written)} of {len(images)} image(s) with landmarks; the {len(errors)} without are "
-                 f"listed in {summary}")
+        (log.warning if errors else log.info)(
+            f"{VERB}: {len(written)} of {len(images)} image(s) with landmarks; the {len(errors)} without a face are "
+            f"listed in {summary}")
         return [summary] + written
     for e in errors:
         log.error(f"{VERB}: {e}")

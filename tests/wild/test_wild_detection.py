@@ -104,6 +104,9 @@ def test_allow_missing_lists_the_images_without_a_face_and_succeeds(tmp_path, cl
     assert res.exit_code == 0, res.stderr
     lines = (tmp_path / "lm" / "no_face.txt").read_text().splitlines()
     assert lines == [f"{tmp_path / 'blank.png'}\tno face found"]
+    # one warning line says how many and where they are listed (a data set has thousands without a face)
+    assert "1 of 2 image(s) with landmarks; the 1 without a face are listed in" in res.stderr
+    assert "blank.png: no face found" not in res.stderr
     assert (tmp_path / "lm" / "a.pts").is_file() and not (tmp_path / "lm" / "blank.pts").exists()
     # landmarks already in the folder for an image without a face (hand-made, or an earlier run's) are kept, and
     # the run says that they will be read
