@@ -245,13 +245,12 @@ def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], 
     med = float(np.median(ratios)) if ratios else float("nan")
     doc["detected"] = {"identities": out, "median_ratio": med}
     return ["## Landmarks from a detector", "",
-            "The same identities fitted from dlib's 68 points where it found a face on the room-light shot, and "
-            "from the images alone on every other view (`fit-geometry-detected`), against the fits above "
-            "(synthetic landmarks with 1 px noise on every view). The face model's landmark vertices are where dlib "
-            "puts the points (`face-model-embed`, measured on other identities of the run), and dlib's jaw points "
-            "have no weight (`landmark_weights = { jaw = 0 }`).", "",
-            "| identity | views with landmarks | vertex RMS (mm), landmarks on every view | vertex RMS (mm), "
-            "detector | × | camera centre error, max (mm): views with landmarks | views without |",
+            "The same identities fitted again from a detector's landmarks, which exist only on the views where it "
+            "found a face; the other views are placed by the rig and registered by their images. Set against the "
+            "fits above. How the demo makes them: recipes/synthetic.toml, stages `detect-landmarks` to "
+            "`fit-geometry-detected`.", "",
+            "| identity | views with landmarks | vertex RMS (mm), the fit above | vertex RMS (mm), detector | × | "
+            "camera centre error, max (mm): views with landmarks | views without |",
             "|---|---:|---:|---:|---:|---:|---:|", *rows, "",
             f"Median ratio {_f(med, '{:.2f}')} (the target is ≤ 1.3; docs/benchmarks.md, \"What limits the "
             f"detector's set\", explains what is missing).", ""]
