@@ -227,7 +227,9 @@ def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], 
         e = geometry_errors(art.arrays, tr if tr is not None else {})
         cams = camera_errors_by_view(art.arrays, tr) if tr is not None else {}
         names = [str(x) for x in np.asarray(art["view_names"])]
-        marked = [str(x).startswith("landmarks") for x in np.asarray(art["view_evidence"])]
+        evidence = art.get("view_evidence")  # (fits before views without landmarks: every view had them)
+        marked = [True] * len(names) if evidence is None else [str(x).startswith("landmarks")
+                                                               for x in np.asarray(evidence)]
         with_lm = [cams[n] for n, m in zip(names, marked) if m and n in cams]
         without = [cams[n] for n, m in zip(names, marked) if not m and n in cams]
         ref = main.get(ident, {}).get("vertex_rms_mm")

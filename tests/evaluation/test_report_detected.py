@@ -48,3 +48,19 @@ def test_detected_section_against_the_main_fits(tmp_path):
     # without detector fits the section is not there
     text, doc = build_report(tmp_path, tmp_path / "report.md", geometry=read(main), truth=truth)
     assert "Landmarks from a detector" not in text and "detected" not in doc
+
+
+def test_detected_fit_without_view_evidence_counts_every_view_as_annotated(tmp_path):
+    """A geometry artifact from before views without landmarks has no view_evidence: every view had landmarks."""
+    rng = np.random.default_rng(1)
+    vt = rng.normal(0, 50, (20, 3))
+    ct = rng.normal(0, 1000, (4, 3))
+    truth = {"001": {"vertices": vt.astype(np.float32), "camera_names": np.array(NAMES), "cam_centers": ct}}
+    p = write_artifact(tmp_path / "001.npz", "geometry", {
+        "vertices": (vt + 1).astype(np.float32), "cam_centers": ct + 2, "view_names": np.array(NAMES)},
+        extra_meta={"identity": "001"})
+    art = read_artifact(p, "geometry")
+    text, doc = build_report(tmp_path, tmp_path / "r.md", geometry=[(p, art)], truth=truth, detected=[(p, art)])
+    got = doc["detected"]["identities"]["001"]
+    assert got["views_with_landmarks"] == 4 and got["camera_max_without_landmarks_mm"] is None
+    assert np.isclose(got["ratio"], 1.0) and np.isclose(got["camera_max_with_landmarks_mm"], 2 * np.sqrt(3))
