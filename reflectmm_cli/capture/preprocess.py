@@ -97,7 +97,7 @@ def signal_box(olat: np.ndarray, margin: float) -> tuple[int, int, int, int]:
     """
     import cv2
 
-    F, H, W = olat.shape[:3]
+    H, W = olat.shape[1:3]
     lit = np.asarray(olat, dtype=np.float32).mean(-1).max(0)
     k = max(3, 2 * int(round(min(H, W) / 200.0)) + 1)
     ys, xs = np.nonzero(cv2.blur(lit, (k, k), borderType=cv2.BORDER_REPLICATE) > SIGNAL_THRESHOLD)

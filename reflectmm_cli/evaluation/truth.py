@@ -116,13 +116,9 @@ def geometry_errors(geometry: Mapping[str, np.ndarray], truth: Mapping[str, np.n
         out.update(vertex_mean_mm=float(d.mean()), vertex_rms_mm=float(np.sqrt((d ** 2).mean())),
                    vertex_max_mm=float(d.max()), vertex_aligned_mean_mm=float(da.mean()),
                    vertex_aligned_rms_mm=float(np.sqrt((da ** 2).mean())))
-    cams_t = _truth_cameras(truth)
-    if "cam_centers" in geometry and cams_t is not None:
-        names = [str(x) for x in np.asarray(geometry.get("view_names", []))]
-        cc = np.asarray(geometry["cam_centers"], np.float64)
-        ds = [float(np.linalg.norm(cc[i] - cams_t[n])) for i, n in enumerate(names) if n in cams_t]
-        if ds:
-            out.update(camera_mean_mm=float(np.mean(ds)), camera_max_mm=float(np.max(ds)), cameras_matched=len(ds))
+    ds = list(camera_errors_by_view(geometry, truth).values())
+    if ds:
+        out.update(camera_mean_mm=float(np.mean(ds)), camera_max_mm=float(np.max(ds)), cameras_matched=len(ds))
     if "vertex_mean_mm" not in out and "err_vertex_rmse_mm" in geometry:
         # no truth given: the errors fit-geometry stored when it was run with --truth
         out["vertex_rms_mm"] = float(np.asarray(geometry["err_vertex_rmse_mm"]).reshape(-1)[0])
