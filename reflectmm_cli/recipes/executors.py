@@ -91,13 +91,14 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
             raise ReflectmmError(f"worker runs reflectmm {__version__}, the run was planned with "
                                  f"{spec.tool_version}; install the same version on every worker")
         stage = get_stage(spec.verb)
-        check_no_overwrite(stage, spec.ctx)
+        ctx = spec.ctx.with_patterns_expanded()  # a pattern into an upstream folder matches now
+        check_no_overwrite(stage, ctx)
         if doc is None:
             # the inputs' digests go back with the result into the workspace's hash memo, so the next plan does
             # not hash these files again (a worker process has no access to the planner's memo)
-            doc = cache_key_doc(stage, spec.ctx, hashes)
+            doc = cache_key_doc(stage, ctx, hashes)
         key = key_of_doc(doc)
-        ctx = spec.ctx.with_(cache_key=key)
+        ctx = ctx.with_(cache_key=key)
         if ctx.device and ctx.device != "cpu":
             from reflectmm_cli.stages import resolve_device
 

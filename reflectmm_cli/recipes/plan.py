@@ -24,8 +24,8 @@ from reflectmm_cli.artifacts import atomic_write_text, canonical_json, read_meta
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.recipes.recipe import ALL_FOUND, Recipe, Ref, StageSpec
 from reflectmm_cli.params import ParamError
-from reflectmm_cli.stages import (NON_INVALIDATING, Stage, StageContext, cache_key_doc, file_digest, get_stage,
-                                  key_of_doc)
+from reflectmm_cli.stages import (NON_INVALIDATING, Stage, StageContext, cache_key_doc, expand_pattern_paths,
+                                  file_digest, get_stage, key_of_doc)
 from reflectmm_cli.workspace import check_id
 
 log = logging.getLogger("reflectmm")
@@ -410,7 +410,10 @@ def _resolve_ref(ref: Ref, spec: StageSpec, workspace: Path, tasks: dict[str, Ta
             if identity is None:
                 raise _PlanError(f"{ref} uses {{id}} but stage '{spec.name}' has no foreach")
             sub = sub.replace("{id}", identity)
-        return [folder / sub.lstrip("/") if sub.strip("/") else folder], list(producer)
+        path = folder / sub.lstrip("/") if sub.strip("/") else folder
+        # a glob pattern inside the folder: its matches once they exist, else the pattern, which the task
+        # expands when it runs (StageContext.with_patterns_expanded)
+        return expand_pattern_paths([path]), list(producer)
     if prod_per_id and not aggregate:
         tid = task_id(ref.stage, identity)
         if tid not in tasks:

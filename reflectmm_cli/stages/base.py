@@ -120,6 +120,32 @@ class StageContext:
     def with_(self, **changes: Any) -> "StageContext":
         return replace(self, **changes)
 
+    def with_patterns_expanded(self) -> "StageContext":
+        """The context with each input path that names no file but is a glob pattern replaced by its matches
+        (sorted). A recipe's ``@stage.dir/sub/*.png`` points into a folder that an upstream task fills: the planner
+        keeps it as a pattern until it matches, and the task expands it when it runs (docs/recipes.md).
+
+        Raises:
+            ReflectmmError: a pattern that still matches nothing, naming its role and the pattern.
+        """
+        return self.with_(inputs={role: expand_pattern_paths(paths, role=role) for role, paths in self.inputs.items()})
+
+
+def expand_pattern_paths(paths: Iterable[str | Path], role: str | None = None) -> list[Path]:
+    """``paths`` with each one that names no file but is a glob pattern replaced by its matches (sorted).
+
+    A pattern without matches is an error naming ``role`` (the planner's message for a plain-path pattern), or,
+    with ``role=None``, stays as it is (the planner's ``@stage.dir`` patterns, whose folder is filled later)."""
+    import glob
+
+    out: list[Path] = []
+    for p in map(Path, paths):
+        found = sorted(Path(q) for q in glob.glob(str(p))) if not p.exists() and glob.has_magic(str(p)) else [p]
+        if not found and role is not None:
+            raise ReflectmmError(f"input '{role}': no file matches {p}")
+        out += found or [p]
+    return out
+
 
 @dataclass(frozen=True)
 class Default:

@@ -45,20 +45,15 @@ INPUTS = (
 
 
 def image_files(ctx: StageContext) -> list[Path]:
-    """The ``images`` input: files as given, folders expanded to their images (sorted), and a glob pattern that
-    names no file expanded to its matches (sorted). In a recipe the pattern may lie in another stage's folder
-    (``@synth-multipie.dir/data/*/multiview/*/01/*/*_00.png``): it is expanded when the images exist, so before
-    that stage has run it lists nothing."""
-    import glob
-
+    """The ``images`` input: files as given, folders expanded to their images (sorted). A recipe's pattern into
+    another stage's folder (``@synth-multipie.dir/data/*/multiview/*/01/*/*_00.png``) reaches here expanded
+    (:meth:`StageContext.with_patterns_expanded`)."""
     from reflectmm_cli.artifacts import IMAGE_EXTENSIONS
 
     out: list[Path] = []
     for p in ctx.input_list("images"):
         if p.is_dir():
             out += sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
-        elif not p.exists() and glob.has_magic(str(p)):
-            out += sorted(Path(q) for q in glob.glob(str(p)) if Path(q).suffix.lower() in IMAGE_EXTENSIONS)
         else:
             out.append(p)
     seen: dict[str, Path] = {}

@@ -137,7 +137,8 @@ def test_allow_missing_still_refuses_an_unreadable_image(tmp_path, cli):
 
 def test_a_glob_in_the_images_input_is_expanded_when_the_images_exist(tmp_path):
     """A recipe's `images = "@synth-multipie.dir/.../*_00.png"` is a pattern inside a folder that an upstream stage
-    fills: it lists nothing before that stage has run, its matches (images only, sorted) after."""
+    fills: the task expands it when it runs (StageContext.with_patterns_expanded). Before the images exist that is
+    an error naming the pattern; after, the stage gets the matches, sorted."""
     from reflectmm_cli.artifacts import write_png
     from reflectmm_cli.errors import ReflectmmError
     from reflectmm_cli.stages import get_stage
@@ -146,12 +147,15 @@ def test_a_glob_in_the_images_input_is_expanded_when_the_images_exist(tmp_path):
     stage = get_stage("detect-landmarks")
     pattern = tmp_path / "data" / "*" / "*_00.png"
     ctx = stage.context(workspace=tmp_path / "ws", inputs={"images": [pattern]}, params={"allow_missing": True})
-    assert image_files(ctx) == []
-    with pytest.raises(ReflectmmError, match=r"no images .*\*_00\.png"):
-        stage.run(ctx)
+    with pytest.raises(ReflectmmError, match=r"input 'images': no file matches .*\*_00\.png"):
+        ctx.with_patterns_expanded()
     for cam in ("13_0", "05_1"):
         for shot in ("00", "01"):
             write_png(tmp_path / "data" / cam / f"001_{cam}_{shot}.png", np.full((8, 8, 3), 0.5))
         (tmp_path / "data" / cam / f"001_{cam}_00_lm.pts").write_text("")
-    assert image_files(ctx) == [tmp_path / "data" / "05_1" / "001_05_1_00.png",
-                                tmp_path / "data" / "13_0" / "001_13_0_00.png"]
+    assert image_files(ctx.with_patterns_expanded()) == [tmp_path / "data" / "05_1" / "001_05_1_00.png",
+                                                         tmp_path / "data" / "13_0" / "001_13_0_00.png"]
+    # a path that exists is kept as given, even with glob characters in its name
+    odd = tmp_path / "data" / "[x]_00.png"
+    write_png(odd, np.full((8, 8, 3), 0.5))
+    assert image_files(ctx.with_(inputs={"images": [odd]}).with_patterns_expanded()) == [odd]
