@@ -16,7 +16,8 @@ Loss (docs/fit-geometry.md):
 flash stage ``w_flash · mean_lit,visible Σ_c charbonnier((c_m g_f I_f max(n·l, 0)/d² − O_vf(π(X_m)))/s)``.
 
 Views without landmarks (NaN): placed by the rig prior under the head, out of the image terms, then registered by
-the flash term with everything else held (:func:`_register_unmarked`); per-view evidence and uncertainty:
+the flash term with everything else held (:func:`_register_unmarked`), optionally refined with the room-light
+images' agreement across views (``w_room``, :func:`_room_consistency`); per-view evidence and uncertainty:
 :mod:`.placement`.
 """
 
@@ -40,6 +41,7 @@ from reflectmm_cli.geometry.face_model import vertex_normals
 from reflectmm_cli.geometry_fit.model import ShapeModel
 from reflectmm_cli.geometry_fit.photometric import (
     SH_ORDER,
+    charbonnier,
     flash_loss,
     gather_bilinear,
     inside_image,
@@ -97,6 +99,11 @@ class FitConfig:
                                     # round per blur (px) registering only their poses by the flash term (the
                                     # other views and the face held) after the joint stages; () = off
     register_iters: int = 40        # L-BFGS iterations per registration round
+    register_room_blur_px: tuple[float, ...] = (2.0, 0.0)  # views registered by their flash images: then one
+                                    # round per blur (px) with the room-light photo-consistency beside the flash
+                                    # term (:func:`_room_consistency`; with w_room > 0)
+    w_room: float = 0.0             # weight of the room-light photo-consistency, a mean relative Charbonnier
+                                    # residual like the flash term (0 = off)
     uncertainty: str = "unmarked"   # per-view pose uncertainty from the curvature of the last stage's objective:
                                     # "unmarked" (the views without landmarks), "all" or "none"
     fit_expression: bool = True
@@ -132,6 +139,7 @@ class FitConfig:
         d = dict(self.__dict__)
         d["photo_blur_px"] = list(self.photo_blur_px)
         d["register_blur_px"] = list(self.register_blur_px)
+        d["register_room_blur_px"] = list(self.register_room_blur_px)
         return d
 
 
@@ -233,6 +241,8 @@ class GeometryFit:
     rig_shift_mm: np.ndarray | None = None       # (V,) fitted centre − the rig's centre under the fitted head, mm
     registered: np.ndarray | None = None         # (V,) bool: a view without landmarks whose registration by the
                                                  # flash images was kept (False: rejected or not run)
+    room_refined: np.ndarray | None = None       # (V,) bool: ... and then refined with the room-light
+                                                 # photo-consistency (False: undone or not run)
 
     @property
     def cam_centers(self) -> np.ndarray:
@@ -336,6 +346,7 @@ class _FitProblem:
         self.probe: torch.Tensor | None = None
         self.pose_fn = None  # optional (R, t) -> (R, t) applied to the poses (the joint camera registration)
         self.registered = np.zeros(V, dtype=bool)  # views without landmarks registered by the flash images
+        self.room_refined = np.zeros(V, dtype=bool)  # ... and then refined with the room-light photo-consistency
         self.last_loss = None
         self.history: list[dict] = []
         self.n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
@@ -714,9 +725,10 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
                        seconds=time.perf_counter() - t_start,
                        evidence=view_evidence(prob.marked, photo.visible if prob.n_photo else None, None
                                               if flash_res is None else  # unregistered: the rig placed it
-                                              np.where(~prob.marked & ~prob.registered, np.nan, flash_res)),
+                                              np.where(~prob.marked & ~prob.registered, np.nan, flash_res),
+                                              room=prob.room_refined),
                        center_sigma_mm=c_sig, rotation_sigma_deg=r_sig, rig_shift_mm=rig_shift(prob),
-                       registered=prob.registered.copy())
+                       registered=prob.registered.copy(), room_refined=prob.room_refined.copy())
 
 
 class _FlashPairs:
@@ -856,7 +868,9 @@ def _register_unmarked(prob: _FitProblem, sm: _SubMesh) -> np.ndarray | None:
     (``register_blur_px``): only their poses move; the face, the head and the views with landmarks are held (the
     flashes on cameras without landmarks are left out of every flash round, :func:`_usable_flashes`).  A view
     whose flash residual does not fall, or that moves more than 3 σ from the rig, goes back where the rig puts
-    it (``prob.registered`` False).  Returns the (V,) RMS flash residual at the final poses (None: not run)."""
+    it (``prob.registered`` False).  The views kept are then refined with the room-light photo-consistency beside
+    the flash term (``register_room_blur_px``, :func:`_refine_by_room`).  Returns the (V,) RMS flash residual at
+    the final poses (None: not run)."""
     cfg, views = prob.cfg, prob.views
     um = ~prob.marked
     usable = _usable_flashes(prob, on_unmarked_too=True)  # a camera's own flash lights the others: its place
@@ -868,36 +882,125 @@ def _register_unmarked(prob: _FitProblem, sm: _SubMesh) -> np.ndarray | None:
     raw, sat = fp.images()
     before = _view_flash_rms(prob, sm, fp, raw, sat)
     saved = prob.dw.detach().clone(), prob.dtr.detach().clone()
-    mask = prob.tt(um.astype(np.float64))[:, None]
-    hooks = [p.register_hook(lambda g: g * mask) for p in (prob.dw, prob.dtr)]
-    try:
-        for rnd, blur in enumerate(cfg.register_blur_px):
-            flash, images_t, _ = _flash_objective(prob, sm, fp, raw, blur, sat)
-
-            def reg():
-                (lf, _, _), R, t = flash(images_t, residual=False)
-                return cfg.w_flash * lf + prob.prior(R, t)
-
-            prob.run_lbfgs([prob.dw, prob.dtr], reg, cfg.register_iters, f"registration round {rnd + 1}",
-                           tick=False)
-    finally:
-        for h in hooks:
-            h.remove()
+    _registration_rounds(prob, sm, fp, raw, sat, um, cfg.register_blur_px, room=False)
     after = _view_flash_rms(prob, sm, fp, raw, sat)
-    sigma = prob.unmarked_sigma
-    shift = rig_shift(prob)
     with np.errstate(invalid="ignore"):
-        bad = um & ~((after <= before) & (shift <= 3.0 * sigma))
+        bad = um & ~((after <= before) & (rig_shift(prob) <= 3.0 * prob.unmarked_sigma))
     if bad.any():
         log.warning("fit-geometry: registration of view(s) %s by the flash images rejected (residual not lower, or "
                     "moved more than 3 sigma from the rig): kept where the rig puts them",
                     ", ".join(n for n, b in zip(views.names, bad) if b))
-        b = torch.as_tensor(bad, device=prob.device)
-        with torch.no_grad():
-            prob.dw[b] = saved[0][b]
-            prob.dtr[b] = saved[1][b]
+        _restore_poses(prob, saved, bad)
     prob.registered = um & ~bad
-    return np.where(bad, before, after)
+    res = np.where(bad, before, after)
+    if cfg.register_room_blur_px and cfg.w_room > 0 and prob.registered.any():
+        res = _refine_by_room(prob, sm, fp, raw, sat, res)
+    return res
+
+
+def _restore_poses(prob: _FitProblem, saved, which: np.ndarray) -> None:
+    """Put the poses of the views ``which`` (V,) back to ``saved`` (dw, dtr)."""
+    b = torch.as_tensor(which, device=prob.device)
+    with torch.no_grad():
+        prob.dw[b] = saved[0][b]
+        prob.dtr[b] = saved[1][b]
+
+
+def _registration_rounds(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.ndarray,
+                         sat: np.ndarray | None, which: np.ndarray, blurs, room: bool) -> None:
+    """L-BFGS rounds, one per blur, over the poses of the views ``which`` (V,) alone: the flash term, with
+    ``room`` also the room-light photo-consistency of those views, and the priors."""
+    cfg = prob.cfg
+    mask = prob.tt(which.astype(np.float64))[:, None]
+    hooks = [p.register_hook(lambda g: g * mask) for p in (prob.dw, prob.dtr)]
+    try:
+        for rnd, blur in enumerate(blurs):
+            flash, images_t, _ = _flash_objective(prob, sm, fp, raw, blur, sat)
+            consistency = _room_consistency(prob, sm, blur, which)[0] if room else None
+
+            def reg():
+                (lf, _, _), R, t = flash(images_t, residual=False)
+                loss = cfg.w_flash * lf + prob.prior(R, t)
+                return loss if consistency is None else loss + cfg.w_room * consistency()[0]
+
+            prob.run_lbfgs([prob.dw, prob.dtr], reg, cfg.register_iters,
+                           f"registration round {rnd + 1}" + (" with the room light" if room else ""), tick=False)
+    finally:
+        for h in hooks:
+            h.remove()
+
+
+def _refine_by_room(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.ndarray, sat: np.ndarray | None,
+                    flash_res: np.ndarray) -> np.ndarray:
+    """The views that their flash images registered, refined with the room-light photo-consistency beside the flash
+    term (``register_room_blur_px``).  A view keeps the refinement when neither its flash nor its room residual
+    rose and it stays within 3 σ of the rig; otherwise it goes back to its flash registration
+    (``prob.room_refined`` False).  Returns the (V,) flash residuals."""
+    cfg, views = prob.cfg, prob.views
+    which = prob.registered.copy()
+    room_before = _view_room_rms(prob, sm, which)
+    saved = prob.dw.detach().clone(), prob.dtr.detach().clone()
+    _registration_rounds(prob, sm, fp, raw, sat, which, cfg.register_room_blur_px, room=True)
+    flash_after = _view_flash_rms(prob, sm, fp, raw, sat)
+    room_after = _view_room_rms(prob, sm, which)
+    with np.errstate(invalid="ignore"):
+        ok = which & (flash_after <= flash_res) & (room_after <= room_before) \
+            & (rig_shift(prob) <= 3.0 * prob.unmarked_sigma)
+    undone = which & ~ok
+    if undone.any():
+        log.info("fit-geometry: the room-light refinement of view(s) %s undone (residuals not lower, or moved more "
+                 "than 3 sigma from the rig): their flash registration is kept",
+                 ", ".join(n for n, b in zip(views.names, undone) if b))
+        _restore_poses(prob, saved, undone)
+    prob.room_refined = ok
+    return np.where(ok, flash_after, flash_res)
+
+
+def _room_consistency(prob: _FitProblem, sm: _SubMesh, blur: float, which: np.ndarray, eps: float = 0.02):
+    """Multi-view photo-consistency of the room-light images for the views ``which`` (V,): (loss closure returning
+    (loss, residual (V, M, 3)), weights (V, M) bool).
+
+    Under the room light a Lambertian point has the same radiance from every view, so the colour that the views
+    with landmarks see at a sample vertex (their mean, at the current face and poses) is what another view must see
+    there: ``r = g_v · I_v(π_v(X_m)) − ref_m``, relative to the median reference colour, Charbonnier, over the
+    samples that view sees (ray cast, n·v > photo_min_cos, inside its image) and a view with landmarks sees too.
+    No lighting model and no albedo.  ``g_v`` (one gain per channel: exposure, white balance) is solved at the
+    call and then held; a gain free inside the loss lets a camera zoom out until the face is a few pixels of one
+    colour (docs/benchmarks.md).  The reference, the visibility and the gains are fixed at the call."""
+    views, V = prob.views, prob.V
+    Hc, Wc = views.images.shape[1:3]
+    imgs = _blur(np.asarray(views.images, dtype=np.float32), blur)
+    images_t = prob.tt(np.ascontiguousarray(imgs.transpose(0, 3, 1, 2)))
+    vis, uv, _ = _photo_visibility(prob, sm, Wc, Hc)
+    with torch.no_grad():
+        obs = sample_images(images_t, prob.tt(uv)).cpu().numpy().astype(np.float64)   # (V, M, 3)
+    seen = vis & prob.marked[:, None]
+    count = seen.sum(0)
+    ref = (obs * seen[..., None]).sum(0) / np.maximum(count, 1)[:, None]             # (M, 3)
+    weight = vis & np.asarray(which, dtype=bool)[:, None] & (count > 0)[None]
+    wo = weight[..., None] * obs
+    gain = (wo * ref[None]).sum(1) / np.maximum((wo * obs).sum(1), 1e-12)            # (V, 3)
+    scale = max(float(np.median(ref[count > 0])) if (count > 0).any() else 1.0, 1e-3)
+    w_t, ref_t, gain_t = prob.tt(weight.astype(np.float64)), prob.tt(ref), prob.tt(gain)
+
+    def consistency():
+        Xs, _ = sm.surface(prob)
+        R, t = prob.poses()
+        uvp, _ = project(Xs[sm.sample_t][None].expand(V, -1, -1), sm.Kimg_t, R, t)
+        r = gain_t[:, None] * sample_images(images_t, uvp) - ref_t
+        return (charbonnier(r / scale, eps).sum(-1) * w_t).sum() / w_t.sum().clamp_min(1.0), r
+
+    return consistency, weight
+
+
+def _view_room_rms(prob: _FitProblem, sm: _SubMesh, which: np.ndarray) -> np.ndarray:
+    """(V,) RMS room-light consistency residual of the views ``which`` at the current poses (unblurred, their own
+    visibility and gains; NaN elsewhere or without a shared sample)."""
+    consistency, weight = _room_consistency(prob, sm, 0.0, which)
+    with torch.no_grad():
+        r = consistency()[1].cpu().numpy()
+    return np.array([float(np.sqrt((r[v][weight[v]] ** 2).mean())) if weight[v].any() else np.nan
+                     for v in range(prob.V)])
 
 
 def _view_flash_rms(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.ndarray,

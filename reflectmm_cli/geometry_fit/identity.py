@@ -156,7 +156,9 @@ def placement_report(view_names: list[str], fit) -> list[dict]:
                     "rotation_sigma_deg": arr(fit.rotation_sigma_deg, 3),
                     "rig_shift_mm": arr(fit.rig_shift_mm, 2),
                     "registered_by_flash": None if fit.evidence[v].startswith("landmarks") or fit.registered is None
-                    else bool(fit.registered[v])})
+                    else bool(fit.registered[v]),
+                    "refined_by_room": None if fit.evidence[v].startswith("landmarks") or fit.room_refined is None
+                    else bool(fit.room_refined[v])})
     return out
 
 

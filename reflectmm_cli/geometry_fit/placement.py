@@ -93,10 +93,11 @@ def pose_sigmas(H: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return c_sig, r_sig
 
 
-def view_evidence(marked: np.ndarray, photo_visible: np.ndarray | None, flash_residual: np.ndarray | None
-                  ) -> list[str]:
-    """(V,) labels: ``landmarks`` or ``rig``, then ``+photo`` for a view with room-light samples and ``+flash``
-    for one with flash samples (a finite flash residual)."""
+def view_evidence(marked: np.ndarray, photo_visible: np.ndarray | None, flash_residual: np.ndarray | None,
+                  room: np.ndarray | None = None) -> list[str]:
+    """(V,) labels: ``landmarks`` or ``rig``, then ``+photo`` for a view with room-light samples, ``+flash``
+    for one with flash samples (a finite flash residual) and ``+room`` for one that the room-light
+    photo-consistency refined (``room`` (V,) bool)."""
     out = []
     for v, m in enumerate(np.asarray(marked, dtype=bool)):
         parts = ["landmarks" if m else "rig"]
@@ -104,6 +105,8 @@ def view_evidence(marked: np.ndarray, photo_visible: np.ndarray | None, flash_re
             parts.append("photo")
         if flash_residual is not None and np.isfinite(flash_residual[v]):
             parts.append("flash")
+        if room is not None and room[v]:
+            parts.append("room")
         out.append("+".join(parts))
     return out
 

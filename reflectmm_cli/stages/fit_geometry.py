@@ -95,6 +95,11 @@ PARAMS = (
          help="views without landmarks: one round per blur registering their poses by the flash images, the face "
               "and the other views held (empty = off)."),
     _cfg("register_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per registration round."),
+    _cfg("w_room", "float", range=(0.0, None), option="--w-room",
+         help="views that their flash images registered are then refined with the room-light images' agreement "
+              "across views beside the flash term, at this weight (0 = off; docs/fit-geometry.md)."),
+    _cfg("register_room_blur_px", "floats", range=(0.0, None), option="--register-room-blur", unit="px",
+         help="with --w-room: one refinement round per blur."),
     _cfg("uncertainty", "str", choices=("none", "unmarked", "all"),
          help="report the pose uncertainty of the views without landmarks (unmarked), of every view, or none "
               "(12 gradient evaluations per view)."),
@@ -154,7 +159,7 @@ def config_from_params(params: dict) -> FitConfig:
     kw = {k: v for k, v in params.items() if k in _CONFIG_FIELDS and v is not None}
     if params.get("landmark_weights"):
         kw["group_weights"] = dict(params["landmark_weights"])
-    for k in ("photo_blur_px", "register_blur_px"):
+    for k in ("photo_blur_px", "register_blur_px", "register_room_blur_px"):
         if k in kw:
             kw[k] = tuple(float(x) for x in kw[k])
     return FitConfig(**kw)

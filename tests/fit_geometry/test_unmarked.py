@@ -126,3 +126,61 @@ def test_flash_registration_recovers_a_displaced_camera():
     assert flash.evidence[0] == "rig+flash" and rig_only.evidence[0] == "rig"
     assert flash.rig_shift_mm[0] > 30.0  # the report shows the view moved far from where the table put it
     assert np.isfinite(flash.center_sigma_mm[0]) and flash.center_sigma_mm[0] < rig_only.center_sigma_mm[0]
+
+
+def _room_images(m, verts, K, R, t, scale=None):
+    """Ray-traced room-light images of the flash toy under a soft SH light from the front and above (Lambertian, so
+    a point has the same colour from every view); ``scale`` (V,) multiplies each view (its exposure)."""
+    sh = np.zeros((9, 3))
+    sh[0], sh[1], sh[2], sh[3] = 2.0, -0.3, 0.8, 0.2
+    imgs = np.stack([toy.render(verts, m.triangles, m.mean_tex, sh, K[v], R[v], t[v], W, H)
+                     for v in range(len(AZ))])
+    if scale is not None:
+        imgs = imgs * np.asarray(scale, dtype=float)[:, None, None, None]
+    return imgs.astype(np.float32)
+
+
+def _room_fit(scale=None, w_room=30.0):
+    import dataclasses
+
+    m, verts, R, t, views = _displaced_world(50.0, 3.0)
+    vs = dataclasses.replace(views(), images=_room_images(m, verts, views().K, R, t, scale))
+    fit = fit_geometry(m, vs, FitConfig(photo_rounds=0, flash_rounds=2, w_flash=100.0, unmarked_sigma_mm=100.0,
+                                        w_room=w_room))
+    return fit, np.linalg.norm(fit.cam_centers[0] - camera_centers(R, t)[0]), np.degrees(rotation_angle(fit.R[0],
+                                                                                                     R[0]))
+
+
+@pytest.fixture(scope="module")
+def room_fits():
+    return _room_fit(w_room=0.0), _room_fit(), _room_fit(scale=[1.6, 1.0, 1.0, 1.0])
+
+
+def test_room_refinement_of_a_flash_registered_camera(room_fits):
+    # the flash registration brings the -45° camera from 37 mm (the rig's place) to 10.9 mm; refined with the
+    # room-light images' agreement across views it stays within the goal (measured 12.1 mm / 0.35°: both residuals
+    # fall, the fitted face's errors bias both terms alike), and the view says what placed it
+    (flash, c_flash, _), (room, c_room, a_room), _ = room_fits
+    assert flash.evidence[0] == "rig+flash" and not flash.room_refined[0]
+    assert room.evidence[0] == "rig+flash+room" and room.room_refined[0]
+    assert c_room < 20.0 and a_room < 1.0, (c_room, a_room, c_flash)
+    assert room.evidence[1:] == flash.evidence[1:]  # the views with landmarks are held
+    assert np.allclose(room.cam_centers[1:], flash.cam_centers[1:], atol=1e-9)
+
+
+def test_room_refinement_is_blind_to_a_camera_exposure(room_fits):
+    # one gain per channel and view (exposure, white balance), solved before each round: the unmarked view's room
+    # image 1.6× brighter gives the same camera
+    _, (room, c_room, _), (bright, c_bright, _) = room_fits
+    assert bright.room_refined[0]
+    assert np.linalg.norm(bright.cam_centers[0] - room.cam_centers[0]) < 0.5, (c_bright, c_room)
+
+
+def test_view_evidence_names_the_room_refinement():
+    from reflectmm_cli.geometry_fit.placement import view_evidence
+
+    marked = np.array([True, False, False])
+    flash = np.array([0.1, 0.2, np.nan])
+    assert view_evidence(marked, None, flash, room=np.array([False, True, False])) == \
+        ["landmarks+flash", "rig+flash+room", "rig"]
+    assert view_evidence(marked, None, flash) == ["landmarks+flash", "rig+flash", "rig"]
