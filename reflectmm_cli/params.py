@@ -165,6 +165,7 @@ class Param:
         none_word: a string meaning "None" (e.g. ``"all"`` cameras).
         metavar: click metavar.
         aliases: further option names (``-n``).
+        allow_empty: a list kind may be empty (``""`` on the command line, ``[]`` in a recipe), e.g. "no rounds".
     """
 
     name: str
@@ -183,6 +184,7 @@ class Param:
     none_word: str | None = None
     metavar: str | None = None
     aliases: tuple[str, ...] = ()
+    allow_empty: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -246,7 +248,7 @@ class Param:
             item = {"floats": _as_float, "ints": _as_int, "strs": _as_str}[k]
             if not isinstance(v, (str, list, tuple)):
                 raise ValueError(f"{v!r} is not a comma-separated list")
-            out = parse_list(v, self.name, item)
+            out = parse_list(v, self.name, item, allow_empty=self.allow_empty)
             for x in out:
                 if k == "strs":
                     self._choice(x)

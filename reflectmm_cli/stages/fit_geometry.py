@@ -91,7 +91,7 @@ PARAMS = (
               "is only a nominal table's (calibrate-rig reports which)."),
     _cfg("unmarked_rot_sigma_deg", "float", range=(0.0, None), low_open=True, option="--unmarked-rot-sigma",
          unit="deg", help="prior on the aim of a view without landmarks: the rig's, moved by the head rotation."),
-    _cfg("register_blur_px", "floats", range=(0.0, None), option="--register-blur", unit="px",
+    _cfg("register_blur_px", "floats", range=(0.0, None), option="--register-blur", unit="px", allow_empty=True,
          help="views without landmarks: one round per blur registering their poses by the flash images, the face "
               "and the other views held (empty = off)."),
     _cfg("register_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per registration round."),

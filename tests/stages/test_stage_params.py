@@ -56,6 +56,24 @@ def test_resolve_fills_defaults_canonicalises_and_names_the_closest_param():
     assert resolve_params(decl, {"nope": 1}, strict=False) == resolve_params(decl, {})
 
 
+def test_a_list_that_may_be_empty_says_so_in_its_declaration():
+    # fit-geometry's --register-blur is documented "empty = off": an empty list is a value there, and still an
+    # error for a list that has no meaning empty
+    blur = Param("register_blur_px", "floats", [4.0, 2.0, 0.0], range=(0.0, None), allow_empty=True)
+    rounds = Param("exponents", "floats", [1.0, 8.0])
+    assert blur.coerce("") == [] and blur.coerce([]) == [] and blur.coerce("2,0") == [2.0, 0.0]
+    for v in ("", []):
+        with pytest.raises(ParamError, match="exponents: empty list"):
+            rounds.coerce(v)
+    with pytest.raises(ParamError, match="empty item"):
+        blur.coerce("2,,0")
+    from reflectmm_cli.stages.fit_geometry import PARAMS, config_from_params
+
+    decl = {p.name: p for p in PARAMS}
+    assert decl["register_blur_px"].allow_empty
+    assert config_from_params({"register_blur_px": decl["register_blur_px"].coerce("")}).register_blur_px == ()
+
+
 def test_lobe_similarity_matches_quadrature():
     # <cos^p, cos^q> over the hemisphere by Gauss-Legendre quadrature in mu = cos(theta)
     x, w = np.polynomial.legendre.leggauss(400)
