@@ -78,6 +78,9 @@ class CalibrationConfig:
     anchor_scale / distance_sigma_rel: fix the scene's scale by the model's mean face size, fused with the nominal
         table's camera distances from the head (:func:`table_distance_ratio`) of relative uncertainty
         ``distance_sigma_rel`` (0: the faces only).
+    carry: how the nominal table's cameras that no identity annotates are moved onto the calibrated rig: by the
+        similarity of the annotated cameras' ``centres`` or of their ``poses`` (centres and orientations,
+        :func:`carry_similarity`; better with a guessed table, worse with an exact one: docs/benchmarks.md).
     """
 
     focal: str = "shared"
@@ -99,8 +102,11 @@ class CalibrationConfig:
     n_shape: int | None = None
     n_exp: int | None = None
     group_weights: dict[str, float] | None = None
+    carry: str = "centres"
 
     def __post_init__(self) -> None:
+        if self.carry not in ("centres", "poses"):
+            raise ReflectmmError(f"carry must be 'centres' or 'poses', got {self.carry!r}")
         if self.focal not in FOCAL_MODES:
             raise ReflectmmError(f"focal must be one of {', '.join(FOCAL_MODES)}, got {self.focal!r}")
         if self.loss not in LOSSES:
@@ -848,14 +854,45 @@ def _subset(setup: _RigSetup, keep: np.ndarray) -> _RigSetup:
                      setup.c0[k], setup.f0[k], setup.pp[k], setup.Ks, setup.Ke, setup.assumptions)
 
 
+def carry_similarity(c0: np.ndarray, c: np.ndarray, R0: np.ndarray, R: np.ndarray, iters: int = 10):
+    """The similarity (Ra, ta, sa) with ``c ≈ sa · c0 @ Raᵀ + ta`` and ``R ≈ R0 @ Raᵀ`` that best maps a nominal
+    table's cameras onto their calibrated poses, from their centres and their orientations together.
+
+    Cameras on one horizontal arc fix the similarity's tilt about the arc poorly by their centres alone; their
+    orientations fix every axis. Each term is weighted by its own residual variance (re-estimated per iteration):
+    the rotation maximises tr(Raᵀ (sa Σ y xᵀ / σ_c² + Σ Rₖᵀ R0ₖ / (2 σ_r²))) (x, y the centred centres; σ_c mm and
+    σ_r rad per axis).  Returns (Ra, ta, sa, centre residuals (n,) mm, angle residuals (n,) rad)."""
+    c0, c = np.asarray(c0, np.float64), np.asarray(c, np.float64)
+    Ra, ta, sa = align.rigid_align(c0, c, scale=True)
+    M = np.transpose(R, (0, 2, 1)) @ R0                                  # each camera's own estimate of Ra
+    x, y = c0 - c0.mean(0), c - c.mean(0)
+    for _ in range(iters):
+        rc = np.linalg.norm(sa * x @ Ra.T - y, axis=-1)
+        rr = rotation_angle(M, Ra[None])
+        var_c = max(float(np.mean(rc ** 2)) / 3.0, 1.0)
+        var_r = max(float(np.mean(rr ** 2)) / 3.0, math.radians(0.1) ** 2)
+        A = sa * (y.T @ x) / var_c + M.sum(0) / (2.0 * var_r)
+        Ra = nearest_rotation(A)
+        sa = float(np.sum(y * (x @ Ra.T)) / np.sum(x * x))
+        ta = c.mean(0) - sa * c0.mean(0) @ Ra.T
+    return Ra, ta, sa, np.linalg.norm(sa * c0 @ Ra.T + ta - c, axis=-1), rotation_angle(M, Ra[None])
+
+
 def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: CalibrationConfig) -> RigCalibration:
     """Insert the cameras no identity annotates: the nominal table's pose carried by the similarity that best
-    aligns the nominal centres of the calibrated cameras to their fitted ones (a table's distance is its least
-    certain part; the scale corrects it), their nominal prior, not measured (σ NaN); the focal the nominal one
-    (times the fitted common factor with a shared focal)."""
+    aligns the calibrated cameras' nominal centres (``cfg.carry`` ``centres``) or centres and orientations
+    (``poses``, :func:`carry_similarity`) to their fitted ones (a table's distance is its least certain part, the
+    scale corrects it), their nominal
+    prior, not measured (σ NaN); the focal the nominal one (times the fitted common factor with a shared focal)."""
     k_seen, k_un = np.nonzero(seen)[0], np.nonzero(~seen)[0]
-    Ra, ta, sa = align.rigid_align(setup.c0[k_seen], cal.centers, scale=True)
-    res = np.linalg.norm(sa * setup.c0[k_seen] @ Ra.T + ta - cal.centers, axis=-1)
+    if cfg.carry == "poses":
+        Ra, ta, sa, res, res_rot = carry_similarity(setup.c0[k_seen], cal.centers, setup.R0[k_seen], cal.R)
+        how = "centres and orientations"
+    else:
+        Ra, ta, sa = align.rigid_align(setup.c0[k_seen], cal.centers, scale=True)
+        res = np.linalg.norm(sa * setup.c0[k_seen] @ Ra.T + ta - cal.centers, axis=-1)
+        res_rot = rotation_angle(np.transpose(cal.R, (0, 2, 1)) @ setup.R0[k_seen], Ra[None])
+        how = "centres"
     C, N = setup.C, setup.N
     R = np.zeros((C, 3, 3))
     centers = np.zeros((C, 3))
@@ -874,8 +911,8 @@ def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: Ca
     names = [setup.names[k] for k in k_un]
     cal.assumptions.append(
         f"camera(s) {', '.join(names)}: no identity has landmarks in them; placed by the nominal table carried "
-        f"by the similarity of the calibrated cameras (x{sa:.4f}, residual {np.sqrt(np.mean(res ** 2)):.1f} mm "
-        "RMS): nominal "
+        f"by the similarity of the calibrated cameras' {how} (x{sa:.4f}, residual "
+        f"{np.sqrt(np.mean(res ** 2)):.1f} mm / {math.degrees(np.sqrt(np.mean(res_rot ** 2))):.2f} deg RMS): nominal "
         "prior only, not measured (fit-geometry refines each view by its images)")
     cal.report["camera_placed_by"] = {n: ("nominal prior only" if k in k_un else "landmarks")
                                       for k, n in enumerate(setup.names)}
@@ -916,7 +953,7 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
         :class:`RigCalibration`.
 
     A camera that no identity annotates (no detector finds a face in it) keeps the nominal table's pose, carried
-    by the similarity of the calibrated cameras (:func:`_add_unseen`); the report's ``camera_placed_by`` says
+    by the similarity of the calibrated cameras' poses (:func:`_add_unseen`); the report's ``camera_placed_by`` says
     which cameras were measured.  Needs at least 3 cameras with landmarks then.
     """
     cfg = config or CalibrationConfig()

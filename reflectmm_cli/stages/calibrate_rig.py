@@ -68,6 +68,11 @@ PARAMS = (
          help="relative uncertainty of the nominal table's distances: its size is fused with the faces' mean "
               "size by these weights (0 = the faces only; 0.01 for a measured rig)."),
     Param("views", "strs", None, help="cameras to calibrate, comma separated (default: every capture view)."),
+    # not recorded unless given (rigs calibrated before it keep their bytes)
+    Param("carry", "str", None, choices=("centres", "poses"),
+          help="a camera no identity annotates keeps the nominal table's pose, moved by the similarity of the "
+               "annotated cameras' centres or of their poses (centres and orientations: better with a guessed table, "
+               "worse with an exact one; docs/capture.md) [default: centres]."),
     # the joint registration's options: not recorded unless given (rigs calibrated before them keep their bytes)
     Param("joint_sigma", "float", None, range=(0.0, None), low_open=True, unit="mm",
           help="with --geometry: prior σ of an unannotated camera's centre around its nominal place "
@@ -94,7 +99,7 @@ def config_from_params(p: dict) -> CalibrationConfig:
     return CalibrationConfig(focal=mode, focal_px=p.get("focal"), loss=p["loss"], loss_scale_px=p["loss_scale_px"],
                              landmark_sigma_px=p["landmark_sigma_px"], outlier_px=p["outlier_px"],
                              max_iters=p["max_iters"], distance_sigma_rel=p["distance_sigma_rel"],
-                             group_weights=dict(p["landmark_weights"]) or None)
+                             group_weights=dict(p["landmark_weights"]) or None, carry=p.get("carry") or "centres")
 
 
 def run(ctx: StageContext) -> list[Path]:
