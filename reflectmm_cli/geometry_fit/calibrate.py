@@ -882,8 +882,8 @@ def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: Ca
     """Insert the cameras no identity annotates: the nominal table's pose carried by the similarity that best
     aligns the calibrated cameras' nominal centres (``cfg.carry`` ``centres``) or centres and orientations
     (``poses``, :func:`carry_similarity`) to their fitted ones (a table's distance is its least certain part, the
-    scale corrects it), their nominal
-    prior, not measured (σ NaN); the focal the nominal one (times the fitted common factor with a shared focal)."""
+    scale corrects it), their nominal prior, not measured (σ NaN); the focal the nominal one (times the fitted
+    common factor with a shared focal)."""
     k_seen, k_un = np.nonzero(seen)[0], np.nonzero(~seen)[0]
     if cfg.carry == "poses":
         Ra, ta, sa, res, res_rot = carry_similarity(setup.c0[k_seen], cal.centers, setup.R0[k_seen], cal.R)
@@ -953,7 +953,7 @@ def calibrate_rig(model: ShapeModel, landmarks: np.ndarray, camera_names: Sequen
         :class:`RigCalibration`.
 
     A camera that no identity annotates (no detector finds a face in it) keeps the nominal table's pose, carried
-    by the similarity of the calibrated cameras' poses (:func:`_add_unseen`); the report's ``camera_placed_by`` says
+    by the similarity of the calibrated cameras (``config.carry``, :func:`_add_unseen`); ``camera_placed_by`` says
     which cameras were measured.  Needs at least 3 cameras with landmarks then.
     """
     cfg = config or CalibrationConfig()
