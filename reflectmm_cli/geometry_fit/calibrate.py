@@ -861,7 +861,8 @@ def carry_similarity(c0: np.ndarray, c: np.ndarray, R0: np.ndarray, R: np.ndarra
     Cameras on one horizontal arc fix the similarity's tilt about the arc poorly by their centres alone; their
     orientations fix every axis. Each term is weighted by its own residual variance (re-estimated per iteration):
     the rotation maximises tr(Raᵀ (sa Σ y xᵀ / σ_c² + Σ Rₖᵀ R0ₖ / (2 σ_r²))) (x, y the centred centres; σ_c mm and
-    σ_r rad per axis).  Returns (Ra, ta, sa, centre residuals (n,) mm, angle residuals (n,) rad)."""
+    σ_r rad per axis).  ``iters = 0``: the centres' similarity alone (Umeyama).  Returns (Ra, ta, sa, centre
+    residuals (n,) mm, angle residuals (n,) rad)."""
     c0, c = np.asarray(c0, np.float64), np.asarray(c, np.float64)
     Ra, ta, sa = align.rigid_align(c0, c, scale=True)
     M = np.transpose(R, (0, 2, 1)) @ R0                                  # each camera's own estimate of Ra
@@ -885,14 +886,10 @@ def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: Ca
     scale corrects it), their nominal prior, not measured (σ NaN); the focal the nominal one (times the fitted
     common factor with a shared focal)."""
     k_seen, k_un = np.nonzero(seen)[0], np.nonzero(~seen)[0]
-    if cfg.carry == "poses":
-        Ra, ta, sa, res, res_rot = carry_similarity(setup.c0[k_seen], cal.centers, setup.R0[k_seen], cal.R)
-        how = "centres and orientations"
-    else:
-        Ra, ta, sa = align.rigid_align(setup.c0[k_seen], cal.centers, scale=True)
-        res = np.linalg.norm(sa * setup.c0[k_seen] @ Ra.T + ta - cal.centers, axis=-1)
-        res_rot = rotation_angle(np.transpose(cal.R, (0, 2, 1)) @ setup.R0[k_seen], Ra[None])
-        how = "centres"
+    poses = cfg.carry == "poses"  # no iteration: the centres' Umeyama similarity, both residuals reported
+    Ra, ta, sa, res, res_rot = carry_similarity(setup.c0[k_seen], cal.centers, setup.R0[k_seen], cal.R,
+                                                iters=10 if poses else 0)
+    how = "centres and orientations" if poses else "centres"
     C, N = setup.C, setup.N
     R = np.zeros((C, 3, 3))
     centers = np.zeros((C, 3))

@@ -136,11 +136,7 @@ class FitConfig:
                                     # is several times faster than two on a loaded 2-core machine)
 
     def as_dict(self) -> dict:
-        d = dict(self.__dict__)
-        d["photo_blur_px"] = list(self.photo_blur_px)
-        d["register_blur_px"] = list(self.register_blur_px)
-        d["register_room_blur_px"] = list(self.register_room_blur_px)
-        return d
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
 
 
 @dataclass
@@ -255,6 +251,12 @@ def _blur(images: np.ndarray, sigma: float) -> np.ndarray:
     import cv2
 
     return np.stack([cv2.GaussianBlur(im, (0, 0), sigma) for im in images])
+
+
+def _room_images(prob: "_FitProblem", blur: float) -> torch.Tensor:
+    """The room-light images blurred by ``blur`` px as a (V, 3, h, w) tensor of the fit's dtype."""
+    imgs = _blur(np.asarray(prob.views.images, dtype=np.float32), blur)
+    return prob.tt(np.ascontiguousarray(imgs.transpose(0, 3, 1, 2)))
 
 
 def fit_geometry(model: ShapeModel, views: ViewSet, config: FitConfig | None = None, device: str = "cpu"
@@ -628,8 +630,7 @@ def _photometric_stage(prob: _FitProblem, sm: _SubMesh) -> _PhotoResult:
     out = _PhotoResult(None, None, np.full(V, np.nan), np.zeros(V, dtype=np.int64))
     for rnd in range(cfg.photo_rounds):
         prob.slide_jaw()  # the outline of the fit so far (no-op without the sliding jaw)
-        imgs_np = _blur(np.asarray(views.images, dtype=np.float32), blurs[rnd])
-        images_t = tt(np.ascontiguousarray(imgs_np.transpose(0, 3, 1, 2)))
+        images_t = _room_images(prob, blurs[rnd])
         vis, uv, nrm = _photo_visibility(prob, sm, Wc, Hc)
         vis[~prob.marked] = False  # views without landmarks: the room light does not register them (benchmarks)
         vis_t = tt(vis.astype(np.float64))
@@ -663,8 +664,7 @@ def _photometric_stage(prob: _FitProblem, sm: _SubMesh) -> _PhotoResult:
         out.albedo = alb_t.detach().cpu().numpy()
         # residuals on the unblurred images at the final estimate of this round
         with torch.no_grad():
-            raw_t = tt(np.ascontiguousarray(np.asarray(views.images, dtype=np.float32).transpose(0, 3, 1, 2)))
-            r = photo(raw_t)[0][1].cpu().numpy()
+            r = photo(_room_images(prob, 0.0))[0][1].cpu().numpy()
         out.visible = vis.sum(1)
         for v in range(V):
             out.residual[v] = float(np.sqrt((r[v][vis[v]] ** 2).mean())) if vis[v].any() else np.nan
@@ -967,10 +967,9 @@ def _room_consistency(prob: _FitProblem, sm: _SubMesh, blur: float, which: np.nd
     No lighting model and no albedo.  ``g_v`` (one gain per channel: exposure, white balance) is solved at the
     call and then held; a gain free inside the loss lets a camera zoom out until the face is a few pixels of one
     colour (docs/benchmarks.md).  The reference, the visibility and the gains are fixed at the call."""
-    views, V = prob.views, prob.V
-    Hc, Wc = views.images.shape[1:3]
-    imgs = _blur(np.asarray(views.images, dtype=np.float32), blur)
-    images_t = prob.tt(np.ascontiguousarray(imgs.transpose(0, 3, 1, 2)))
+    V = prob.V
+    Hc, Wc = prob.views.images.shape[1:3]
+    images_t = _room_images(prob, blur)
     vis, uv, _ = _photo_visibility(prob, sm, Wc, Hc)
     with torch.no_grad():
         obs = sample_images(images_t, prob.tt(uv)).cpu().numpy().astype(np.float64)   # (V, M, 3)
@@ -999,8 +998,7 @@ def _view_room_rms(prob: _FitProblem, sm: _SubMesh, which: np.ndarray) -> np.nda
     consistency, weight = _room_consistency(prob, sm, 0.0, which)
     with torch.no_grad():
         r = consistency()[1].cpu().numpy()
-    return np.array([float(np.sqrt((r[v][weight[v]] ** 2).mean())) if weight[v].any() else np.nan
-                     for v in range(prob.V)])
+    return _rms_per_view(r, weight, np.arange(prob.V), prob.V)
 
 
 def _view_flash_rms(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.ndarray,

@@ -159,8 +159,8 @@ def config_from_params(params: dict) -> FitConfig:
     kw = {k: v for k, v in params.items() if k in _CONFIG_FIELDS and v is not None}
     if params.get("landmark_weights"):
         kw["group_weights"] = dict(params["landmark_weights"])
-    for k in ("photo_blur_px", "register_blur_px", "register_room_blur_px"):
-        if k in kw:
+    for k in kw:  # the per-round blurs: tuples in the config, lists in params
+        if isinstance(getattr(_CFG, k), tuple):
             kw[k] = tuple(float(x) for x in kw[k])
     return FitConfig(**kw)
 
