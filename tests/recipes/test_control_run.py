@@ -1,5 +1,6 @@
 """Both shipped recipes build Table 2's control as the finetune run with the model frozen (model_lr = 0) and
-nothing else changed, and use it as "initial" wherever an encoder is evaluated."""
+nothing but the model update changed (the SGD model learning rate, or the least-squares solver and its options),
+share one phase-1 encoder between the two, and use the control as "initial" wherever an encoder is evaluated."""
 import tomllib
 from pathlib import Path
 
@@ -8,17 +9,28 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def _without_update(params: dict) -> dict:
+    """The run's settings but those of the model update (the SGD model learning rate, the solver, ``ls_*``)."""
+    return {k: v for k, v in params.items() if k not in ("model_lr", "solver") and not k.startswith("ls_")}
+
+
 @pytest.mark.parametrize("recipe", ["synthetic.toml", "paper.toml"])
 def test_control_is_the_finetune_run_with_the_model_frozen(recipe):
     st = tomllib.loads((ROOT / "recipes" / recipe).read_text())["stages"]
     ft, ctl = st["finetune"], st["finetune-control"]
     assert ctl["verb"] == "finetune"
-    assert ctl["inputs"] == dict(ft["inputs"], phase1_encoder="@finetune.outputs.finetune_encoder_phase1")
-    assert ctl["params"]["model_lr"] == 0 and ft["params"]["model_lr"] > 0
-    assert {k: v for k, v in ctl["params"].items() if k != "model_lr"} == \
-        {k: v for k, v in ft["params"].items() if k != "model_lr"}
+    assert ctl["params"]["model_lr"] == 0 and ctl["params"].get("solver", "sgd") == "sgd"
+    assert ft["params"].get("solver") == "ls" or ft["params"]["model_lr"] > 0
+    assert _without_update(ctl["params"]) == _without_update(ft["params"])
+    # phase 1 (the encoder on the initial model) is trained once and shared, whichever run trains it
+    owner, taker = ("finetune-control", ft) if "phase1_encoder" in ft["inputs"] else ("finetune", ctl)
+    other = ctl if taker is ft else ft
+    assert taker["inputs"] == dict(other["inputs"], phase1_encoder=f"@{owner}.outputs.{owner}_encoder_phase1")
     for name, stage in st.items():
         enc = stage.get("inputs", {}).get("encoder_initial")
         if enc is not None:
             assert enc == "@finetune-control.outputs.finetune-control_encoder", name
             assert stage["inputs"]["model_initial"] == "@finetune-control.output", name
+        p1 = stage.get("inputs", {}).get("encoder_initial-phase1")
+        if p1 is not None:
+            assert p1 == f"@{owner}.outputs.{owner}_encoder_phase1", name
