@@ -47,6 +47,9 @@ class TaskSpec:
     resources: dict[str, Any] = field(default_factory=dict)
     #: the reflectmm version of the planning process; a worker running another version refuses the task
     tool_version: str = __version__
+    #: among the tasks that are ready, a higher priority starts first (the runner gives the stage's chain length,
+    #: :func:`~reflectmm_cli.recipes.recipe.chain_lengths`); it never changes a result
+    priority: int = 0
 
 
 def _result(spec: TaskSpec, status: str, *, outputs: list[str] | None = None, cache_key: str | None = None,
@@ -149,6 +152,18 @@ class Executor:
         for their upstream's outputs as soon as those exist, while the other tasks go on.
         """
         raise NotImplementedError
+
+
+def take_ready(pending: list[TaskSpec], results: dict[str, Any]) -> tuple[TaskSpec | None, list[TaskSpec]]:
+    """(the task of ``pending`` whose dependencies all have results and whose priority is highest — the earliest
+    in ``pending`` among equals —, the others), or (None, ``pending``) when none is ready."""
+    best = None
+    for i, spec in enumerate(pending):
+        if all(d in results for d in spec.deps) and (best is None or spec.priority > pending[best].priority):
+            best = i
+    if best is None:
+        return None, pending
+    return pending[best], pending[:best] + pending[best + 1:]
 
 
 class SerialExecutor(Executor):
@@ -262,19 +277,18 @@ class PoolExecutor(Executor):
         running: dict[Any, TaskSpec] = {}
         pool = self._get_pool() if specs else None
         while pending or running:
-            still: list[TaskSpec] = []
-            while pending:
-                spec = pending.pop(0)
-                if all(d in results for d in spec.deps):
-                    blocked = blocked_by(spec, [results[d] for d in spec.deps])
-                    if blocked is not None:
-                        results[spec.tid] = blocked
-                        pending += on_result(blocked) or []
-                    else:
-                        running[pool.submit(execute_task, spec)] = spec
+            # at most `jobs` tasks in the pool, so that the choice of the next one is made when a worker is free:
+            # the ready task of highest priority, the earliest given among equals
+            while len(running) < self.jobs:
+                spec, pending = take_ready(pending, results)
+                if spec is None:
+                    break
+                blocked = blocked_by(spec, [results[d] for d in spec.deps])
+                if blocked is not None:
+                    results[spec.tid] = blocked
+                    pending += on_result(blocked) or []
                 else:
-                    still.append(spec)
-            pending = still
+                    running[pool.submit(execute_task, spec)] = spec
             if not running:
                 if pending:  # deps outside the batch would never finish
                     raise ReflectmmError(f"internal: task {pending[0].tid} waits on unknown {pending[0].deps}")
@@ -387,7 +401,7 @@ class DaskExecutor(Executor):
                                     f"declares {k}={known[k]:g}", key=key, pure=False)
             else:
                 fut = client.submit(execute_task, spec, *[futures[d] for d in spec.deps], key=key, pure=False,
-                                    resources=res or None, retries=0)
+                                    resources=res or None, retries=0, priority=spec.priority)
             futures[spec.tid] = fut
             by_key[fut.key] = spec
             return fut

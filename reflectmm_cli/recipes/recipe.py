@@ -288,6 +288,22 @@ def topological_order(recipe: Recipe) -> list[str]:
     return order
 
 
+def chain_lengths(recipe: Recipe) -> dict[str, int]:
+    """For every stage, the number of stages on the longest chain from it to a stage nothing reads (itself
+    included). A runner starts the ready task with the longest chain first: the stages that gate the most work
+    downstream (the critical path, counted in stages) do not wait behind side branches."""
+    order = topological_order(recipe)
+    downs: dict[str, list[str]] = {n: [] for n in order}
+    for n in order:
+        for u in recipe.stages[n].upstream():
+            if u in downs:
+                downs[u].append(n)
+    out: dict[str, int] = {}
+    for n in reversed(order):
+        out[n] = 1 + max((out[d] for d in downs[n]), default=0)
+    return out
+
+
 def _find_cycle(nodes: list[str], ups: dict[str, list[str]]) -> list[str]:
     """One cycle among ``nodes`` (each has an upstream within ``nodes``), written producer -> consumer."""
     node_set = set(nodes)

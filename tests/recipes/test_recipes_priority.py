@@ -1,0 +1,89 @@
+"""The ready task with the longest chain of stages after it starts first (recipe.chain_lengths,
+executors.take_ready): a side branch does not hold up the critical path, and no result changes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from recipe_testdata import make_workspace
+
+from reflectmm_cli.recipes import run_recipe
+from reflectmm_cli.recipes.executors import TaskSpec, take_ready
+from reflectmm_cli.recipes.recipe import chain_lengths, load_recipe
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# "side" is declared first and is ready first; "a" gates two more stages
+CHAIN = """
+schema = "reflectmm.recipe/1"
+name = "chain"
+
+[stages.side]
+verb = "checksum"
+inputs = { files = "data/001" }
+
+[stages.a]
+verb = "checksum"
+inputs = { files = "data/002" }
+
+[stages.b]
+verb = "checksum"
+inputs = { files = "@a.output" }
+
+[stages.c]
+verb = "checksum"
+inputs = { files = "@b.output" }
+"""
+
+
+def _longest_by_paths(recipe) -> dict[str, int]:
+    """Every path from each stage enumerated (no memo): the independent count."""
+    downs = {n: [m for m in recipe.stages if n in recipe.stages[m].upstream()] for n in recipe.stages}
+
+    def paths(n):
+        return [[n]] if not downs[n] else [[n] + p for d in downs[n] for p in paths(d)]
+
+    return {n: max(len(p) for p in paths(n)) for n in recipe.stages}
+
+
+def test_chain_lengths_of_the_shipped_recipe_equal_the_longest_path():
+    rec = load_recipe(ROOT / "recipes" / "synthetic.toml")
+    got = chain_lengths(rec)
+    assert got == _longest_by_paths(rec)
+    assert got["evaluate-report"] == 1
+    # the finetuning chain gates more than the detector's fits, which only the report reads
+    assert got["build-pca"] > got["fit-geometry-detected"]
+
+
+def _spec(tid, priority=0, deps=()):
+    return TaskSpec(tid, "checksum", None, list(deps), priority=priority)
+
+
+def test_take_ready_picks_the_highest_priority_whose_deps_are_done():
+    pending = [_spec("x", 1), _spec("y", 3, deps=["z"]), _spec("w", 2), _spec("v", 2)]
+    spec, rest = take_ready(pending, {})
+    assert spec.tid == "w" and [s.tid for s in rest] == ["x", "y", "v"]  # y waits; w before v (given first)
+    spec, rest = take_ready(pending, {"z": {}})
+    assert spec.tid == "y"
+    assert take_ready([_spec("y", 3, deps=["z"])], {}) == (None, [_spec("y", 3, deps=["z"])])
+
+
+@pytest.mark.parametrize("executor,jobs", [("pool", 1), ("serial", 1)])
+def test_the_longest_chain_starts_first_and_the_results_are_the_same(tmp_path, executor, jobs):
+    ws = make_workspace(tmp_path / executor)
+    (ws / "recipe.toml").write_text(CHAIN)
+    rep = run_recipe(ws / "recipe.toml", ws, executor=executor, jobs=jobs)
+    assert rep.ok
+    order = [json.loads(x)["stage"] for x in (ws / ".reflectmm" / "runlog.jsonl").read_text().splitlines()]
+    if executor == "pool":
+        # a (chain 3) before side (chain 1), although side was given first; once b is done, c and side tie and
+        # side, given first, goes first
+        assert order == ["a", "b", "side", "c"]
+    else:  # one process in the order given: the same artifacts
+        ref = {p.name: p.read_bytes() for d in ("side", "a", "b", "c") for p in (ws / d).iterdir()}
+        other = make_workspace(tmp_path / "pool_ref")
+        (other / "recipe.toml").write_text(CHAIN)
+        assert run_recipe(other / "recipe.toml", other, executor="pool", jobs=1).ok
+        assert {p.name: p.read_bytes() for d in ("side", "a", "b", "c") for p in (other / d).iterdir()} == ref
