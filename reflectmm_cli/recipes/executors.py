@@ -47,8 +47,9 @@ class TaskSpec:
     resources: dict[str, Any] = field(default_factory=dict)
     #: the reflectmm version of the planning process; a worker running another version refuses the task
     tool_version: str = __version__
-    #: among the tasks that are ready, a higher priority starts first (the runner gives the stage's chain length,
-    #: :func:`~reflectmm_cli.recipes.recipe.chain_lengths`); it never changes a result
+    #: among the tasks that are ready, a higher priority starts first (the runner gives
+    #: :func:`~reflectmm_cli.recipes.recipe.task_priorities`: the stage's chain length, then its downstream stages);
+    #: it never changes a result
     priority: int = 0
 
 

@@ -293,15 +293,33 @@ def chain_lengths(recipe: Recipe) -> dict[str, int]:
     included). A runner starts the ready task with the longest chain first: the stages that gate the most work
     downstream (the critical path, counted in stages) do not wait behind side branches."""
     order = topological_order(recipe)
+    downs = _downstream(recipe, order)
+    out: dict[str, int] = {}
+    for n in reversed(order):
+        out[n] = 1 + max((out[d] for d in downs[n]), default=0)
+    return out
+
+
+def task_priorities(recipe: Recipe) -> dict[str, int]:
+    """The order in which a runner starts ready tasks, higher first: ``1000 ×`` :func:`chain_lengths` ``+`` the
+    number of stages that read the stage's outputs, directly or not (capped at 999), so that of two chains of equal
+    length the one that more work waits for goes first."""
+    order = topological_order(recipe)
+    downs = _downstream(recipe, order)
+    below: dict[str, set[str]] = {}
+    for n in reversed(order):
+        below[n] = set(downs[n]).union(*(below[d] for d in downs[n]))
+    chains = chain_lengths(recipe)
+    return {n: 1000 * chains[n] + min(len(below[n]), 999) for n in order}
+
+
+def _downstream(recipe: Recipe, order: list[str]) -> dict[str, list[str]]:
     downs: dict[str, list[str]] = {n: [] for n in order}
     for n in order:
         for u in recipe.stages[n].upstream():
             if u in downs:
                 downs[u].append(n)
-    out: dict[str, int] = {}
-    for n in reversed(order):
-        out[n] = 1 + max((out[d] for d in downs[n]), default=0)
-    return out
+    return downs
 
 
 def _find_cycle(nodes: list[str], ups: dict[str, list[str]]) -> list[str]:

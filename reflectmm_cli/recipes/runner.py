@@ -26,7 +26,7 @@ from reflectmm_cli.recipes.executors import OK, Executor, TaskSpec, make_executo
 from reflectmm_cli.recipes.plan import (BLOCKED, DEFERRED, ERROR, FAILED, RUN, RUNLOG_FILE, SKIP, Plan, make_plan,
                                         load_hash_memo, save_hash_memo, state_dir, write_record)
 from reflectmm_cli.recipes.plan import RUNNING as RUNNING_PRIOR
-from reflectmm_cli.recipes.recipe import Recipe, chain_lengths, load_recipe
+from reflectmm_cli.recipes.recipe import Recipe, load_recipe, task_priorities
 
 log = logging.getLogger("reflectmm")
 
@@ -348,7 +348,7 @@ def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: Ru
     still count as upstream of the new ones)."""
     batch: list[TaskSpec] = []
     runnable = {t.tid for t in plan.selected() if t.action == RUN and t.tid not in outcomes}
-    chains = chain_lengths(plan.recipe)
+    priorities = task_priorities(plan.recipe)
     for t in plan.selected():
         if t.tid in outcomes or t.tid in handed_out:
             continue
@@ -362,7 +362,7 @@ def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: Ru
         elif t.action == RUN and t.tid in runnable:
             key_doc = t.key_doc
             batch.append(TaskSpec(t.tid, t.verb, t.ctx, [d for d in t.deps if d in runnable], key_doc,
-                                  t.resources, priority=chains.get(t.stage_name, 0)))
+                                  t.resources, priority=priorities.get(t.stage_name, 0)))
             continue
         else:
             continue

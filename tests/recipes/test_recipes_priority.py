@@ -11,7 +11,7 @@ from recipe_testdata import make_workspace
 
 from reflectmm_cli.recipes import run_recipe
 from reflectmm_cli.recipes.executors import TaskSpec, take_ready
-from reflectmm_cli.recipes.recipe import chain_lengths, load_recipe
+from reflectmm_cli.recipes.recipe import chain_lengths, load_recipe, task_priorities
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -48,6 +48,16 @@ def _longest_by_paths(recipe) -> dict[str, int]:
     return {n: max(len(p) for p in paths(n)) for n in recipe.stages}
 
 
+def _below_by_paths(recipe) -> dict[str, int]:
+    """The stages reachable downstream of each stage, by walking every path."""
+    downs = {n: [m for m in recipe.stages if n in recipe.stages[m].upstream()] for n in recipe.stages}
+
+    def reach(n):
+        return set(downs[n]).union(*[reach(d) for d in downs[n]]) if downs[n] else set()
+
+    return {n: len(reach(n)) for n in recipe.stages}
+
+
 def test_chain_lengths_of_the_shipped_recipe_equal_the_longest_path():
     rec = load_recipe(ROOT / "recipes" / "synthetic.toml")
     got = chain_lengths(rec)
@@ -55,6 +65,17 @@ def test_chain_lengths_of_the_shipped_recipe_equal_the_longest_path():
     assert got["evaluate-report"] == 1
     # the finetuning chain gates more than the detector's fits, which only the report reads
     assert got["build-pca"] > got["fit-geometry-detected"]
+
+
+def test_task_priorities_are_chain_length_then_downstream_stages():
+    rec = load_recipe(ROOT / "recipes" / "synthetic.toml")
+    chains, below = _longest_by_paths(rec), _below_by_paths(rec)
+    assert task_priorities(rec) == {n: 1000 * chains[n] + below[n] for n in rec.stages}
+    pr = task_priorities(rec)
+    # equal chains: the one more stages wait for goes first
+    assert chains["finetune"] == chains["finetune-albedomm"] and pr["finetune"] > pr["finetune-albedomm"]
+    assert chains["finetune-control"] == chains["preprocess-detected"]
+    assert pr["finetune-control"] > pr["preprocess-detected"]
 
 
 def _spec(tid, priority=0, deps=()):
