@@ -49,7 +49,7 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 _REF_RE = re.compile(r"^@(?P<stage>[A-Za-z0-9_][A-Za-z0-9_.-]*?)\.(?P<what>output|outputs\.(?P<name>[^/]+)|dir)"
                      r"(?P<sub>/.*)?$")
 
-_STAGE_KEYS = {"verb", "params", "inputs", "foreach", "resources", "help", "description"}
+_STAGE_KEYS = {"verb", "params", "inputs", "foreach", "resources", "priority", "help", "description"}
 _TOP_KEYS = {"schema", "name", "description", "defaults", "stages"}
 
 
@@ -84,6 +84,9 @@ class StageSpec:
     #: names given in the stage's own ``params`` table (the rest came from ``[defaults]``): an own param the
     #: verb does not declare is an error, a ``[defaults]`` param it does not declare is not for it.
     own_params: frozenset[str] = frozenset()
+    #: the stage's declared priority (``priority = N``, default 0): among ready tasks a higher one starts first,
+    #: before the runner's own order (:func:`task_priorities`)
+    priority: int = 0
 
     @property
     def per_identity(self) -> bool:
@@ -257,8 +260,13 @@ def _build(doc: dict[str, Any], path: Path) -> Recipe:
                                          f"(e.g. \"512MB\", \"4GB\")", path) from None
             elif rv < 0:
                 raise ReflectmmError(f"{where} resources.{rk}: must be >= 0, got {rv}", path)
+        priority = sdoc.get("priority", 0)
+        if isinstance(priority, bool) or not isinstance(priority, int):
+            raise _type_error(f"{where} priority", "an integer", priority, path)
+        if not -999 <= priority <= 999:
+            raise ReflectmmError(f"{where} priority: must be between -999 and 999, got {priority}", path)
         stages[sname] = StageSpec(sname, verb, merged, inputs, foreach, dict(resources), param_refs,
-                                  frozenset(params))
+                                  frozenset(params), priority)
 
     recipe = Recipe(path, name, dict(defaults), stages)
     for spec in stages.values():
@@ -301,16 +309,18 @@ def chain_lengths(recipe: Recipe) -> dict[str, int]:
 
 
 def task_priorities(recipe: Recipe) -> dict[str, int]:
-    """The order in which a runner starts ready tasks, higher first: ``1000 ×`` :func:`chain_lengths` ``+`` the
-    number of stages that read the stage's outputs, directly or not (capped at 999), so that of two chains of equal
-    length the one that more work waits for goes first."""
+    """The order in which a runner starts ready tasks, higher first: the stage's declared ``priority`` first, then
+    its :func:`chain_lengths`, then the number of stages that read its outputs, directly or not (encoded as
+    ``10⁶ × priority + 10³ × chain + min(downstream, 999)``). Stage counts do not know how long a stage takes: a
+    recipe whose long stages sit on short chains says so with ``priority``."""
     order = topological_order(recipe)
     downs = _downstream(recipe, order)
     below: dict[str, set[str]] = {}
     for n in reversed(order):
         below[n] = set(downs[n]).union(*(below[d] for d in downs[n]))
     chains = chain_lengths(recipe)
-    return {n: 1000 * chains[n] + min(len(below[n]), 999) for n in order}
+    return {n: 10 ** 6 * recipe.stages[n].priority + 1000 * min(chains[n], 999) + min(len(below[n]), 999)
+            for n in order}
 
 
 def _downstream(recipe: Recipe, order: list[str]) -> dict[str, list[str]]:

@@ -70,12 +70,43 @@ def test_chain_lengths_of_the_shipped_recipe_equal_the_longest_path():
 def test_task_priorities_are_chain_length_then_downstream_stages():
     rec = load_recipe(ROOT / "recipes" / "synthetic.toml")
     chains, below = _longest_by_paths(rec), _below_by_paths(rec)
-    assert task_priorities(rec) == {n: 1000 * chains[n] + below[n] for n in rec.stages}
+    declared = {n: rec.stages[n].priority for n in rec.stages}
+    assert task_priorities(rec) == {n: 10 ** 6 * declared[n] + 1000 * chains[n] + below[n] for n in rec.stages}
     pr = task_priorities(rec)
     # equal chains: the one more stages wait for goes first
-    assert chains["finetune"] == chains["finetune-albedomm"] and pr["finetune"] > pr["finetune-albedomm"]
-    assert chains["finetune-control"] == chains["preprocess-detected"]
-    assert pr["finetune-control"] > pr["preprocess-detected"]
+    assert chains["finetune-diffuse"] == chains["finetune-albedomm"] == 3
+    # the demo declares its long finetuning chain, which the stage counts alone put behind the detector's captures
+    assert chains["finetune"] < chains["preprocess-detected"] and pr["finetune"] > pr["preprocess-detected"]
+    assert declared["finetune"] == declared["finetune-control"] == 1
+
+
+def _recipe(tmp_path, extra: str) -> Path:
+    (tmp_path / "data").mkdir(exist_ok=True)
+    (tmp_path / "data" / "x.txt").write_text("x")
+    p = tmp_path / "r.toml"
+    p.write_text('schema = "reflectmm.recipe/1"\nname = "p"\n[stages.s]\nverb = "checksum"\n'
+                 'inputs = { files = "data" }\n' + extra)
+    return p
+
+
+def test_a_declared_priority_comes_first(tmp_path):
+    rec = load_recipe(_recipe(tmp_path, "priority = -3\n[stages.t]\nverb = \"checksum\"\n"
+                                        "inputs = { files = \"@s.output\" }\n"))
+    pr = task_priorities(rec)
+    assert pr == {"s": -3 * 10 ** 6 + 2001, "t": 1000}
+    assert pr["t"] > pr["s"]  # the declared -3 outweighs the longer chain
+
+
+@pytest.mark.parametrize("value,msg", [('"high"', "priority"), ("true", "priority"), ("1000", "between -999 and 999"),
+                                       ("1.5", "priority")])
+def test_a_bad_priority_is_a_one_line_error_naming_the_recipe(tmp_path, value, msg):
+    from reflectmm_cli.errors import ReflectmmError
+
+    p = _recipe(tmp_path, f"priority = {value}\n")
+    with pytest.raises(ReflectmmError) as e:
+        load_recipe(p)
+    text = str(e.value)
+    assert msg in text and "r.toml" in text and "\n" not in text
 
 
 def _spec(tid, priority=0, deps=()):
