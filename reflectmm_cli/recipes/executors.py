@@ -48,8 +48,8 @@ class TaskSpec:
     #: the reflectmm version of the planning process; a worker running another version refuses the task
     tool_version: str = __version__
     #: among the tasks that are ready, a higher priority starts first (the runner gives
-    #: :func:`~reflectmm_cli.recipes.recipe.task_priorities`: the stage's chain length, then its downstream stages);
-    #: it never changes a result
+    #: :func:`~reflectmm_cli.recipes.recipe.task_priorities`: the stage's declared priority, its chain length, then
+    #: its downstream stages); it never changes a result
     priority: int = 0
 
 
