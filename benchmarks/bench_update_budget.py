@@ -24,7 +24,8 @@ Measures per run (the truth is read only here, never by a run):
   expressive power of ``evaluate expressive`` (the held-out wild identities' true albedo and lobe weights
   projected onto the model; the gap to the oracle closed from the initial model).
 
-``--summarise`` prints the table of every run (median CPU over the seeds; measures as the mean over seeds) and, for
+``--oracle`` adds the oracle's row (the expressive-power measure's model of the same size, built from the training
+identities' truth, refined from zero like the runs' models). ``--summarise`` prints the table of every run (median CPU over the seeds; measures as the mean over seeds) and, for
 each ``--pair A:B``, A − B per test image and seed (PSNR, SSIM) and per held-out identity and seed (albedo residual),
 mean ± 95 % CI, with the ratio of the median CPU times.
 """
@@ -103,6 +104,17 @@ def _measure_encoder(model, light, ss, encoder_path: Path) -> dict:
             "ssim": np.asarray(fm.per_image["ssim"], np.float64).tolist()}
 
 
+def oracle_as_model(model, oracle: dict):
+    """A copy of ``model`` whose per-vertex means, bases and σ are the oracle's
+    (:func:`~reflectmm_cli.evaluation.expressive.oracle_model`), so that it renders and refines like any model."""
+    import copy
+
+    out = copy.deepcopy(model)
+    for k in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis", "sigma"):
+        setattr(out, k, np.asarray(oracle[k], np.float32))
+    return out
+
+
 def run(a) -> int:
     import torch
 
@@ -117,6 +129,11 @@ def run(a) -> int:
     lpath = ws / "build-light-pca" / "build-light-pca.npz"
     a.scratch.mkdir(parents=True, exist_ok=True)
     model_cache: dict[str, dict] = {}
+    if a.oracle:  # the oracle of the expressive-power measure, refined like the runs' models (no encoder)
+        log("oracle: a model of the same size from the training identities' truth, refined on the test images")
+        row = {"run": "oracle", "seed": None, "options": {}, "cpu_s": None, "workspace": str(ws)}
+        row.update(_measure_model(oracle_as_model(model0, oracle), light, ss, truth, oracle))
+        append_jsonl(a.jsonl, row)
     for seed in a.seeds:
         sd = a.scratch / f"seed{seed}"
         sd.mkdir(exist_ok=True)
@@ -159,11 +176,14 @@ def summarise(paths: list[Path], pairs: list[str]) -> str:
     by: dict[str, list[dict]] = {}
     for r in rows:
         by.setdefault(r["run"], []).append(r)
-    out = ["| run | options | seeds | CPU s (median) | encoder PSNR | encoder SSIM | refined PSNR | refined SSIM | "
+    orc = by.pop("oracle", [None])[0]
+    refined = "refined PSNR (gap to the oracle closed)" if orc is not None else "refined PSNR"
+    out = [f"| run | options | seeds | CPU s (median) | encoder PSNR | encoder SSIM | {refined} | refined SSIM | "
            "albedo residual (gap closed) | lobe-weight residual (gap closed) |", "|" + "---|" * 10]
     # the initial model's residuals: those of a run whose model stayed frozen (a control)
     ini = next((rs[0] for rs in by.values() if float(rs[0]["options"].get("model-lr", 1)) == 0
                 and rs[0]["options"].get("solver", "sgd") == "sgd"), None)
+    ini_psnr = float(np.mean(ini["refined_psnr"])) if ini else None
     for name, rs in by.items():
         cpu = float(np.median([r["cpu_s"] for r in rs]))
         enc_p = np.mean([np.mean(r["psnr"]) for r in rs])
@@ -177,8 +197,15 @@ def summarise(paths: list[Path], pairs: list[str]) -> str:
             i0 = ini[f"{k}_residual"] if ini else None
             cells.append(f"{v:.3f}" + (f" ({100 * (i0 - v) / (i0 - o):+.0f} %)" if i0 is not None else ""))
         opts = ", ".join(f"{k} {v}" for k, v in rs[0]["options"].items())
-        out.append(f"| {name} | {opts} | {len(rs)} | {cpu:.0f} | {enc_p:.2f} | {enc_s:.3f} | {ref_p:.2f} | "
+        gp = ""  # the gap to the oracle's refined PSNR closed from the initial model
+        if orc is not None and ini_psnr is not None:
+            gp = f" ({100 * (ref_p - ini_psnr) / (np.mean(orc['refined_psnr']) - ini_psnr):+.0f} %)"
+        out.append(f"| {name} | {opts} | {len(rs)} | {cpu:.0f} | {enc_p:.2f} | {enc_s:.3f} | {ref_p:.2f}{gp} | "
                    f"{ref_s:.3f} | {cells[0]} | {cells[1]} |")
+    if orc is not None:
+        out.append(f"| oracle | the training identities' truth | – | – | – | – | {np.mean(orc['refined_psnr']):.2f} | "
+                   f"{np.mean(orc['refined_ssim']):.3f} | {orc['albedo_residual']:.3f} | "
+                   f"{orc['weights_residual']:.3f} |")
     if pairs:
         out += ["", "| pair | Δ encoder PSNR | Δ encoder SSIM | Δ refined PSNR | Δ refined SSIM | Δ albedo residual "
                 "| CPU ratio |", "|---|---|---|---|---|---|---|"]
@@ -206,6 +233,9 @@ def main() -> int:
     ap.add_argument("--run", action="append", default=[],
                     help="NAME:option=value,... (finetune's options without the dashes; e.g. "
                          "sgd8:epochs2=8 or control8:model-lr=0,epochs2=8)")
+    ap.add_argument("--oracle", action="store_true",
+                    help="also measure the oracle (a model of the same size from the training identities' truth), "
+                         "refined like the runs' models; --summarise then gives the gap to its refined PSNR closed")
     ap.add_argument("--jsonl", type=Path, default=None)
     ap.add_argument("--summarise", type=Path, nargs="+", default=None)
     ap.add_argument("--pair", action="append", default=[], help="A:B with --summarise")
