@@ -180,10 +180,12 @@ def summarise(paths: list[Path], pairs: list[str]) -> str:
     refined = "refined PSNR (gap to the oracle closed)" if orc is not None else "refined PSNR"
     out = [f"| run | options | seeds | CPU s (median) | encoder PSNR | encoder SSIM | {refined} | refined SSIM | "
            "albedo residual (gap closed) | lobe-weight residual (gap closed) |", "|" + "---|" * 10]
-    # the initial model's residuals: those of a run whose model stayed frozen (a control)
-    ini = next((rs[0] for rs in by.values() if float(rs[0]["options"].get("model-lr", 1)) == 0
+    # the initial model's measures: those of a run whose model stayed frozen (a control), averaged over its seeds
+    ctl = next((rs for rs in by.values() if float(rs[0]["options"].get("model-lr", 1)) == 0
                 and rs[0]["options"].get("solver", "sgd") == "sgd"), None)
-    ini_psnr = float(np.mean(ini["refined_psnr"])) if ini else None
+    ini = None if ctl is None else {k: float(np.mean([np.mean(r[k]) for r in ctl]))
+                                    for k in ("refined_psnr", "albedo_residual", "weights_residual")}
+    ini_psnr = ini["refined_psnr"] if ini else None
     for name, rs in by.items():
         cpu = float(np.median([r["cpu_s"] for r in rs]))
         enc_p = np.mean([np.mean(r["psnr"]) for r in rs])
