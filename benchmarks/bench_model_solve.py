@@ -72,10 +72,19 @@ def solve_variant(model, light, shards, cfg, mesh, *, threads: int = 1, log=None
                              jobs=1, threads=threads)
 
 
-def _measure(model, light, ss, truth, oracle, refine) -> dict:
-    from reflectmm_cli.evaluation.expressive import projection_residuals
+def held_out_image_metrics(ss, encoder, model, light, refine=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-image PSNR and SSIM (float64) of the shards' test images reconstructed with ``model`` and ``light``: by
+    ``encoder`` (None: from zero coefficients) and, with ``refine``, refined per image."""
     from reflectmm_cli.evaluation.reconstruction_eval import image_metrics_table
     from reflectmm_cli.finetune.reconstruct import reconstruct
+
+    rec = reconstruct(ss, encoder, model, light, split="test", refine=refine)
+    fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
+    return np.asarray(fm.per_image["psnr"], np.float64), np.asarray(fm.per_image["ssim"], np.float64)
+
+
+def _measure(model, light, ss, truth, oracle, refine) -> dict:
+    from reflectmm_cli.evaluation.expressive import projection_residuals
 
     out = {}
     for part, key in (("albedo", "vertex_albedo"), ("weights", "vertex_weights")):
@@ -89,10 +98,8 @@ def _measure(model, light, ss, truth, oracle, refine) -> dict:
             out[f"{part}_residual" + ("" if name == "model" else "_oracle")] = float(r.mean())
             if name == "model":
                 out[f"{part}_residuals"] = r.astype(np.float64).tolist()
-    rec = reconstruct(ss, None, model, light, split="test", refine=refine)
-    fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
-    out["psnr"] = np.asarray(fm.per_image["psnr"], np.float64).tolist()
-    out["ssim"] = np.asarray(fm.per_image["ssim"], np.float64).tolist()
+    psnr, ssim = held_out_image_metrics(ss, None, model, light, refine)
+    out["psnr"], out["ssim"] = psnr.tolist(), ssim.tolist()
     return out
 
 
@@ -182,9 +189,7 @@ def _ci4(d) -> str:
 def encoder_table(ws: Path, specs: list[str]) -> str:
     """Table 2's encoder-only PSNR / SSIM of the test images for ``NAME=MODEL,ENCODER`` rows (the first row is the
     reference of the per-image gains)."""
-    from reflectmm_cli.evaluation.reconstruction_eval import image_metrics_table
     from reflectmm_cli.finetune.encoder import load_encoder
-    from reflectmm_cli.finetune.reconstruct import reconstruct
     from reflectmm_cli.finetune.shards import load_shards
     from reflectmm_cli.finetune.train import load_models
 
@@ -195,9 +200,7 @@ def encoder_table(ws: Path, specs: list[str]) -> str:
         name, _, paths = spec.partition("=")
         mp, ep = paths.split(",")
         m, lt = load_models(mp, ws / "build-light-pca" / "build-light-pca.npz")
-        rec = reconstruct(ss, load_encoder(ep, "cpu")[0], m, lt, split="test")
-        fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
-        ps, ss_ = np.asarray(fm.per_image["psnr"], np.float64), np.asarray(fm.per_image["ssim"], np.float64)
+        ps, ss_ = held_out_image_metrics(ss, load_encoder(ep, "cpu")[0], m, lt)
         ref = ref or (ps, ss_)
         gain = ("–", "–") if ps is ref[0] else (_ci(ps - ref[0]), _ci(ss_ - ref[1]))
         out.append(f"| {name} | {Path(mp).name} | {Path(ep).name} | {ps.mean():.2f} | {gain[0]} | {ss_.mean():.3f} | "

@@ -94,14 +94,12 @@ def _measure_model(model, light, ss, truth, oracle) -> dict:
 
 
 def _measure_encoder(model, light, ss, encoder_path: Path) -> dict:
-    from reflectmm_cli.evaluation.reconstruction_eval import image_metrics_table
-    from reflectmm_cli.finetune.encoder import load_encoder
-    from reflectmm_cli.finetune.reconstruct import reconstruct
+    from bench_model_solve import held_out_image_metrics
 
-    rec = reconstruct(ss, load_encoder(encoder_path, "cpu")[0], model, light, split="test")
-    fm = image_metrics_table(rec.full, rec.image, rec.face_mask, str(rec.encoding[0]))["per_image"]
-    return {"psnr": np.asarray(fm.per_image["psnr"], np.float64).tolist(),
-            "ssim": np.asarray(fm.per_image["ssim"], np.float64).tolist()}
+    from reflectmm_cli.finetune.encoder import load_encoder
+
+    psnr, ssim = held_out_image_metrics(ss, load_encoder(encoder_path, "cpu")[0], model, light)
+    return {"psnr": psnr.tolist(), "ssim": ssim.tolist()}
 
 
 def oracle_as_model(model, oracle: dict):
