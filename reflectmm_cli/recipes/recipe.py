@@ -300,12 +300,7 @@ def chain_lengths(recipe: Recipe) -> dict[str, int]:
     """For every stage, the number of stages on the longest chain from it to a stage nothing reads (itself
     included). A runner starts the ready task with the longest chain first: the stages that gate the most work
     downstream (the critical path, counted in stages) do not wait behind side branches."""
-    order = topological_order(recipe)
-    downs = _downstream(recipe, order)
-    out: dict[str, int] = {}
-    for n in reversed(order):
-        out[n] = 1 + max((out[d] for d in downs[n]), default=0)
-    return out
+    return _chains(*_graph(recipe))
 
 
 def task_priorities(recipe: Recipe) -> dict[str, int]:
@@ -313,23 +308,31 @@ def task_priorities(recipe: Recipe) -> dict[str, int]:
     its :func:`chain_lengths`, then the number of stages that read its outputs, directly or not (encoded as
     ``10⁶ × priority + 10³ × chain + min(downstream, 999)``). Stage counts do not know how long a stage takes: a
     recipe whose long stages sit on short chains says so with ``priority``."""
-    order = topological_order(recipe)
-    downs = _downstream(recipe, order)
+    order, downs = _graph(recipe)
     below: dict[str, set[str]] = {}
     for n in reversed(order):
         below[n] = set(downs[n]).union(*(below[d] for d in downs[n]))
-    chains = chain_lengths(recipe)
+    chains = _chains(order, downs)
     return {n: 10 ** 6 * recipe.stages[n].priority + 1000 * min(chains[n], 999) + min(len(below[n]), 999)
             for n in order}
 
 
-def _downstream(recipe: Recipe, order: list[str]) -> dict[str, list[str]]:
+def _graph(recipe: Recipe) -> tuple[list[str], dict[str, list[str]]]:
+    """(the stages in topological order, each stage's readers)."""
+    order = topological_order(recipe)
     downs: dict[str, list[str]] = {n: [] for n in order}
     for n in order:
         for u in recipe.stages[n].upstream():
             if u in downs:
                 downs[u].append(n)
-    return downs
+    return order, downs
+
+
+def _chains(order: list[str], downs: dict[str, list[str]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for n in reversed(order):
+        out[n] = 1 + max((out[d] for d in downs[n]), default=0)
+    return out
 
 
 def _find_cycle(nodes: list[str], ups: dict[str, list[str]]) -> list[str]:
