@@ -54,6 +54,8 @@ def main(argv=None):
     ap.add_argument("--radius", type=float, default=1300.0, help="camera distance of the true rig (mm)")
     ap.add_argument("--focal", type=float, default=500.0, help="focal of the true rig at --size (px)")
     ap.add_argument("--skin", default="single", choices=("single", "two-lobe"))
+    ap.add_argument("--features", default="plain", choices=("plain", "painted"),
+                    help="synth multipie's facial features (painted: what dlib locks onto)")
     ap.add_argument("--vertices", type=int, default=35000)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--sets", default="all,side,detect")
@@ -176,7 +178,7 @@ def run(args) -> dict:
     if not (syn / "truth" / f"{ids[-1]}.npz").is_file():
         cli("synth", "multipie", "--out", syn, "--identities", args.identities, "--rig", ws / "true_rig.toml",
             "--cameras", ",".join(views), "--flashes", ",".join(DEFAULT_FLASHES), "--landmark-noise", "1.0",
-            "--noise", "0.002", "--brdf", "ggx", "--skin", args.skin, "--seed", args.seed, "--face-vertices",
+            "--noise", "0.002", "--brdf", "ggx", "--skin", args.skin, "--features", args.features, "--seed", args.seed, "--face-vertices",
             args.vertices, "--image-size", f"{W}x{H}")
     lm_files = sorted(syn.rglob("*_00_lm.pts"))
     dirs = {"side": ws / "lm_side", "detect": ws / "lm_detect"}

@@ -22,6 +22,9 @@ PARAMS = (
     Param("skin", "str", None, choices=("single", "two-lobe"),
           help="Skin specular: single (one GGX lobe per texel; the default) or two-lobe (a sharp and a broad GGX "
                "lobe, mixed per region; docs/synthetic.md)."),
+    Param("features", "str", None, choices=("plain", "painted"),
+          help="Facial features: plain (grey eyes; the default) or painted (iris, pupil, lash lines, the mouth "
+               "line and nostrils, which a face detector locks onto; docs/synthetic.md)."),
     Param("image_size", "size", "640x480", range=(16, 16384), unit="px", metavar="WxH",
           help="WxH; the framing is kept."),
     Param("uv_size", "int", 256, range=(16, 4096), unit="texels", help="Resolution of the ground-truth UV maps."),
@@ -67,7 +70,8 @@ def multipie_config(params: dict):
                        flashes=tuple(p["flashes"]) if p.get("flashes") else None,
                        noise=p["noise"], landmark_noise=p["landmark_noise"], expression=p["expression"],
                        shape_scale=p["shape_scale"], first_id=p["first_id"], face_vertices=p["face_vertices"],
-                       supersample=p["supersample"], skin=p.get("skin") or "single")
+                       supersample=p["supersample"], skin=p.get("skin") or "single",
+                       features=p.get("features") or "plain")
 
 
 def _outputs(ctx: StageContext) -> list[Path]:
@@ -92,7 +96,7 @@ def run(ctx: StageContext) -> list[Path]:
     paths = synth_multipie(out, cfg, face_model=fm[0] if fm else None, rig=rg[0] if rg else None,
                            meta_params=params, producer=ctx.producer(), cache_key=ctx.cache_key,
                            inputs=ctx.input_refs(out))
-    log.info(f"synth multipie: {cfg.identities} identities ({cfg.brdf}, {cfg.skin} skin) in {out}")
+    log.info(f"synth multipie: {cfg.identities} identities ({cfg.brdf}, {cfg.skin} skin, {cfg.features} features) in {out}")
     return paths
 
 

@@ -30,7 +30,7 @@ from reflectmm_cli.landmarks import format_pts as _format_pts
 from reflectmm_cli.capture.layout import camera_code
 from reflectmm_cli.rig import ALL_FLASHES, Rig, load_rig, rig_to_toml
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
-from reflectmm_cli.synth.skin import SKIN_MODELS, SkinMaps, sample_skin_params, skin_maps
+from reflectmm_cli.synth.skin import FEATURES, SKIN_MODELS, SkinMaps, sample_skin_params, skin_maps
 
 __all__ = ["SynthConfig", "room_light_sh", "encode_png_values", "decode_png_values", "image_path",
            "landmark_path", "Identity", "make_identity", "render_identity", "synth_multipie", "format_pts",
@@ -63,12 +63,15 @@ class SynthConfig:
     supersample: int = 1                     # k×k rays per pixel, box-filtered in linear space
     exponents: tuple[float, ...] = field(default=DEFAULT_EXPONENTS)
     skin: str = "single"                     # "single" (one GGX lobe) or "two-lobe" (sharp + broad GGX)
+    features: str = "plain"                  # "plain" (grey eyes) or "painted" (iris, lash lines, mouth line)
 
     def __post_init__(self) -> None:
         if self.brdf not in ("ggx", "model"):
             raise ReflectmmError(f"--brdf must be 'ggx' or 'model', got {self.brdf!r}")
         if self.skin not in SKIN_MODELS:
             raise ReflectmmError(f"--skin must be one of {', '.join(SKIN_MODELS)}, got {self.skin!r}")
+        if self.features not in FEATURES:
+            raise ReflectmmError(f"--features must be one of {', '.join(FEATURES)}, got {self.features!r}")
         if int(self.identities) < 1:
             raise ReflectmmError(f"--identities must be ≥ 1, got {self.identities}")
         if not (1 <= int(self.first_id) and int(self.first_id) + int(self.identities) - 1 <= 999):
@@ -95,6 +98,8 @@ class SynthConfig:
         d["exponents"] = list(self.exponents)
         if self.skin == "single":  # the default is not recorded: data sets made before --skin stay byte-identical
             d.pop("skin")
+        if self.features == "plain":  # likewise for the features
+            d.pop("features")
         return d
 
 
@@ -177,7 +182,7 @@ def make_identity(model, cfg: SynthConfig, index: int) -> Identity:
     normals = vertex_normals(verts, model.triangles).astype(np.float64)
     lm_uv = model.uv[model.landmarks].astype(np.float64)
     maps = skin_maps(lm_uv, sample_skin_params(rng), cfg.uv_size, exponents=cfg.exponents, brdf=cfg.brdf,
-                     skin=cfg.skin)
+                     skin=cfg.skin, features=cfg.features)
     return Identity(identity_code(index), shape, exp, verts, normals, maps)
 
 
@@ -459,6 +464,7 @@ def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, ri
                        extra_meta={"identity": ident.code, "skin": ident.maps.params.to_dict(),
                                    **({"skin_model": "two-lobe", "skin_two_lobe": ident.maps.two_lobe.to_dict()}
                                       if cfg.skin == "two-lobe" else {}),
+                                   **({"features": cfg.features} if cfg.features != "plain" else {}),
                                    "views": cams, "flashes": fls, "session": SESSION, "recording": RECORDING,
                                    "units": "mm; linear pixel value = radiance; PNG = clip(x,0,1)**(1/1.2)",
                                    "weights_note": ("exact rendering BRDF" if cfg.brdf == "model" else

@@ -16,6 +16,11 @@ forehead; docs/pipeline.md):
   the rendering BRDF (exact) and ``spec_albedo = Σ w``; in ``ggx`` mode they are only the closest 3-lobe
   reference.
 
+Facial features (``features=``): ``"plain"`` (the default) paints the eyes a uniform grey and leaves the rest to
+the regions above; ``"painted"`` adds what a face detector's shape regression locks onto — a white sclera, a dark
+iris and pupil, the upper lid's lash line, the dark line between the lips and the nostrils
+(:func:`paint_features`; docs/synthetic.md, "Painted features").  Albedo only: no geometry and no specular change.
+
 Regions are soft masks in UV space built from the landmarks' UV coordinates (polygons and thickened polylines,
 blurred), so any face model with UVs and iBUG landmarks works.
 
@@ -40,11 +45,14 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 from reflectmm_cli.synth.ggx import SKIN_F0, fit_lobes_to_ggx, ggx_specular_albedo
 
-__all__ = ["SKIN_MODELS", "SkinParams", "TwoLobeParams", "SkinMaps", "region_masks", "sample_skin_params",
-           "sample_two_lobe_params", "skin_maps", "two_lobe_specular_albedo"]
+__all__ = ["SKIN_MODELS", "FEATURES", "SkinParams", "TwoLobeParams", "SkinMaps", "region_masks", "sample_skin_params",
+           "sample_two_lobe_params", "skin_maps", "two_lobe_specular_albedo", "paint_features"]
 
 #: The skin models of ``synth multipie --skin`` / ``synth wild --skin`` (the first is the default).
 SKIN_MODELS = ("single", "two-lobe")
+
+#: The facial features of ``synth multipie --features`` (the first is the default).
+FEATURES = ("plain", "painted")
 
 
 # absorption per unit pigment (R, G, B): melanin absorbs more towards blue, haemoglobin mostly green/blue
@@ -106,6 +114,7 @@ class SkinMaps:
     roughness_broad: np.ndarray | None = None  # (S, S) float32, two-lobe only: α of the broad lobe
     lobe_mix: np.ndarray | None = None         # (S, S) float32, two-lobe only: weight m of the broad lobe
     two_lobe: TwoLobeParams | None = None
+    features: str = "plain"
 
 
 def sample_skin_params(rng: np.random.Generator, tone: float | None = None) -> SkinParams:
@@ -241,7 +250,8 @@ def _low_freq(rng: np.random.Generator, size: int, scale_px: float) -> np.ndarra
 
 
 def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f0: float = SKIN_F0,
-              exponents=DEFAULT_EXPONENTS, brdf: str = "ggx", skin: str = "single") -> SkinMaps:
+              exponents=DEFAULT_EXPONENTS, brdf: str = "ggx", skin: str = "single",
+              features: str = "plain") -> SkinMaps:
     """The reflectance maps of one identity (see the module docstring); deterministic in (landmarks, params).
 
     ``brdf="model"``: the weights are the rendering BRDF; on top of the GGX fit they get a broad-lobe "sheen"
@@ -252,6 +262,8 @@ def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f
         raise ReflectmmError(f"brdf must be 'ggx' or 'model', got {brdf!r}")
     if skin not in SKIN_MODELS:
         raise ReflectmmError(f"skin must be one of {', '.join(SKIN_MODELS)}, got {skin!r}")
+    if features not in FEATURES:
+        raise ReflectmmError(f"features must be one of {', '.join(FEATURES)}, got {features!r}")
     if size < 16:
         raise ReflectmmError(f"--uv-size must be ≥ 16, got {size}")
     R = region_masks(landmark_uv, size)
@@ -270,6 +282,8 @@ def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f
     alb = alb * (1 - R["brows"] * (1 - params.brow_darkness * np.array([1.0, 0.85, 0.75])[:, None, None]))
     # eyes (not skin): greyish sclera, a non-skin value that solvers should not treat as skin
     alb = alb * (1 - R["eyes"]) + R["eyes"] * np.array([0.45, 0.42, 0.40])[:, None, None]
+    if features == "painted":
+        alb = paint_features(alb, landmark_uv, params.seed)
 
     rough = 0.42 + 0.06 * R["cheeks"] - 0.14 * R["nose_tip"] - 0.08 * R["nose"] - 0.07 * R["forehead"] \
         - 0.05 * R["lips"] + 0.2 * R["brows"] - 0.03 * R["chin"] - 0.2 * R["eyes"]
@@ -298,4 +312,61 @@ def skin_maps(landmark_uv: np.ndarray, params: SkinParams, size: int = 256, *, f
         spec_alb = w.sum(0)
     return SkinMaps(albedo=alb.astype(np.float32), roughness=rough.astype(np.float32),
                     spec_intensity=rho.astype(np.float32), spec_albedo=spec_alb.astype(np.float32),
-                    weights=w.astype(np.float32), regions=R, params=params, **extra)
+                    weights=w.astype(np.float32), regions=R, params=params, features=features, **extra)
+
+
+#: Painted features (linear albedo; docs/synthetic.md, "Painted features").  Iris colours run from dark brown to
+#: grey-blue; the darkening factors multiply the albedo under each mask.
+SCLERA_ALBEDO = (0.62, 0.58, 0.55)
+IRIS_BROWN = (0.10, 0.06, 0.035)
+IRIS_GREY_BLUE = (0.16, 0.17, 0.19)
+PUPIL_ALBEDO = 0.01
+LASH_LINE_DARKENING = 0.85
+MOUTH_LINE_DARKENING = 0.7
+NOSTRIL_DARKENING = 0.6
+
+
+def paint_features(albedo: np.ndarray, landmark_uv: np.ndarray, seed: int) -> np.ndarray:
+    """The albedo ``(3, S, S)`` with eyes, lash lines, the mouth line and nostrils painted in, from the 68 iBUG
+    landmarks' UV coordinates; deterministic in (albedo, landmarks, seed).
+
+    Per eye (polygon 36–41 / 42–47 of width ``w``, corner to corner): a sclera of albedo :data:`SCLERA_ALBEDO`
+    filling the polygon, an iris disc of radius 0.22 w and a pupil of radius 0.09 w at the polygon's centroid (both
+    clipped to the polygon), and the upper lid's lash line (points 36–39 / 42–45, 0.035 IOD thick) darkened by
+    :data:`LASH_LINE_DARKENING`.  The line between the lips (inner upper lip, points 60–64) is darkened by
+    :data:`MOUTH_LINE_DARKENING`, and two discs of radius 0.05 IOD just above points 32 and 34 (the nostrils) by
+    :data:`NOSTRIL_DARKENING`.  The iris colour is a per-identity mix of brown and grey-blue drawn from its own
+    stream (seeded by ``seed``), so that painting changes none of the skin's draws.
+    """
+    alb = np.asarray(albedo, np.float64)
+    size = alb.shape[-1]
+    if alb.ndim != 3 or alb.shape[0] != 3 or alb.shape[1] != size:
+        raise ReflectmmError(f"paint_features needs a (3, S, S) albedo, got shape {alb.shape}")
+    lm = np.asarray(landmark_uv, np.float64)
+    if lm.shape != (68, 2) or not np.all(np.isfinite(lm)):
+        raise ReflectmmError(f"painted features need 68 finite landmark UVs, got shape {lm.shape}")
+    p = _px(lm, size)
+    iod = float(np.linalg.norm(p[36] - p[45]))
+    rng = np.random.default_rng([int(seed), 0x1215])
+    t, shade = rng.uniform(0.0, 1.0), rng.uniform(0.6, 1.4)
+    iris = shade * ((1 - t ** 3) * np.asarray(IRIS_BROWN) + t ** 3 * np.asarray(IRIS_GREY_BLUE))
+
+    def fill(a: np.ndarray, mask: np.ndarray, value) -> np.ndarray:
+        return a * (1 - mask) + mask * np.asarray(value, np.float64).reshape(-1, 1, 1)
+
+    out = alb.copy()
+    for a in (36, 42):
+        eye = _poly(size, p[a:a + 6])
+        width = float(np.linalg.norm(p[a] - p[a + 3]))
+        centre = p[a:a + 6].mean(0)
+        out = fill(out, eye, SCLERA_ALBEDO)
+        out = fill(out, _disc(size, centre, 0.22 * width) * eye, iris)
+        out = fill(out, _disc(size, centre, 0.09 * width) * eye, PUPIL_ALBEDO)
+        lash = _polyline(size, p[a:a + 4], max(1.0, 0.035 * iod))
+        out = out * (1 - LASH_LINE_DARKENING * lash)
+    mouth = _polyline(size, p[60:65], max(1.0, 0.03 * iod))
+    out = out * (1 - MOUTH_LINE_DARKENING * mouth)
+    for k in (32, 34):
+        nostril = _blur(_disc(size, p[k] + np.array([0.0, -0.03 * iod]), 0.05 * iod), 0.5)
+        out = out * (1 - NOSTRIL_DARKENING * nostril)
+    return out
