@@ -5,8 +5,9 @@ Sections (each only when its outputs exist):
 
 * geometry (``fit-geometry/<id>.npz``): landmark RMSE (px, as stored by the fit), vertex error (mm, raw and
   rigidly aligned) and camera-centre error (mm) against ``truth/<id>.npz``;
-* the detector's chain (``fit-geometry-detected/<id>.npz``, optional): the same identities fitted from a
-  landmark detector's points where it found a face and from the images elsewhere, against the main fits;
+* the detector's chain (optional): fits from a landmark detector's points where it found a face and from the
+  images elsewhere, against reference fits of the same identities with landmarks on every view (the main fits
+  when no reference set is given);
 * reflectance (``fit-reflectance/<id>.npz``): diffuse albedo and specular albedo errors, observable and flagged
   texels, raw and after the global scale (:mod:`.truth`);
 * PCA model (``build-pca/*.npz``): explained variance, reconstruction error of the held-in maps (the training
@@ -214,12 +215,20 @@ def _representation_sections(representation: Iterable[Read], doc: dict[str, Any]
 
 
 def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable,
-                      doc: dict[str, Any]) -> list[str]:
+                      doc: dict[str, Any], reference: Sequence[Read] = ()) -> list[str]:
     """The "Landmarks from a detector" section: fits whose landmarks a detector gave (none where it found no
-    face) against the run's main fits of the same identities (``doc["geometry"]``, landmarks on every view)."""
+    face) against fits of the same identities with landmarks on every view: ``reference`` if given, else the
+    run's main fits (``doc["geometry"]``)."""
     if not detected:
         return []
     main = doc.get("geometry", {})
+    if reference:
+        main = {}
+        for g, art in progress(reference, desc="geometry (reference)"):
+            ident = _ident(art, g)
+            tr = truth_by_id.get(ident)
+            main[ident] = geometry_errors(art.arrays, tr if tr is not None else {})
+        doc["reference_geometry"] = main
     rows, ratios, out = [], [], {}
     for g, art in progress(detected, desc="geometry (detector)"):
         ident = _ident(art, g)
@@ -246,12 +255,13 @@ def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], 
                     f"{_f(out[ident]['camera_max_without_landmarks_mm'], '{:.1f}')} |")
     med = float(np.median(ratios)) if ratios else float("nan")
     doc["detected"] = {"identities": out, "median_ratio": med}
+    what = ("the annotated reference: the same captures with landmarks on every view (in the demo the synthetic "
+            "ones, 1 px noise, in the role of hand-made ones; recipes/synthetic.toml, stages `preprocess-annotated` "
+            "to `fit-geometry-annotated`)" if reference else "the fits above")
     return ["## Landmarks from a detector", "",
-            "The same identities fitted again from a detector's landmarks, which exist only on the views where it "
-            "found a face; the other views are placed by the rig and registered by their images. Set against the "
-            "fits above. How the demo makes them: recipes/synthetic.toml, stages `detect-landmarks` to "
-            "`fit-geometry-detected`.", "",
-            "| identity | views with landmarks | vertex RMS (mm), the fit above | vertex RMS (mm), detector | × | "
+            "Fits from a detector's landmarks, which exist only on the views where it found a face; the other "
+            f"views are placed by the rig and registered by their images. Set against {what}.", "",
+            "| identity | views with landmarks | vertex RMS (mm), all landmarks | vertex RMS (mm), detector | × | "
             "camera centre error, max (mm): views with landmarks | views without |",
             "|---|---:|---:|---:|---:|---:|---:|", *rows, "",
             f"Median ratio {_f(med, '{:.2f}')} (the target is ≤ 1.3; docs/benchmarks.md, \"What limits the "
@@ -263,14 +273,16 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), m
                  representation: Iterable[Read] = (), progress: Callable = lambda it, **k: it,
                  reconstruction: Sequence[Read] = (), albedo: Sequence[Read] = (), relighting: Sequence[Read] = (),
                  finetune: Sequence[Path] = (), expressive: Sequence[Read] = (),
-                 viewer: Sequence[Path] = (), detected: Sequence[Read] = ()) -> tuple[str, dict[str, Any]]:
+                 viewer: Sequence[Path] = (), detected: Sequence[Read] = (),
+                 reference: Sequence[Read] = ()) -> tuple[str, dict[str, Any]]:
     """Markdown text and a document of numbers, from what the stage read (:data:`Read` pairs; nothing is read
     here).  ``geometry`` / ``maps``: geometry and reflectance-maps artifacts; ``truth``: identity → synth-truth
     arrays; ``models``: reflectance models; ``representation`` / ``reconstruction`` / ``albedo`` / ``relighting`` /
     ``expressive``: ``evaluation`` artifacts (each section takes those of its kind; "Paper vs reflectmm" is written
     when ``reconstruction`` or ``albedo`` is non-empty, i.e. when files were given, readable or not);
     ``finetune``: finetuned model paths (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
-    (linked); ``detected``: geometry artifacts fitted from a detector's landmarks, compared with ``geometry``."""
+    (linked); ``detected``: geometry artifacts fitted from a detector's landmarks, compared with ``reference``
+    (fits of the same identities with landmarks on every view) or, without it, with ``geometry``."""
     base = Path(out_md).parent
     truth_by_id = truth if truth is not None else {}
     doc: dict[str, Any] = {}
@@ -278,7 +290,7 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), m
     if not truth_by_id:
         lines += ["No ground truth found: errors against truth are not available.", ""]
     lines += _geometry_section(geometry, truth_by_id, progress, doc)
-    lines += _detected_section(detected, truth_by_id, progress, doc)
+    lines += _detected_section(detected, truth_by_id, progress, doc, reference)
     refl_lines, maps_arrays = _reflectance_section(maps, truth_by_id, progress, doc, base)
     lines += refl_lines
     lines += _pca_sections(models, maps_arrays, doc, base)

@@ -728,14 +728,17 @@ def _reframe(st: _State) -> None:
 
 
 def _residuals(prob: _Problem, st: _State, lm: np.ndarray, cfg: CalibrationConfig) -> _Residuals:
-    """Final landmark distances, per-view RMSE and outliers; refuses landmarks that ended behind a camera."""
+    """Final landmark distances, per-view RMSE and outliers over the landmarks the fit uses (a group of weight 0,
+    e.g. a detector's jaw, is neither a residual nor an outlier, nor a degree of freedom of the noise estimate);
+    refuses landmarks that ended behind a camera."""
     uv, z = prob.project(st)
     d = np.linalg.norm(uv - lm, axis=-1)                                               # (N, C, 68), NaN missing
-    valid = np.isfinite(d)
-    with np.errstate(invalid="ignore"):
-        rmse = np.sqrt(np.nanmean(np.where(valid, d, np.nan) ** 2, axis=-1))
+    valid = np.isfinite(d) & (np.broadcast_to(prob.wl, d.shape) > 0)
+    n = valid.sum(-1)
+    rmse = np.full(d.shape[:-1], np.nan)
+    rmse[n > 0] = np.sqrt((np.where(valid, d, 0.0) ** 2).sum(-1)[n > 0] / n[n > 0])  # NaN for a view without any
     outliers = valid & (np.nan_to_num(d, nan=0.0) > cfg.outlier_px)
-    if np.any(valid & (z <= 0)):
+    if np.any(np.isfinite(d) & (z <= 0)):
         raise ReflectmmError("calibrate-rig: landmarks ended up behind a camera; the nominal rig is too far off "
                              "(check camera names, angles and image size)")
     return _Residuals(d, valid, z, rmse, outliers)

@@ -321,6 +321,7 @@ class _FitProblem:
         wl = landmark_weights(cfg.group_weights)[None, :] * valid
         if cfg.jaw_contour:  # the chin follows the jaw line above the neck: left out (:mod:`.contour`)
             wl[:, list(CHIN)] = 0.0
+        self.used = wl > 0  # (V, 68): the landmarks the fit weighs (a group of weight 0 is not reported either)
         self.wl_t = self.wl_all_t = tt(wl)
         self.wsum = float(wl.sum())
         self.obs_t = tt(np.where(valid[..., None], lm_obs, 0.0))
@@ -710,7 +711,8 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
     if prob.jaw is not None:  # points on the outline: their distance across it, as the fit measured them
         across = (prob.lm_normals ** 2).sum(-1) > 0
         err[across] = np.abs(((uv - views.landmarks) * prob.lm_normals).sum(-1))[across]
-    rmse = np.array([math.sqrt(np.mean(err[v][valid[v]] ** 2)) if valid[v].any() else math.nan for v in range(V)])
+    used = valid & prob.used
+    rmse = np.array([math.sqrt(np.mean(err[v][used[v]] ** 2)) if used[v].any() else math.nan for v in range(V)])
     zs_np = prob.zs.detach().cpu().numpy().astype(np.float64)
     ze_np = prob.ze.detach().cpu().numpy().astype(np.float64)
     shape_coeffs = zs_np * model.shape_sigma

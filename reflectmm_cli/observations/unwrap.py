@@ -204,10 +204,12 @@ def _names(value: str | Sequence[str]) -> list[str]:
     return [str(x).strip() for x in items if str(x).strip()]
 
 
-def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[str] | None = None) -> list[str]:
+def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[str] | None = None,
+                      geometry: Mapping[str, np.ndarray] | None = None, geometry_path=None) -> list[str]:
     """The capture views whose images enter the reflectance fit.
 
-    ``views`` if given (a comma string or a list; ``"all"`` = every view of the capture), else every view of
+    ``views`` if given (a comma string or a list; ``"all"`` = every view of the capture; ``"landmarked"`` = the
+    views that landmarks placed, :func:`landmarked_views` of ``geometry``), else every view of
     ``capture["view_names"]`` but the raised cameras 08_1 / 19_1 (the paper uses them only to place flashes 14 / 18).
     A capture holding only raised cameras keeps them (with a warning)."""
     from reflectmm_cli.rig import RAISED_CAMERAS
@@ -215,6 +217,19 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
     have = [str(v) for v in np.asarray(capture["view_names"]).reshape(-1)]
     if views is not None:
         vs = _names(views)
+        if vs == [LANDMARKED]:
+            if geometry is None:
+                raise ReflectmmError("--views landmarked needs the geometry (which views landmarks placed)",
+                                     geometry_path)
+            placed = set(landmarked_views(geometry, geometry_path))
+            keep = [v for v in have if v in placed and v not in RAISED_CAMERAS]
+            left = [v for v in have if v not in keep]
+            if not keep:
+                raise ReflectmmError("no view left to unwrap: landmarks placed none of the capture's views "
+                                     f"({', '.join(have)}) but raised ones", geometry_path)
+            if left:
+                log.info("unwrap-uv: leaving out view(s) %s (raised, or not placed by landmarks)", ", ".join(left))
+            return keep
         return have if vs == ["all"] else vs
     keep = [v for v in have if v not in RAISED_CAMERAS]
     if not keep:
@@ -224,6 +239,18 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
         log.info("unwrap-uv: leaving out the raised camera(s) %s (geometry / flash placement only; --views all "
                  "keeps them)", ", ".join(v for v in have if v in RAISED_CAMERAS))
     return keep
+
+
+def landmarked_views(geometry: Mapping[str, np.ndarray], geometry_path=None) -> list[str]:
+    """The view names of a ``geometry`` whose ``view_evidence`` starts with ``landmarks``: the views whose camera
+    landmarks placed (a view placed by the rig or registered by its flash images is left out)."""
+    for key in ("view_evidence", "view_names"):
+        if key not in geometry:
+            raise ReflectmmError(f"geometry has no '{key}' (written before fit-geometry recorded each view's "
+                                 "evidence): rerun fit-geometry, or name the views to keep", geometry_path)
+    names = [str(v) for v in np.asarray(geometry["view_names"]).reshape(-1)]
+    evidence = [str(e) for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
+    return [n for n, e in zip(names, evidence) if e.startswith("landmarks")]
 
 
 def _positions(have, select: Sequence[str], what: str, capture_path=None) -> list[int]:

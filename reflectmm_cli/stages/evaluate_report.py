@@ -30,7 +30,9 @@ _FOUND = Default("all", optional=True)
 INPUTS = (
     Input('geometry', 'geometry', upstream='fit-geometry', many=True, default=_FOUND),
     Input('detected', 'geometry', upstream='fit-geometry', many=True,
-          help="fits of the same identities from a detector's landmarks, set against the geometry role's"),
+          help="fits from a detector's landmarks, set against the reference role's (else the geometry role's)"),
+    Input('reference', 'geometry', upstream='fit-geometry', many=True,
+          help="fits of the detected role's identities with landmarks on every view"),
     Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True, default=_FOUND),
     Input('model', 'reflectance-model', upstream='build-pca', many=True, default=_FOUND),
     Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True,
@@ -120,6 +122,7 @@ def run(ctx: StageContext) -> list[Path]:
                              expressive=given("expressive", EVAL_KIND),
                              viewer=ctx.input_list("viewer", required=False),
                              detected=given("detected", "geometry", skip=False),
+                             reference=given("reference", "geometry", skip=False),
                              progress=lambda it, **k: progress(it, **k))
     flat = flatten("", doc, {})
     names = sorted(flat)
@@ -132,6 +135,6 @@ def run(ctx: StageContext) -> list[Path]:
 
 
 # version 4: + the finetuning gains of Table 2 and the expressive-power section; 5: + the viewer's link;
-# 6: + the detector's chain
-STAGE = Stage(VERB, version=6, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
+# 6: + the detector's chain; 7: + its reference fits
+STAGE = Stage(VERB, version=7, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
               help="closing report of a run: errors of every stage against ground truth", inputs=INPUTS)

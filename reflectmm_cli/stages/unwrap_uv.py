@@ -30,8 +30,8 @@ PARAMS = (
                "registration error of that size does not sample the background, hair or another surface."),
     replace(EXPONENTS, help="Lobe exponents used for the conditioning map."),
     Param("views", "strs", None,
-          help="Capture views to unwrap, comma separated, or 'all' (default: every view but the raised 08_1 / "
-               "19_1, which only place flashes 14 / 18)."),
+          help="Capture views to unwrap, comma separated, 'all', or 'landmarked': the views whose camera landmarks "
+               "placed (default: every view but the raised 08_1 / 19_1, which only place flashes 14 / 18)."),
     Param("flashes", "strs", None,
           help="Capture flashes to unwrap, comma separated, 'all' (the default) or 'landmarked': only the flashes "
                "carried by cameras that landmarks placed (a camera placed by the rig or by its flash images puts "
@@ -89,8 +89,9 @@ def run(ctx: StageContext) -> list[Path]:
     geo = check_identity(read_artifact(geo_path, "geometry"), ctx.identity)
     model = load_face_model(fm_path)
     p = ctx.params
+    views = reflectance_views(cap.arrays, p.get("views"), geo.arrays, geo_path)
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
-                                         select_views=reflectance_views(cap.arrays, p.get("views")),
+                                         select_views=views,
                                          select_flashes=reflectance_flashes(cap.arrays, geo.arrays,
                                                                             p.get("flashes"), geo_path),
                                          uv_size=p["uv_size"], grazing_deg=p["grazing_deg"],

@@ -32,3 +32,23 @@ def test_reflectance_views_leave_out_the_raised_cameras():
     assert reflectance_views(cap, "all") == ["09_0", "05_1", "08_1", "19_1"]
     assert reflectance_views(cap, "05_1,08_1") == ["05_1", "08_1"]
     assert reflectance_views({"view_names": ["08_1"]}) == ["08_1"]  # nothing else to use
+
+
+def test_reflectance_views_landmarked_keeps_the_views_landmarks_placed():
+    import numpy as np
+    import pytest
+
+    from reflectmm_cli.errors import ReflectmmError
+
+    cap = {"view_names": ["09_0", "05_1", "04_1", "08_1"]}
+    geo = {"view_names": np.array(["05_1", "09_0", "08_1", "04_1"]),   # the geometry's own order
+           "view_evidence": np.array(["landmarks+flash", "rig+flash", "landmarks", "landmarks"])}
+    # the capture's order; 09_0 was registered by its flash (left out), 08_1 is raised (left out)
+    assert reflectance_views(cap, "landmarked", geo) == ["05_1", "04_1"]
+    with pytest.raises(ReflectmmError, match="needs the geometry"):
+        reflectance_views(cap, "landmarked")
+    none = {"view_names": geo["view_names"], "view_evidence": np.array(["rig", "rig+flash", "landmarks", "rig"])}
+    with pytest.raises(ReflectmmError, match="no view left to unwrap"):
+        reflectance_views(cap, "landmarked", none)
+    with pytest.raises(ReflectmmError, match="view_evidence"):
+        reflectance_views(cap, "landmarked", {"view_names": geo["view_names"]})

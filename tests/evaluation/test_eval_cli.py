@@ -94,3 +94,23 @@ def test_evaluate_report_cli(ggx_ws, cli):
     assert art["values"][k] < 1e-5
     r = cli("evaluate", "report", "--workspace", ggx_ws / "nothing")
     assert r.exit_code == 1 and "nothing to report" in r.stderr
+
+
+def test_representation_skips_identities_without_the_held_out_flashes(monkeypatch, tmp_path):
+    """Observations that kept only the flashes landmarks placed may lack a held-out flash: such an identity is
+    skipped (with a warning), the next one taken up to max_identities, and none left is a one-line error."""
+    from types import SimpleNamespace
+
+    import reflectmm_cli.stages.evaluate_representation as er
+    from reflectmm_cli.errors import ReflectmmError
+
+    flashes = {"001": ["06", "07", "08"], "002": ["05", "06", "09"], "003": ["05", "09"], "004": ["05", "07", "09"]}
+    monkeypatch.setattr(er, "read_artifact", lambda f, kind: SimpleNamespace(
+        meta={"identity": f.stem}, arrays={"flash_ids": np.array(flashes[f.stem])}))
+    files = [tmp_path / f"{i}.npz" for i in flashes]
+    obs, ids, skipped = er._identities_with_holdout(files, ["05", "09"], 1)
+    assert ids == ["002"] and skipped == ["001"]
+    obs, ids, skipped = er._identities_with_holdout(files, ["05", "09"], 0)
+    assert ids == ["002", "004"] and skipped == ["001", "003"]   # 003 has nothing left to fit
+    with pytest.raises(ReflectmmError, match="held-out flashes 05, 09.*skipped: 001, 003"):
+        er._identities_with_holdout([files[0], files[2]], ["05", "09"], 2)

@@ -64,3 +64,32 @@ def test_detected_fit_without_view_evidence_counts_every_view_as_annotated(tmp_p
     got = doc["detected"]["identities"]["001"]
     assert got["views_with_landmarks"] == 4 and got["camera_max_without_landmarks_mm"] is None
     assert np.isclose(got["ratio"], 1.0) and np.isclose(got["camera_max_with_landmarks_mm"], 2 * np.sqrt(3))
+
+
+def test_detected_section_against_a_reference_set(tmp_path):
+    """The demo's shape: the main fits are the detector's, and a reference set (landmarks on every view) of some
+    of the identities gives the ratios; an identity without a reference fit has none."""
+    rng = np.random.default_rng(2)
+    truth, det, ref, expect = {}, [], [], {}
+    for k, ident in enumerate(("001", "002", "003")):
+        vt = rng.normal(0, 50, (30, 3))
+        ct = rng.normal(0, 1000, (4, 3))
+        truth[ident] = {"vertices": vt.astype(np.float32), "camera_names": np.array(NAMES), "cam_centers": ct}
+        vd = vt + rng.normal(0, 2.0, vt.shape)
+        det.append(_geometry(tmp_path / "det" / f"{ident}.npz", ident, vd, ct + 7,
+                             ["rig", "landmarks", "landmarks", "rig+flash"]))
+        if ident != "003":
+            vr = vt + rng.normal(0, 1.0 + k, vt.shape)
+            ref.append(_geometry(tmp_path / "ref" / f"{ident}.npz", ident, vr, ct, ["landmarks"] * 4))
+            rms = lambda v: np.sqrt(((v.astype(np.float32).astype(np.float64) - vt.astype(np.float32)) ** 2)
+                                    .sum(1).mean())
+            expect[ident] = rms(vd) / rms(vr)
+    read = lambda paths: [(p, read_artifact(p, "geometry")) for p in paths]
+    text, doc = build_report(tmp_path, tmp_path / "report.md", geometry=read(det), truth=truth,
+                             detected=read(det), reference=read(ref))
+    got = doc["detected"]["identities"]
+    for ident, ratio in expect.items():
+        assert np.isclose(got[ident]["ratio"], ratio, rtol=1e-6)
+    assert np.isnan(got["003"]["ratio"]) and got["003"]["vertex_rms_all_landmarks_mm"] is None
+    assert np.isclose(doc["detected"]["median_ratio"], np.median(list(expect.values())))
+    assert "annotated reference" in text and set(doc["reference_geometry"]) == {"001", "002"}

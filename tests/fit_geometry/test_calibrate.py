@@ -107,6 +107,27 @@ def test_outliers_flagged(calibrated, world):
     assert calibrated.report["outliers"] == int(out.sum())
 
 
+def test_a_group_of_weight_zero_is_no_residual_and_no_outlier(model, world):
+    """A detector's jaw (weight 0, pushed 30 px off): not an outlier, not in the landmark RMS, and the rig is the
+    one calibrated without those points (views without any landmark get a NaN RMS, not a warning)."""
+    import warnings
+
+    true, sim, nominal = world
+    lm = sim["landmarks"].copy()
+    lm[:, :, :17] += 30.0
+    gone = sim["landmarks"].copy()
+    gone[:, :, :17] = np.nan
+    cfg = CalibrationConfig(focal="fixed", focal_px=true.camera("05_1").focal_px, group_weights={"jaw": 0.0})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        off = calibrate_rig(model, lm, VIEWS, (640, 480), nominal, cfg)
+    ref = calibrate_rig(model, gone, VIEWS, (640, 480), nominal, cfg)
+    assert not off.outliers[:, :, :17].any()
+    np.testing.assert_allclose(off.landmark_rmse_px, ref.landmark_rmse_px, atol=0.05)  # px
+    np.testing.assert_allclose(off.centers, ref.centers, atol=1.0)   # mm; the start poses differ slightly
+    np.testing.assert_allclose(off.center_sigma_mm, ref.center_sigma_mm, rtol=0.05)
+
+
 def test_image_size_mismatch_is_refused(model, world):
     _, sim, nominal = world
     with pytest.raises(ReflectmmError, match="640x480 but its images are 800x600"):

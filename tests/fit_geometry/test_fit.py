@@ -240,6 +240,9 @@ def test_zero_group_weight_equals_leaving_the_group_out():
     np.testing.assert_allclose(off.cam_centers, gone.cam_centers, atol=0.05)
     err = lambda f: np.sqrt(((f.vertices - verts) ** 2).sum(-1).mean())  # noqa: E731
     assert err(kept) > 3 * err(off), (err(kept), err(off))
+    # the reported landmark RMS is over the points the fit weighs: the pushed jaw is not in it
+    np.testing.assert_allclose(off.landmark_rmse_px, gone.landmark_rmse_px, atol=0.05)
+    assert np.all(off.landmark_rmse_px < 5.0) and np.all(kept.landmark_rmse_px > off.landmark_rmse_px)
 
 
 def test_parse_group_weights():

@@ -63,8 +63,8 @@ def test_chain_lengths_of_the_shipped_recipe_equal_the_longest_path():
     got = chain_lengths(rec)
     assert got == _longest_by_paths(rec)
     assert got["evaluate-report"] == 1
-    # the finetuning chain gates more than the detector's fits, which only the report reads
-    assert got["build-pca"] > got["fit-geometry-detected"]
+    # the annotated reference gates the main chain through the landmark embedding
+    assert got["fit-geometry-annotated"] > got["face-model-embed"] > got["fit-geometry"] > got["build-pca"]
 
 
 def test_task_priorities_are_chain_length_then_downstream_stages():
@@ -75,8 +75,8 @@ def test_task_priorities_are_chain_length_then_downstream_stages():
     pr = task_priorities(rec)
     # equal chains: the one more stages wait for goes first
     assert chains["finetune-diffuse"] == chains["finetune-albedomm"] == 3
-    # the demo declares its long finetuning chain, which the stage counts alone put behind the detector's captures
-    assert chains["finetune"] < chains["preprocess-detected"] and pr["finetune"] > pr["preprocess-detected"]
+    # the demo declares its long finetuning chain, which the stage counts alone put behind the held-out captures
+    assert chains["finetune"] < chains["preprocess-heldout"] and pr["finetune"] > pr["preprocess-heldout"]
     assert declared["finetune"] == declared["finetune-control"] == 1
 
 
