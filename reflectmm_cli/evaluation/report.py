@@ -264,8 +264,8 @@ def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], 
             "| identity | views with landmarks | vertex RMS (mm), all landmarks | vertex RMS (mm), detector | × | "
             "camera centre error, max (mm): views with landmarks | views without |",
             "|---|---:|---:|---:|---:|---:|---:|", *rows, "",
-            f"Median ratio {_f(med, '{:.2f}')} (the target is ≤ 1.3; docs/benchmarks.md, \"What limits the "
-            f"detector's set\", explains what is missing).", ""]
+            f"Median ratio {_f(med, '{:.2f}')} (the target is ≤ 1.3; docs/benchmarks.md, \"The demo on dlib's "
+            f"landmarks\" and \"What limits the detector's set\", say where it stands).", ""]
 
 
 def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), maps: Sequence[Read] = (),
