@@ -2,8 +2,8 @@
 
 One rendered world per run: a true rig (``--radius`` mm, ``--focal`` px at ``--size``), a nominal table as a user
 has it (10 % too close — ``--table-distance-scale`` — positions and aims off by 3°, raised cameras another
-300 mm; the focal given), GGX faces rendered by ``synth multipie`` (``--skin``) on the paper's 9 views + the
-raised 08_1 / 19_1 with the 11 default flashes, 1 px landmark noise.  Landmark sets, each through the real
+300 mm; the focal given), GGX faces rendered by ``synth multipie`` (``--skin``, ``--features``) on the paper's 9
+views + the raised 08_1 / 19_1 with the 11 default flashes, 1 px landmark noise.  Landmark sets, each through the real
 chain (``preprocess-multipie --landmarks DIR`` → ``calibrate-rig`` from the nominal table → ``fit-geometry`` on
 the calibrated rig):
 
@@ -17,7 +17,8 @@ landmarks), the wall time of calibrate-rig + fit-geometry, and with ``--reflecta
 ``fit-reflectance`` (unwrap-uv on the paper's 9 views → fit-reflectance → evaluate truth).
 
     python benchmarks/bench_unmarked.py --workspace W [--identities 3] [--size 320x240] [--radius 1300]
-        [--focal 500] [--skin single] [--seed 1] [--sets all,side,detect] [--fit-args "..."] [--reflectance]
+        [--focal 500] [--skin single] [--features plain] [--seed 1] [--sets all,side,detect] [--fit-args "..."]
+        [--reflectance]
         [--unwrap-views landmarks] [--unwrap-flashes landmarked] [--edge-margin M] [--table-distance-scale 0.9]
         [--cal-args "..."] [--reuse] [--detect-face-model FM] [--detect-args "..."] [--tag T]
 
