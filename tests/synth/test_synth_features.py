@@ -73,8 +73,8 @@ def test_pupil_iris_and_sclera_where_they_belong(landmark_uv):
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(seed=st.integers(0, 2**31 - 1), size=st.sampled_from([16, 48, 128]))
 def test_painted_albedo_stays_in_range(landmark_uv, seed, size):
-    """Any identity, any map size (down to 16 texels, where the features are sub-texel): finite, in [0, 1],
-    never brighter than the sclera or the plain albedo outside the sclera, deterministic."""
+    """Any identity, any map size (down to 16 texels, where the features are sub-texel): finite, in [0, 1] and
+    deterministic."""
     a = _maps(landmark_uv, "painted", seed=seed, size=size).albedo
     b = _maps(landmark_uv, "painted", seed=seed, size=size).albedo
     np.testing.assert_array_equal(a, b)
