@@ -244,13 +244,21 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
 def landmarked_views(geometry: Mapping[str, np.ndarray], geometry_path=None) -> list[str]:
     """The view names of a ``geometry`` whose ``view_evidence`` starts with ``landmarks``: the views whose camera
     landmarks placed (a view placed by the rig or registered by its flash images is left out)."""
-    for key in ("view_evidence", "view_names"):
+    placed = _placed_by_landmarks(geometry, ("view_names",), "views", geometry_path)
+    names = [str(v) for v in np.asarray(geometry["view_names"]).reshape(-1)]
+    return [n for n, m in zip(names, placed) if m]
+
+
+def _placed_by_landmarks(geometry: Mapping[str, np.ndarray], keys: Sequence[str], what: str,
+                         geometry_path=None) -> list[bool]:
+    """(V,) whether each view of ``geometry`` was placed by landmarks (``view_evidence`` starts with
+    ``landmarks``). A geometry without ``view_evidence`` or one of ``keys`` (written before fit-geometry recorded
+    each view's evidence) is a one-line error that says to rerun fit-geometry or name the ``what`` to keep."""
+    for key in ("view_evidence", *keys):
         if key not in geometry:
             raise ReflectmmError(f"geometry has no '{key}' (written before fit-geometry recorded each view's "
-                                 "evidence): rerun fit-geometry, or name the views to keep", geometry_path)
-    names = [str(v) for v in np.asarray(geometry["view_names"]).reshape(-1)]
-    evidence = [str(e) for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
-    return [n for n, e in zip(names, evidence) if e.startswith("landmarks")]
+                                 f"evidence): rerun fit-geometry, or name the {what} to keep", geometry_path)
+    return [str(e).startswith("landmarks") for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
 
 
 def _positions(have, select: Sequence[str], what: str, capture_path=None) -> list[int]:
@@ -287,12 +295,9 @@ def landmarked_flashes(geometry: Mapping[str, np.ndarray], geometry_path=None) -
     by its flash images (evidence ``rig``, ``rig+flash``) sits where that camera was guessed, and a free-standing
     flash where the rig's alignment to all fitted views puts it: both are left out.
     """
-    for key in ("view_evidence", "flash_from_view", "flash_ids", "flash_pos", "cam_centers"):
-        if key not in geometry:
-            raise ReflectmmError(f"geometry has no '{key}' (written before fit-geometry recorded each view's "
-                                 "evidence): rerun fit-geometry, or name the flashes to keep", geometry_path)
+    placed = _placed_by_landmarks(geometry, ("flash_from_view", "flash_ids", "flash_pos", "cam_centers"), "flashes",
+                                  geometry_path)
     ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
-    evidence = [str(e) for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
     carried = np.asarray(geometry["flash_from_view"], bool).reshape(-1)
     pos = np.asarray(geometry["flash_pos"], np.float64).reshape(-1, 3)
     centers = np.asarray(geometry["cam_centers"], np.float64).reshape(-1, 3)
@@ -300,7 +305,7 @@ def landmarked_flashes(geometry: Mapping[str, np.ndarray], geometry_path=None) -
     for i, fid in enumerate(ids):
         d = np.linalg.norm(centers - pos[i], axis=1)
         v = int(np.argmin(d))
-        if carried[i] and d[v] <= 1e-9 * max(1.0, float(np.linalg.norm(pos[i]))) and evidence[v].startswith("landmarks"):
+        if carried[i] and d[v] <= 1e-9 * max(1.0, float(np.linalg.norm(pos[i]))) and placed[v]:
             keep.append(fid)
     return keep
 
