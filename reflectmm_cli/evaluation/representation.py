@@ -32,8 +32,8 @@ from reflectmm_cli.errors import ReflectmmError
 
 from .metrics import LPIPS, encode_for_metrics, psnr, ssim
 
-__all__ = ["Representation", "parse_exponent_sets", "default_representations", "holdout_pairs",
-           "render_pairs_uv", "fit_diffuse_only", "compare_representations", "RepresentationResult",
+__all__ = ["Representation", "parse_exponent_sets", "default_representations", "holdout_problem",
+           "holdout_pairs", "render_pairs_uv", "fit_diffuse_only", "compare_representations", "RepresentationResult",
            "comparison_table", "comparison_figure", "DEFAULT_HOLDOUT"]
 
 DEFAULT_HOLDOUT = ("05", "09")
@@ -85,15 +85,25 @@ def default_representations(sets: str = "8;16;32;64;1,8,64", baselines: bool = T
     return reps
 
 
-def holdout_pairs(obs: Mapping[str, np.ndarray], holdout: Sequence[str] = DEFAULT_HOLDOUT) -> np.ndarray:
-    """(P,) bool: pairs whose flash id is in ``holdout``. Refuses ids the observations do not have."""
-    fids = [str(f) for f in np.asarray(obs["flash_ids"]).reshape(-1)]
+def holdout_problem(flash_ids, holdout: Sequence[str]) -> str | None:
+    """Why the flashes ``holdout`` cannot be held out of observations with the flashes ``flash_ids`` (one of them
+    is missing, or nothing would be left to fit); None when they can."""
+    fids = [str(f) for f in np.asarray(flash_ids).reshape(-1)]
     missing = [h for h in holdout if h not in fids]
     if missing:
-        raise ReflectmmError(f"--holdout: flash id(s) {', '.join(missing)} not in the observations "
-                             f"(flashes: {', '.join(fids)})")
+        return f"flash id(s) {', '.join(missing)} not in the observations (flashes: {', '.join(fids)})"
     if len(set(holdout)) >= len(fids):
-        raise ReflectmmError("--holdout: holding out every flash leaves nothing to fit")
+        return "holding out every flash leaves nothing to fit"
+    return None
+
+
+def holdout_pairs(obs: Mapping[str, np.ndarray], holdout: Sequence[str] = DEFAULT_HOLDOUT) -> np.ndarray:
+    """(P,) bool: pairs whose flash id is in ``holdout``. Refuses ids the observations do not have
+    (:func:`holdout_problem`)."""
+    why = holdout_problem(obs["flash_ids"], holdout)
+    if why is not None:
+        raise ReflectmmError(f"--holdout: {why}")
+    fids = [str(f) for f in np.asarray(obs["flash_ids"]).reshape(-1)]
     hold_f = np.array([f in set(holdout) for f in fids])
     return hold_f[np.asarray(obs["pair_flash"], np.int64)]
 

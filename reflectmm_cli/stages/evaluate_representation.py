@@ -124,17 +124,18 @@ def _identities_with_holdout(files: list[Path], holdout: list[str], max_identiti
     """The observations (in input order) whose flashes include every held-out one and at least one more, up to
     ``max_identities`` (0 = all).  An identity without them (its observations kept only the flashes that landmarks
     placed, say) is skipped with a warning; none left is a one-line error naming the held-out flashes."""
+    from reflectmm_cli.evaluation.representation import holdout_problem
+
     obs, ids, skipped = [], [], []
     for f in files:
         if max_identities > 0 and len(obs) >= max_identities:
             break
         art = read_artifact(f, "uv-observations")
         ident = str(art.meta.get("identity") or Path(f).stem)
-        fids = {str(x) for x in np.asarray(art.arrays["flash_ids"]).reshape(-1)}
-        if not set(holdout) <= fids or not fids - set(holdout):
+        why = holdout_problem(art.arrays["flash_ids"], holdout)
+        if why is not None:
             skipped.append(ident)
-            log.warning(f"evaluate representation: identity {ident} skipped: its observations have flashes "
-                        f"{', '.join(sorted(fids))}, not the held-out {', '.join(holdout)} and another to fit")
+            log.warning(f"evaluate representation: identity {ident} skipped: {why}")
             continue
         obs.append(art.arrays)
         ids.append(ident)
