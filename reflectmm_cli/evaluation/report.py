@@ -71,6 +71,15 @@ def _ident(art, path: Path) -> str:
     return str(art.meta.get("identity") or Path(path).stem)
 
 
+def _fit_errors(fits: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable, desc: str):
+    """(identity, artifact, its truth or None, :func:`.truth.geometry_errors`) for each geometry artifact of
+    ``fits``, in order."""
+    for g, art in progress(fits, desc=desc):
+        ident = _ident(art, g)
+        tr = truth_by_id.get(ident)
+        yield ident, art, tr, geometry_errors(art.arrays, tr if tr is not None else {})
+
+
 def _geometry_section(geometry: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable,
                       doc: dict[str, Any]) -> list[str]:
     """The "Geometry" section: each fit's landmark, vertex and camera errors and their mean."""
@@ -78,10 +87,7 @@ def _geometry_section(geometry: Sequence[Read], truth_by_id: Mapping[str, Any], 
     if not geometry:
         return lines
     rows, vals = [], []
-    for g, art in progress(geometry, desc="geometry"):
-        ident = _ident(art, g)
-        tr = truth_by_id.get(ident)
-        e = geometry_errors(art.arrays, tr if tr is not None else {})
+    for ident, _, _, e in _fit_errors(geometry, truth_by_id, progress, "geometry"):
         vals.append(e)
         doc.setdefault("geometry", {})[ident] = e
         rows.append(f"| {ident} | {_f(e.get('landmark_rmse_px'), '{:.2f}')} | "
@@ -223,17 +229,10 @@ def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], 
         return []
     main = doc.get("geometry", {})
     if reference:
-        main = {}
-        for g, art in progress(reference, desc="geometry (reference)"):
-            ident = _ident(art, g)
-            tr = truth_by_id.get(ident)
-            main[ident] = geometry_errors(art.arrays, tr if tr is not None else {})
+        main = {ident: e for ident, _, _, e in _fit_errors(reference, truth_by_id, progress, "geometry (reference)")}
         doc["reference_geometry"] = main
     rows, ratios, out = [], [], {}
-    for g, art in progress(detected, desc="geometry (detector)"):
-        ident = _ident(art, g)
-        tr = truth_by_id.get(ident)
-        e = geometry_errors(art.arrays, tr if tr is not None else {})
+    for ident, art, tr, e in _fit_errors(detected, truth_by_id, progress, "geometry (detector)"):
         cams = camera_errors_by_view(art.arrays, tr) if tr is not None else {}
         names = [str(x) for x in np.asarray(art["view_names"])]
         evidence = art.get("view_evidence")  # (fits before views without landmarks: every view had them)
