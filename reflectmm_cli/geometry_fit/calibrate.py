@@ -103,10 +103,13 @@ class CalibrationConfig:
     n_exp: int | None = None
     group_weights: dict[str, float] | None = None
     carry: str = "centres"
+    carry_scale: str = "fit"
 
     def __post_init__(self) -> None:
         if self.carry not in ("centres", "poses"):
             raise ReflectmmError(f"carry must be 'centres' or 'poses', got {self.carry!r}")
+        if self.carry_scale not in ("fit", "distances"):
+            raise ReflectmmError(f"carry_scale must be 'fit' or 'distances', got {self.carry_scale!r}")
         if self.focal not in FOCAL_MODES:
             raise ReflectmmError(f"focal must be one of {', '.join(FOCAL_MODES)}, got {self.focal!r}")
         if self.loss not in LOSSES:
@@ -857,17 +860,23 @@ def _subset(setup: _RigSetup, keep: np.ndarray) -> _RigSetup:
                      setup.c0[k], setup.f0[k], setup.pp[k], setup.Ks, setup.Ke, setup.assumptions)
 
 
-def carry_similarity(c0: np.ndarray, c: np.ndarray, R0: np.ndarray, R: np.ndarray, iters: int = 10):
+def carry_similarity(c0: np.ndarray, c: np.ndarray, R0: np.ndarray, R: np.ndarray, iters: int = 10,
+                     scale: float | None = None):
     """The similarity (Ra, ta, sa) with ``c ≈ sa · c0 @ Raᵀ + ta`` and ``R ≈ R0 @ Raᵀ`` that best maps a nominal
     table's cameras onto their calibrated poses, from their centres and their orientations together.
 
     Cameras on one horizontal arc fix the similarity's tilt about the arc poorly by their centres alone; their
     orientations fix every axis. Each term is weighted by its own residual variance (re-estimated per iteration):
     the rotation maximises tr(Raᵀ (sa Σ y xᵀ / σ_c² + Σ Rₖᵀ R0ₖ / (2 σ_r²))) (x, y the centred centres; σ_c mm and
-    σ_r rad per axis).  ``iters = 0``: the centres' similarity alone (Umeyama).  Returns (Ra, ta, sa, centre
+    σ_r rad per axis).  ``iters = 0``: the centres' similarity alone (Umeyama).  ``scale``: hold sa at this value
+    (the rotation and shift are then fitted to the scaled table) instead of fitting it.  Returns (Ra, ta, sa, centre
     residuals (n,) mm, angle residuals (n,) rad)."""
     c0, c = np.asarray(c0, np.float64), np.asarray(c, np.float64)
-    Ra, ta, sa = align.rigid_align(c0, c, scale=True)
+    if scale is None:
+        Ra, ta, sa = align.rigid_align(c0, c, scale=True)
+    else:
+        sa = float(scale)
+        Ra, ta, _ = align.rigid_align(sa * c0, c)
     M = np.transpose(R, (0, 2, 1)) @ R0                                  # each camera's own estimate of Ra
     x, y = c0 - c0.mean(0), c - c.mean(0)
     for _ in range(iters):
@@ -877,7 +886,8 @@ def carry_similarity(c0: np.ndarray, c: np.ndarray, R0: np.ndarray, R: np.ndarra
         var_r = max(float(np.mean(rr ** 2)) / 3.0, math.radians(0.1) ** 2)
         A = sa * (y.T @ x) / var_c + M.sum(0) / (2.0 * var_r)
         Ra = nearest_rotation(A)
-        sa = float(np.sum(y * (x @ Ra.T)) / np.sum(x * x))
+        if scale is None:
+            sa = float(np.sum(y * (x @ Ra.T)) / np.sum(x * x))
         ta = c.mean(0) - sa * c0.mean(0) @ Ra.T
     return Ra, ta, sa, np.linalg.norm(sa * c0 @ Ra.T + ta - c, axis=-1), rotation_angle(M, Ra[None])
 
@@ -890,9 +900,15 @@ def _add_unseen(cal: RigCalibration, setup: _RigSetup, seen: np.ndarray, cfg: Ca
     common factor with a shared focal)."""
     k_seen, k_un = np.nonzero(seen)[0], np.nonzero(~seen)[0]
     poses = cfg.carry == "poses"  # no iteration: the centres' Umeyama similarity, both residuals reported
+    scale = None
+    if cfg.carry_scale == "distances":
+        ratio, _ = table_distance_ratio(setup.c0[k_seen], cal.centers, np.zeros(3), np.ones(len(k_seen), bool))
+        scale = 1.0 / ratio
     Ra, ta, sa, res, res_rot = carry_similarity(setup.c0[k_seen], cal.centers, setup.R0[k_seen], cal.R,
-                                                iters=10 if poses else 0)
+                                                iters=10 if poses else 0, scale=scale)
     how = "centres and orientations" if poses else "centres"
+    if scale is not None:
+        how += ", the scale from their distances to the head against the table's"
     C, N = setup.C, setup.N
     R = np.zeros((C, 3, 3))
     centers = np.zeros((C, 3))

@@ -73,6 +73,9 @@ PARAMS = (
           help="a camera no identity annotates keeps the nominal table's pose, moved by the similarity of the "
                "annotated cameras' centres or of their poses (centres and orientations: better with a guessed table, "
                "worse with an exact one; docs/capture.md) [default: centres]."),
+    Param("carry_scale", "str", None, choices=("fit", "distances"),
+          help="the carrying similarity's scale: fitted to the annotated cameras (fit) or the ratio of their "
+               "distances from the head to the table's (distances) [default: fit]."),
     # the joint registration's options: not recorded unless given (rigs calibrated before them keep their bytes)
     Param("joint_sigma", "float", None, range=(0.0, None), low_open=True, unit="mm",
           help="with --geometry: prior σ of an unannotated camera's centre around its nominal place "
@@ -99,7 +102,8 @@ def config_from_params(p: dict) -> CalibrationConfig:
     return CalibrationConfig(focal=mode, focal_px=p.get("focal"), loss=p["loss"], loss_scale_px=p["loss_scale_px"],
                              landmark_sigma_px=p["landmark_sigma_px"], outlier_px=p["outlier_px"],
                              max_iters=p["max_iters"], distance_sigma_rel=p["distance_sigma_rel"],
-                             group_weights=dict(p["landmark_weights"]) or None, carry=p.get("carry") or "centres")
+                             group_weights=dict(p["landmark_weights"]) or None, carry=p.get("carry") or "centres",
+                             carry_scale=p.get("carry_scale") or "fit")
 
 
 def run(ctx: StageContext) -> list[Path]:
