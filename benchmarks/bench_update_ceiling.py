@@ -227,6 +227,12 @@ def form_ceiling(mean, basis, sigma, train_albedo, train_skin, held_albedo, held
     return out
 
 
+def _default_w_light() -> float:
+    from reflectmm_cli.finetune.refine import RefineConfig
+
+    return RefineConfig().w_light
+
+
 def _default_w_coef() -> float:
     from reflectmm_cli.finetune.refine import RefineConfig
 
@@ -272,6 +278,9 @@ def main() -> int:
     ap.add_argument("--matched-weights", choices=("truth", "model"), default="truth",
                     help="lobe weights of the matched images: the identities' true ones, or the model's at the true "
                          "coefficients (times the albedo scale): no specular residual, the albedo's alone")
+    ap.add_argument("--w-light", type=float, default=_default_w_light(),
+                    help="the monochrome-light weight of the update's refinements (reconstruct --refine's "
+                         "default); the test images are refined with the default")
     ap.add_argument("--w-coef", type=float, default=_default_w_coef(),
                     help="the refinement's coefficient prior on β and γ (reconstruct --refine's default)")
     ap.add_argument("--light-components", type=int, default=0,
@@ -332,7 +341,7 @@ def main() -> int:
         emit(row | {"kind": "form", "albedo_residual": float(r.mean()), "gap_closed": gap(r)})
 
     # 1. the coefficients the images give
-    refine = RefineConfig(w_coef=a.w_coef)
+    refine = RefineConfig(w_coef=a.w_coef, w_light=a.w_light)
     train = ss.indices("train")
     ident = np.array([ident_of[str(n)] for n in ss.names[train]])
     groups_ids = sorted(set(ident.tolist()))
@@ -418,7 +427,7 @@ def main() -> int:
                 f"residual {r_round:.4f} (gap closed {100 * gap([r_round]):+.0f} %)")
         cpu = time.process_time() - t1 + t_refine
         row = {"kind": "update", "variant": name, "initial_albedo_residual": float(r_init.mean()), "pull": a.pull,
-               "w_coef": a.w_coef, "matched_weights": a.matched_weights, "light_components": light.n_components,
+               "w_coef": a.w_coef, "w_light": a.w_light, "matched_weights": a.matched_weights, "light_components": light.n_components,
                "harmonics": a.harmonics, "rounds": a.rounds, "cpu_s": cpu, "solves": infos}
         row.update(_measure(with_solved(model, vertex_arrays(theta)), light_full, ss, truth, oracle, RefineConfig()))
         row["gap_closed"] = gap(np.asarray(row["albedo_residuals"]))
