@@ -1210,10 +1210,18 @@ def calibrate_from_captures(capture_paths: Sequence[str | Path], face_model_path
     from reflectmm_cli.geometry import load_face_model
     from reflectmm_cli.rig import load_rig
 
+    from reflectmm_cli.geometry_fit.embedding import correct_by_face_model
+
     lm, ids, names, size = landmarks_from_captures(capture_paths, views)
-    model = ShapeModel.from_face_model(load_face_model(face_model_path))
+    fm = load_face_model(face_model_path)
+    lm, note = correct_by_face_model(lm, names, fm.info)
+    if note:
+        log.info("calibrate-rig: %s", note)
+    model = ShapeModel.from_face_model(fm)
     nominal = nominal_rig if isinstance(nominal_rig, Rig) else load_rig(nominal_rig)
     cal = calibrate_rig(model, lm, names, size, nominal, config, identities=ids, progress_fn=progress_fn)
+    if note:
+        cal.assumptions.append(note)
     if nominal_rig is None:
         cal.assumptions.insert(0, "nominal rig: the packaged Multi-PIE table (no rig table given)")
     return cal

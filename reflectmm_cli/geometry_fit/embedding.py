@@ -13,6 +13,12 @@ component-wise median of those places, snapped to the nearest mean-shape vertex,
 
 The jaw points (0–16) of a detector follow the face's silhouette, not a surface point; a static embedding cannot
 hold them, so by default they keep their vertices (fit them with ``--landmark-weights jaw=0``).
+
+A static embedding is one place per point for every view, but a detector's idea of a point also turns with the
+view: at 30° of yaw its eye corners and nose points sit a pixel or two from where they sit frontally, the same way
+on every face. :func:`view_bias` measures that per camera — the mean over identities of each point's offset from
+the projected landmark vertex, in units of the view's inter-ocular distance (so that it carries over between faces
+of other sizes and rigs at other distances) — and :func:`apply_view_bias` takes it off a capture's points.
 """
 
 from __future__ import annotations
@@ -25,7 +31,8 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.landmarks import GROUPS, N_LANDMARKS, SURFACE_GROUPS, group_mask
 
-__all__ = ["LandmarkEmbedding", "landmark_hits", "embed_landmarks", "DEFAULT_EMBED_GROUPS"]
+__all__ = ["LandmarkEmbedding", "landmark_hits", "embed_landmarks", "DEFAULT_EMBED_GROUPS", "view_bias",
+           "apply_view_bias", "inter_ocular_px", "correct_by_face_model"]
 
 #: The groups that a static embedding can hold (every group but the jaw's silhouette points).
 DEFAULT_EMBED_GROUPS: tuple[str, ...] = SURFACE_GROUPS
@@ -137,3 +144,106 @@ def embed_landmarks(mean_shape: np.ndarray, triangles: np.ndarray, landmarks: np
             moved[j] = float(np.linalg.norm(mean[new[j]] - mean[old[j]]))
     return LandmarkEmbedding(indices=new.astype(np.int32), embedded=embedded, moved_mm=moved, spread_mm=spread,
                              views=n.astype(np.int64))
+
+
+def inter_ocular_px(points: np.ndarray) -> np.ndarray:
+    """Distance between the two eye centres (the means of iBUG points 36–41 and 42–47) of each point set.
+
+    Args:
+        points: (..., 68, 2) image points.
+    Returns:
+        (...) float64 distances (NaN where an eye point is missing).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    return np.linalg.norm(p[..., 36:42, :].mean(-2) - p[..., 42:48, :].mean(-2), axis=-1)
+
+
+def view_bias(indices: np.ndarray, views: Iterable[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                          np.ndarray]], *,
+              groups: Sequence[str] = DEFAULT_EMBED_GROUPS) -> dict[str, dict]:
+    """Per camera, the detector's mean offset from the projected landmark vertices (module docstring).
+
+    Args:
+        indices: (68,) the landmark vertices (the embedding's).
+        views: ``(camera name, vertices (N, 3), K, R, t, points (68, 2))`` per view of known geometry, as
+            :func:`embed_landmarks` takes them, with the camera's name.
+        groups: the landmark groups that get an offset (others 0: the jaw's silhouette points have no fixed one).
+    Returns:
+        ``{camera: {"offset_iod": (68, 2) float64, "identities": n}}``: the mean over the n views of that camera of
+        ``(points − π(vertices[indices])) / inter-ocular distance of the points``; a point that no view of the
+        camera has, or outside ``groups``, gets 0. Views without both eyes are left out.
+    """
+    chosen = group_mask(groups)
+    idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+    if idx.shape != (N_LANDMARKS,):
+        raise ReflectmmError(f"view bias: {idx.size} landmark vertices, expected {N_LANDMARKS}")
+    per: dict[str, list[np.ndarray]] = {}
+    for name, verts, K, R, t, pts in views:
+        pts = np.asarray(pts, dtype=np.float64)
+        iod = float(inter_ocular_px(pts))
+        if not np.isfinite(iod) or iod <= 0:
+            continue
+        X = np.asarray(verts, dtype=np.float64)[idx] @ np.asarray(R, np.float64).T + np.asarray(t, np.float64)
+        x = X @ np.asarray(K, np.float64).T
+        proj = x[:, :2] / x[:, 2:]
+        per.setdefault(str(name), []).append((pts - proj) / iod)
+    out = {}
+    for name, offs in per.items():
+        o = np.stack(offs)                                     # (n, 68, 2)
+        seen = np.isfinite(o).all(-1)
+        mean = np.where(seen.any(0)[:, None], np.nansum(np.where(seen[..., None], o, 0.0), 0)
+                        / np.maximum(seen.sum(0), 1)[:, None], 0.0)
+        mean[~chosen] = 0.0
+        out[name] = {"offset_iod": mean, "identities": len(offs)}
+    return out
+
+
+def apply_view_bias(landmarks: np.ndarray, camera_names: Sequence[str], bias: dict) -> tuple[np.ndarray, list[str]]:
+    """A capture's detector points with each camera's :func:`view_bias` taken off.
+
+    Args:
+        landmarks: (..., C, 68, 2) points (NaN: missing), C the cameras ``camera_names``.
+        bias: ``{camera: {"offset_iod": (68, 2) array-like, ...}}`` (a face model's ``info["landmark_view_bias"]
+            ["cameras"]``).
+    Returns:
+        (corrected copy, names of the cameras corrected in at least one point set). A camera without an entry, and a
+        point set without both eyes, are left as they are.
+    """
+    lm = np.array(landmarks, dtype=np.float64, copy=True)
+    names = [str(n) for n in camera_names]
+    if lm.ndim < 3 or lm.shape[-3:] != (len(names), N_LANDMARKS, 2):
+        raise ReflectmmError(f"view bias: landmarks of shape {lm.shape} for {len(names)} cameras")
+    done = []
+    for k, name in enumerate(names):
+        entry = bias.get(name)
+        if entry is None:
+            continue
+        off = np.asarray(entry["offset_iod"], dtype=np.float64)
+        if off.shape != (N_LANDMARKS, 2) or not np.isfinite(off).all():
+            raise ReflectmmError(f"view bias of camera {name}: expected (68, 2) finite offsets, got {off.shape}")
+        pts = lm[..., k, :, :]
+        iod = inter_ocular_px(pts)
+        ok = np.isfinite(iod) & (iod > 0)
+        if ok.any():
+            pts[ok] = pts[ok] - iod[ok][..., None, None] * off
+            done.append(name)
+    return lm, done
+
+
+def correct_by_face_model(landmarks: np.ndarray, camera_names: Sequence[str], info: dict) -> tuple[np.ndarray, str | None]:
+    """:func:`apply_view_bias` with a face model's own offsets (``info["landmark_view_bias"]``, written by
+    ``face-model embed-landmarks``); the points unchanged and None when the model has none. Else the corrected points
+    and one line saying which cameras were corrected and which had no offsets (left as they are)."""
+    entry = (info or {}).get("landmark_view_bias")
+    if not entry:
+        return np.asarray(landmarks, dtype=np.float64), None
+    cams = entry.get("cameras", {})
+    lm, done = apply_view_bias(landmarks, camera_names, cams)
+    has = np.isfinite(np.asarray(landmarks, dtype=np.float64)).all(-1).any(-1)       # (..., C)
+    has = has.reshape(-1, len(camera_names)).any(0)
+    missing = [str(n) for n, h in zip(camera_names, has) if h and str(n) not in cams]
+    note = ("detector points corrected by the face model's per-camera offsets (face-model embed-landmarks) in "
+            f"camera(s) {', '.join(done) or 'none'}")
+    if missing:
+        note += f"; no offsets for camera(s) {', '.join(missing)}: their points as detected"
+    return lm, note

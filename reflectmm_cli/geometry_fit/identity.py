@@ -188,6 +188,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     from reflectmm_cli.geometry_fit.init import place_by_rig
     from reflectmm_cli.geometry_fit.report import truth_errors
     from reflectmm_cli.geometry import load_face_model
+    from reflectmm_cli.geometry_fit.embedding import correct_by_face_model
     from reflectmm_cli.rig import load_rig
 
     cfg = config or FitConfig()
@@ -204,6 +205,9 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
                              capture_path)
     origin = np.asarray(capture.arrays.get("crop_origin", np.zeros((len(view_names), 2))), dtype=np.float64)
     lm, lm_src = gather_landmarks(capture, identity, view_names, landmarks_dir)
+    lm, bias_note = correct_by_face_model(lm, view_names, fm.info)
+    if bias_note:
+        log.info("fit-geometry %s: %s", identity, bias_note)
     K, R_rig, t_rig, rig_pos = view_cameras(rig, view_names, (W, H), focal, rig_path)
     R0, t0, init_rms = initial_poses(model.mean[model.landmarks], lm, K, R_rig, t_rig)
     marked = np.array([bool(s) for s in lm_src])
@@ -246,7 +250,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
         "identity": identity, "views": len(view_names),
         "landmark_rmse_px": [round(float(x), 4) for x in fit.landmark_rmse_px],
         "photo_residual": [None if not np.isfinite(x) else round(float(x), 6) for x in fit.photo_residual],
-        "landmark_sources": lm_src, "history": fit.history, "config": cfg.as_dict(),
+        "landmark_sources": lm_src, "landmark_view_bias": bias_note, "history": fit.history, "config": cfg.as_dict(),
         "placement": placement_report(view_names, fit),
         "rig_residual_mm": [round(float(x), 3) for x in rig_res],
         "flash_intensity_note": ("radiant intensity " + ("set by --flash-intensity" if flash_intensity is not None

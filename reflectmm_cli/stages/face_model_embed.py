@@ -27,6 +27,9 @@ PARAMS = (
           help="Landmark groups to move (default every group but the jaw, whose detected points follow the "
                "silhouette)."),
     Param("min_views", "int", 3, range=(1, None), help="A landmark seen by fewer views keeps its vertex."),
+    Param("view_bias", "bool", True, option="--no-view-bias",
+          help="Do not measure the detector's per-camera offsets from the embedded points (calibrate-rig and "
+               "fit-geometry take them off the captures' points of those cameras)."),
 )
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
@@ -45,8 +48,8 @@ def outputs(ctx: StageContext) -> list[Path]:
 
 
 def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
-    """(vertices, K, R, t, points) of every view that a capture gives landmarks for and its identity's geometry
-    has, captures and geometries matched by identity."""
+    """(camera name, vertices, K, R, t, points) of every view that a capture gives landmarks for and its
+    identity's geometry has, captures and geometries matched by identity."""
     from reflectmm_cli.geometry_fit.calibrate import landmarks_from_captures
 
     geos = {}
@@ -73,7 +76,7 @@ def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
             if v not in names or not np.isfinite(lm_i[k]).all(-1).any():
                 continue
             j = names.index(v)
-            views.append((np.asarray(geo["vertices"]), geo["K"][j], geo["R"][j], geo["t"][j], lm_i[k]))
+            views.append((v, np.asarray(geo["vertices"]), geo["K"][j], geo["R"][j], geo["t"][j], lm_i[k]))
     if not views:
         raise ReflectmmError("no view has both detector landmarks (capture) and a geometry: nothing to embed from",
                              captures[0] if captures else None)
@@ -83,7 +86,7 @@ def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.artifacts import write_png
     from reflectmm_cli.geometry.face_model import load_face_model, save_face_model
-    from reflectmm_cli.geometry_fit.embedding import embed_landmarks
+    from reflectmm_cli.geometry_fit.embedding import embed_landmarks, view_bias
     from reflectmm_cli.geometry.face_model_tools import preview_image
 
     fm_path = ctx.input("face_model")
@@ -97,14 +100,25 @@ def run(ctx: StageContext) -> list[Path]:
         raise ReflectmmError("the face model has no 68 landmark vertices to move", fm_path)
     views = _views(caps, geos, int(np.asarray(model.mean_shape).shape[0]))
     p = ctx.params
-    emb = embed_landmarks(model.mean_shape, model.triangles, model.landmarks, views, groups=tuple(p["groups"]),
-                          min_views=p["min_views"])
+    emb = embed_landmarks(model.mean_shape, model.triangles, model.landmarks, [v[1:] for v in views],
+                          groups=tuple(p["groups"]), min_views=p["min_views"])
     out = ctx.output_path()
     info = dict(model.info)
     info["landmark_embedding"] = {"views": len(views), "groups": list(p["groups"]), "min_views": p["min_views"],
                                   "per_group": emb.summary(), "moved_mm": [round(float(x), 3) for x in emb.moved_mm],
                                   "spread_mm": [None if not np.isfinite(x) else round(float(x), 3)
                                                 for x in emb.spread_mm]}
+    if p["view_bias"]:
+        bias = view_bias(emb.indices, views, groups=tuple(p["groups"]))
+        info["landmark_view_bias"] = {"groups": list(p["groups"]), "cameras": {
+            name: {"offset_iod": np.round(b["offset_iod"], 6).tolist(), "identities": b["identities"]}
+            for name, b in bias.items()}}
+        for name, b in bias.items():
+            rms = float(np.sqrt(np.mean(b["offset_iod"][group_mask(p["groups"])] ** 2)))
+            log.info("face-model embed-landmarks: camera %s: the detector's points sit %.4f inter-ocular distances "
+                     "(RMS) from the embedded ones over %d identities", name, rms, b["identities"])
+    else:
+        info.pop("landmark_view_bias", None)
     new = dataclasses.replace(model, landmarks=emb.indices, info=info)
     save_face_model(new, out, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                     producer=ctx.producer(), cache_key=ctx.cache_key)
@@ -121,5 +135,5 @@ def run(ctx: StageContext) -> list[Path]:
     return [out, png]
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=outputs, params=PARAMS,
+STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=outputs, params=PARAMS,
               help="move a face model's landmark vertices to where a detector puts the points", inputs=INPUTS)

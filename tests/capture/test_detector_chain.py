@@ -79,12 +79,16 @@ def test_the_capture_chain_runs_on_dlib_landmarks(tmp_path, cli):
         evidence = dict(zip([str(v) for v in geo["view_names"]], [str(e) for e in geo["view_evidence"]]))
         assert not evidence["19_0"].startswith("landmarks")
         assert all(str(e).startswith("landmarks") for e in ref["view_evidence"])
+        # dlib's points of the cameras the embedding has offsets for are corrected by them, in the fit and the rig
+        assert "corrected by the face model's per-camera offsets" in geo.meta["report"]["landmark_view_bias"]
         # the face from dlib's points (embedded, jaw left out) is a face: within a few times the reference
         assert float(geo["err_vertex_rmse_mm"]) < 4.0 * float(ref["err_vertex_rmse_mm"]) + 2.0
         # reflectance only from the views (and their flashes) that landmarks placed
         obs = read_artifact(tmp_path / "unwrap-uv" / f"{ident}.npz", "uv-observations")
         placed = [v for v in VIEWS if evidence[v].startswith("landmarks")]
         assert [str(v) for v in obs["view_names"]] == placed
+    rig = read_artifact(tmp_path / "calibrate-rig" / "calibrate-rig.npz", "rig")
+    assert any("per-camera offsets" in a for a in rig.meta["assumptions"])
     # nothing to do the second time
     res = cli("run", tmp_path / "r.toml", "--workspace", tmp_path, "--jobs", "1", "--json")
     assert {t["status"] for t in json.loads(res.stdout)["tasks"]} == {"skipped"}

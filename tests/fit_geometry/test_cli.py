@@ -403,6 +403,18 @@ def test_face_model_embed_landmarks_end_to_end(world, cli, tmp_path):
     emb = new.meta["info"]["landmark_embedding"]
     assert emb["views"] == 5 and emb["per_group"]["eyes"]["moved"] >= 10
     np.testing.assert_array_equal(new["mean_shape"], fm["mean_shape"])
+    # the per-camera offsets: one identity per camera, none for the jaw, small for a detector that is exact up to
+    # the snap to a vertex; --no-view-bias writes none
+    vb = new.meta["info"]["landmark_view_bias"]
+    assert sorted(vb["cameras"]) == sorted(str(v) for v in cap["view_names"])
+    offs = np.stack([np.asarray(c["offset_iod"]) for c in vb["cameras"].values()])
+    assert all(c["identities"] == 1 for c in vb["cameras"].values()) and (offs[:, :17] == 0).all()
+    assert np.median(np.abs(offs[:, 17:])) < 0.01, np.median(np.abs(offs[:, 17:]))
+    out2 = tmp_path / "fm_nobias.npz"
+    r = cli("face-model", "embed-landmarks", "--face-model", fm_path, "--capture", cap2, "--geometry", geo,
+            "-o", out2, "-w", tmp_path, "--no-view-bias")
+    assert r.exit_code == 0, r.stderr
+    assert "landmark_view_bias" not in read_artifact(out2, "face-model").meta["info"]
     # a capture whose identity has no geometry: refused, nothing written
     arrays_other = dict(arrays)
     cap3 = write_artifact(tmp_path / "cap_other.npz", "capture", arrays_other,

@@ -124,3 +124,97 @@ def test_mutated_points_never_break_the_embedding():
         assert np.isfinite(emb.moved_mm).all()
 
     check()
+
+
+def _biased_views(m, det, offsets_iod, n_id=4, noise=0.0, seed=0, scale=1.0):
+    """Views of n_id identities on the arc whose detector points are the projected vertices plus a per-camera offset
+    of offsets_iod[v] (68, 2) inter-ocular distances (the eye centres of the unbiased points), each face scaled."""
+    from reflectmm_cli.geometry_fit.embedding import inter_ocular_px
+
+    rng = np.random.default_rng(seed)
+    K, R, t = toy.arc_cameras(AZ)
+    out = []
+    for _ in range(n_id):
+        verts = scale * m.vertices(rng.normal(size=m.n_shape) * m.shape_sigma * 0.8,
+                                   rng.normal(size=m.n_exp) * m.exp_sigma * 0.5)
+        for v in range(len(AZ)):
+            clean = project(verts[det], K[v], R[v], t[v])[0]
+            iod = inter_ocular_px(clean)
+            # the offset is fixed relative to the biased points' own eyes: solve p = clean + iod(p) · o by iteration
+            p = clean + iod * offsets_iod[v]
+            for _ in range(50):
+                p = clean + inter_ocular_px(p) * offsets_iod[v]
+            out.append((f"cam{v}", verts, K[v], R[v], t[v], p + rng.normal(size=(68, 2)) * noise))
+    return out
+
+
+def _offsets(seed=4):
+    rng = np.random.default_rng(seed)
+    o = rng.normal(size=(len(AZ), 68, 2)) * 0.02
+    o[:, :17] = 0.0                                              # the jaw gets none (default groups)
+    return o
+
+
+def test_view_bias_recovers_each_cameras_offsets_and_taking_them_off_gives_the_projections():
+    from reflectmm_cli.geometry_fit.embedding import apply_view_bias, view_bias
+
+    m = toy.toy_model()
+    det = _detector_vertices(m)
+    off = _offsets()
+    views = _biased_views(m, det, off)
+    bias = view_bias(det, views)
+    assert sorted(bias) == [f"cam{v}" for v in range(len(AZ))]
+    for v in range(len(AZ)):
+        assert bias[f"cam{v}"]["identities"] == 4
+        np.testing.assert_allclose(bias[f"cam{v}"]["offset_iod"], off[v], atol=1e-9)
+    # taken off the points of a face of another size (0.8×), the offsets leave the exact projections
+    other = _biased_views(m, det, off, n_id=1, seed=9, scale=0.8)
+    lm = np.stack([v[5] for v in other])                         # (C, 68, 2)
+    fixed, done = apply_view_bias(lm, [v[0] for v in other], bias)
+    assert done == [v[0] for v in other]
+    for (name, verts, K, R, t, _), p in zip(other, fixed):
+        np.testing.assert_allclose(p, project(verts[det], K, R, t)[0], atol=1e-6)
+    # the jaw (outside the default groups) keeps its points; a camera without an entry is left as it is
+    np.testing.assert_array_equal(fixed[:, :17], lm[:, :17])
+    same, done = apply_view_bias(lm, ["a", "b", "c"], bias)
+    assert done == [] and np.array_equal(same, lm)
+
+
+def test_view_bias_averages_noise_and_keeps_missing_points_and_views_without_eyes_out():
+    from reflectmm_cli.geometry_fit.embedding import apply_view_bias, view_bias
+
+    m = toy.toy_model()
+    det = _detector_vertices(m)
+    off = _offsets(seed=5)
+    views = _biased_views(m, det, off, n_id=40, noise=0.5, seed=3)
+    bias = view_bias(det, views)
+    err = np.abs(np.stack([bias[f"cam{v}"]["offset_iod"] for v in range(len(AZ))]) - off)[:, 17:]
+    iod = 60.0  # the toy's inter-ocular distance in pixels is about this: 0.5 px of noise over 40 views ≈ 0.0013
+    assert err.mean() < 0.5 / iod / np.sqrt(40) * 2, err.mean()
+    # a view without one eye is left out of the mean and out of the correction
+    views2 = [list(v) for v in _biased_views(m, det, off, n_id=2)]
+    views2[0][5] = views2[0][5].copy()
+    views2[0][5][36:42] = np.nan
+    bias2 = view_bias(det, [tuple(v) for v in views2])
+    assert bias2["cam0"]["identities"] == 1
+    lm = np.stack([views2[0][5]])[None]                              # (1, 1, 68, 2)
+    out, done = apply_view_bias(lm, ["cam0"], bias2)
+    assert done == [] and np.array_equal(out, lm, equal_nan=True)
+
+
+def test_a_face_models_offsets_are_applied_only_where_it_has_them():
+    from reflectmm_cli.geometry_fit.embedding import correct_by_face_model
+
+    lm = np.random.default_rng(0).normal(size=(2, 3, 68, 2)) * 5 + 100
+    lm[..., 36:42, 0] -= 30                                      # eyes apart: a positive inter-ocular distance
+    same, note = correct_by_face_model(lm, ["a", "b", "c"], {})
+    assert note is None and np.array_equal(same, lm)
+    info = {"landmark_view_bias": {"cameras": {"b": {"offset_iod": np.full((68, 2), 0.01).tolist(),
+                                                     "identities": 2}}}}
+    fixed, note = correct_by_face_model(lm, ["a", "b", "c"], info)
+    assert "camera(s) b" in note and "no offsets for camera(s) a, c" in note
+    np.testing.assert_array_equal(fixed[:, [0, 2]], lm[:, [0, 2]])
+    assert (fixed[:, 1] < lm[:, 1]).all()
+    with pytest.raises(ReflectmmError, match="offsets"):
+        correct_by_face_model(lm, ["a", "b", "c"],
+                              {"landmark_view_bias": {"cameras": {"a": {"offset_iod": [[0.0, 0.0]]}}}})
