@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         return float(np.sqrt(np.mean(np.square(a)))) if len(a) else float("nan")
 
     print(f"{fm_path}: offsets for {', '.join(sorted(cams)) or 'no camera'}; measured on {args.measured_on}")
-    print("| camera | identities | detector vs truth, px | of it on every face | after the offsets: measured on | others |")
+    print("| camera | identities | detector vs truth, px | of it on every face | after the offsets: measured on "
+          "| others |")
     print("|---|---|---|---|---|---|")
     for n, r in rows.items():
         raw = np.stack(r["raw"])

@@ -1208,9 +1208,8 @@ def calibrate_from_captures(capture_paths: Sequence[str | Path], face_model_path
     """:func:`calibrate_rig` on the landmarks of capture artifacts (one per identity) with a face model file and a
     nominal rig table (None: the packaged Multi-PIE table, whose image size must then match the captures)."""
     from reflectmm_cli.geometry import load_face_model
-    from reflectmm_cli.rig import load_rig
-
     from reflectmm_cli.geometry_fit.embedding import correct_by_face_model
+    from reflectmm_cli.rig import load_rig
 
     lm, ids, names, size = landmarks_from_captures(capture_paths, views)
     fm = load_face_model(face_model_path)

@@ -230,7 +230,8 @@ def apply_view_bias(landmarks: np.ndarray, camera_names: Sequence[str], bias: di
     return lm, done
 
 
-def correct_by_face_model(landmarks: np.ndarray, camera_names: Sequence[str], info: dict) -> tuple[np.ndarray, str | None]:
+def correct_by_face_model(landmarks: np.ndarray, camera_names: Sequence[str], info: dict
+                          ) -> tuple[np.ndarray, str | None]:
     """:func:`apply_view_bias` with a face model's own offsets (``info["landmark_view_bias"]``, written by
     ``face-model embed-landmarks``); the points unchanged and None when the model has none. Else the corrected points
     and one line saying which cameras were corrected and which had no offsets (left as they are)."""
