@@ -218,3 +218,39 @@ def test_a_face_models_offsets_are_applied_only_where_it_has_them():
     with pytest.raises(ReflectmmError, match="offsets"):
         correct_by_face_model(lm, ["a", "b", "c"],
                               {"landmark_view_bias": {"cameras": {"a": {"offset_iod": [[0.0, 0.0]]}}}})
+
+
+def test_mutated_points_never_give_non_finite_offsets_or_corrections():
+    """Hypothesis: detector points with NaN, inf or huge values: the offsets stay finite (a view whose eyes are not
+    finite is left out, a point that is not finite does not vote), and taking them off leaves finite points finite
+    and missing ones missing."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from reflectmm_cli.geometry_fit.embedding import apply_view_bias, view_bias
+
+    m = toy.toy_model()
+    det = _detector_vertices(m)
+    base = _biased_views(m, det, _offsets(), n_id=2)
+
+    @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(st.lists(st.tuples(st.integers(0, len(base) - 1), st.integers(0, 67), st.integers(0, 1),
+                              st.sampled_from([np.nan, np.inf, -np.inf, -1e9, 1e9, 0.0])), max_size=30))
+    def check(edits):
+        views = [list(v) for v in base]
+        for v in views:
+            v[5] = v[5].copy()
+        for vi, j, c, val in edits:
+            views[vi][5][j, c] = val
+        bias = view_bias(det, [tuple(v) for v in views])
+        for entry in bias.values():
+            assert np.isfinite(entry["offset_iod"]).all() and 1 <= entry["identities"] <= 2
+        lm = np.stack([v[5] for v in views[:len(AZ)]])
+        out, _ = apply_view_bias(lm, [v[0] for v in views[:len(AZ)]], bias)
+        fin = np.isfinite(lm)
+        assert np.isnan(out[np.isnan(lm)]).all()
+        # a finite point stays finite unless its view's eyes are huge (then the offset times the inter-ocular
+        # distance may overflow to ±inf, never to NaN)
+        assert not np.isnan(out[fin]).any()
+
+    check()
