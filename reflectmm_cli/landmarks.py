@@ -42,6 +42,18 @@ def group_mask(groups) -> np.ndarray:
     return m
 
 
+def inter_ocular(points) -> np.ndarray:
+    """Distance between the two eye centres (the means of iBUG points 36–41 and 42–47) of each set of 68 points.
+
+    Args:
+        points: (..., 68, D) points: image pixels (D = 2) or model-space vertices (D = 3).
+    Returns:
+        (...) float64 distances, in the points' unit (NaN where an eye point is missing).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    return np.linalg.norm(p[..., 36:42, :].mean(-2) - p[..., 42:48, :].mean(-2), axis=-1)
+
+
 def _parse_pts(text: str) -> np.ndarray:
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     if not any(ln.startswith("{") for ln in lines) or not any(ln.startswith("}") for ln in lines):

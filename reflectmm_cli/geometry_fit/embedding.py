@@ -29,10 +29,11 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.landmarks import GROUPS, N_LANDMARKS, SURFACE_GROUPS, group_mask
+from reflectmm_cli.geometry.camera import project
+from reflectmm_cli.landmarks import GROUPS, N_LANDMARKS, SURFACE_GROUPS, group_mask, inter_ocular
 
 __all__ = ["LandmarkEmbedding", "landmark_hits", "embed_landmarks", "DEFAULT_EMBED_GROUPS", "view_bias",
-           "apply_view_bias", "inter_ocular_px", "correct_by_face_model"]
+           "apply_view_bias", "correct_by_face_model"]
 
 #: The groups that a static embedding can hold (every group but the jaw's silhouette points).
 DEFAULT_EMBED_GROUPS: tuple[str, ...] = SURFACE_GROUPS
@@ -146,18 +147,6 @@ def embed_landmarks(mean_shape: np.ndarray, triangles: np.ndarray, landmarks: np
                              views=n.astype(np.int64))
 
 
-def inter_ocular_px(points: np.ndarray) -> np.ndarray:
-    """Distance between the two eye centres (the means of iBUG points 36–41 and 42–47) of each point set.
-
-    Args:
-        points: (..., 68, 2) image points.
-    Returns:
-        (...) float64 distances (NaN where an eye point is missing).
-    """
-    p = np.asarray(points, dtype=np.float64)
-    return np.linalg.norm(p[..., 36:42, :].mean(-2) - p[..., 42:48, :].mean(-2), axis=-1)
-
-
 def view_bias(indices: np.ndarray, views: Iterable[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                                           np.ndarray]], *,
               groups: Sequence[str] = DEFAULT_EMBED_GROUPS) -> dict[str, dict]:
@@ -180,12 +169,10 @@ def view_bias(indices: np.ndarray, views: Iterable[tuple[str, np.ndarray, np.nda
     per: dict[str, list[np.ndarray]] = {}
     for name, verts, K, R, t, pts in views:
         pts = np.asarray(pts, dtype=np.float64)
-        iod = float(inter_ocular_px(pts))
+        iod = float(inter_ocular(pts))
         if not np.isfinite(iod) or iod <= 0:
             continue
-        X = np.asarray(verts, dtype=np.float64)[idx] @ np.asarray(R, np.float64).T + np.asarray(t, np.float64)
-        x = X @ np.asarray(K, np.float64).T
-        proj = x[:, :2] / x[:, 2:]
+        proj = project(np.asarray(verts, dtype=np.float64)[idx], K, R, t)[0]
         per.setdefault(str(name), []).append((pts - proj) / iod)
     out = {}
     for name, offs in per.items():
@@ -222,7 +209,7 @@ def apply_view_bias(landmarks: np.ndarray, camera_names: Sequence[str], bias: di
         if off.shape != (N_LANDMARKS, 2) or not np.isfinite(off).all():
             raise ReflectmmError(f"view bias of camera {name}: expected (68, 2) finite offsets, got {off.shape}")
         pts = lm[..., k, :, :]
-        iod = inter_ocular_px(pts)
+        iod = inter_ocular(pts)
         ok = np.isfinite(iod) & (iod > 0)
         if ok.any():
             pts[ok] = pts[ok] - iod[ok][..., None, None] * off

@@ -6,12 +6,13 @@ import numpy as np
 
 from reflectmm_cli.color import encode_display
 from reflectmm_cli.geometry.camera import camera_centers, project
+from reflectmm_cli.landmarks import inter_ocular
 
 
 def inter_ocular_mm(vertices: np.ndarray, landmarks: np.ndarray) -> float:
-    """Distance between the eye centres (mean of iBUG landmarks 36–41 and 42–47), mm."""
-    lm = np.asarray(vertices, dtype=np.float64)[np.asarray(landmarks)]
-    return float(np.linalg.norm(lm[36:42].mean(0) - lm[42:48].mean(0)))
+    """Distance between the eye centres of a mesh's landmark vertices (:func:`reflectmm_cli.landmarks.inter_ocular`),
+    mm."""
+    return float(inter_ocular(np.asarray(vertices, dtype=np.float64)[np.asarray(landmarks)]))
 
 
 def truth_errors(vertices: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, truth_vertices: np.ndarray,

@@ -129,7 +129,7 @@ def test_mutated_points_never_break_the_embedding():
 def _biased_views(m, det, offsets_iod, n_id=4, noise=0.0, seed=0, scale=1.0):
     """Views of n_id identities on the arc whose detector points are the projected vertices plus a per-camera offset
     of offsets_iod[v] (68, 2) inter-ocular distances (the eye centres of the unbiased points), each face scaled."""
-    from reflectmm_cli.geometry_fit.embedding import inter_ocular_px
+    from reflectmm_cli.landmarks import inter_ocular
 
     rng = np.random.default_rng(seed)
     K, R, t = toy.arc_cameras(AZ)
@@ -139,11 +139,11 @@ def _biased_views(m, det, offsets_iod, n_id=4, noise=0.0, seed=0, scale=1.0):
                                    rng.normal(size=m.n_exp) * m.exp_sigma * 0.5)
         for v in range(len(AZ)):
             clean = project(verts[det], K[v], R[v], t[v])[0]
-            iod = inter_ocular_px(clean)
+            iod = inter_ocular(clean)
             # the offset is fixed relative to the biased points' own eyes: solve p = clean + iod(p) · o by iteration
             p = clean + iod * offsets_iod[v]
             for _ in range(50):
-                p = clean + inter_ocular_px(p) * offsets_iod[v]
+                p = clean + inter_ocular(p) * offsets_iod[v]
             out.append((f"cam{v}", verts, K[v], R[v], t[v], p + rng.normal(size=(68, 2)) * noise))
     return out
 
