@@ -25,13 +25,6 @@ import numpy as np
 CHOICES = (("centres", "fit"), ("centres", "distances"), ("poses", "fit"), ("poses", "distances"))
 
 
-def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from reflectmm_cli.geometry.align import rigid_align
-
-    R, t, _ = rigid_align(src, dst)
-    return R, t
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--capture", action="append", required=True)
@@ -42,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label", default="")
     ap.add_argument("extra", nargs="*", help="further calibrate-rig arguments (after --)")
     args = ap.parse_args(argv)
+    from reflectmm_cli.geometry.align import rigid_align
     from reflectmm_cli.rig import load_rig
 
     true = load_rig(args.true_rig)
@@ -59,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         C = z["centers"]
         T = np.stack([np.asarray(true.camera(n).position, np.float64) for n in names])
         seen = np.isfinite(z["center_sigma_mm"]).all(-1)
-        R, t = _rigid(C[seen], T[seen])
+        R, t, _ = rigid_align(C[seen], T[seen])
         direct = np.linalg.norm(C - T, axis=1)
         aligned = np.linalg.norm(C @ R.T + t - T, axis=1)
         meta = json.loads(str(z["__meta__"]))

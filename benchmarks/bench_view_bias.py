@@ -25,6 +25,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="default: WS/face-model-embed/face-model-embed.npz")
     ap.add_argument("--measured-on", default="001,002,003,004", help="identities the offsets were measured on")
     args = ap.parse_args(argv)
+    from reflectmm_cli.geometry.camera import project
     from reflectmm_cli.geometry_fit.embedding import apply_view_bias
 
     ws = args.workspace
@@ -47,9 +48,8 @@ def main(argv: list[str] | None = None) -> int:
             if not np.isfinite(lm[k][inner]).all():
                 continue
             j = tn.index(n)
-            X = np.asarray(truth["vertices"], np.float64)[idx] @ truth["R"][j].T + truth["t"][j]
-            x = X @ truth["K"][j].T
-            x = x[:, :2] / x[:, 2:]
+            x = project(np.asarray(truth["vertices"], np.float64)[idx], truth["K"][j], truth["R"][j],
+                        truth["t"][j])[0]
             r = rows.setdefault(n, {"raw": [], "in": [], "out": []})
             r["raw"].append((lm[k] - x)[inner])
             r["in" if ident in measured else "out"].append((fixed[k] - x)[inner])
