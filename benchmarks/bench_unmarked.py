@@ -179,8 +179,8 @@ def run(args) -> dict:
     if not (syn / "truth" / f"{ids[-1]}.npz").is_file():
         cli("synth", "multipie", "--out", syn, "--identities", args.identities, "--rig", ws / "true_rig.toml",
             "--cameras", ",".join(views), "--flashes", ",".join(DEFAULT_FLASHES), "--landmark-noise", "1.0",
-            "--noise", "0.002", "--brdf", "ggx", "--skin", args.skin, "--features", args.features, "--seed", args.seed, "--face-vertices",
-            args.vertices, "--image-size", f"{W}x{H}")
+            "--noise", "0.002", "--brdf", "ggx", "--skin", args.skin, "--features", args.features, "--seed", args.seed,
+            "--face-vertices", args.vertices, "--image-size", f"{W}x{H}")
     lm_files = sorted(syn.rglob("*_00_lm.pts"))
     dirs = {"side": ws / "lm_side", "detect": ws / "lm_detect"}
     if not dirs["side"].is_dir():

@@ -96,7 +96,8 @@ def run(ctx: StageContext) -> list[Path]:
     paths = synth_multipie(out, cfg, face_model=fm[0] if fm else None, rig=rg[0] if rg else None,
                            meta_params=params, producer=ctx.producer(), cache_key=ctx.cache_key,
                            inputs=ctx.input_refs(out))
-    log.info(f"synth multipie: {cfg.identities} identities ({cfg.brdf}, {cfg.skin} skin, {cfg.features} features) in {out}")
+    log.info(f"synth multipie: {cfg.identities} identities ({cfg.brdf}, {cfg.skin} skin, {cfg.features} features) "
+             f"in {out}")
     return paths
 
 
