@@ -1213,7 +1213,7 @@ def calibrate_from_captures(capture_paths: Sequence[str | Path], face_model_path
 
     lm, ids, names, size = landmarks_from_captures(capture_paths, views)
     fm = load_face_model(face_model_path)
-    lm, note = correct_by_face_model(lm, names, fm.info)
+    lm, note = correct_by_face_model(lm, names, fm.info, face_model_path)
     if note:
         log.info("calibrate-rig: %s", note)
     model = ShapeModel.from_face_model(fm)

@@ -217,16 +217,20 @@ def apply_view_bias(landmarks: np.ndarray, camera_names: Sequence[str], bias: di
     return lm, done
 
 
-def correct_by_face_model(landmarks: np.ndarray, camera_names: Sequence[str], info: dict
+def correct_by_face_model(landmarks: np.ndarray, camera_names: Sequence[str], info: dict, path=None
                           ) -> tuple[np.ndarray, str | None]:
     """:func:`apply_view_bias` with a face model's own offsets (``info["landmark_view_bias"]``, written by
     ``face-model embed-landmarks``); the points unchanged and None when the model has none. Else the corrected points
-    and one line saying which cameras were corrected and which had no offsets (left as they are)."""
+    and one line saying which cameras were corrected and which had no offsets (left as they are).  Malformed
+    offsets are a one-line error naming ``path`` (the face model's file)."""
     entry = (info or {}).get("landmark_view_bias")
     if not entry:
         return np.asarray(landmarks, dtype=np.float64), None
     cams = entry.get("cameras", {})
-    lm, done = apply_view_bias(landmarks, camera_names, cams)
+    try:
+        lm, done = apply_view_bias(landmarks, camera_names, cams)
+    except ReflectmmError as e:
+        raise ReflectmmError(str(e), path) from None
     has = np.isfinite(np.asarray(landmarks, dtype=np.float64)).all(-1).any(-1)       # (..., C)
     has = has.reshape(-1, len(camera_names)).any(0)
     missing = [str(n) for n, h in zip(camera_names, has) if h and str(n) not in cams]

@@ -205,7 +205,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
                              capture_path)
     origin = np.asarray(capture.arrays.get("crop_origin", np.zeros((len(view_names), 2))), dtype=np.float64)
     lm, lm_src = gather_landmarks(capture, identity, view_names, landmarks_dir)
-    lm, bias_note = correct_by_face_model(lm, view_names, fm.info)
+    lm, bias_note = correct_by_face_model(lm, view_names, fm.info, face_model_path)
     if bias_note:
         log.info("fit-geometry %s: %s", identity, bias_note)
     K, R_rig, t_rig, rig_pos = view_cameras(rig, view_names, (W, H), focal, rig_path)

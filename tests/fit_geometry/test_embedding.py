@@ -218,6 +218,9 @@ def test_a_face_models_offsets_are_applied_only_where_it_has_them():
     with pytest.raises(ReflectmmError, match="offsets"):
         correct_by_face_model(lm, ["a", "b", "c"],
                               {"landmark_view_bias": {"cameras": {"a": {"offset_iod": [[0.0, 0.0]]}}}})
+    with pytest.raises(ReflectmmError, match=r"^fm\.npz: view bias of camera a"):
+        correct_by_face_model(lm, ["a", "b", "c"],
+                              {"landmark_view_bias": {"cameras": {"a": {"offset_iod": [[0.0, 0.0]]}}}}, "fm.npz")
 
 
 def test_mutated_points_never_give_non_finite_offsets_or_corrections():
