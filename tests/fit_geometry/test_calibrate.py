@@ -384,6 +384,15 @@ def test_carry_similarity_with_a_given_scale_is_the_rigid_fit_of_the_scaled_tabl
         if iters == 0:
             Rk, tk, _ = align.rigid_align(ss * c0, cn)
             assert np.allclose(Ra, Rk, atol=1e-12) and np.allclose(ta, tk, atol=1e-9)
+            # and, independently, no rotation near it and no shift fit the scaled table better (a local search)
+            from scipy.optimize import minimize
+
+            def cost(x):
+                return np.sum((ss * c0 @ (rodrigues(x[:3]) @ Ra).T + ta + x[3:] - cn) ** 2)
+
+            best = minimize(cost, np.zeros(6), method="Nelder-Mead",
+                            options={"xatol": 1e-10, "fatol": 1e-10, "maxiter": 20000, "maxfev": 20000})
+            assert best.fun >= cost(np.zeros(6)) - 1e-6 * cost(np.zeros(6)), (best.fun, cost(np.zeros(6)))
         assert np.allclose(rc, np.linalg.norm(ss * c0 @ Ra.T + ta - cn, axis=-1))
 
 
