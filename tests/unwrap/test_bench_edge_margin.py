@@ -1,0 +1,16 @@
+"""The identity ranges of benchmarks/bench_edge_margin.py."""
+import pytest
+
+from _benchmarks import load_benchmark
+
+
+def test_ids_ranges_and_lists_keep_their_width():
+    ids = load_benchmark("bench_edge_margin")._ids
+    assert ids("001-003,007") == ["001", "002", "003", "007"]
+    assert ids("8-10") == ["8", "9", "10"]
+    assert ids("042") == ["042"]
+
+
+def test_ids_reject_a_malformed_range():
+    with pytest.raises(ValueError):
+        load_benchmark("bench_edge_margin")._ids("001-")
