@@ -1,0 +1,94 @@
+"""fit-geometry's optimisation budget in the flash rounds: the demo's two chains (dlib's landmarks, and the annotated
+reference with landmarks on every view) refitted with more L-BFGS iterations per flash round or more rounds.
+
+Each identity is fitted with the settings of the demo's recipe (recipes/synthetic.toml: ``fit-geometry`` and
+``fit-geometry-annotated``) on its inputs in a finished demo workspace, with the given FitConfig overrides, one
+process per identity (two at a time, one torch thread each). Printed: per chain and budget the mean vertex RMS
+against the truth, the per-identity values, the summed CPU time, and per budget the ratio of the two chains by the
+median identity (issue 23's measure).
+
+    python benchmarks/bench_flash_budget.py --workspace WS --budget demo: --budget iters160:flash_iters=160 \\
+        --budget iters400:flash_iters=400 --budget rounds8:flash_rounds=8
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from multiprocessing import Pool
+from pathlib import Path
+
+import numpy as np
+
+CHAINS = {
+    # chain: (capture folder, face model, rig, extra FitConfig settings) as recipes/synthetic.toml has them
+    "detector": ("preprocess-multipie", "face-model-embed/face-model-embed.npz", "calibrate-rig/rig.toml",
+                 {"landmark_sigma_px": 3.0, "group_weights": {"jaw": 0.0}}),
+    "annotated": ("preprocess-annotated", "synth-multipie/face_model.npz", "calibrate-annotated/rig.toml", {}),
+}
+COMMON = {"rig_sigma_mm": 3.0, "rig_rot_sigma_deg": 0.3, "photo_rounds": 0, "flash_rounds": 3}
+
+
+def parse_budget(text: str) -> tuple[str, dict]:
+    """``NAME:key=value,key=value`` → (NAME, overrides); the values are converted to FitConfig's field types."""
+    from reflectmm_cli.geometry_fit import FitConfig
+
+    name, _, rest = text.partition(":")
+    defaults = FitConfig()
+    out = {}
+    for item in filter(None, rest.split(",")):
+        key, _, value = item.partition("=")
+        if not hasattr(defaults, key):
+            raise SystemExit(f"--budget {text}: FitConfig has no field {key!r}")
+        out[key] = type(getattr(defaults, key))(float(value))
+    return name, out
+
+
+def _fit(job) -> tuple[str, float, float]:
+    workspace, chain, identity, overrides = job
+    import torch
+
+    torch.set_num_threads(1)
+    from reflectmm_cli.geometry_fit import FitConfig
+    from reflectmm_cli.geometry_fit.identity import fit_identity
+
+    cap, fm, rig, extra = CHAINS[chain]
+    cfg = FitConfig(**{**COMMON, **extra, **overrides})
+    t0 = time.process_time()
+    arrays, _, _ = fit_identity(workspace / cap / f"{identity}.npz", workspace / fm, identity,
+                                rig_path=workspace / rig, config=cfg,
+                                truth_path=workspace / "synth-multipie" / "truth" / f"{identity}.npz")
+    return identity, float(arrays["err_vertex_rmse_mm"]), time.process_time() - t0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--workspace", required=True, type=Path)
+    ap.add_argument("--budget", action="append", required=True, help="NAME:key=value,... (FitConfig overrides)")
+    ap.add_argument("--ids", default="001,002,003,004,005,006,007,008")
+    ap.add_argument("--processes", type=int, default=2)
+    args = ap.parse_args(argv)
+    os.environ.setdefault("REFLECTMM_QUIET", "1")
+    ids = args.ids.split(",")
+    budgets = [parse_budget(b) for b in args.budget]
+    print("| budget | chain | vertex RMS mm, mean | per identity | CPU s (sum) |")
+    print("|---|---|---|---|---|")
+    errors = {}
+    with Pool(args.processes) as pool:
+        for name, overrides in budgets:
+            for chain in CHAINS:
+                res = pool.map(_fit, [(args.workspace, chain, i, overrides) for i in ids])
+                err = np.array([r[1] for r in res])
+                errors[name, chain] = err
+                print(f"| {name} | {chain} | {err.mean():.3f} | {', '.join(f'{e:.2f}' for e in err)} | "
+                      f"{sum(r[2] for r in res):.0f} |", flush=True)
+    print("\n| budget | detector ÷ annotated, median identity | identities within 1.3× |")
+    print("|---|---|---|")
+    for name, _ in budgets:
+        ratio = errors[name, "detector"] / errors[name, "annotated"]
+        print(f"| {name} | {np.median(ratio):.2f} | {int((ratio <= 1.3).sum())} of {len(ratio)} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
