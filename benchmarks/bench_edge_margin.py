@@ -7,7 +7,8 @@ its truth (``evaluate truth``). Printed per set and margin: the mean over identi
 albedo RMSE over the fitted (observable) texels, over every texel (the filled ones too), the mean of the median
 texel's error, and the per-identity observable errors. Each run is one process per step, as the recipe runs it.
 
-    python benchmarks/bench_edge_margin.py --truth WS/synth-multipie/truth --face-model WS/synth-multipie/face_model.npz \\
+    python benchmarks/bench_edge_margin.py --truth WS/synth-multipie/truth \\
+        --face-model WS/synth-multipie/face_model.npz \\
         --set detector WS/preprocess-multipie WS/fit-geometry "--views landmarked --flashes landmarked" \\
         --set annotated WS/preprocess-annotated WS/fit-geometry-annotated "" \\
         --ids 001-008 --margins 1,2,3,5,8 --scratch /tmp/edge
