@@ -48,10 +48,12 @@ def inter_ocular(points) -> np.ndarray:
     Args:
         points: (..., 68, D) points: image pixels (D = 2) or model-space vertices (D = 3).
     Returns:
-        (...) float64 distances, in the points' unit (NaN where an eye point is missing).
+        (...) float64 distances, in the points' unit (NaN where an eye point is missing or both eyes are
+        infinite).
     """
     p = np.asarray(points, dtype=np.float64)
-    return np.linalg.norm(p[..., 36:42, :].mean(-2) - p[..., 42:48, :].mean(-2), axis=-1)
+    with np.errstate(invalid="ignore", over="ignore"):  # inf − inf is the documented NaN, not a fault
+        return np.linalg.norm(p[..., 36:42, :].mean(-2) - p[..., 42:48, :].mean(-2), axis=-1)
 
 
 def _parse_pts(text: str) -> np.ndarray:
