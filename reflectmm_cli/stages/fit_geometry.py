@@ -113,7 +113,9 @@ PARAMS = (
     _cfg("flash_rounds", "int", range=(0, 10),
          help="rounds of the flash term after the photometric rounds: each flash image as a point light at its "
               "flash, cast shadows and highlights left out, the albedo per vertex (0 = off; docs/fit-geometry.md)."),
-    _cfg("flash_iters", "int", range=(0, 100000), option="", help="L-BFGS iterations per flash round."),
+    _cfg("flash_iters", "int", range=(0, 100000),
+         help="L-BFGS iterations per flash round (the default stops short of convergence; more cost time and "
+              "bring the faces closer: docs/fit-geometry.md, Schedule)."),
     _cfg("w_flash", "float", range=(0.0, None), help="weight of the flash term."),
     _cfg("flash_highlight_deg", "float", range=(0.0, 90.0), option="--flash-highlight", unit="deg",
          help="flash samples whose normal is within this angle of the half vector are left out (highlights)."),

@@ -347,6 +347,17 @@ def test_flash_rounds(world, cli, tmp_path):
     assert np.max(fl["err_cam_center_mm"]) < np.max(lm["err_cam_center_mm"])
 
 
+def test_flash_iters_option_caps_each_round(world, cli, tmp_path):
+    # --flash-iters reaches the fit and is recorded: torch's L-BFGS evaluates at most 1.25 × max_iter times
+    r = cli("fit-geometry", "--id", "001", "-w", world, "--iters", "200", "--photo-rounds", "0", "--no-overlay",
+            "--flash-rounds", "2", "--flash-iters", "4", "-o", tmp_path / "fl.npz")
+    assert r.exit_code == 0, r.output
+    fl = read_artifact(tmp_path / "fl.npz", "geometry")
+    assert fl.params["flash_iters"] == 4
+    rounds = [h for h in fl.meta["report"]["history"] if h["stage"].startswith("flash round")]
+    assert len(rounds) == 2 and all(1 <= h["evals"] <= 5 for h in rounds), rounds
+
+
 def test_flash_rounds_need_flash_images(world, cli, tmp_path):
     cap = read_artifact(world / "preprocess-multipie" / "001.npz", "capture")
     arrays = {k: v for k, v in cap.arrays.items() if k != "olat"}
