@@ -177,9 +177,8 @@ def view_bias(indices: np.ndarray, views: Iterable[tuple[str, np.ndarray, np.nda
     out = {}
     for name, offs in per.items():
         o = np.stack(offs)                                     # (n, 68, 2)
-        seen = np.isfinite(o).all(-1)
-        mean = np.where(seen.any(0)[:, None], np.nansum(np.where(seen[..., None], o, 0.0), 0)
-                        / np.maximum(seen.sum(0), 1)[:, None], 0.0)
+        seen = np.isfinite(o).all(-1)                          # (n, 68): a point no view has averages to 0
+        mean = np.where(seen[..., None], o, 0.0).sum(0) / np.maximum(seen.sum(0), 1)[:, None]
         mean[~chosen] = 0.0
         out[name] = {"offset_iod": mean, "identities": len(offs)}
     return out
