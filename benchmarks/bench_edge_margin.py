@@ -37,9 +37,10 @@ def _ids(spec: str) -> list[str]:
     return out
 
 
-def _run(args: list[str]) -> None:
-    subprocess.run([sys.executable, "-m", "reflectmm_cli", *args], check=True, stdout=subprocess.DEVNULL,
-                   env={**os.environ, "REFLECTMM_QUIET": "1"})
+def _run(args: list[str]) -> str:
+    """One reflectmm command in its own process; its stdout."""
+    return subprocess.run([sys.executable, "-m", "reflectmm_cli", *args], check=True, capture_output=True, text=True,
+                          env={**os.environ, "REFLECTMM_QUIET": "1"}).stdout
 
 
 def measure(capture_dir: Path, geometry_dir: Path, extra: list[str], margin: int, ids: list[str], truth: Path,
@@ -54,10 +55,9 @@ def measure(capture_dir: Path, geometry_dir: Path, extra: list[str], margin: int
               "--edge-margin", str(margin), *extra, "-o", str(uv)])
         _run(["fit-reflectance", "-w", str(out), "-i", str(uv), "--solver", "fast", "--exponents", "1,8,64",
               "--symmetry", "1.0", "-o", str(maps)])
-        res = subprocess.run([sys.executable, "-m", "reflectmm_cli", "evaluate", "truth", "-w", str(out), "--id", i,
-                              "--maps", str(maps), "--truth", str(truth / f"{i}.npz"), "-o", str(ev)],
-                             check=True, capture_output=True, text=True, env={**os.environ, "REFLECTMM_QUIET": "1"})
-        raw = json.loads(res.stdout)["errors"]["reflectance"]["raw"]
+        res = _run(["evaluate", "truth", "-w", str(out), "--id", i, "--maps", str(maps),
+                    "--truth", str(truth / f"{i}.npz"), "-o", str(ev)])
+        raw = json.loads(res)["errors"]["reflectance"]["raw"]
         rows[i] = {"observable": raw["observable"]["albedo_rel"], "all": raw["all"]["albedo_rel"],
                    "median": raw["observable"]["albedo_rel_median"]}
     return rows
