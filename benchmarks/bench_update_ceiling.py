@@ -428,7 +428,8 @@ def main() -> int:
         cpu = time.process_time() - t1 + t_refine
         row = {"kind": "update", "variant": name, "initial_albedo_residual": float(r_init.mean()), "pull": a.pull,
                "w_coef": a.w_coef, "w_light": a.w_light, "matched_weights": a.matched_weights,
-               "light_components": light.n_components, "harmonics": a.harmonics, "rounds": a.rounds, "cpu_s": cpu, "solves": infos}
+               "light_components": light.n_components, "harmonics": a.harmonics, "rounds": a.rounds, "cpu_s": cpu,
+               "solves": infos}
         row.update(_measure(with_solved(model, vertex_arrays(theta)), light_full, ss, truth, oracle, RefineConfig()))
         row["gap_closed"] = gap(np.asarray(row["albedo_residuals"]))
         emit(row)
