@@ -1,8 +1,8 @@
 """fit-geometry's optimisation budget in the flash rounds: the demo's two chains (dlib's landmarks, and the annotated
 reference with landmarks on every view) refitted with more L-BFGS iterations per flash round or more rounds.
 
-Each identity is fitted with the settings of the demo's recipe (recipes/synthetic.toml: ``fit-geometry`` and
-``fit-geometry-annotated``) on its inputs in a finished demo workspace, with the given FitConfig overrides, one
+Each identity is fitted with the params of the demo's recipe (read from recipes/synthetic.toml: ``fit-geometry``
+and ``fit-geometry-annotated``) on its inputs in a finished demo workspace, with the given FitConfig overrides, one
 process per identity (two at a time, one torch thread each). Printed: per chain and budget the mean vertex RMS
 against the truth, the per-identity values, the summed CPU time, and per budget the ratio of the two chains by the
 median identity (issue 23's measure).
@@ -24,13 +24,21 @@ from pathlib import Path
 
 import numpy as np
 
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "synthetic.toml"
 CHAINS = {
-    # chain: (capture folder, face model, rig, extra FitConfig settings) as recipes/synthetic.toml has them
+    # chain: (capture folder, face model, rig in the workspace, the recipe stage whose params the fit takes)
     "detector": ("preprocess-multipie", "face-model-embed/face-model-embed.npz", "calibrate-rig/rig.toml",
-                 {"landmark_sigma_px": 3.0, "group_weights": {"jaw": 0.0}}),
-    "annotated": ("preprocess-annotated", "synth-multipie/face_model.npz", "calibrate-annotated/rig.toml", {}),
+                 "fit-geometry"),
+    "annotated": ("preprocess-annotated", "synth-multipie/face_model.npz", "calibrate-annotated/rig.toml",
+                  "fit-geometry-annotated"),
 }
-COMMON = {"rig_sigma_mm": 3.0, "rig_rot_sigma_deg": 0.3, "photo_rounds": 0, "flash_rounds": 3}
+
+
+def recipe_params(stage: str) -> dict:
+    """The params of one fit-geometry stage of the demo's recipe, as the recipe declares them."""
+    from reflectmm_cli.recipes.recipe import load_recipe
+
+    return dict(load_recipe(RECIPE).stages[stage].params)
 
 
 def parse_budget(text: str) -> tuple[str, dict]:
@@ -53,11 +61,11 @@ def _fit(job) -> tuple[str, float, float]:
     import torch
 
     torch.set_num_threads(1)
-    from reflectmm_cli.geometry_fit import FitConfig
     from reflectmm_cli.geometry_fit.identity import fit_identity
+    from reflectmm_cli.stages.fit_geometry import config_from_params
 
-    cap, fm, rig, extra = spec
-    cfg = FitConfig(**{**COMMON, **extra, **overrides})
+    cap, fm, rig, params = spec
+    cfg = config_from_params({**params, **overrides})
     t0 = time.process_time()
     arrays, _, _ = fit_identity(workspace / cap / f"{identity}.npz", workspace / fm, identity,
                                 rig_path=workspace / rig, config=cfg,
@@ -79,10 +87,11 @@ def main(argv: list[str] | None = None) -> int:
     budgets = [parse_budget(b) for b in args.budget]
     print("| budget | chain | vertex RMS mm, mean | per identity | CPU s (sum) |")
     print("|---|---|---|---|---|")
-    chains = dict(CHAINS)
-    if args.chain:
-        chains = {c[0]: (c[1], c[2], c[3], {"landmark_sigma_px": float(c[4]), "group_weights": {"jaw": float(c[5])}})
-                  for c in args.chain}
+    chains = {name: (cap, fm, rig, recipe_params(stage)) for name, (cap, fm, rig, stage) in CHAINS.items()}
+    if args.chain:  # the annotated reference's settings, with the chain's landmark noise and jaw weight
+        base = recipe_params("fit-geometry-annotated")
+        chains = {c[0]: (c[1], c[2], c[3], {**base, "landmark_sigma_px": float(c[4]),
+                                           "landmark_weights": {"jaw": float(c[5])}}) for c in args.chain}
     errors = {}
     with Pool(args.processes) as pool:
         for name, overrides in budgets:
