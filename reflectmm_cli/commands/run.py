@@ -50,15 +50,19 @@ def format_plan(report) -> list[str]:
 @click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
               help="Address of a running Dask scheduler (implies --executor dask).")
 @click.option("--allow-empty", is_flag=True, help="Succeed even when a stage's foreach matches no identity.")
+@click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
+              help="Override one stage parameter of the recipe (a TOML value; repeatable), e.g. "
+                   "--set synth-wild.count=384.")
 @json_option
-def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, scheduler, allow_empty, as_json):
+def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, scheduler, allow_empty, overrides,
+            as_json):
     """Run RECIPE (TOML): plan the stage DAG and run every task whose cache key or outputs changed.
 
     Paths in the recipe are relative to the workspace.  Prints the written artifact
     paths (or, with --dry-run, a table of stage / id / action / reason); failed tasks
     are listed on stderr and the exit status is 1; rerunning resumes.
     """
-    from reflectmm_cli.recipes import run_recipe
+    from reflectmm_cli.recipes import load_recipe, run_recipe
     from reflectmm_cli.recipes.executors import executor_kind
 
     if recipe is None:
@@ -72,7 +76,7 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
     id_list = parse_ids(ids) if ids is not None else None
     if ids is not None and not id_list:
         raise ReflectmmError("--ids: no identity given")
-    report = run_recipe(recipe, ws, dry_run=dry_run, force=force, only=only, ids=id_list, executor=executor,
+    report = run_recipe(load_recipe(recipe, overrides), ws, dry_run=dry_run, force=force, only=only, ids=id_list, executor=executor,
                         jobs=jobs, scheduler=scheduler)
     try:
         if as_json:

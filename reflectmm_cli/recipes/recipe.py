@@ -111,6 +111,8 @@ class Recipe:
     name: str
     defaults: dict[str, Any]
     stages: dict[str, StageSpec]
+    #: the ``STAGE.PARAM=VALUE`` overrides applied to the file (``reflectmm run --set``), in order
+    overrides: tuple[str, ...] = ()
 
     def order(self) -> list[str]:
         """Stage names in a topological order (ties keep the file's order)."""
@@ -137,16 +139,66 @@ def _type_error(where: str, expected: str, got: Any, path: Path) -> ReflectmmErr
     return ReflectmmError(f"{where}: expected {expected}, got {type(got).__name__} {got!r}", path)
 
 
-def parse_recipe_text(text: str, path: Path) -> Recipe:
+def parse_recipe_text(text: str, path: Path, overrides: tuple[str, ...] | list[str] = ()) -> Recipe:
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ReflectmmError(f"invalid TOML: {exc}", path) from None
-    return _build(doc, path)
+    apply_overrides(doc, overrides, path)
+    recipe = _build(doc, path)
+    recipe.overrides = tuple(overrides)
+    return recipe
 
 
-def load_recipe(path: str | Path) -> Recipe:
-    """Read and validate a recipe file; raise :class:`ReflectmmError` naming the file on any problem."""
+#: A bare word that ``--set`` takes as a string without quotes (``solver=ls``, ``brdf=ggx``).
+_BARE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-/]*$")
+
+
+def parse_override(text: str, path: Path) -> tuple[str, str, Any]:
+    """Split one ``STAGE.PARAM=VALUE`` into its stage, param and value.
+
+    VALUE is a TOML value (``16``, ``1e-3``, ``true``, ``[1, 8, 64]``, ``{ jaw = 0 }``, ``"x"``); a bare word
+    that is not one is taken as a string. Dashes in PARAM read as underscores (``flash-iters``).
+    """
+    key, sep, raw = text.partition("=")
+    stage, dot, param = key.strip().rpartition(".")
+    if not sep or not dot or not stage or not param:
+        raise ReflectmmError(f"--set {text!r}: expected STAGE.PARAM=VALUE (e.g. synth-wild.count=384)", path)
+    param = param.replace("-", "_")
+    raw = raw.strip()
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        if not _BARE_RE.match(raw):
+            raise ReflectmmError(f"--set {text!r}: cannot read {raw!r} as a TOML value "
+                                 f"(quote strings: {param}=\"...\")", path) from None
+        value = raw
+    return stage, param, value
+
+
+def apply_overrides(doc: dict[str, Any], overrides: tuple[str, ...] | list[str], path: Path) -> None:
+    """Set each ``STAGE.PARAM=VALUE`` of ``overrides`` in the parsed recipe ``doc``, in order (the last wins).
+
+    The stage must exist; the value replaces the param's value from ``[defaults]`` and from the stage's own
+    ``params`` alike, and the stage's parameter declaration checks it when the run is planned.
+    """
+    stages = doc.get("stages")
+    for text in overrides:
+        stage, param, value = parse_override(text, path)
+        if not isinstance(stages, dict) or not isinstance(stages.get(stage), dict):
+            known = ", ".join(stages) if isinstance(stages, dict) else "none"
+            raise ReflectmmError(f"--set {text!r}: no stage {stage!r} in the recipe (stages: {known})", path)
+        params = stages[stage].setdefault("params", {})
+        if not isinstance(params, dict):
+            raise _type_error(f"[stages.{stage}] params", "a table", params, path)
+        params[param] = value
+
+
+def load_recipe(path: str | Path, overrides: tuple[str, ...] | list[str] = ()) -> Recipe:
+    """Read and validate a recipe file; raise :class:`ReflectmmError` naming the file on any problem.
+
+    ``overrides`` are ``STAGE.PARAM=VALUE`` strings applied before validation (``reflectmm run --set``).
+    """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -156,7 +208,7 @@ def load_recipe(path: str | Path) -> Recipe:
         raise ReflectmmError("is a directory, expected a recipe .toml file", path) from None
     except UnicodeDecodeError:
         raise ReflectmmError("not a text (UTF-8) file", path) from None
-    return parse_recipe_text(text, path)
+    return parse_recipe_text(text, path, overrides)
 
 
 def _build(doc: dict[str, Any], path: Path) -> Recipe:

@@ -100,10 +100,11 @@ class RunReport:
 class RunLog:
     """Appends one JSON line per task outcome to ``<workspace>/.reflectmm/runlog.jsonl``."""
 
-    def __init__(self, workspace: Path, recipe: str):
+    def __init__(self, workspace: Path, recipe: str, overrides: tuple[str, ...] = ()):
         self.path = state_dir(workspace) / RUNLOG_FILE
         self.run_id = uuid.uuid4().hex[:12]
         self.recipe = recipe
+        self.overrides = list(overrides)
         self._warned = False
 
     def write(self, o: TaskOutcome) -> None:
@@ -111,6 +112,8 @@ class RunLog:
                "recipe": self.recipe, "stage": o.stage, "id": o.id, "cache_key": o.cache_key,
                "status": o.status, "reason": o.reason, "duration": round(o.duration, 4), "error": o.error,
                "worker": o.worker}
+        if self.overrides:
+            rec["overrides"] = self.overrides
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             with open(self.path, "a", encoding="utf-8") as f:
@@ -227,7 +230,7 @@ def _run_locked(recipe: Recipe, workspace: Path, memo: dict[str, Any], plan: Pla
                 scheduler: str | None) -> RunReport:
     own_executor = not isinstance(executor, Executor)
     ex = make_executor(executor, jobs, scheduler) if own_executor else executor
-    run = _Run(recipe, workspace, memo, plan, RunLog(workspace, recipe.name),
+    run = _Run(recipe, workspace, memo, plan, RunLog(workspace, recipe.name, recipe.overrides),
                dict(force=force, only=only, ids=ids))
     t1 = time.perf_counter()
     try:
