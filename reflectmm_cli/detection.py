@@ -1,6 +1,11 @@
 """68-point landmark detection with dlib (optional extra ``reflectmm[landmarks]``: ``dlib-bin`` +
-``face-recognition-models``, which ship the HOG frontal face detector and the iBUG 68-point shape predictor;
-nothing is downloaded at run time).
+``face-recognition-models``, which ship the HOG frontal face detector, dlib's MMOD CNN face detector and the
+iBUG 68-point shape predictor; nothing is downloaded at run time).
+
+Two face detectors (:data:`DETECTORS`): ``hog``, dlib's frontal HOG + linear SVM detector (fast; finds faces
+within about 30° of yaw), and ``cnn``, dlib's max-margin object detector (MMOD) CNN, the model
+``face_recognition`` uses for ``model="cnn"`` (about 2 s per 640×480 image on one CPU core; finds faces at larger
+yaw). Both feed the same 68-point shape predictor.
 
 :func:`detect_landmarks` returns every face of an image (largest first) with its box, detector score and
 68 landmarks in the pixel-centre convention of geometry/camera.py (dlib reports integer pixel indices whose
@@ -22,7 +27,8 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Face", "EXPOSURES", "predictor_path", "normalize_exposure", "detect_landmarks", "pick_face", "detect_landmark_files"]
+__all__ = ["Face", "EXPOSURES", "DETECTORS", "predictor_path", "cnn_detector_path", "normalize_exposure",
+           "detect_landmarks", "pick_face", "detect_landmark_files"]
 
 _MISSING = ("landmark detection needs the optional extra: pip install 'reflectmm[landmarks]' "
             "(dlib-bin and face-recognition-models)")
@@ -30,6 +36,9 @@ _MISSING = ("landmark detection needs the optional extra: pip install 'reflectmm
 
 #: How :func:`detect_landmarks` prepares the image: ``auto`` = :func:`normalize_exposure`, ``none`` = as given.
 EXPOSURES = ("auto", "none")
+
+#: The face detectors of :func:`detect_landmarks`: dlib's frontal HOG detector, or its MMOD CNN detector.
+DETECTORS = ("hog", "cnn")
 
 
 @dataclass
@@ -43,30 +52,50 @@ class Face:
         return max(0, self.box[2] - self.box[0]) * max(0, self.box[3] - self.box[1])
 
 
+def _model_file(name: str, what: str) -> Path:
+    """A model file of ``face_recognition_models`` (located without importing the package, whose
+    ``pkg_resources`` import is unavailable on recent setuptools)."""
+    spec = importlib.util.find_spec("face_recognition_models")
+    if spec is None or not spec.submodule_search_locations:
+        raise ReflectmmError(_MISSING)
+    p = Path(list(spec.submodule_search_locations)[0]) / "models" / name
+    if not p.is_file():
+        raise ReflectmmError(f"face_recognition_models has no {what} at {p}")
+    return p
+
+
 def predictor_path() -> Path:
-    """The 68-point model file of ``face_recognition_models`` (``pose_predictor_model_location()``; located
-    without importing the package when its ``pkg_resources`` import is unavailable)."""
+    """The 68-point model file of ``face_recognition_models`` (its ``pose_predictor_model_location()``)."""
     try:
         import face_recognition_models
 
         return Path(face_recognition_models.pose_predictor_model_location())
     except ImportError:
-        spec = importlib.util.find_spec("face_recognition_models")
-        if spec is None or not spec.submodule_search_locations:
-            raise ReflectmmError(_MISSING) from None
-        p = Path(list(spec.submodule_search_locations)[0]) / "models" / "shape_predictor_68_face_landmarks.dat"
-        if not p.is_file():
-            raise ReflectmmError(f"face_recognition_models has no 68-point model at {p}") from None
-        return p
+        return _model_file("shape_predictor_68_face_landmarks.dat", "68-point model")
 
 
-@lru_cache(maxsize=1)
-def _models():
+def cnn_detector_path() -> Path:
+    """dlib's MMOD CNN face detector of ``face_recognition_models`` (its ``cnn_face_detector_model_location()``)."""
+    return _model_file("mmod_human_face_detector.dat", "CNN face detector")
+
+
+@lru_cache(maxsize=2)
+def _models(detector: str = "hog"):
     try:
         import dlib
     except ImportError:
         raise ReflectmmError(_MISSING) from None
-    return dlib.get_frontal_face_detector(), dlib.shape_predictor(str(predictor_path()))
+    det = (dlib.get_frontal_face_detector() if detector == "hog" else
+           dlib.cnn_face_detection_model_v1(str(cnn_detector_path())))
+    return det, dlib.shape_predictor(str(predictor_path()))
+
+
+def _detect(det, detector: str, img: np.ndarray, upsample: int) -> list[tuple[object, float]]:
+    """(dlib rectangle, score) of every face the detector finds: the HOG SVM's margin, or the CNN's confidence."""
+    if detector == "hog":
+        rects, scores, _ = det.run(img, int(upsample))
+        return list(zip(rects, (float(s) for s in scores)))
+    return [(d.rect, float(d.confidence)) for d in det(img, int(upsample))]
 
 
 def normalize_exposure(image_rgb: np.ndarray, percentile: float = 99.5) -> np.ndarray:
@@ -88,23 +117,26 @@ def normalize_exposure(image_rgb: np.ndarray, percentile: float = 99.5) -> np.nd
     return np.clip(np.rint(img.astype(np.float32) * np.float32(gain)), 0, 255).astype(np.uint8)
 
 
-def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1, exposure: str = "auto") -> list[Face]:
+def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1, exposure: str = "auto",
+                     detector: str = "hog") -> list[Face]:
     """All faces of an RGB uint8 image (H, W, 3), sorted by box area then score (largest first).
 
     ``exposure`` (one of :data:`EXPOSURES`): ``auto`` detects on :func:`normalize_exposure` of the image,
-    ``none`` on the image as given.  The landmarks are in the input's pixel grid either way.
+    ``none`` on the image as given.  The landmarks are in the input's pixel grid either way.  ``detector`` (one
+    of :data:`DETECTORS`) finds the faces; ``upsample`` doubles the image that many times first (smaller faces).
     """
     img = np.ascontiguousarray(np.asarray(image_rgb))
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ReflectmmError(f"detect_landmarks: expected an RGB uint8 image, got {img.dtype} {img.shape}")
     if exposure not in EXPOSURES:
         raise ReflectmmError(f"detect_landmarks: exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
+    if detector not in DETECTORS:
+        raise ReflectmmError(f"detect_landmarks: detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
     if exposure == "auto":
         img = np.ascontiguousarray(normalize_exposure(img))
-    det, pred = _models()
-    rects, scores, _ = det.run(img, int(upsample))
+    det, pred = _models(detector)
     faces = []
-    for r, s in zip(rects, scores):
+    for r, s in _detect(det, detector, img, upsample):
         sh = pred(img, r)
         lm = np.array([[p.x, p.y] for p in sh.parts()], np.float64)
         faces.append(Face((r.left(), r.top(), r.right(), r.bottom()), float(s), lm))
@@ -123,7 +155,7 @@ def pick_face(faces: list[Face], index: int | None = None) -> Face | None:
 
 
 def detect_landmark_files(images, out_dir, *, face_index: int | None = None, upsample: int = 1,
-                          exposure: str = "auto", progress_fn=None
+                          exposure: str = "auto", detector: str = "hog", progress_fn=None
                           ) -> tuple[list[Path], list[str], list[tuple[Path, str]]]:
     """Detect the face of each image file and write ``out_dir/<stem>.pts`` (68 iBUG points, pixel-centre
     convention; read by ``preprocess-multipie`` and ``prepare-wild``).
@@ -136,14 +168,16 @@ def detect_landmark_files(images, out_dir, *, face_index: int | None = None, ups
     from reflectmm_cli.artifacts import read_image_u8
     from reflectmm_cli.landmarks import write_pts
 
-    _models()
+    if detector not in DETECTORS:
+        raise ReflectmmError(f"detect_landmarks: detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
+    _models(detector)
     written: list[Path] = []
     errors: list[str] = []
     faceless: list[tuple[Path, str]] = []
     for p in (progress_fn(images) if progress_fn else images):
         p = Path(p)
         try:
-            faces = detect_landmarks(read_image_u8(p), upsample=upsample, exposure=exposure)
+            faces = detect_landmarks(read_image_u8(p), upsample=upsample, exposure=exposure, detector=detector)
             f = pick_face(faces, face_index)
             if f is None:
                 why = ("no face found" if not faces else

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from reflectmm_cli.detection import EXPOSURES
+from reflectmm_cli.detection import DETECTORS, EXPOSURES
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
@@ -25,6 +25,9 @@ VERB = "detect-landmarks"
 PARAMS = (
     Param("face_index", "int", None, range=(0, None),
           help="Which face when several are found (0 = largest; default the largest)."),
+    Param("detector", "str", "hog", choices=DETECTORS,
+          help="Face detector: hog = dlib's frontal HOG detector (fast; faces within about 30° of yaw); cnn = dlib's "
+               "MMOD CNN detector (about 2 s per 640x480 image on one core; faces at larger yaw)."),
     Param("upsample", "int", 1, range=(0, 3), help="Detector upsampling (finds smaller faces, slower)."),
     Param("exposure", "str", "auto", choices=EXPOSURES,
           help="auto: brighten dim images before detecting (99.5th percentile of the brightest channel to 255; "
@@ -96,7 +99,7 @@ def run(ctx: StageContext) -> list[Path]:
                              f"({', '.join(str(p) for p in ctx.input_list('images'))})")
     written, errors, faceless = detect_landmark_files(
         images, out_dir(ctx), face_index=ctx.params.get("face_index"), upsample=ctx.params["upsample"],
-        exposure=ctx.params["exposure"], progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
+        exposure=ctx.params["exposure"], detector=ctx.params["detector"], progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
     unreadable = len(errors) - len(faceless)
     if ctx.params.get("allow_missing") and unreadable == 0:
         from reflectmm_cli.artifacts import atomic_write_text

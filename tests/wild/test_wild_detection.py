@@ -159,3 +159,53 @@ def test_a_glob_in_the_images_input_is_expanded_when_the_images_exist(tmp_path):
     odd = tmp_path / "data" / "[x]_00.png"
     write_png(odd, np.full((8, 8, 3), 0.5))
     assert image_files(ctx.with_(inputs={"images": [odd]}).with_patterns_expanded()) == [odd]
+
+
+def test_cnn_detector_finds_the_same_face(tmp_path, cli):
+    """dlib's MMOD CNN detector on the astronaut: the same face as the HOG detector's (the same shape predictor,
+    another box), written through the command with --detector cnn."""
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+
+    img = data.astronaut()
+    hog = pick_face(detect_landmarks(img))
+    cnn = pick_face(detect_landmarks(img, detector="cnn"))
+    assert cnn is not None
+    iod = float(np.linalg.norm(hog.landmarks[36:42].mean(0) - hog.landmarks[42:48].mean(0)))
+    assert np.median(np.linalg.norm(cnn.landmarks - hog.landmarks, axis=1)) < 0.1 * iod
+    write_png(tmp_path / "astronaut.png", img)
+    res = cli("detect-landmarks", tmp_path / "astronaut.png", "--detector", "cnn", "--out", tmp_path / "lm")
+    assert res.exit_code == 0, res.stderr
+    assert np.allclose(read_landmarks(tmp_path / "lm" / "astronaut.pts"), cnn.landmarks)
+
+
+def test_cnn_detector_reaches_a_45_degree_view(tmp_path):
+    """A painted synthetic face seen from camera 19_0 (45° of yaw): the HOG detector finds no face, the CNN one
+    finds it, with its inner points within a quarter of the inter-ocular distance of the synthetic landmarks."""
+    import cv2
+
+    from reflectmm_cli.synth.multipie import SynthConfig, synth_multipie
+
+    synth_multipie(tmp_path, SynthConfig(identities=1, seed=0, cameras=("19_0",), flashes=("01",), noise=0.002,
+                                         features="painted", image_size=(640, 480)))
+    png = next(tmp_path.rglob("*_190_00.png"))
+    truth = read_landmarks(png.with_name(png.stem + "_lm.pts"))
+    img = cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB)
+    assert not detect_landmarks(img)
+    faces = detect_landmarks(img, detector="cnn")
+    assert faces
+    iod = float(np.linalg.norm(truth[36:42].mean(0) - truth[42:48].mean(0)))
+    err = np.linalg.norm(faces[0].landmarks[27:] - truth[27:], axis=1)
+    assert np.median(err) < 0.25 * iod
+
+
+def test_unknown_detector_is_a_one_line_error(tmp_path, cli):
+    from reflectmm_cli.artifacts import write_png
+    from reflectmm_cli.errors import ReflectmmError
+
+    with pytest.raises(ReflectmmError, match="detector must be one of hog, cnn"):
+        detect_landmarks(np.zeros((8, 8, 3), np.uint8), detector="mtcnn")
+    write_png(tmp_path / "a.png", np.full((40, 40, 3), 0.5))
+    res = cli("detect-landmarks", tmp_path / "a.png", "--detector", "mtcnn", "--out", tmp_path / "lm")
+    assert res.exit_code != 0 and "mtcnn" in res.stderr and not (tmp_path / "lm").exists()
