@@ -411,3 +411,29 @@ def test_finetune_solver_ls_sharded_on_two_jobs_equals_the_serial_map(cli, data,
             data["shards"][0], "-o", bad, *TINY, "--solver", "ls", "--jobs", "2")
     assert r.exit_code != 0 and "--ls-shard-images" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not bad.exists()
+
+
+def test_solver_ls_trains_phase1_on_the_solved_model(cli, data, tmp_path):
+    """--solver ls without --phase1-encoder: phase 1 trains the encoder on the solved model, so the run's phase-1
+    encoder equals, tensor for tensor, that of a phase-1-only run on the model the update wrote, and differs from
+    a phase-1-only run on the initial model."""
+    from safetensors.numpy import load_file
+
+    base = ["--light-model", data["light_path"], "--data", data["shards"][0], "--face-model", data["face_model"]]
+    args = list(TINY)
+    args[args.index("--model-lr") + 1] = "0"
+    ls = tmp_path / "ls" / "m.npz"
+    r = cli("finetune", "--model", data["init_path"], *base, "-o", ls, *args, "--solver", "ls", "--ls-rounds", "1",
+            "--ls-harmonics", "8", "--ls-pull", "0.01")
+    assert r.exit_code == 0, r.stderr
+    p1_only = list(args)
+    p1_only[p1_only.index("--epochs2") + 1] = "0"
+    encs = {}
+    for name, model in (("solved", ls), ("initial", data["init_path"])):
+        out = tmp_path / name / "m.npz"
+        assert cli("finetune", "--model", model, *base, "-o", out, *p1_only).exit_code == 0
+        encs[name] = load_file(out.parent / "m_encoder.safetensors")
+    mine = load_file(ls.parent / "m_encoder_phase1.safetensors")
+    assert mine.keys() == encs["solved"].keys()
+    assert all(np.array_equal(mine[k], encs["solved"][k]) for k in mine)
+    assert not all(np.array_equal(mine[k], encs["initial"][k]) for k in mine)
