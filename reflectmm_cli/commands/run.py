@@ -76,8 +76,8 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
     id_list = parse_ids(ids) if ids is not None else None
     if ids is not None and not id_list:
         raise ReflectmmError("--ids: no identity given")
-    report = run_recipe(load_recipe(recipe, overrides), ws, dry_run=dry_run, force=force, only=only, ids=id_list, executor=executor,
-                        jobs=jobs, scheduler=scheduler)
+    report = run_recipe(load_recipe(recipe, overrides), ws, dry_run=dry_run, force=force, only=only, ids=id_list,
+                        executor=executor, jobs=jobs, scheduler=scheduler)
     try:
         if as_json:
             click.echo(json.dumps(report.as_dict(), indent=2, sort_keys=True, default=str))

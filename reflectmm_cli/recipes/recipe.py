@@ -150,8 +150,8 @@ def parse_recipe_text(text: str, path: Path, overrides: tuple[str, ...] | list[s
     return recipe
 
 
-#: A bare word that ``--set`` takes as a string without quotes (``solver=ls``, ``brdf=ggx``).
-_BARE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-/]*$")
+#: A bare word that ``--set`` takes as a string without quotes (``solver=ls``, ``device=cuda:0``).
+_BARE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.:\-/]*$")
 
 
 def parse_override(text: str, path: Path) -> tuple[str, str, Any]:

@@ -99,7 +99,8 @@ def run(ctx: StageContext) -> list[Path]:
                              f"({', '.join(str(p) for p in ctx.input_list('images'))})")
     written, errors, faceless = detect_landmark_files(
         images, out_dir(ctx), face_index=ctx.params.get("face_index"), upsample=ctx.params["upsample"],
-        exposure=ctx.params["exposure"], detector=ctx.params["detector"], progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
+        exposure=ctx.params["exposure"], detector=ctx.params["detector"],
+        progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
     unreadable = len(errors) - len(faceless)
     if ctx.params.get("allow_missing") and unreadable == 0:
         from reflectmm_cli.artifacts import atomic_write_text

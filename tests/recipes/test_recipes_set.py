@@ -99,6 +99,12 @@ def test_toml_values_round_trip(value):
     assert got == value or (isinstance(value, float) and math.isclose(got, value))
 
 
+def test_bare_words_are_strings():
+    for word in ("ls", "ggx", "cuda:0", "data/weights.safetensors", "two-lobe"):
+        assert parse_override(f"a.b={word}", BASIC_PATH)[2] == word
+    assert parse_override("a.b=true", BASIC_PATH)[2] is True  # a TOML value first
+
+
 def test_stage_names_with_dots(tmp_path):
     doc = 'schema = "reflectmm.recipe/1"\n[stages."fit.v2"]\nverb = "checksum"\ninputs = { files = "x" }\n'
     r = parse_recipe_text(doc, tmp_path / "r.toml", ["fit.v2.fail_if_contains=Q"])
