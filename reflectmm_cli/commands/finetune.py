@@ -30,7 +30,7 @@ _FILE = click.Path(dir_okay=False, path_type=Path)
               help="ImageNet ResNet trunk as safetensors with torchvision key names.")
 @click.option("--phase1-encoder", type=_FILE, default=None,
               help="Start at phase 2 from another run's *_encoder_phase1.safetensors (same phase-1 settings and data;"
-                   " Table 2's control run shares phase 1 with the finetuned run this way).")
+                   " a joint-SGD run and its Table 2 control share phase 1 this way).")
 @param_options(PARAMS)
 @device_option
 @workspace_option
