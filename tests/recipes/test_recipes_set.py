@@ -114,3 +114,14 @@ def test_stage_names_with_dots(tmp_path):
 
 
 BASIC_PATH = __import__("pathlib").Path("recipe.toml")
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_the_override_reaches_the_task(cli, ws, jobs):
+    """The task runs with the overridden value, in this process and in a pool worker: a marker that only the
+    override names fails the one identity whose file holds it."""
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--jobs", jobs, "--set", 'manifest.fail_if_contains="identity 002"')
+    assert r.exit_code == 1
+    assert "reflectmm: failed: manifest/002" in r.stderr and "failed: manifest/001" not in r.stderr
+    assert "contains the marker 'identity 002'" in r.stderr
+    assert sorted(p.name for p in (ws / "manifest").glob("*.npz")) == ["001.npz", "003.npz", "004.npz"]
