@@ -15,7 +15,9 @@ finetune stage), one torch thread, no preview PNGs, started at phase 2 from the 
 encoder is made once per seed by a control run of one phase-2 epoch (a run that trains phase 1 itself; its phase-1
 encoder is then shared, which ``finetune`` tests to equal training it again). A run's CPU time is the user + system
 time of its process (``resource.getrusage`` of the children), so it counts start-up, data loading and writing the
-outputs alike for every method; the phase-1 encoder's time is left out of every run.
+outputs alike for every method; the phase-1 encoder's time is left out of every run. A run given ``phase1=own``
+trains its own phase 1 instead (with ``solver=ls``: on the solved model, as recipes/synthetic.toml's finetune
+stage does), and its CPU time counts it.
 
 Measures per run (the truth is read only here, never by a run):
 
@@ -144,13 +146,17 @@ def run(a) -> int:
             name, kw = _run_spec(spec)
             out = sd / f"{name}.npz"
             log(f"seed {seed}: {name}")
-            cpu = _finetune(ws, out, {"seed": seed} | kw, phase1=phase1, log=log)
+            opts = dict(kw)
+            own = opts.pop("phase1", "shared")
+            if own not in ("shared", "own"):
+                raise SystemExit(f"bench_update_budget: run {name}: phase1 must be shared or own, got {own!r}")
+            cpu = _finetune(ws, out, {"seed": seed} | opts, phase1=None if own == "own" else phase1, log=log)
             m, _ = load_models(out, lpath)
             key = str(out)
             row = {"run": name, "seed": seed, "options": kw, "cpu_s": cpu, "workspace": str(ws)}
             row.update(_measure_encoder(m, light, ss, sd / f"{name}_encoder.safetensors"))
             # the model alone: the control's model is the initial one; measured once per distinct model file
-            frozen = float(kw.get("model-lr", kw.get("model_lr", 1))) == 0 and kw.get("solver", "sgd") == "sgd"
+            frozen = float(opts.get("model-lr", opts.get("model_lr", 1))) == 0 and opts.get("solver", "sgd") == "sgd"
             key = "initial" if frozen else key
             if key not in model_cache:
                 model_cache[key] = _measure_model(model0 if frozen else m, light, ss, truth, oracle)
