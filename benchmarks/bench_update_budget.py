@@ -60,6 +60,16 @@ def _run_spec(spec: str) -> tuple[str, dict]:
     return name, kw
 
 
+def phase1_mode(name: str, kw: dict) -> tuple[dict, bool]:
+    """A run's options without ``phase1``, and whether it trains its own phase 1 (``phase1=own``; default
+    ``shared``: phase 2 from the seed's shared phase-1 encoder)."""
+    opts = dict(kw)
+    mode = opts.pop("phase1", "shared")
+    if mode not in ("shared", "own"):
+        raise SystemExit(f"bench_update_budget: run {name}: phase1 must be shared or own, got {mode!r}")
+    return opts, mode == "own"
+
+
 def _args(kw: dict) -> list[str]:
     out = []
     for k, v in kw.items():
@@ -146,11 +156,8 @@ def run(a) -> int:
             name, kw = _run_spec(spec)
             out = sd / f"{name}.npz"
             log(f"seed {seed}: {name}")
-            opts = dict(kw)
-            own = opts.pop("phase1", "shared")
-            if own not in ("shared", "own"):
-                raise SystemExit(f"bench_update_budget: run {name}: phase1 must be shared or own, got {own!r}")
-            cpu = _finetune(ws, out, {"seed": seed} | opts, phase1=None if own == "own" else phase1, log=log)
+            opts, own = phase1_mode(name, kw)
+            cpu = _finetune(ws, out, {"seed": seed} | opts, phase1=None if own else phase1, log=log)
             m, _ = load_models(out, lpath)
             key = str(out)
             row = {"run": name, "seed": seed, "options": kw, "cpu_s": cpu, "workspace": str(ws)}

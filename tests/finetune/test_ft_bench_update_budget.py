@@ -66,3 +66,12 @@ def test_the_oracle_as_a_model_carries_its_arrays():
     assert np.array_equal(M.sigma, np.ones(2))  # the model given is not changed
     with pytest.raises(KeyError):
         b.oracle_as_model(M(), {"vertex_albedo_mean": orc["vertex_albedo_mean"]})
+
+
+def test_phase1_mode_of_a_run():
+    b = load_benchmark("bench_update_budget")
+    name, kw = b._run_spec("own:solver=ls,epochs2=2,phase1=own")
+    assert b.phase1_mode(name, kw) == ({"solver": "ls", "epochs2": "2"}, True)
+    assert b.phase1_mode(*b._run_spec("ctl:model-lr=0")) == ({"model-lr": "0"}, False)
+    with pytest.raises(SystemExit, match="phase1 must be shared or own"):
+        b.phase1_mode(*b._run_spec("x:phase1=mine"))
