@@ -25,16 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _ids(spec: str) -> list[str]:
-    out = []
-    for part in spec.split(","):
-        if "-" in part:
-            a, b = part.split("-")
-            out += [f"{i:0{len(a)}d}" for i in range(int(a), int(b) + 1)]
-        else:
-            out.append(part)
-    return out
+from reflectmm_cli.params import parse_ids
 
 
 def _run(args: list[str]) -> str:
@@ -73,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--margins", default="1,3", help="edge margins (px), comma separated")
     ap.add_argument("--scratch", required=True, type=Path)
     args = ap.parse_args(argv)
-    ids = _ids(args.ids)
+    ids = parse_ids(args.ids)
     margins = [int(m) for m in args.margins.split(",")]
     print("| set | edge margin | albedo rel. error: observable / all texels / median texel (mean over identities) "
           "| per identity, observable |")
