@@ -81,6 +81,10 @@ def cnn_detector_path() -> Path:
 
 @lru_cache(maxsize=2)
 def _models(detector: str = "hog"):
+    """(face detector, shape predictor) of dlib, loaded once per detector; a one-line error for an unknown detector
+    or a missing extra."""
+    if detector not in DETECTORS:
+        raise ReflectmmError(f"detect_landmarks: detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
     try:
         import dlib
     except ImportError:
@@ -130,11 +134,9 @@ def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1, exposure: str 
         raise ReflectmmError(f"detect_landmarks: expected an RGB uint8 image, got {img.dtype} {img.shape}")
     if exposure not in EXPOSURES:
         raise ReflectmmError(f"detect_landmarks: exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
-    if detector not in DETECTORS:
-        raise ReflectmmError(f"detect_landmarks: detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
+    det, pred = _models(detector)
     if exposure == "auto":
         img = np.ascontiguousarray(normalize_exposure(img))
-    det, pred = _models(detector)
     faces = []
     for r, s in _detect(det, detector, img, upsample):
         sh = pred(img, r)
@@ -168,9 +170,7 @@ def detect_landmark_files(images, out_dir, *, face_index: int | None = None, ups
     from reflectmm_cli.artifacts import read_image_u8
     from reflectmm_cli.landmarks import write_pts
 
-    if detector not in DETECTORS:
-        raise ReflectmmError(f"detect_landmarks: detector must be one of {', '.join(DETECTORS)}, got {detector!r}")
-    _models(detector)
+    _models(detector)  # an unknown detector or a missing extra would fail every image: raised at once
     written: list[Path] = []
     errors: list[str] = []
     faceless: list[tuple[Path, str]] = []
