@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from reflectmm_cli.params import parse_ids
+
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "synthetic.toml"
 CHAINS = {
     # chain: (capture folder, face model, rig in the workspace, the recipe stage whose params the fit takes)
@@ -77,13 +79,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--workspace", required=True, type=Path)
     ap.add_argument("--budget", action="append", required=True, help="NAME:key=value,... (FitConfig overrides)")
-    ap.add_argument("--ids", default="001,002,003,004,005,006,007,008")
+    ap.add_argument("--ids", default="001-008", help="e.g. 001-008 or 001,003")
     ap.add_argument("--processes", type=int, default=2)
     ap.add_argument("--chain", nargs=6, action="append",
                     metavar=("NAME", "CAPTURE_DIR", "FACE_MODEL", "RIG", "LANDMARK_SIGMA", "JAW_WEIGHT"))
     args = ap.parse_args(argv)
     os.environ.setdefault("REFLECTMM_QUIET", "1")
-    ids = args.ids.split(",")
+    ids = parse_ids(args.ids)
     budgets = [parse_budget(b) for b in args.budget]
     print("| budget | chain | vertex RMS mm, mean | per identity | CPU s (sum) |")
     print("|---|---|---|---|---|")
