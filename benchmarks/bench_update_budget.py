@@ -17,7 +17,10 @@ encoder is then shared, which ``finetune`` tests to equal training it again). A 
 time of its process (``resource.getrusage`` of the children), so it counts start-up, data loading and writing the
 outputs alike for every method; the phase-1 encoder's time is left out of every run. A run given ``phase1=own``
 trains its own phase 1 instead (with ``solver=ls``: on the solved model, as recipes/synthetic.toml's finetune
-stage does), and its CPU time counts it.
+stage does), and its CPU time counts it. A run given ``model=oracle`` starts from the oracle (below) instead of the
+workspace's build-pca model; with ``model-lr=0,phase1=own`` that is the control's schedule on the oracle, the
+ceiling of the encoder-only gain (what an encoder of this budget gains from a model that already is the training
+population's).
 
 Measures per run (the truth is read only here, never by a run):
 
@@ -70,6 +73,34 @@ def phase1_mode(name: str, kw: dict) -> tuple[dict, bool]:
     return opts, mode == "own"
 
 
+def model_mode(name: str, kw: dict) -> tuple[dict, str]:
+    """A run's options without ``model``, and the model it starts from (``initial``, the default: the workspace's
+    build-pca; ``oracle``: the oracle model of :func:`write_oracle_model`)."""
+    opts = dict(kw)
+    mode = opts.pop("model", "initial")
+    if mode not in ("initial", "oracle"):
+        raise SystemExit(f"bench_update_budget: run {name}: model must be initial or oracle, got {mode!r}")
+    return opts, mode
+
+
+def write_oracle_model(ws: Path, oracle: dict, out: Path) -> Path:
+    """The workspace's build-pca artifact with its per-vertex means, bases and σ replaced by the oracle's (the
+    UV-space arrays, which finetune does not read, stay the initial model's): a ``reflectance-model`` that
+    ``reflectmm finetune --model`` takes like any other."""
+    from reflectmm_cli.artifacts import read_artifact, write_artifact
+    from reflectmm_cli.model.pca import MODEL_KIND
+
+    art = read_artifact(ws / "build-pca" / "build-pca.npz", MODEL_KIND)
+    arrays = dict(art.arrays)
+    for k in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis", "sigma"):
+        if arrays[k].shape != np.shape(oracle[k]):
+            raise SystemExit(f"bench_update_budget: oracle {k} {np.shape(oracle[k])} against the model's "
+                             f"{arrays[k].shape}")
+        arrays[k] = np.asarray(oracle[k], np.float32)
+    return write_artifact(out, MODEL_KIND, arrays, extra_meta={"stats": art.meta.get("stats", {}),
+                                                               "oracle_of": str(ws / "build-pca" / "build-pca.npz")})
+
+
 def _args(kw: dict) -> list[str]:
     out = []
     for k, v in kw.items():
@@ -77,10 +108,12 @@ def _args(kw: dict) -> list[str]:
     return out
 
 
-def _finetune(ws: Path, out: Path, kw: dict, *, phase1: Path | None, log) -> float:
+def _finetune(ws: Path, out: Path, kw: dict, *, phase1: Path | None, log, model: Path | None = None) -> float:
     """One ``reflectmm finetune`` process; returns its CPU seconds (user + system)."""
     cmd = ["reflectmm", "finetune", "-w", str(ws), "--output", str(out), "--threads", "1", "--samples", "0"]
     cmd += _args(COMMON | kw)
+    if model is not None:
+        cmd += ["--model", str(model)]
     if phase1 is not None:
         cmd += ["--phase1-encoder", str(phase1)]
     if (ws / "synth-wild" / "face_model.npz").is_file():  # the mesh of --ls-harmonics
@@ -149,7 +182,8 @@ def run(a) -> int:
         sd.mkdir(exist_ok=True)
         p1 = sd / "phase1.npz"
         phase1 = sd / "phase1_encoder_phase1.safetensors"
-        if not phase1.is_file():
+        shared = any(not phase1_mode(*_run_spec(spec))[1] for spec in a.run)
+        if shared and not phase1.is_file():  # only when a run starts from it
             log(f"seed {seed}: phase 1 (a control run of one phase-2 epoch)")
             _finetune(ws, p1, {"seed": seed, "model_lr": 0.0, "epochs2": 1}, phase1=None, log=log)
         for spec in a.run:
@@ -157,16 +191,26 @@ def run(a) -> int:
             out = sd / f"{name}.npz"
             log(f"seed {seed}: {name}")
             opts, own = phase1_mode(name, kw)
-            cpu = _finetune(ws, out, {"seed": seed} | opts, phase1=None if own else phase1, log=log)
+            opts, start = model_mode(name, opts)
+            start_path = None
+            if start == "oracle":
+                start_path = a.scratch / "oracle_model.npz"
+                if not start_path.is_file():
+                    write_oracle_model(ws, oracle, start_path)
+                if not own:
+                    raise SystemExit(f"bench_update_budget: run {name}: model=oracle needs phase1=own (the shared "
+                                     "phase-1 encoder was trained on the initial model)")
+            cpu = _finetune(ws, out, {"seed": seed} | opts, phase1=None if own else phase1, log=log, model=start_path)
             m, _ = load_models(out, lpath)
             key = str(out)
             row = {"run": name, "seed": seed, "options": kw, "cpu_s": cpu, "workspace": str(ws)}
             row.update(_measure_encoder(m, light, ss, sd / f"{name}_encoder.safetensors"))
             # the model alone: the control's model is the initial one; measured once per distinct model file
             frozen = float(opts.get("model-lr", opts.get("model_lr", 1))) == 0 and opts.get("solver", "sgd") == "sgd"
-            key = "initial" if frozen else key
+            key = start if frozen else key
             if key not in model_cache:
-                model_cache[key] = _measure_model(model0 if frozen else m, light, ss, truth, oracle)
+                start_model = oracle_as_model(model0, oracle) if start == "oracle" else model0
+                model_cache[key] = _measure_model(start_model if frozen else m, light, ss, truth, oracle)
             row.update(model_cache[key])
             log(f"  encoder PSNR {np.mean(row['psnr']):.2f} SSIM {np.mean(row['ssim']):.3f}; refined "
                 f"{np.mean(row['refined_psnr']):.2f} / {np.mean(row['refined_ssim']):.3f}; albedo residual "
@@ -193,7 +237,8 @@ def summarise(paths: list[Path], pairs: list[str]) -> str:
            "albedo residual (gap closed) | lobe-weight residual (gap closed) |", "|" + "---|" * 10]
     # the initial model's measures: those of a run whose model stayed frozen (a control), averaged over its seeds
     ctl = next((rs for rs in by.values() if float(rs[0]["options"].get("model-lr", 1)) == 0
-                and rs[0]["options"].get("solver", "sgd") == "sgd"), None)
+                and rs[0]["options"].get("solver", "sgd") == "sgd"
+                and rs[0]["options"].get("model", "initial") == "initial"), None)
     ini = None if ctl is None else {k: float(np.mean([np.mean(r[k]) for r in ctl]))
                                     for k in ("refined_psnr", "albedo_residual", "weights_residual")}
     ini_psnr = ini["refined_psnr"] if ini else None

@@ -75,3 +75,52 @@ def test_phase1_mode_of_a_run():
     assert b.phase1_mode(*b._run_spec("ctl:model-lr=0")) == ({"model-lr": "0"}, False)
     with pytest.raises(SystemExit, match="phase1 must be shared or own"):
         b.phase1_mode(*b._run_spec("x:phase1=mine"))
+
+
+def test_a_run_from_the_oracle(tmp_path):
+    """``model=oracle``: the run's start model file carries the oracle's per-vertex arrays and σ (read back through
+    finetune's own loader), the rest of the workspace's model unchanged; a bad mode or a shape mismatch is refused;
+    and the summary's initial-model row is a frozen run from the initial model, not the oracle's control."""
+    from reflectmm_cli.artifacts import read_artifact, write_artifact
+    from reflectmm_cli.finetune.train import _check_finite
+    from reflectmm_cli.model.pca import MODEL_KIND, ReflectanceModel, model_arrays, model_from_arrays
+
+    b = load_benchmark("bench_update_budget")
+    assert b.model_mode("o", {"model": "oracle", "epochs2": "2"}) == ({"epochs2": "2"}, "oracle")
+    assert b.model_mode("c", {"model-lr": "0"}) == ({"model-lr": "0"}, "initial")
+    with pytest.raises(SystemExit, match="model must be initial or oracle"):
+        b.model_mode("x", {"model": "truth"})
+
+    rng = np.random.default_rng(3)
+    V, M, K = 5, 2, 3
+    f = lambda *s: rng.normal(size=s).astype(np.float32)  # noqa: E731
+    init = ReflectanceModel(albedo_mean=f(3, 2, 2), albedo_basis=f(M, 3, 2, 2), weights_mean=f(K, 2, 2),
+                            weights_basis=f(M, K, 2, 2), sigma=np.array([2.0, 1.0], np.float32),
+                            explained_variance=np.array([4.0, 1.0], np.float32),
+                            explained_variance_ratio=np.array([0.8, 0.2], np.float32),
+                            exponents=np.array([1.0, 8.0, 64.0], np.float32), mask=np.ones((2, 2), bool),
+                            train_coeffs=f(3, M), vertex_albedo_mean=f(V, 3), vertex_albedo_basis=f(M, V, 3),
+                            vertex_weights_mean=f(V, K), vertex_weights_basis=f(M, V, K))
+    ws = tmp_path / "ws"
+    write_artifact(ws / "build-pca" / "build-pca.npz", MODEL_KIND, model_arrays(init))
+    orc = {"vertex_albedo_mean": f(V, 3), "vertex_albedo_basis": f(M, V, 3), "vertex_weights_mean": f(V, K),
+           "vertex_weights_basis": f(M, V, K), "sigma": np.array([3.0, 0.5], np.float32)}
+    path = b.write_oracle_model(ws, orc, tmp_path / "oracle.npz")
+    art = read_artifact(path, MODEL_KIND)  # as finetune's load_models reads it
+    _check_finite(art.arrays, path)
+    got = model_from_arrays(art.arrays, art.meta.get("stats"))
+    for k, v in orc.items():
+        assert np.array_equal(getattr(got, k), v), k
+    assert np.array_equal(got.albedo_mean, init.albedo_mean) and np.array_equal(got.train_coeffs, init.train_coeffs)
+    with pytest.raises(SystemExit, match="vertex_albedo_basis"):
+        b.write_oracle_model(ws, orc | {"vertex_albedo_basis": f(M + 1, V, 3)}, tmp_path / "bad.npz")
+    assert not (tmp_path / "bad.npz").exists()
+
+    rows = [_row("oracle2own", s, {"model": "oracle", "model-lr": "0", "phase1": "own"}, 20, rng, shift=1.0)
+            for s in (0, 1)]
+    rows += [_row("control2", s, {"model-lr": "0", "epochs2": "2"}, 10, rng) for s in (0, 1)]
+    jl = tmp_path / "r.jsonl"
+    jl.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    text = b.summarise([jl], [])
+    ctl_line = next(x for x in text.splitlines() if x.startswith("| control2 |"))
+    assert "(+0 %)" in ctl_line  # the gaps are measured from the control's model, not from the oracle run's
