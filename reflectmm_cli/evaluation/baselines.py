@@ -42,7 +42,9 @@ DIFFUSE_ONLY_EXPONENT = 1.0
 ALBEDOMM_EXPONENT = 20.0
 #: baseline name → (description, role)
 BASELINES = {"diffuse-only": ("Lambertian PCA of ground-truth diffuse albedo", "BFM09"),
-             "albedomm": ("PCA of ground-truth diffuse + specular albedo, one Blinn-Phong exponent 20", "AlbedoMM")}
+             "albedomm": ("PCA of ground-truth diffuse + specular albedo, one Blinn-Phong exponent 20", "AlbedoMM"),
+             "oracle": ("PCA of the wild training identities' true per-vertex diffuse albedo and lobe weights",
+                        "the oracle of finetuning (a ceiling, not a method)")}
 
 
 def truth_maps(truth: Mapping[str, np.ndarray], name: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -122,7 +124,9 @@ def write_baseline_model(model: ReflectanceModel, path: str | Path, *, params: M
     kind = model.stats.get("baseline", "")
     desc, role = BASELINES.get(kind, ("", ""))
     extra = {"n_identities": len(model.ids), "n_components": model.n_components, "stats": model.stats,
-             "ids": model.ids, "baseline": kind, "role": role, "data": "ground-truth maps (synth-truth)",
+             "ids": model.ids, "baseline": kind, "role": role,
+             "data": ("ground-truth per-vertex reflectance (synth wild, train split)" if kind == "oracle"
+                      else "ground-truth maps (synth-truth)"),
              "method": desc + "; PCA as build-pca (specular bases = the same combination of training samples)",
              "face_model": dict(face_model) if face_model else None}
     return write_artifact(path, MODEL_KIND, model_arrays(model), params=dict(params or {}), inputs=inputs,

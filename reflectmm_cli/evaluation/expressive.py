@@ -21,7 +21,8 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["projection_residuals", "projection_coefficients", "oracle_model", "gap_closed", "PRIOR_WEIGHT"]
+__all__ = ["projection_residuals", "projection_coefficients", "oracle_model", "oracle_reflectance_model", "gap_closed",
+           "PRIOR_WEIGHT"]
 
 #: λ of the projection (relative data term): a coefficient of 3σ costs 0.009, as much as a relative residual of 0.095.
 PRIOR_WEIGHT = 1e-3
@@ -83,17 +84,9 @@ def _project(mean, basis, sigma, truth, region, prior: float) -> tuple[np.ndarra
     return X, out
 
 
-def oracle_model(albedos, weights, exponents, components: int, ids: Sequence[str] | None = None) -> dict:
-    """A per-vertex model of ``components`` components built from N identities' *true* per-vertex reflectance by
-    the very PCA and lobe-weight transfer of ``build-pca`` (:func:`reflectmm_cli.model.pca.fit_reflectance_pca`):
-    the best a model of that size can do with that population — the oracle of finetuning.
-
-    Args:
-        albedos: (N, V, 3); weights: (N, V, K); exponents: (K,); components: M (capped at N − 1 as in build-pca).
-    Returns:
-        ``{"vertex_albedo_mean" (V,3), "vertex_albedo_basis" (M,V,3), "vertex_weights_mean" (V,K),
-        "vertex_weights_basis" (M,V,K), "sigma" (M,), "exponents" (K,)}`` float32.
-    """
+def _oracle_pca(albedos, weights, exponents, components: int, ids: Sequence[str] | None):
+    """build-pca's PCA and transfer of N identities' per-vertex truth: (the model on a square grid of the V
+    vertices, the map ``back`` from its (..., C, S, S) arrays to (..., V, C))."""
     from reflectmm_cli.model.pca import fit_reflectance_pca
 
     a = np.asarray(albedos, np.float32)
@@ -120,9 +113,69 @@ def oracle_model(albedos, weights, exponents, components: int, ids: Sequence[str
         flat = m.reshape(m.shape[:-2] + (S * S,))[..., :V]
         return np.moveaxis(flat, -1, -2).astype(np.float32)
 
+    return model, back
+
+
+def oracle_model(albedos, weights, exponents, components: int, ids: Sequence[str] | None = None) -> dict:
+    """A per-vertex model of ``components`` components built from N identities' *true* per-vertex reflectance by
+    the very PCA and lobe-weight transfer of ``build-pca`` (:func:`reflectmm_cli.model.pca.fit_reflectance_pca`):
+    the best a model of that size can do with that population — the oracle of finetuning.
+
+    Args:
+        albedos: (N, V, 3); weights: (N, V, K); exponents: (K,); components: M (capped at N − 1 as in build-pca).
+    Returns:
+        ``{"vertex_albedo_mean" (V,3), "vertex_albedo_basis" (M,V,3), "vertex_weights_mean" (V,K),
+        "vertex_weights_basis" (M,V,K), "sigma" (M,), "exponents" (K,)}`` float32.
+    """
+    model, back = _oracle_pca(albedos, weights, exponents, components, ids)
     return {"vertex_albedo_mean": back(model.albedo_mean), "vertex_albedo_basis": back(model.albedo_basis),
             "vertex_weights_mean": back(model.weights_mean), "vertex_weights_basis": back(model.weights_basis),
             "sigma": np.asarray(model.sigma, np.float32), "exponents": np.asarray(exponents, np.float32)}
+
+
+def oracle_reflectance_model(albedos, weights, exponents, components: int, uv, triangles, size: int,
+                             ids: Sequence[str] | None = None):
+    """The oracle of :func:`oracle_model` as a whole :class:`~reflectmm_cli.model.pca.ReflectanceModel`, so that
+    ``finetune``, ``reconstruct``, ``evaluate`` and ``view`` read it like ``build-pca``'s model: its per-vertex part
+    is exactly :func:`oracle_model`'s (the same PCA of the same truth), its UV maps that part interpolated over the
+    face model's UV layout (barycentric, carried to the nearest covered texel outside it; the model's domain is
+    the layout's coverage), σ, the explained variance
+    and the training coefficients those of the PCA.
+
+    Args:
+        albedos: (N, V, 3); weights: (N, V, K); exponents: (K,); components: M (capped at N − 1);
+        uv: (V, 2) the face model's vertex UVs; triangles: (T, 3); size: S of the S×S UV maps.
+    """
+    from reflectmm_cli.geometry.uv import rasterize_uv, vertex_to_uv_map
+    from reflectmm_cli.model.pca import ReflectanceModel
+
+    model, back = _oracle_pca(albedos, weights, exponents, components, ids)
+    uv = np.asarray(uv, np.float64)
+    V = int(np.shape(albedos)[1])
+    if uv.ndim != 2 or uv.shape != (V, 2):
+        raise ReflectmmError(f"oracle model: the face model has {uv.shape[0]} vertex UVs, the truth {V} vertices")
+    r = rasterize_uv(uv, triangles, int(size))
+    vam, vab = back(model.albedo_mean), back(model.albedo_basis)
+    vwm, vwb = back(model.weights_mean), back(model.weights_basis)
+    from scipy.ndimage import distance_transform_edt
+
+    # texels outside the layout take their nearest covered texel's value, so that a bilinear lookup at a vertex
+    # on the layout's border does not blend in zeros
+    near = distance_transform_edt(~np.asarray(r.mask, bool), return_distances=False, return_indices=True)
+
+    def to_map(x):  # (V, C) → (C, S, S)
+        m = vertex_to_uv_map(x, r)
+        return m[:, near[0], near[1]].astype(np.float32)
+    return ReflectanceModel(
+        albedo_mean=to_map(vam), albedo_basis=np.stack([to_map(b) for b in vab]),
+        weights_mean=to_map(vwm), weights_basis=np.stack([to_map(b) for b in vwb]),
+        sigma=np.asarray(model.sigma, np.float32), explained_variance=np.asarray(model.explained_variance, np.float32),
+        explained_variance_ratio=np.asarray(model.explained_variance_ratio, np.float32),
+        exponents=np.asarray(exponents, np.float32), mask=np.asarray(r.mask, bool),
+        train_coeffs=np.asarray(model.train_coeffs, np.float32), ids=list(model.ids),
+        vertex_albedo_mean=vam, vertex_albedo_basis=vab, vertex_weights_mean=vwm, vertex_weights_basis=vwb,
+        stats={"baseline": "oracle", "n_vertices": V, "uv_maps": "the per-vertex model interpolated over the UV "
+               "layout"})
 
 
 def gap_closed(initial: float, finetuned: float, oracle: float) -> float:

@@ -348,7 +348,12 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
                       "A − B of each test image, averaged (for the reflectance errors B − A, so that a positive "
                       "gain is an improvement). `initial` is the control run: the finetuned run's schedule with "
                       "the model frozen, so the gain measures the model update alone (docs/evaluation.md, "
-                      "\"A fair Table 2\").", "", art.meta["gains_table"], ""]
+                      "\"A fair Table 2\")."
+                      + (" `oracle - initial`: the oracle (a model of the same size built from the training "
+                         "identities' true reflectance) with the control's encoder schedule, over the control: the "
+                         "most a model update can give at this encoder budget (docs/evaluation.md, \"The oracle "
+                         "row\")." if "oracle - initial" in (art.meta.get("gains") or {}) else ""),
+                      "", art.meta["gains_table"], ""]
         lines += _command(art)
         doc.setdefault("table2", {})[path.stem] = art.meta.get("summary")
         if art.meta.get("gains"):

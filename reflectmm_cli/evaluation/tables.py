@@ -167,16 +167,20 @@ def _figure_panels(fig_rows: list[list], labels: list[list[str]], p: Prediction,
         labels[r].append(f"{shard['names'][i]} — {p.name}")
 
 
-def _table2_gains(per_method: Mapping[str, dict], results: Mapping[str, dict], gain: Sequence[str], ci: str
-                  ) -> tuple[dict[str, float], dict[str, dict]]:
-    """The paper's number (A − B mean PSNR) and the paired gains of A over B, encoder-only and refined."""
+def _table2_gains(per_method: Mapping[str, dict], results: Mapping[str, dict], gain: Sequence[str], ci: str,
+                  more: Sequence[Sequence[str]] = ()) -> tuple[dict[str, float], dict[str, dict]]:
+    """The paper's number (A − B mean PSNR) and the paired gains of A over B, encoder-only and refined; then the
+    same paired gains of each pair of ``more`` whose two methods are present."""
     paper = {}
     gains = {}
     if len(gain) == 2 and gain[0] in per_method and gain[1] in per_method:
         paper["table2.psnr_gain_finetune"] = per_method[gain[0]]["psnr"] - per_method[gain[1]]["psnr"]
+    for pa, pb in [tuple(gain)] + [tuple(x) for x in more]:
+        if pa not in per_method or pb not in per_method:
+            continue
         for suffix in ("", "-refined"):
-            a, b = gain[0] + suffix, gain[1] + suffix
-            if a in results and b in results:
+            a, b = pa + suffix, pb + suffix
+            if a in results and b in results and f"{a} - {b}" not in gains:
                 gains[f"{a} - {b}"] = paired_gains(results[a], results[b], method=ci)
     return paper, gains
 
@@ -203,8 +207,8 @@ def _table2_documents(results: Mapping[str, dict], gains: Mapping[str, dict]) ->
 def reconstruction_evaluation(predictions: Iterable[Prediction], shard: Mapping[str, np.ndarray],
                               select: np.ndarray, *, encoding: str, region: str = "face", lpips=None,
                               lpips_name: str = "off", released_batch: int = 32, ci: str = "t",
-                              figure_images: int = 3, gain: Sequence[str] = ("finetuned", "initial")
-                              ) -> dict[str, Any]:
+                              figure_images: int = 3, gain: Sequence[str] = ("finetuned", "initial"),
+                              more_gains: Sequence[Sequence[str]] = ()) -> dict[str, Any]:
     """Table 2 of the ``predictions`` (one per row, in table order; e.g. the stage's
     :func:`reflectmm_cli.stages.evaluation_inputs.reconstruction_predictions`) on the images ``select`` of the
     wild-shard arrays ``shard`` (``image``, ``face_mask``, ``skin_mask``, ``names``, ``pix_offset``,
@@ -213,7 +217,8 @@ def reconstruction_evaluation(predictions: Iterable[Prediction], shard: Mapping[
     Each row: :func:`.reconstruction_eval.evaluate_reconstruction`. The gain A − B is reported per measure as the
     mean of the per-image differences with its confidence interval (:func:`paired_gains`), for ``gain`` = (A, B)
     and, when present, their ``-refined`` rows; A − B mean PSNR stands beside the paper's +0.95 dB (ours over
-    ours w/o finetuning). The figure: for each of the first ``figure_images`` images one row per prediction that
+    ours w/o finetuning). ``more_gains``: further (A, B) pairs reported the same way when both are present (e.g.
+    the oracle over the control: the ceiling of the finetuning gain). The figure: for each of the first ``figure_images`` images one row per prediction that
     has figure layers, with :data:`.figures.PANELS`.
     """
     from .figures import grid
@@ -235,7 +240,7 @@ def reconstruction_evaluation(predictions: Iterable[Prediction], shard: Mapping[
         if p.figure is not None:
             _figure_panels(fig_rows, labels, p, shard, idx, encoding)
         del p
-    paper, gains = _table2_gains(per_method, results, gain, ci)
+    paper, gains = _table2_gains(per_method, results, gain, ci, more_gains)
     flat_rows = [r for rr in fig_rows for r in rr]
     doc, summary = _table2_documents(results, gains)
     return {"arrays": evaluation_arrays(doc), "table": markdown_table(rows), "summary": summary,

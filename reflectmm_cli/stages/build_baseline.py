@@ -1,9 +1,12 @@
 """Stage ``build-baseline``: the paper's baseline reflectance models rebuilt from ground truth — BFM09's role
-(``diffuse-only``) and AlbedoMM's role (``albedomm``), models (a) and (b) of Tables 2 and 3
-(library: :mod:`reflectmm_cli.evaluation.baselines`; docs/evaluation.md).
+(``diffuse-only``) and AlbedoMM's role (``albedomm``), models (a) and (b) of Tables 2 and 3 — and the ``oracle``
+of finetuning, the model of the same size built from the wild training identities' truth (the ceiling row of
+Table 2; library: :mod:`reflectmm_cli.evaluation.baselines`, :mod:`reflectmm_cli.evaluation.expressive`;
+docs/evaluation.md).
 
-Inputs: ``truth`` (synth-truth ``<id>.npz`` files, or the folder holding them — the "scanned" identities),
-``face_model`` (for the per-vertex model that finetune / reconstruct / evaluate read). Output: a
+Inputs: ``truth`` (synth-truth ``<id>.npz`` files, or the folder holding them — the "scanned" identities; for
+``oracle`` a ``synth wild`` folder, whose train split is used), ``face_model`` (for the per-vertex model that
+finetune / reconstruct / evaluate read), ``like`` (``oracle`` only: the model whose size it takes). Output: a
 ``reflectance-model`` artifact ``<ws>/build-baseline/<kind>.npz`` (or ``--output``) and its component preview.
 """
 
@@ -27,6 +30,9 @@ INPUTS = (
           default=Default('truth')),
     Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
           default=Default('face-model', missing='build-baseline: no --face-model given and none found in {workspace}')),
+    Input('like', 'reflectance-model', upstream='build-pca',
+          help='kind oracle: a model of this size (its component count caps --components; its UV size and lobe '
+               'exponents are used and checked)'),
 )
 
 
@@ -36,9 +42,10 @@ def _check_ids(ids) -> None:
 
 
 PARAMS = (
-    Param("kind", "str", "diffuse-only", choices=("diffuse-only", "albedomm"),
+    Param("kind", "str", "diffuse-only", choices=("diffuse-only", "albedomm", "oracle"),
           help="diffuse-only = BFM09's role (Lambertian PCA); albedomm = AlbedoMM's role (diffuse + specular "
-               "albedo PCA, one Blinn-Phong lobe)."),
+               "albedo PCA, one Blinn-Phong lobe); oracle = the model of the same size built from a synth wild "
+               "folder's training identities' true per-vertex reflectance (the ceiling of finetuning)."),
     Param("components", "int", 80, range=(1, None), help="PCA components (capped by N − 1 with a message)."),
     Param("exponent", "float", 20.0, range=(0.0, 10000.0), low_open=True,
           help="Global Blinn-Phong exponent of the albedomm baseline (ignored for diffuse-only)."),
@@ -46,6 +53,8 @@ PARAMS = (
           help="Use only these truth identities (default: every file given); keep the held-out identities "
                "of Table 3 / relighting out."),
     Param("preview", "bool", True, option="--no-preview", help="Skip the component preview PNG."),
+    Param("uv_size", "int", 256, range=(8, 8192),
+          help="kind oracle without --like: size of its UV maps (with --like, that model's)."),
 )
 
 
@@ -91,23 +100,71 @@ def load_truths(paths: list[Path]) -> tuple[list[dict[str, np.ndarray]], list[st
     return out, ids
 
 
+def _oracle(ctx: StageContext, fm):
+    """The ``oracle`` kind: (model, number of training identities)."""
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.evaluation.expressive import oracle_reflectance_model
+    from reflectmm_cli.stages.evaluate_expressive import load_wild_truth
+    from reflectmm_cli.stages.evaluation_inputs import load_model
+
+    p = ctx.params
+    if p.get("ids"):
+        raise ReflectmmError("build-baseline: --ids does not apply to kind oracle (it takes the synth wild "
+                             "folder's train split)")
+    truths = ctx.input_list("truth")
+    if len(truths) != 1 or not Path(truths[0]).is_dir():
+        raise ReflectmmError("build-baseline: kind oracle needs one synth wild folder as --truth", truths[0])
+    folder = Path(truths[0])
+    tr = load_wild_truth(folder)
+    train = tr["train"]
+    if len(train) < 2:
+        raise ReflectmmError(f"build-baseline: a PCA needs at least 2 training identities, got {len(train)}",
+                             folder)
+    exps = read_artifact(folder / "identities" / f"id{train[0]:05d}.npz").meta.get("exponents")
+    if exps is None:
+        raise ReflectmmError("the wild truth does not name its lobe exponents (meta 'exponents')",
+                             folder / "identities" / f"id{train[0]:05d}.npz")
+    comps, size = int(p["components"]), int(p["uv_size"])
+    like = ctx.input_list("like", required=False)
+    if like:
+        ref = load_model(like[0])
+        if not np.allclose(np.asarray(ref.exponents, np.float64), np.asarray(exps, np.float64)):
+            raise ReflectmmError(f"build-baseline: the model's lobe exponents {list(map(float, ref.exponents))} "
+                                 f"differ from the wild truth's {list(map(float, exps))}", like[0])
+        comps, size = min(comps, ref.n_components), ref.size
+    if comps > len(train) - 1:
+        log.info(f"build-baseline: {comps} components requested, {len(train)} identities: using {len(train) - 1}")
+        comps = len(train) - 1
+    model = oracle_reflectance_model(np.stack([tr["albedo"][i] for i in train]),
+                                     np.stack([tr["weights"][i] for i in train]), exps, comps, fm.uv,
+                                     fm.triangles, size, ids=[f"wild{i:05d}" for i in train])
+    return model, len(train)
+
+
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.baselines import build_baseline, write_baseline_model
     from reflectmm_cli.geometry.face_model import load_face_model
 
     p = ctx.params
-    files = truth_files(ctx.input_list("truth"), p.get("ids"))
-    if len(files) < 2:
-        raise ReflectmmError(f"build-baseline: a PCA needs at least 2 truth identities, got {len(files)}")
-    truths, ids = load_truths(files)
     fm_path = ctx.input("face_model")
-    fm = load_face_model(fm_path)
-    comps = int(p["components"])
-    if comps > len(files) - 1:
-        log.info(f"build-baseline: {comps} components requested, {len(files)} identities: using {len(files) - 1}")
-        comps = len(files) - 1
-    model = build_baseline(p["kind"], truths, components=comps, ids=ids, vertex_uv=fm.uv,
-                           exponent=float(p["exponent"]), log=log.info)
+    if p["kind"] == "oracle":
+        fm = load_face_model(fm_path)
+        model, n = _oracle(ctx, fm)
+    else:
+        if ctx.input_list("like", required=False):
+            raise ReflectmmError(f"build-baseline: --like applies to kind oracle only, not {p['kind']}")
+        files = truth_files(ctx.input_list("truth"), p.get("ids"))
+        if len(files) < 2:
+            raise ReflectmmError(f"build-baseline: a PCA needs at least 2 truth identities, got {len(files)}")
+        truths, ids = load_truths(files)
+        fm = load_face_model(fm_path)
+        comps = int(p["components"])
+        if comps > len(files) - 1:
+            log.info(f"build-baseline: {comps} components requested, {len(files)} identities: using {len(files) - 1}")
+            comps = len(files) - 1
+        model = build_baseline(p["kind"], truths, components=comps, ids=ids, vertex_uv=fm.uv,
+                               exponent=float(p["exponent"]), log=log.info)
+        n = len(files)
     out = _out(ctx)
     written = []
     if p["preview"]:
@@ -117,9 +174,9 @@ def run(ctx: StageContext) -> list[Path]:
     write_baseline_model(model, out, params=ctx.resolved_params(), inputs=ctx.input_refs(out.parent),
                          producer=ctx.producer(), cache_key=ctx.cache_key,
                          face_model={"path": Path(fm_path).name, "n_vertices": int(fm.uv.shape[0])})
-    log.info(f"build-baseline: {p['kind']} from {len(files)} truth identities, {model.n_components} components")
+    log.info(f"build-baseline: {p['kind']} from {n} truth identities, {model.n_components} components")
     return [out] + written
 
 
-STAGE = Stage(VERB, version=1, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="baseline reflectance model from ground truth (BFM09's or AlbedoMM's role)", inputs=INPUTS)
+STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
+              help="baseline reflectance model from ground truth (BFM09's or AlbedoMM's role, or the oracle)", inputs=INPUTS)

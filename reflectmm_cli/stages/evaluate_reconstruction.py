@@ -43,6 +43,18 @@ def _check_gain(v) -> None:
     check_method_names(v)
 
 
+def _pairs(v) -> list[tuple[str, str]]:
+    return [tuple(x.split(":")) for x in v or ()]
+
+
+def _check_pairs(v) -> None:
+    for x in v or ():
+        pair = x.split(":")
+        if len(pair) != 2 or pair[0] == pair[1] or not all(pair):
+            raise ValueError(f"'{x}' is not A:B with two different method names")
+        check_method_names(pair)
+
+
 PARAMS = (
     Param("methods", "strs", None, check=check_method_names, option="",
           help="Method names in table order (inputs model_<name>, encoder_<name>); default: the model roles, "
@@ -55,6 +67,9 @@ PARAMS = (
     Param("lpips_net", "str", "alex", choices=("alex", "vgg"), help="LPIPS backbone of --lpips-weights."),
     Param("gain", "strs", ["finetuned", "initial"], check=_check_gain,
           help="A,B: A − B mean PSNR stands beside the paper's +0.95 dB (ours over ours w/o finetuning)."),
+    Param("more_gains", "strs", ["oracle:initial"], check=_check_pairs,
+          help="More A:B pairs whose paired gains are reported beside --gain when both methods are present (the "
+               "default: the oracle model over the control, the ceiling of the finetuning gain)."),
     Param("figure_images", "int", 3, range=(0, 64), help="Test images shown in the figure (one row per method)."),
     Param("max_images", "int", 0, range=(0, None), help="Evaluate only the first N selected images (0 = all)."),
     Param("batch_size", "int", 8, range=(1, 4096), invalidates_cache=False, help="Encoder batch size."),
@@ -106,7 +121,8 @@ def run(ctx: StageContext) -> list[Path]:
                                     lpips_name=(f"on ({p['lpips_net']})" if lp is not None
                                                 else "off (no weights given)"),
                                     released_batch=int(p["released_batch"]), ci=p["ci"],
-                                    figure_images=int(p["figure_images"]), gain=p["gain"])
+                                    figure_images=int(p["figure_images"]), gain=p["gain"],
+                                    more_gains=_pairs(p.get("more_gains")))
     out = ctx.output_path()
     png = out.with_suffix(".png")
     cmd = command_line(["evaluate", "reconstruction"], p, ctx.inputs, workspace=ctx.workspace, output=out,
@@ -121,7 +137,9 @@ def run(ctx: StageContext) -> list[Path]:
                   if res["ceiling"] else "") + "\n")
     if res["gains_table"]:
         md += ("\n## The finetuning gain (per image, same images; mean ± 95 % CI)\n\nA − B of each image, averaged; "
-               "for the reflectance errors B − A, so that a positive gain is an improvement everywhere.\n\n"
+               "for the reflectance errors B − A, so that a positive gain is an improvement everywhere."
+               + (" `oracle - initial`: the oracle model over the control, the ceiling of the finetuning gain at "
+                  "this encoder budget." if "oracle - initial" in res["gains"] else "") + "\n\n"
                f"{res['gains_table']}\n")
     if res["figure"] is not None:
         md += (f"\nFigure `{png.name}`: columns input | reconstruction | diffuse | specular | error (|recon − input|, "

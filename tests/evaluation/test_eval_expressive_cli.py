@@ -83,3 +83,53 @@ def test_evaluate_expressive_bad_inputs(wild, cli, tmp_path):
             tmp_path, "-o", tmp_path / "x.npz")
     assert r.exit_code == 1 and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_build_baseline_oracle(wild, cli, tmp_path):
+    """``build-baseline --kind oracle``: the model of evaluate-expressive's oracle as a reflectance-model artifact
+    (per-vertex part equal, array for array), of the size of ``--like``; then evaluate expressive finds it at the
+    oracle's residual. Bad inputs are one-line errors that write nothing."""
+    from reflectmm_cli.evaluation.expressive import oracle_model
+
+    tr = _truth(wild)
+    fm = wild / "face_model.npz"
+    assert fm.is_file()
+    full = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),
+                        np.stack([tr["weights"][i] for i in tr["train"]]), [1, 8, 64], len(tr["train"]) - 1)
+    M = len(tr["train"]) - 2  # a smaller model than the population allows: the oracle takes its size
+    like = _model(tmp_path / "like.npz", full["vertex_albedo_mean"], full["vertex_albedo_basis"][:M],
+                  full["vertex_weights_mean"], full["vertex_weights_basis"][:M], full["sigma"][:M])
+    out = tmp_path / "oracle.npz"
+    r = cli("build-baseline", "--kind", "oracle", "--truth", wild, "--face-model", fm, "--like", like, "-w",
+            tmp_path, "-o", out)
+    assert r.exit_code == 0, r.stderr
+    art = read_artifact(out, MODEL_KIND)
+    want = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),
+                        np.stack([tr["weights"][i] for i in tr["train"]]), [1, 8, 64], M)
+    for k in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis", "sigma"):
+        np.testing.assert_array_equal(art[k], want[k], err_msg=k)
+    assert art["albedo_mean"].shape[-1] == 1  # the UV size of --like (1×1 maps here)
+    assert art.meta["baseline"] == "oracle" and "synth wild" in art.meta["data"]
+    ex = tmp_path / "ex.npz"
+    r = cli("evaluate", "expressive", "--truth", wild, "--method", "initial", like, "-", "--method", "finetuned",
+            out, "-", "-w", tmp_path, "-o", ex)
+    assert r.exit_code == 0, r.stderr
+    means = read_artifact(ex, "evaluation").meta["means"]
+    assert means["finetuned"]["albedo"] == pytest.approx(means["oracle"]["albedo"], rel=1e-6)
+
+    bad = tmp_path / "bad.npz"
+    for args, msg in (((("--truth", tmp_path / "like.npz")), "synth wild folder"),
+                      ((("--truth", wild, "--kind", "albedomm")), "--like applies to kind oracle only"),
+                      ((("--truth", wild, "--ids", "a,b")), "--ids does not apply")):
+        kind = [] if "--kind" in args else ["--kind", "oracle"]
+        r = cli("build-baseline", *kind, *args, "--face-model", fm, "--like", like, "-w", tmp_path, "-o", bad)
+        assert r.exit_code != 0 and msg in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not bad.exists()
+    other = _model(tmp_path / "other.npz", full["vertex_albedo_mean"], full["vertex_albedo_basis"][:M],
+                   full["vertex_weights_mean"], full["vertex_weights_basis"][:M], full["sigma"][:M])
+    a = read_artifact(other, MODEL_KIND)
+    from reflectmm_cli.artifacts import write_artifact
+    write_artifact(other, MODEL_KIND, dict(a.arrays, exponents=np.array([1.0, 8.0, 32.0], np.float32)))
+    r = cli("build-baseline", "--kind", "oracle", "--truth", wild, "--face-model", fm, "--like", other, "-w",
+            tmp_path, "-o", bad)
+    assert r.exit_code != 0 and "lobe exponents" in r.stderr and not bad.exists()

@@ -201,3 +201,36 @@ def test_refine_methods_refines_only_the_named_rows(data, cli, tmp_path):
     assert set(s) == {"initial", "finetuned", "finetuned-refined", "ceiling"}
     r = cli("evaluate", "reconstruction", *args, "--refine-methods", "finetuned,nope", "-o", tmp_path / "x.npz")
     assert r.exit_code == 1 and "--refine-methods names nope" in r.stderr and not (tmp_path / "x.npz").exists()
+
+
+def test_more_gains_report_the_oracle_over_the_control(data, cli, tmp_path):
+    """The default ``more_gains`` (oracle:initial) adds the oracle's paired gain over the control when both are
+    methods, computed like the finetuning gain; further pairs are given as A:B; a malformed pair is refused before
+    anything is written; without an oracle method nothing is added."""
+    base = ("--data", data["shards"][0], "--light-model", data["light_path"],
+            "--method", "initial", data["truth_path"], data["enc_initial"],
+            "--method", "finetuned", data["truth_path"], data["enc_initial"],
+            "--method", "oracle", data["truth_path"], data["enc_oracle"], "--figure-images", "0", "-w", tmp_path)
+    out = tmp_path / "g.npz"
+    r = cli("-q", "evaluate", "reconstruction", *base, "-o", out)
+    assert r.exit_code == 0, r.stderr
+    art = read_artifact(out, "evaluation")
+    assert set(art.meta["gains"]) == {"finetuned - initial", "oracle - initial"}
+    g = art.meta["gains"]["oracle - initial"]["psnr"]
+    d = np.array([_value(art, f"oracle.image.per_image.per_image.psnr[{j}]")
+                  - _value(art, f"initial.image.per_image.per_image.psnr[{j}]") for j in range(3)])
+    assert g["mean"] == pytest.approx(d.mean()) and g["mean"] > 1  # the oracle's head knows test image 3
+    md = out.with_suffix(".md").read_text()
+    assert "| oracle - initial |" in md and "the ceiling of the finetuning gain" in md
+    assert art.meta["paper_numbers"]["table2.psnr_gain_finetune"] == pytest.approx(0.0, abs=1e-9)
+
+    out2 = tmp_path / "g2.npz"
+    r = cli("-q", "evaluate", "reconstruction", *base, "--more-gains", "finetuned:oracle", "-o", out2)
+    assert r.exit_code == 0, r.stderr
+    assert set(read_artifact(out2, "evaluation").meta["gains"]) == {"finetuned - initial", "finetuned - oracle"}
+    r = cli("evaluate", "reconstruction", *base, "--more-gains", "oracle-initial", "-o", tmp_path / "x.npz")
+    assert r.exit_code != 0 and "oracle-initial" in r.stderr and not (tmp_path / "x.npz").exists()
+    out3 = tmp_path / "g3.npz"
+    r = cli("-q", "evaluate", "reconstruction", *base[:12], "--figure-images", "0", "-w", tmp_path, "-o", out3)
+    assert r.exit_code == 0, r.stderr
+    assert set(read_artifact(out3, "evaluation").meta["gains"]) == {"finetuned - initial"}

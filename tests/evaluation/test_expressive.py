@@ -6,7 +6,8 @@ from hypothesis import given, settings, strategies as st
 from scipy.optimize import minimize
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.evaluation.expressive import gap_closed, oracle_model, projection_coefficients, projection_residuals
+from reflectmm_cli.evaluation.expressive import (gap_closed, oracle_model, oracle_reflectance_model,
+                                                projection_coefficients, projection_residuals)
 
 
 def _part(rng, V=40, C=3, M=4):
@@ -64,6 +65,43 @@ def test_oracle_reproduces_its_training_identities():
     m2 = oracle_model(a, w, [1.0, 16.0, 128.0], components=2)
     assert projection_residuals(m2["vertex_albedo_mean"], m2["vertex_albedo_basis"], m2["sigma"], a,
                                 prior=0.0).min() > 1e-3
+
+
+def test_oracle_as_a_whole_model():
+    """The oracle as a reflectance model: its per-vertex part is exactly :func:`oracle_model`'s; its UV maps,
+    looked up at the vertices as the project's per-vertex sampler does, give that part back (a smooth truth on a
+    mesh whose UV layout is its own (x, y)); the PCA's σ and training coefficients reproduce the training
+    identities."""
+    from reflectmm_cli.geometry import procedural_face_model
+    from reflectmm_cli.model.pca import sample_uv_bilinear
+
+    fm = procedural_face_model(grid=(31, 25), n_shape=2, n_exp=1, seed=0)
+    uv = np.asarray(fm.uv, np.float64)
+    V, N, K = uv.shape[0], 5, 3
+    rng = np.random.default_rng(4)
+    # smooth per-vertex truth: low-order polynomials of the UVs with random coefficients per identity
+    basis = np.stack([np.ones(V), uv[:, 0], uv[:, 1], uv[:, 0] * uv[:, 1]], 1)
+    a = 0.4 + 0.1 * np.einsum("vp,npc->nvc", basis, rng.normal(size=(N, 4, 3)))
+    w = 0.1 + 0.02 * np.einsum("vp,npc->nvc", basis, rng.normal(size=(N, 4, K)))
+    exps = [1.0, 16.0, 128.0]
+    whole = oracle_reflectance_model(a, w, exps, N - 1, uv, fm.triangles, 64, ids=[f"i{i}" for i in range(N)])
+    part = oracle_model(a, w, exps, N - 1)
+    for k in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis", "sigma"):
+        np.testing.assert_array_equal(getattr(whole, k), part[k], err_msg=k)
+    assert whole.albedo_mean.shape == (3, 64, 64) and whole.weights_basis.shape == (N - 1, K, 64, 64)
+    scale = np.abs(whole.vertex_albedo_mean).max()
+    back = sample_uv_bilinear(whole.albedo_mean, uv)
+    assert np.abs(back - whole.vertex_albedo_mean).max() < 0.02 * scale
+    for k in range(N - 1):
+        b = sample_uv_bilinear(whole.weights_basis[k], uv)
+        assert np.abs(b - whole.vertex_weights_basis[k]).max() < 0.02 * np.abs(whole.vertex_weights_basis[k]).max()
+    # the training coefficients (units of σ) rebuild each identity's albedo from the per-vertex part
+    rec = whole.vertex_albedo_mean + np.einsum("nm,m,mvc->nvc", whole.train_coeffs, whole.sigma,
+                                               whole.vertex_albedo_basis)
+    np.testing.assert_allclose(rec, a, atol=1e-4)
+    assert whole.ids == [f"i{i}" for i in range(N)] and whole.stats["baseline"] == "oracle"
+    with pytest.raises(ReflectmmError, match="vertex UVs"):
+        oracle_reflectance_model(a, w, exps, 2, uv[:-1], fm.triangles, 64)
 
 
 def test_gap_closed():

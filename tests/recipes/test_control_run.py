@@ -39,3 +39,19 @@ def test_control_is_the_finetune_run_with_the_model_frozen(recipe):
         p1 = stage.get("inputs", {}).get("encoder_initial-phase1")
         if p1 is not None:
             assert p1 == f"@{owner}.outputs.{owner}_encoder_phase1", name
+
+
+def test_the_oracle_row_is_the_control_on_the_oracle_model():
+    """The demo's ceiling of the finetuning gain: finetune-oracle is finetune-control with only its model changed,
+    to the oracle of the initial model's size; Table 2 reports its gain over the control."""
+    st = tomllib.loads((ROOT / "recipes" / "synthetic.toml").read_text())["stages"]
+    orc, ctl = st["finetune-oracle"], st["finetune-control"]
+    assert orc["verb"] == "finetune" and orc["params"] == ctl["params"]
+    assert orc["inputs"] == dict(ctl["inputs"], model="@baseline-oracle.output")
+    base = st["baseline-oracle"]
+    assert base["verb"] == "build-baseline" and base["params"]["kind"] == "oracle"
+    assert base["inputs"]["like"] == ctl["inputs"]["model"] and base["inputs"]["truth"] == "@synth-wild.dir"
+    ev = st["evaluate-reconstruction"]
+    assert ev["inputs"]["model_oracle"] == "@finetune-oracle.output"
+    assert ev["inputs"]["encoder_oracle"] == "@finetune-oracle.outputs.finetune-oracle_encoder"
+    assert "oracle" in ev["params"]["methods"] and "more_gains" not in ev["params"]  # the default: oracle:initial
