@@ -139,13 +139,14 @@ def oracle_reflectance_model(albedos, weights, exponents, components: int, uv, t
     ``finetune``, ``reconstruct``, ``evaluate`` and ``view`` read it like ``build-pca``'s model: its per-vertex part
     is exactly :func:`oracle_model`'s (the same PCA of the same truth), its UV maps that part interpolated over the
     face model's UV layout (barycentric, carried to the nearest covered texel outside it; the model's domain is
-    the layout's coverage), σ, the explained variance
-    and the training coefficients those of the PCA.
+    the layout's coverage), σ, the explained variance and the training coefficients those of the PCA.
 
     Args:
         albedos: (N, V, 3); weights: (N, V, K); exponents: (K,); components: M (capped at N − 1);
         uv: (V, 2) the face model's vertex UVs; triangles: (T, 3); size: S of the S×S UV maps.
     """
+    from scipy.ndimage import distance_transform_edt
+
     from reflectmm_cli.geometry.uv import rasterize_uv, vertex_to_uv_map
     from reflectmm_cli.model.pca import ReflectanceModel
 
@@ -157,8 +158,6 @@ def oracle_reflectance_model(albedos, weights, exponents, components: int, uv, t
     r = rasterize_uv(uv, triangles, int(size))
     vam, vab = back(model.albedo_mean), back(model.albedo_basis)
     vwm, vwb = back(model.weights_mean), back(model.weights_basis)
-    from scipy.ndimage import distance_transform_edt
-
     # texels outside the layout take their nearest covered texel's value, so that a bilinear lookup at a vertex
     # on the layout's border does not blend in zeros
     near = distance_transform_edt(~np.asarray(r.mask, bool), return_distances=False, return_indices=True)
@@ -166,6 +165,7 @@ def oracle_reflectance_model(albedos, weights, exponents, components: int, uv, t
     def to_map(x):  # (V, C) → (C, S, S)
         m = vertex_to_uv_map(x, r)
         return m[:, near[0], near[1]].astype(np.float32)
+
     return ReflectanceModel(
         albedo_mean=to_map(vam), albedo_basis=np.stack([to_map(b) for b in vab]),
         weights_mean=to_map(vwm), weights_basis=np.stack([to_map(b) for b in vwb]),

@@ -218,8 +218,8 @@ def reconstruction_evaluation(predictions: Iterable[Prediction], shard: Mapping[
     mean of the per-image differences with its confidence interval (:func:`paired_gains`), for ``gain`` = (A, B)
     and, when present, their ``-refined`` rows; A − B mean PSNR stands beside the paper's +0.95 dB (ours over
     ours w/o finetuning). ``more_gains``: further (A, B) pairs reported the same way when both are present (e.g.
-    the oracle over the control: the ceiling of the finetuning gain). The figure: for each of the first ``figure_images`` images one row per prediction that
-    has figure layers, with :data:`.figures.PANELS`.
+    the oracle over the control: the ceiling of the finetuning gain). The figure: for each of the first
+    ``figure_images`` images one row per prediction that has figure layers, with :data:`.figures.PANELS`.
     """
     from .figures import grid
     from .reconstruction_eval import evaluate_reconstruction, markdown_table, table_row

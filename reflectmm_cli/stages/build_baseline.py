@@ -178,5 +178,5 @@ def run(ctx: StageContext) -> list[Path]:
     return [out] + written
 
 
-STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_outputs, params=PARAMS,
-              help="baseline reflectance model from ground truth (BFM09's or AlbedoMM's role, or the oracle)", inputs=INPUTS)
+STAGE = Stage(VERB, version=2, run=run, per_identity=False, outputs=_outputs, params=PARAMS, inputs=INPUTS,
+              help="baseline reflectance model from ground truth (BFM09's or AlbedoMM's role, or the oracle)")
