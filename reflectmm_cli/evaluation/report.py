@@ -326,6 +326,7 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
     lines: list[str] = []
     ours: dict[str, float] = {}
     commands: dict[str, str] = {}
+    ceiling = None  # the oracle's encoder-only PSNR gain over the control, when Table 2 has it
 
     def take(art):
         for k, v in (art.meta.get("paper_numbers") or {}).items():
@@ -358,6 +359,7 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
         doc.setdefault("table2", {})[path.stem] = art.meta.get("summary")
         if art.meta.get("gains"):
             doc.setdefault("table2_gains", {})[path.stem] = art.meta["gains"]
+            ceiling = ((art.meta["gains"].get("oracle - initial") or {}).get("psnr") or {}).get("mean")
     for path, art in _evaluations(expressive, "expressive"):
         lines += [f"## Expressive power on held-out identities (`{_link_path(path, base)}`)", "",
                   art.meta.get("protocol", ""), "", art.meta.get("table", ""), ""]
@@ -406,6 +408,9 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
                   "The paper measures real photographs and Light Stage scans; reflectmm the synthetic world with exact "
                   "ground truth, so trends and magnitudes compare, not equal numbers. Table 3's reflectmm numbers are "
                   "the raw (unscaled) PSNR of the method the evaluation calls 'ours'; Table 2's gain is the mean PSNR "
-                  "difference of the two methods of its `gain` param.", "", markdown_table(rows), ""]
+                  "difference of the two methods of its `gain` param."
+                  + (f" Its ceiling in this world, the oracle's gain over the control at the same encoder budget, is "
+                     f"{ceiling:+.2f} dB (Table 2's gains table)." if ceiling is not None else ""),
+                  "", markdown_table(rows), ""]
         doc["paper_vs_reflectmm"] = ours
     return lines

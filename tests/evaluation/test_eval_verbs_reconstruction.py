@@ -234,3 +234,26 @@ def test_more_gains_report_the_oracle_over_the_control(data, cli, tmp_path):
     r = cli("-q", "evaluate", "reconstruction", *base[:12], "--figure-images", "0", "-w", tmp_path, "-o", out3)
     assert r.exit_code == 0, r.stderr
     assert set(read_artifact(out3, "evaluation").meta["gains"]) == {"finetuned - initial"}
+
+
+def test_report_states_the_ceiling_of_the_gain(data, cli, tmp_path):
+    """With an oracle row the report's gains paragraph explains `oracle - initial`, and the paper-vs-reflectmm
+    section gives that gain as the ceiling of the finetuning gain; without one neither appears."""
+    for with_oracle in (True, False):
+        ws = tmp_path / f"ws{int(with_oracle)}"
+        oracle = ("--method", "oracle", data["truth_path"], data["enc_oracle"]) if with_oracle else ()
+        r = cli("-q", "evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+                "--method", "initial", data["truth_path"], data["enc_initial"],
+                "--method", "finetuned", data["truth_path"], data["enc_initial"], *oracle,
+                "--figure-images", "0", "-w", ws)
+        assert r.exit_code == 0, r.stderr
+        r = cli("-q", "evaluate", "report", "-w", ws)
+        assert r.exit_code == 0, r.stderr
+        md = (ws / "evaluate-report" / "evaluate-report.md").read_text()
+        art = read_artifact(ws / "evaluate-reconstruction" / "evaluate-reconstruction.npz", "evaluation")
+        if with_oracle:
+            g = art.meta["gains"]["oracle - initial"]["psnr"]["mean"]
+            assert f"is {g:+.2f} dB (Table 2's gains table)" in md
+            assert "`oracle - initial`: the oracle" in md
+        else:
+            assert "Its ceiling in this world" not in md and "`oracle - initial`" not in md
