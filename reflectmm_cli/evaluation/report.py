@@ -355,11 +355,15 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
                          "most a model update can give at this encoder budget (docs/evaluation.md, \"The oracle "
                          "row\")." if "oracle - initial" in (art.meta.get("gains") or {}) else ""),
                       "", art.meta["gains_table"], ""]
+            lines += [f"**Not at equal encoder budget:** `{k}`: {'; '.join(v)}." for k, v in
+                      (art.meta.get("unequal_budgets") or {}).items()] + (
+                         [""] if art.meta.get("unequal_budgets") else [])
         lines += _command(art)
         doc.setdefault("table2", {})[path.stem] = art.meta.get("summary")
         if art.meta.get("gains"):
             doc.setdefault("table2_gains", {})[path.stem] = art.meta["gains"]
-            ceiling = ((art.meta["gains"].get("oracle - initial") or {}).get("psnr") or {}).get("mean")
+            if "oracle - initial" not in (art.meta.get("unequal_budgets") or {}):  # a ceiling at the same budget only
+                ceiling = ((art.meta["gains"].get("oracle - initial") or {}).get("psnr") or {}).get("mean")
     for path, art in _evaluations(expressive, "expressive"):
         lines += [f"## Expressive power on held-out identities (`{_link_path(path, base)}`)", "",
                   art.meta.get("protocol", ""), "", art.meta.get("table", ""), ""]

@@ -17,7 +17,7 @@ from pathlib import Path
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["Encoder", "build_encoder", "load_trunk", "save_encoder", "load_encoder", "check_encoder_model",
-           "encoder_model_sha", "ENCODER_KIND"]
+           "encoder_model_sha", "read_encoder_meta", "budget_differences", "BUDGET_CONFIG_KEYS", "ENCODER_KIND"]
 
 ENCODER_KIND = "finetune-encoder"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -230,13 +230,18 @@ def check_encoder_model(meta: dict, encoder_path, model_path, *, allow_other_mod
     warn("warning: " + msg + " (--allow-other-model)")
 
 
-def load_encoder(path: str | Path, device="cpu", *, model=None, allow_other_model: bool = False, warn=None):
-    """(encoder in eval mode, meta) from :func:`save_encoder`'s file; with ``model`` (a path), the pairing is
-    checked first (:func:`check_encoder_model`)."""
+#: What an encoder's training budget is made of (issue 21's "same data, seed, schedule"): the settings of its
+#: ``config`` that train the encoder (not those of the model update), its number of optimiser steps and image size.
+BUDGET_CONFIG_KEYS = ("arch", "width", "batch_size", "epochs1", "epochs2", "lr1", "lr2", "betas", "seed",
+                      "photometric", "w_photo", "w_per", "w_coef", "w_light")
+
+
+def read_encoder_meta(path: str | Path) -> dict:
+    """The JSON meta of :func:`save_encoder`'s file, without loading the weights; one-line errors for a missing,
+    unreadable or foreign file."""
     import json
 
     from safetensors import safe_open
-    from safetensors.torch import load_file
 
     path = Path(path)
     if not path.is_file():
@@ -244,11 +249,48 @@ def load_encoder(path: str | Path, device="cpu", *, model=None, allow_other_mode
     try:
         with safe_open(str(path), "pt") as f:
             meta = json.loads((f.metadata() or {}).get("__meta__", "{}"))
-        sd = load_file(str(path))
     except Exception as e:  # safetensors raises several types for a bad header
         raise ReflectmmError(f"not a readable encoder safetensors file ({type(e).__name__}: {e})", path) from None
     if meta.get("schema") != f"reflectmm.{ENCODER_KIND}/1":
         raise ReflectmmError(f"not a reflectmm encoder (schema {meta.get('schema')!r})", path)
+    return meta
+
+
+def budget_differences(meta_a: dict, meta_b: dict) -> list[str]:
+    """How the training budgets of two encoders differ (``"epochs1 8 against 6"``, ``"training data"``), from
+    their metas: :data:`BUDGET_CONFIG_KEYS`, the optimiser steps, the image size and the sha256 of the ``data``
+    inputs (where both record them). Empty when the two encoders had the same budget, so that their gain measures
+    what else differs (the model)."""
+    out = []
+    ca, cb = meta_a.get("config") or {}, meta_b.get("config") or {}
+    for k in BUDGET_CONFIG_KEYS:
+        if k in ca and k in cb and ca[k] != cb[k]:
+            out.append(f"{k} {ca[k]} against {cb[k]}")
+    for k in ("steps", "image_size"):
+        if k in meta_a and k in meta_b and meta_a[k] != meta_b[k]:
+            out.append(f"{k} {meta_a[k]} against {meta_b[k]}")
+
+    def data(m):
+        refs = [r for r in m.get("inputs") or [] if isinstance(r, dict) and r.get("role") == "data"]
+        return sorted(r.get("sha256") for r in refs) if refs else None
+
+    da, db = data(meta_a), data(meta_b)
+    if da is not None and db is not None and da != db:
+        out.append("training data")
+    return out
+
+
+def load_encoder(path: str | Path, device="cpu", *, model=None, allow_other_model: bool = False, warn=None):
+    """(encoder in eval mode, meta) from :func:`save_encoder`'s file; with ``model`` (a path), the pairing is
+    checked first (:func:`check_encoder_model`)."""
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    meta = read_encoder_meta(path)
+    try:
+        sd = load_file(str(path))
+    except Exception as e:  # safetensors raises several types for a bad header
+        raise ReflectmmError(f"not a readable encoder safetensors file ({type(e).__name__}: {e})", path) from None
     if model is not None:
         check_encoder_model(meta, path, model, allow_other_model=allow_other_model, warn=warn)
     try:

@@ -47,6 +47,22 @@ def _pairs(v) -> list[tuple[str, str]]:
     return [tuple(x.split(":")) for x in v or ()]
 
 
+def unequal_budgets(methods, pairs) -> dict[str, list[str]]:
+    """``{"A - B": [differences]}`` for each pair of methods (both present) whose encoders were trained with
+    different budgets (:func:`~reflectmm_cli.finetune.encoder.budget_differences`): their gain is then not the
+    model's alone."""
+    from reflectmm_cli.finetune.encoder import budget_differences, read_encoder_meta
+
+    enc = {m.name: m.encoder for m in methods if m.encoder is not None}
+    out = {}
+    for a, b in pairs:
+        if a in enc and b in enc and f"{a} - {b}" not in out:
+            d = budget_differences(read_encoder_meta(enc[a]), read_encoder_meta(enc[b]))
+            if d:
+                out[f"{a} - {b}"] = d
+    return out
+
+
 def _check_pairs(v) -> None:
     for x in v or ():
         pair = x.split(":")
@@ -106,6 +122,10 @@ def run(ctx: StageContext) -> list[Path]:
     if unknown:
         raise ReflectmmError(f"{VERB}: --refine-methods names {', '.join(unknown)}, not among the methods "
                              f"({', '.join(names)})")
+    unequal = unequal_budgets(methods, [tuple(p["gain"])] + _pairs(p.get("more_gains")))
+    for pair, diff in unequal.items():
+        log.warning(f"{VERB}: warning: the encoders of '{pair}' were trained with different budgets ("
+                    f"{'; '.join(diff)}): that gain is not the model's alone")
     lw = ctx.input_list("lpips_weights", required=False)
     lp = load_lpips(lw[0] if lw else None, p["lpips_net"])
     shards, idx, encoding = select_wild_images(ctx.input_list("data"), p["split"], int(p["max_images"]))
@@ -141,6 +161,7 @@ def run(ctx: StageContext) -> list[Path]:
                + (" `oracle - initial`: the oracle model over the control, the ceiling of the finetuning gain at "
                   "this encoder budget." if "oracle - initial" in res["gains"] else "") + "\n\n"
                f"{res['gains_table']}\n")
+        md += "".join(f"\n**Not at equal encoder budget:** `{k}`: {'; '.join(v)}.\n" for k, v in unequal.items())
     if res["figure"] is not None:
         md += (f"\nFigure `{png.name}`: columns input | reconstruction | diffuse | specular | error (|recon − input|, "
                "white at 0.2); rows: " + "; ".join(res["figure_rows"]) + ".\n")
@@ -154,7 +175,7 @@ def run(ctx: StageContext) -> list[Path]:
                                "lpips": res["lpips"], "encoding": res["encoding"], "summary": res["summary"],
                                "paper_numbers": res["paper_numbers"], "figure_rows": res["figure_rows"],
                                "protocol": res["protocol"], "gains": res["gains"],
-                               "gains_table": res["gains_table"]})
+                               "gains_table": res["gains_table"], "unequal_budgets": unequal})
     log.info(res["table"])
     return [out, out.with_suffix(".md"), png]
 

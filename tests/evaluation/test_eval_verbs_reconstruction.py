@@ -257,3 +257,44 @@ def test_report_states_the_ceiling_of_the_gain(data, cli, tmp_path):
             assert "`oracle - initial`: the oracle" in md
         else:
             assert "Its ceiling in this world" not in md and "`oracle - initial`" not in md
+
+
+def test_a_gain_between_encoders_of_different_budgets_is_flagged(data, cli, tmp_path):
+    """When the two encoders of a reported gain were trained with different budgets, evaluate reconstruction says
+    so on stderr, under the gains table and in its meta, and the report repeats it and gives no ceiling from such
+    an oracle row; at equal budgets nothing is said."""
+    import torch
+
+    from reflectmm_cli.finetune.encoder import build_encoder, save_encoder
+
+    k = data["light"].n_components
+    cfg = {"arch": "resnet18", "width": 8, "batch_size": 8, "epochs1": 6, "epochs2": 2, "seed": 0}
+    paths = {}
+    for name, c, steps in (("ctl", cfg, 10), ("same", dict(cfg, model_lr=1e-4), 10),
+                           ("longer", dict(cfg, epochs1=8), 14)):
+        torch.manual_seed(0)
+        paths[name] = save_encoder(build_encoder("resnet18", 3, k, width=8, z0=2.0), tmp_path / f"{name}.st",
+                                   {"config": c, "steps": steps})
+    for oracle, warned in (("same", False), ("longer", True)):
+        ws = tmp_path / oracle
+        r = cli("evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
+                "--method", "initial", data["truth_path"], paths["ctl"],
+                "--method", "finetuned", data["truth_path"], paths["same"],
+                "--method", "oracle", data["truth_path"], paths[oracle], "--figure-images", "0", "-w", ws)
+        assert r.exit_code == 0, r.stderr
+        err = r.stderr
+        art = read_artifact(ws / "evaluate-reconstruction" / "evaluate-reconstruction.npz", "evaluation")
+        md = (ws / "evaluate-reconstruction" / "evaluate-reconstruction.md").read_text()
+        r = cli("-q", "evaluate", "report", "-w", ws)
+        assert r.exit_code == 0, r.stderr
+        rep = (ws / "evaluate-report" / "evaluate-report.md").read_text()
+        if warned:
+            assert art.meta["unequal_budgets"] == {"oracle - initial": ["epochs1 8 against 6", "steps 14 against 10"]}
+            line = "**Not at equal encoder budget:** `oracle - initial`: epochs1 8 against 6; steps 14 against 10."
+            assert line in md and line in rep
+            assert "encoders of 'oracle - initial' were trained with different budgets" in err
+            assert "Its ceiling in this world" not in rep
+        else:
+            assert art.meta["unequal_budgets"] == {} and "Not at equal encoder budget" not in md + rep
+            assert "different budgets" not in err
+            assert "Its ceiling in this world" in rep

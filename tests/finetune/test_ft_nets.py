@@ -125,3 +125,30 @@ def test_alignment_maps_landmarks_onto_template():
     src = np.linalg.inv(np.vstack([A, [0, 0, 1]])) @ np.array([u, v, 1.0])
     got = (float(out[0, 0, v, u]) * 0.5 + 0.5) * S
     assert abs(got - src[0]) < 0.05
+
+
+def test_budget_differences_of_two_encoders(tmp_path):
+    """Two encoders' training budgets compared from their files' metas: equal budgets (the model's own settings
+    aside) give nothing; a schedule, step count or training data that differ are named; a key only one encoder
+    records is not a difference; a file that is not an encoder is a one-line error."""
+    from reflectmm_cli.finetune.encoder import budget_differences, read_encoder_meta
+
+    cfg = {"arch": "resnet18", "width": 8, "batch_size": 8, "epochs1": 6, "epochs2": 2, "lr1": 1e-3, "lr2": 1e-4,
+           "seed": 0, "model_lr": 0.0, "w_upd": 1.0}
+    data = [{"role": "data", "sha256": "a" * 64}, {"role": "model", "sha256": "b" * 64}]
+    e = build_encoder("resnet18", 3, 4, width=8)
+    base = save_encoder(e, tmp_path / "a.safetensors", {"config": cfg, "steps": 104, "inputs": data})
+    # the model update's settings and the model itself differ: the budget is the same
+    other = dict(cfg, model_lr=1e-4, w_upd=10.0)
+    same = save_encoder(e, tmp_path / "b.safetensors", {"config": other, "steps": 104,
+                                                         "inputs": [data[0], {"role": "model", "sha256": "c" * 64}]})
+    assert budget_differences(read_encoder_meta(base), read_encoder_meta(same)) == []
+    longer = save_encoder(e, tmp_path / "c.safetensors", {"config": dict(cfg, epochs1=8), "steps": 130,
+                                                           "inputs": [{"role": "data", "sha256": "d" * 64}]})
+    assert budget_differences(read_encoder_meta(longer), read_encoder_meta(base)) == [
+        "epochs1 8 against 6", "steps 130 against 104", "training data"]
+    bare = save_encoder(e, tmp_path / "d.safetensors", {})  # records no budget: nothing to compare
+    assert budget_differences(read_encoder_meta(bare), read_encoder_meta(base)) == []
+    save_file({"x": torch.zeros(1)}, str(tmp_path / "e.safetensors"))
+    with pytest.raises(ReflectmmError, match="not a reflectmm encoder"):
+        read_encoder_meta(tmp_path / "e.safetensors")
