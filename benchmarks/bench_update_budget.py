@@ -17,8 +17,8 @@ encoder is then shared, which ``finetune`` tests to equal training it again). A 
 time of its process (``resource.getrusage`` of the children), so it counts start-up, data loading and writing the
 outputs alike for every method; the phase-1 encoder's time is left out of every run. A run given ``phase1=own``
 trains its own phase 1 instead (with ``solver=ls``: on the solved model, as recipes/synthetic.toml's finetune
-stage does), and its CPU time counts it. A run given ``model=oracle`` starts from the oracle (below) instead of the
-workspace's build-pca model; with ``model-lr=0,phase1=own`` that is the control's schedule on the oracle, the
+stage does), and its CPU time counts it. A run given ``model=oracle`` starts from the oracle (below; ``reflectmm
+build-baseline --kind oracle``) instead of the workspace's build-pca model; with ``model-lr=0,phase1=own`` that is the control's schedule on the oracle, the
 ceiling of the encoder-only gain (what an encoder of this budget gains from a model that already is the training
 population's).
 
@@ -83,22 +83,18 @@ def model_mode(name: str, kw: dict) -> tuple[dict, str]:
     return opts, mode
 
 
-def write_oracle_model(ws: Path, oracle: dict, out: Path) -> Path:
-    """The workspace's build-pca artifact with its per-vertex means, bases and σ replaced by the oracle's (the
-    UV-space arrays, which finetune does not read, stay the initial model's): a ``reflectance-model`` that
-    ``reflectmm finetune --model`` takes like any other."""
-    from reflectmm_cli.artifacts import read_artifact, write_artifact
-    from reflectmm_cli.model.pca import MODEL_KIND
-
-    art = read_artifact(ws / "build-pca" / "build-pca.npz", MODEL_KIND)
-    arrays = dict(art.arrays)
-    for k in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis", "sigma"):
-        if arrays[k].shape != np.shape(oracle[k]):
-            raise SystemExit(f"bench_update_budget: oracle {k} {np.shape(oracle[k])} against the model's "
-                             f"{arrays[k].shape}")
-        arrays[k] = np.asarray(oracle[k], np.float32)
-    return write_artifact(out, MODEL_KIND, arrays, extra_meta={"stats": art.meta.get("stats", {}),
-                                                               "oracle_of": str(ws / "build-pca" / "build-pca.npz")})
+def write_oracle_model(ws: Path, out: Path) -> Path:
+    """The oracle as a ``reflectance-model`` artifact of the size of the workspace's build-pca model, made by the
+    project's own ``reflectmm build-baseline --kind oracle`` (the model ``evaluate expressive`` measures against,
+    array for array)."""
+    cmd = ["reflectmm", "-q", "build-baseline", "--kind", "oracle", "--truth", str(ws / "synth-wild"),
+           "--like", str(ws / "build-pca" / "build-pca.npz"),
+           "--face-model", str(ws / "synth-wild" / "face_model.npz"), "--no-preview", "-w", str(out.parent),
+           "-o", str(out)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"bench_update_budget: {' '.join(cmd)} failed:\n{r.stderr[-2000:]}")
+    return out
 
 
 def _args(kw: dict) -> list[str]:
@@ -194,12 +190,12 @@ def run(a) -> int:
             opts, start = model_mode(name, opts)
             start_path = None
             if start == "oracle":
-                start_path = a.scratch / "oracle_model.npz"
-                if not start_path.is_file():
-                    write_oracle_model(ws, oracle, start_path)
                 if not own:
                     raise SystemExit(f"bench_update_budget: run {name}: model=oracle needs phase1=own (the shared "
                                      "phase-1 encoder was trained on the initial model)")
+                start_path = a.scratch / "oracle_model.npz"
+                if not start_path.is_file():
+                    write_oracle_model(ws, start_path)
             cpu = _finetune(ws, out, {"seed": seed} | opts, phase1=None if own else phase1, log=log, model=start_path)
             m, _ = load_models(out, lpath)
             key = str(out)

@@ -78,12 +78,15 @@ def test_phase1_mode_of_a_run():
 
 
 def test_a_run_from_the_oracle(tmp_path):
-    """``model=oracle``: the run's start model file carries the oracle's per-vertex arrays and σ (read back through
-    finetune's own loader), the rest of the workspace's model unchanged; a bad mode or a shape mismatch is refused;
+    """``model=oracle``: the run's start model is build-baseline's oracle of the workspace (per-vertex arrays and σ
+    equal to the expressive-power measure's oracle, of the size of the workspace's model); a bad mode is refused;
     and the summary's initial-model row is a frozen run from the initial model, not the oracle's control."""
     from reflectmm_cli.artifacts import read_artifact, write_artifact
-    from reflectmm_cli.finetune.train import _check_finite
-    from reflectmm_cli.model.pca import MODEL_KIND, ReflectanceModel, model_arrays, model_from_arrays
+    from reflectmm_cli.evaluation.expressive import oracle_model
+    from reflectmm_cli.geometry import procedural_face_model
+    from reflectmm_cli.model.pca import MODEL_KIND, ReflectanceModel, model_arrays
+    from reflectmm_cli.stages.evaluate_expressive import load_wild_truth
+    from reflectmm_cli.synth.wild import WildConfig, synth_wild
 
     b = load_benchmark("bench_update_budget")
     assert b.model_mode("o", {"model": "oracle", "epochs2": "2"}) == ({"epochs2": "2"}, "oracle")
@@ -91,30 +94,30 @@ def test_a_run_from_the_oracle(tmp_path):
     with pytest.raises(SystemExit, match="model must be initial or oracle"):
         b.model_mode("x", {"model": "truth"})
 
+    ws = tmp_path / "ws"
+    fm = procedural_face_model(grid=(31, 25), n_shape=4, n_exp=2, seed=2)
+    synth_wild(ws / "synth-wild", WildConfig(count=12, size=48, images_per_identity=2, envmaps=1, envmap_width=32,
+                                             prefilter_width=16, uv_size=32, occluder_fraction=0.0, seed=1,
+                                             split=(0.6, 0.2, 0.2)), face_model=fm)
+    tr = load_wild_truth(ws / "synth-wild")
     rng = np.random.default_rng(3)
-    V, M, K = 5, 2, 3
+    V, M, K = fm.uv.shape[0], 2, 3
     f = lambda *s: rng.normal(size=s).astype(np.float32)  # noqa: E731
-    init = ReflectanceModel(albedo_mean=f(3, 2, 2), albedo_basis=f(M, 3, 2, 2), weights_mean=f(K, 2, 2),
-                            weights_basis=f(M, K, 2, 2), sigma=np.array([2.0, 1.0], np.float32),
+    init = ReflectanceModel(albedo_mean=f(3, 16, 16), albedo_basis=f(M, 3, 16, 16), weights_mean=f(K, 16, 16),
+                            weights_basis=f(M, K, 16, 16), sigma=np.array([2.0, 1.0], np.float32),
                             explained_variance=np.array([4.0, 1.0], np.float32),
                             explained_variance_ratio=np.array([0.8, 0.2], np.float32),
-                            exponents=np.array([1.0, 8.0, 64.0], np.float32), mask=np.ones((2, 2), bool),
+                            exponents=np.array([1.0, 8.0, 64.0], np.float32), mask=np.ones((16, 16), bool),
                             train_coeffs=f(3, M), vertex_albedo_mean=f(V, 3), vertex_albedo_basis=f(M, V, 3),
                             vertex_weights_mean=f(V, K), vertex_weights_basis=f(M, V, K))
-    ws = tmp_path / "ws"
     write_artifact(ws / "build-pca" / "build-pca.npz", MODEL_KIND, model_arrays(init))
-    orc = {"vertex_albedo_mean": f(V, 3), "vertex_albedo_basis": f(M, V, 3), "vertex_weights_mean": f(V, K),
-           "vertex_weights_basis": f(M, V, K), "sigma": np.array([3.0, 0.5], np.float32)}
-    path = b.write_oracle_model(ws, orc, tmp_path / "oracle.npz")
-    art = read_artifact(path, MODEL_KIND)  # as finetune's load_models reads it
-    _check_finite(art.arrays, path)
-    got = model_from_arrays(art.arrays, art.meta.get("stats"))
-    for k, v in orc.items():
-        assert np.array_equal(getattr(got, k), v), k
-    assert np.array_equal(got.albedo_mean, init.albedo_mean) and np.array_equal(got.train_coeffs, init.train_coeffs)
-    with pytest.raises(SystemExit, match="vertex_albedo_basis"):
-        b.write_oracle_model(ws, orc | {"vertex_albedo_basis": f(M + 1, V, 3)}, tmp_path / "bad.npz")
-    assert not (tmp_path / "bad.npz").exists()
+    path = b.write_oracle_model(ws, tmp_path / "scratch" / "oracle.npz")
+    got = read_artifact(path, MODEL_KIND)
+    want = oracle_model(np.stack([tr["albedo"][i] for i in tr["train"]]),
+                        np.stack([tr["weights"][i] for i in tr["train"]]), [1, 8, 64], M)
+    for k in ("vertex_albedo_mean", "vertex_albedo_basis", "vertex_weights_mean", "vertex_weights_basis", "sigma"):
+        np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+    assert got["albedo_mean"].shape == (3, 16, 16)  # the workspace model's UV size
 
     rows = [_row("oracle2own", s, {"model": "oracle", "model-lr": "0", "phase1": "own"}, 20, rng, shift=1.0)
             for s in (0, 1)]
