@@ -113,7 +113,8 @@ def _oracle(ctx: StageContext, fm):
                              "folder's train split)")
     truths = ctx.input_list("truth")
     if len(truths) != 1 or not Path(truths[0]).is_dir():
-        raise ReflectmmError("build-baseline: kind oracle needs one synth wild folder as --truth", truths[0])
+        raise ReflectmmError(f"build-baseline: kind oracle needs one synth wild folder as --truth, got "
+                             f"{', '.join(map(str, truths)) or 'none'}")
     folder = Path(truths[0])
     tr = load_wild_truth(folder)
     train = tr["train"]
