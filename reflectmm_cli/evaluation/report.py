@@ -358,6 +358,8 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
             lines += [f"**Not at equal encoder budget:** `{k}`: {'; '.join(v)}." for k, v in
                       (art.meta.get("unequal_budgets") or {}).items()] + (
                          [""] if art.meta.get("unequal_budgets") else [])
+            if art.meta.get("psnr_gap_sentence"):
+                lines += [art.meta["psnr_gap_sentence"], ""]
         lines += _command(art)
         doc.setdefault("table2", {})[path.stem] = art.meta.get("summary")
         if art.meta.get("gains"):

@@ -19,7 +19,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["albedo_evaluation", "Prediction", "reconstruction_evaluation", "paired_gains", "gains_table",
-           "Reflectance", "relighting_selection", "relighting_evaluation", "ALBEDO_PROTOCOL",
+           "psnr_gap_closed", "gap_sentence", "Reflectance", "relighting_selection", "relighting_evaluation", "ALBEDO_PROTOCOL",
            "RECONSTRUCTION_PROTOCOL", "RELIGHTING_PROTOCOL", "GAIN_MEASURES"]
 
 ALBEDO_PROTOCOL = ("Each model's coefficients β fitted to the held-out identity's OLAT observations (all pairs; prior "
@@ -183,6 +183,30 @@ def _table2_gains(per_method: Mapping[str, dict], results: Mapping[str, dict], g
             if a in results and b in results and f"{a} - {b}" not in gains:
                 gains[f"{a} - {b}"] = paired_gains(results[a], results[b], method=ci)
     return paper, gains
+
+
+def psnr_gap_closed(gains: dict, gain, unequal: dict) -> dict[str, float]:
+    """The share of the oracle's PSNR gain that ``gain`` = (A, B) reaches, ``(A − B) / (oracle − B)`` of the mean
+    paired PSNR gains, encoder-only and refined (issue 21's "gap closed" for Table 2), where both gains are
+    reported at equal encoder budgets; NaN when the oracle does not gain."""
+    a, b = gain
+    out = {}
+    for suffix, label in (("", "encoder-only"), ("-refined", "refined")):
+        ab, ob = gains.get(f"{a}{suffix} - {b}{suffix}"), gains.get(f"oracle{suffix} - {b}{suffix}")
+        if ab is None or ob is None or a == "oracle" or f"{a} - {b}" in unequal or f"oracle - {b}" in unequal:
+            continue
+        den = float(ob["psnr"]["mean"])
+        out[label] = float(ab["psnr"]["mean"]) / den if den > 0 else float("nan")
+    return out
+
+
+def gap_sentence(gap: dict[str, float], gain) -> str:
+    """One line of :func:`psnr_gap_closed`'s shares, for the table's markdown and the report."""
+    a, b = gain
+    parts = [f"{k} {100 * v:.0f} %" if np.isfinite(v) else f"{k} undefined (the oracle does not gain)"
+             for k, v in gap.items()]
+    return (f"Gap to the oracle closed in PSNR by `{a}` from `{b}` (({a} − {b}) / (oracle − {b}) of the mean gains): "
+            + ", ".join(parts) + ".")
 
 
 def _table2_documents(results: Mapping[str, dict], gains: Mapping[str, dict]) -> tuple[dict, dict]:

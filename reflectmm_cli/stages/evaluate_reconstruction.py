@@ -107,7 +107,7 @@ def _outputs(ctx: StageContext) -> list[Path]:
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.metrics import load_lpips
     from reflectmm_cli.evaluation.methods import command_line, methods_from_inputs
-    from reflectmm_cli.evaluation.tables import reconstruction_evaluation
+    from reflectmm_cli.evaluation.tables import gap_sentence, psnr_gap_closed, reconstruction_evaluation
     from reflectmm_cli.stages.evaluation_inputs import (load_light_model, reconstruction_predictions,
                                                         select_wild_images, shard_arrays)
 
@@ -162,6 +162,10 @@ def run(ctx: StageContext) -> list[Path]:
                   "this encoder budget." if "oracle - initial" in res["gains"] else "") + "\n\n"
                f"{res['gains_table']}\n")
         md += "".join(f"\n**Not at equal encoder budget:** `{k}`: {'; '.join(v)}.\n" for k, v in unequal.items())
+    gap = psnr_gap_closed(res["gains"], p["gain"], unequal)
+    gap_text = gap_sentence(gap, p["gain"]) if gap else ""
+    if gap_text:
+        md += "\n" + gap_text + "\n"
     if res["figure"] is not None:
         md += (f"\nFigure `{png.name}`: columns input | reconstruction | diffuse | specular | error (|recon − input|, "
                "white at 0.2); rows: " + "; ".join(res["figure_rows"]) + ".\n")
@@ -175,7 +179,8 @@ def run(ctx: StageContext) -> list[Path]:
                                "lpips": res["lpips"], "encoding": res["encoding"], "summary": res["summary"],
                                "paper_numbers": res["paper_numbers"], "figure_rows": res["figure_rows"],
                                "protocol": res["protocol"], "gains": res["gains"],
-                               "gains_table": res["gains_table"], "unequal_budgets": unequal})
+                               "gains_table": res["gains_table"], "unequal_budgets": unequal,
+                               "psnr_gap_closed": gap, "psnr_gap_sentence": gap_text})
     log.info(res["table"])
     return [out, out.with_suffix(".md"), png]
 

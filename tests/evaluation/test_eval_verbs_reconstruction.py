@@ -222,6 +222,10 @@ def test_more_gains_report_the_oracle_over_the_control(data, cli, tmp_path):
     assert g["mean"] == pytest.approx(d.mean()) and g["mean"] > 1  # the oracle's head knows test image 3
     md = out.with_suffix(".md").read_text()
     assert "| oracle - initial |" in md and "the ceiling of the finetuning gain" in md
+    # the share of the oracle's gain that the finetuned row reaches (here its encoder is the control's: 0 %)
+    share = art.meta["gains"]["finetuned - initial"]["psnr"]["mean"] / g["mean"]
+    assert art.meta["psnr_gap_closed"] == {"encoder-only": pytest.approx(share)} and abs(share) < 1e-9
+    assert "Gap to the oracle closed in PSNR by `finetuned` from `initial`" in md and "encoder-only 0 %" in md
     assert art.meta["paper_numbers"]["table2.psnr_gain_finetune"] == pytest.approx(0.0, abs=1e-9)
 
     out2 = tmp_path / "g2.npz"
@@ -294,7 +298,9 @@ def test_a_gain_between_encoders_of_different_budgets_is_flagged(data, cli, tmp_
             assert line in md and line in rep
             assert "encoders of 'oracle - initial' were trained with different budgets" in err
             assert "Its ceiling in this world" not in rep
+            assert art.meta["psnr_gap_closed"] == {} and "Gap to the oracle closed in PSNR" not in md + rep
         else:
             assert art.meta["unequal_budgets"] == {} and "Not at equal encoder budget" not in md + rep
             assert "different budgets" not in err
             assert "Its ceiling in this world" in rep
+            assert art.meta["psnr_gap_sentence"] in rep and "encoder-only" in art.meta["psnr_gap_sentence"]
