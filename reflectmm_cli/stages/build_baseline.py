@@ -132,6 +132,10 @@ def _oracle(ctx: StageContext, fm):
         if not np.allclose(np.asarray(ref.exponents, np.float64), np.asarray(exps, np.float64)):
             raise ReflectmmError(f"build-baseline: the model's lobe exponents {list(map(float, ref.exponents))} "
                                  f"differ from the wild truth's {list(map(float, exps))}", like[0])
+        V = int(np.shape(tr["albedo"][train[0]])[0])
+        if ref.vertex_albedo_mean is not None and ref.vertex_albedo_mean.shape[0] != V:
+            raise ReflectmmError(f"build-baseline: the model has {ref.vertex_albedo_mean.shape[0]} vertices, the wild "
+                                 f"truth {V} (another face model?)", like[0])
         comps, size = min(comps, ref.n_components), ref.size
     if comps > len(train) - 1:
         log.info(f"build-baseline: {comps} components requested, {len(train)} identities: using {len(train) - 1}")

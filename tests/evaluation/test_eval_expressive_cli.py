@@ -133,3 +133,8 @@ def test_build_baseline_oracle(wild, cli, tmp_path):
     r = cli("build-baseline", "--kind", "oracle", "--truth", wild, "--face-model", fm, "--like", other, "-w",
             tmp_path, "-o", bad)
     assert r.exit_code != 0 and "lobe exponents" in r.stderr and not bad.exists()
+    fewer = _model(tmp_path / "fewer.npz", full["vertex_albedo_mean"][:-1], full["vertex_albedo_basis"][:M, :-1],
+                   full["vertex_weights_mean"][:-1], full["vertex_weights_basis"][:M, :-1], full["sigma"][:M])
+    r = cli("build-baseline", "--kind", "oracle", "--truth", wild, "--face-model", fm, "--like", fewer, "-w",
+            tmp_path, "-o", bad)
+    assert r.exit_code != 0 and "another face model?" in r.stderr and not bad.exists()
