@@ -351,8 +351,9 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
                       "the model frozen, so the gain measures the model update alone (docs/evaluation.md, "
                       "\"A fair Table 2\")."
                       + (" `oracle - initial`: the oracle (a model of the same size built from the training "
-                         "identities' true reflectance) with the control's encoder schedule, over the control: the "
-                         "most a model update can give at this encoder budget (docs/evaluation.md, \"The oracle "
+                         "identities' true reflectance) with the control's encoder schedule, over the control: what "
+                         "the best model of this size for this population gives at this encoder budget (a finetuned "
+                         "model can pass it in PSNR by taking up light and shadow; docs/evaluation.md, \"The oracle "
                          "row\")." if "oracle - initial" in (art.meta.get("gains") or {}) else ""),
                       "", art.meta["gains_table"], ""]
             lines += [f"**Not at equal encoder budget:** `{k}`: {'; '.join(v)}." for k, v in

@@ -159,7 +159,8 @@ def run(ctx: StageContext) -> list[Path]:
         md += ("\n## The finetuning gain (per image, same images; mean ± 95 % CI)\n\nA − B of each image, averaged; "
                "for the reflectance errors B − A, so that a positive gain is an improvement everywhere."
                + (" `oracle - initial`: the oracle model over the control, the ceiling of the finetuning gain at "
-                  "this encoder budget." if "oracle - initial" in res["gains"] else "") + "\n\n"
+                  "this encoder budget (what the best model of this size for this population gives)."
+                  if "oracle - initial" in res["gains"] else "") + "\n\n"
                f"{res['gains_table']}\n")
         md += "".join(f"\n**Not at equal encoder budget:** `{k}`: {'; '.join(v)}.\n" for k, v in unequal.items())
     gap = psnr_gap_closed(res["gains"], p["gain"], unequal)
