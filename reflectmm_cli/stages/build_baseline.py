@@ -102,7 +102,7 @@ def load_truths(paths: list[Path]) -> tuple[list[dict[str, np.ndarray]], list[st
 
 def _oracle(ctx: StageContext, fm):
     """The ``oracle`` kind: (model, number of training identities)."""
-    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.artifacts import read_meta
     from reflectmm_cli.evaluation.expressive import oracle_reflectance_model
     from reflectmm_cli.stages.evaluate_expressive import load_wild_truth
     from reflectmm_cli.stages.evaluation_inputs import load_model
@@ -121,7 +121,7 @@ def _oracle(ctx: StageContext, fm):
     if len(train) < 2:
         raise ReflectmmError(f"build-baseline: a PCA needs at least 2 training identities, got {len(train)}",
                              folder)
-    exps = read_artifact(folder / "identities" / f"id{train[0]:05d}.npz").meta.get("exponents")
+    exps = read_meta(folder / "identities" / f"id{train[0]:05d}.npz").get("exponents")  # its arrays are read above
     if exps is None:
         raise ReflectmmError("the wild truth does not name its lobe exponents (meta 'exponents')",
                              folder / "identities" / f"id{train[0]:05d}.npz")
