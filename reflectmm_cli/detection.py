@@ -28,7 +28,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["Face", "EXPOSURES", "DETECTORS", "predictor_path", "cnn_detector_path", "normalize_exposure",
-           "detect_landmarks", "pick_face", "detect_landmark_files"]
+           "jittered_boxes", "predict_shape", "detect_landmarks", "pick_face", "detect_landmark_files"]
 
 _MISSING = ("landmark detection needs the optional extra: pip install 'reflectmm[landmarks]' "
             "(dlib-bin and face-recognition-models)")
@@ -121,27 +121,68 @@ def normalize_exposure(image_rgb: np.ndarray, percentile: float = 99.5) -> np.nd
     return np.clip(np.rint(img.astype(np.float32) * np.float32(gain)), 0, 255).astype(np.uint8)
 
 
+def jittered_boxes(box: tuple[int, int, int, int], jitter: float) -> list[tuple[int, int, int, int]]:
+    """The 27 boxes of a 3 × 3 × 3 grid around ``box`` (left, top, right, bottom): its centre moved by
+    ``-jitter``, 0 and ``+jitter`` of its width and of its height, and its size scaled by ``1 - jitter``, 1 and
+    ``1 + jitter``; rounded to whole pixels.  ``jitter`` = 0 gives the box alone.
+    """
+    j = float(jitter)
+    if not 0.0 <= j < 0.5:
+        raise ReflectmmError(f"box jitter must be in [0, 0.5), got {jitter}")
+    if j == 0.0:
+        return [tuple(int(v) for v in box)]
+    left, top, right, bottom = (float(v) for v in box)
+    w, h = right - left, bottom - top
+    cx, cy = (left + right) / 2, (top + bottom) / 2
+    out = []
+    for dx in (-j, 0.0, j):
+        for dy in (-j, 0.0, j):
+            for s in (1.0 - j, 1.0, 1.0 + j):
+                x0, y0, hw, hh = cx + dx * w, cy + dy * h, w * s / 2, h * s / 2
+                out.append((int(round(x0 - hw)), int(round(y0 - hh)), int(round(x0 + hw)), int(round(y0 + hh))))
+    return out
+
+
+def predict_shape(predictor, image: np.ndarray, box: tuple[int, int, int, int], box_jitter: float = 0.0
+                  ) -> np.ndarray:
+    """The shape predictor's 68 points (68, 2) float64 for the face in ``box``: with ``box_jitter`` > 0, the mean
+    of its points over :func:`jittered_boxes`.
+
+    dlib returns whole pixels, and where its regression puts a point depends on where the detector put the box,
+    with one error shared by a group of points.  The mean over nearby boxes is sub-pixel and less tied to that one
+    box (docs/capture.md, "Landmarks from a detector").
+    """
+    import dlib
+
+    pts = []
+    for b in jittered_boxes(box, box_jitter):
+        sh = predictor(image, dlib.rectangle(*b))
+        pts.append([[p.x, p.y] for p in sh.parts()])
+    return np.asarray(pts, np.float64).mean(axis=0)
+
+
 def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1, exposure: str = "auto",
-                     detector: str = "hog") -> list[Face]:
+                     detector: str = "hog", box_jitter: float = 0.0) -> list[Face]:
     """All faces of an RGB uint8 image (H, W, 3), sorted by box area then score (largest first).
 
     ``exposure`` (one of :data:`EXPOSURES`): ``auto`` detects on :func:`normalize_exposure` of the image,
     ``none`` on the image as given.  The landmarks are in the input's pixel grid either way.  ``detector`` (one
     of :data:`DETECTORS`) finds the faces; ``upsample`` doubles the image that many times first (smaller faces).
+    ``box_jitter`` > 0 averages the shape predictor over boxes around the detector's (:func:`predict_shape`).
     """
     img = np.ascontiguousarray(np.asarray(image_rgb))
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ReflectmmError(f"detect_landmarks: expected an RGB uint8 image, got {img.dtype} {img.shape}")
     if exposure not in EXPOSURES:
         raise ReflectmmError(f"detect_landmarks: exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
+    jittered_boxes((0, 0, 1, 1), box_jitter)  # a bad value is refused before any work
     det, pred = _models(detector)
     if exposure == "auto":
         img = np.ascontiguousarray(normalize_exposure(img))
     faces = []
     for r, s in _detect(det, detector, img, upsample):
-        sh = pred(img, r)
-        lm = np.array([[p.x, p.y] for p in sh.parts()], np.float64)
-        faces.append(Face((r.left(), r.top(), r.right(), r.bottom()), float(s), lm))
+        box = (r.left(), r.top(), r.right(), r.bottom())
+        faces.append(Face(box, float(s), predict_shape(pred, img, box, box_jitter)))
     faces.sort(key=lambda f: (-f.area, -f.score))
     return faces
 
@@ -157,8 +198,8 @@ def pick_face(faces: list[Face], index: int | None = None) -> Face | None:
 
 
 def detect_landmark_files(images, out_dir, *, face_index: int | None = None, upsample: int = 1,
-                          exposure: str = "auto", detector: str = "hog", progress_fn=None
-                          ) -> tuple[list[Path], list[str], list[tuple[Path, str]]]:
+                          exposure: str = "auto", detector: str = "hog", box_jitter: float = 0.0,
+                          progress_fn=None) -> tuple[list[Path], list[str], list[tuple[Path, str]]]:
     """Detect the face of each image file and write ``out_dir/<stem>.pts`` (68 iBUG points, pixel-centre
     convention; read by ``preprocess-multipie`` and ``prepare-wild``).
 
@@ -171,13 +212,15 @@ def detect_landmark_files(images, out_dir, *, face_index: int | None = None, ups
     from reflectmm_cli.landmarks import write_pts
 
     _models(detector)  # an unknown detector or a missing extra would fail every image: raised at once
+    jittered_boxes((0, 0, 1, 1), box_jitter)
     written: list[Path] = []
     errors: list[str] = []
     faceless: list[tuple[Path, str]] = []
     for p in (progress_fn(images) if progress_fn else images):
         p = Path(p)
         try:
-            faces = detect_landmarks(read_image_u8(p), upsample=upsample, exposure=exposure, detector=detector)
+            faces = detect_landmarks(read_image_u8(p), upsample=upsample, exposure=exposure, detector=detector,
+                                     box_jitter=box_jitter)
             f = pick_face(faces, face_index)
             if f is None:
                 why = ("no face found" if not faces else

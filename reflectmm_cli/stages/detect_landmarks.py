@@ -32,6 +32,10 @@ PARAMS = (
     Param("exposure", "str", "auto", choices=EXPOSURES,
           help="auto: brighten dim images before detecting (99.5th percentile of the brightest channel to 255; "
                "no pixel moves); none: detect on the image as given."),
+    Param("box_jitter", "float", 0.0, range=(0.0, 0.49),
+          help="Average the shape predictor's points over 27 boxes around the detector's (centre moved by 0 and "
+               "±this fraction of the box, size scaled by 1 and 1±this); 0 = the detector's box alone. dlib gives "
+               "whole pixels, and its points move with the box."),
     Param("allow_missing", "bool", False,
           help="Succeed when some images have no face: list them in no_face.txt beside the landmarks (capture "
                "views beyond a frontal detector's reach; preprocess-multipie leaves them without landmarks)."),
@@ -100,7 +104,7 @@ def run(ctx: StageContext) -> list[Path]:
     written, errors, faceless = detect_landmark_files(
         images, out_dir(ctx), face_index=ctx.params.get("face_index"), upsample=ctx.params["upsample"],
         exposure=ctx.params["exposure"], detector=ctx.params["detector"],
-        progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
+        box_jitter=ctx.params["box_jitter"], progress_fn=lambda it: progress(it, desc=VERB, unit="img"))
     unreadable = len(errors) - len(faceless)
     if ctx.params.get("allow_missing") and unreadable == 0:
         from reflectmm_cli.artifacts import atomic_write_text

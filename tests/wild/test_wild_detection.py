@@ -209,3 +209,73 @@ def test_unknown_detector_is_a_one_line_error(tmp_path, cli):
     write_png(tmp_path / "a.png", np.full((40, 40, 3), 0.5))
     res = cli("detect-landmarks", tmp_path / "a.png", "--detector", "mtcnn", "--out", tmp_path / "lm")
     assert res.exit_code != 0 and "mtcnn" in res.stderr and not (tmp_path / "lm").exists()
+
+
+def test_jittered_boxes_form_the_3x3x3_grid_around_the_box():
+    from reflectmm_cli.detection import jittered_boxes
+
+    box = (100, 60, 200, 180)                      # 100 wide, 120 high, centre (150, 120)
+    assert jittered_boxes(box, 0.0) == [box]
+    boxes = np.array(jittered_boxes(box, 0.1), float)
+    assert len(boxes) == 27 and len({tuple(b) for b in boxes}) == 27
+    centres = np.c_[(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2]
+    sizes = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]]
+    assert np.allclose(centres.mean(0), (150, 120), atol=0.5)
+    assert set(np.round(centres[:, 0] - 150).astype(int)) == {-10, 0, 10}
+    assert set(np.round(centres[:, 1] - 120).astype(int)) == {-12, 0, 12}
+    assert np.allclose(sorted(set(np.round(sizes[:, 0]).astype(int))), (90, 100, 110))
+    assert np.allclose(sizes[:, 1] / 120, sizes[:, 0] / 100, atol=0.02)
+
+
+@pytest.mark.parametrize("bad", [-0.01, 0.5, 2.0])
+def test_a_bad_box_jitter_is_refused_before_any_work(bad):
+    from reflectmm_cli.detection import detect_landmarks, jittered_boxes
+    from reflectmm_cli.errors import ReflectmmError
+
+    with pytest.raises(ReflectmmError, match="box jitter"):
+        jittered_boxes((0, 0, 10, 10), bad)
+    with pytest.raises(ReflectmmError, match="box jitter"):
+        detect_landmarks(np.zeros((8, 8, 3), np.uint8), box_jitter=bad)
+
+
+def test_predict_shape_is_the_mean_over_the_jittered_boxes():
+    """A stand-in predictor whose points follow the box (its centre plus fixed offsets, whole pixels like dlib's):
+    the mean over the grid is the direct mean of the 27 predictions, and lands at sub-pixel positions."""
+    from types import SimpleNamespace
+
+    from reflectmm_cli.detection import jittered_boxes, predict_shape
+
+    offsets = np.random.default_rng(0).normal(0, 20, (68, 2))
+
+    def predictor(image, rect):
+        c = np.array([(rect.left() + rect.right()) / 2, (rect.top() + rect.bottom()) / 2])
+        s = (rect.right() - rect.left()) / 100
+        pts = np.floor(c + s * offsets)
+        return SimpleNamespace(parts=lambda: [SimpleNamespace(x=int(x), y=int(y)) for x, y in pts])
+
+    box = (101, 57, 203, 181)
+    direct = []
+    for b in jittered_boxes(box, 0.05):
+        direct.append([[p.x, p.y] for p in predictor(None, SimpleNamespace(
+            left=lambda b=b: b[0], top=lambda b=b: b[1], right=lambda b=b: b[2], bottom=lambda b=b: b[3])).parts()])
+    got = predict_shape(predictor, None, box, 0.05)
+    assert got.shape == (68, 2)
+    assert np.allclose(got, np.mean(direct, 0))
+    assert not np.allclose(got, np.round(got))                      # sub-pixel
+    assert np.allclose(predict_shape(predictor, None, box, 0.0), direct[13])  # the middle of the grid: the box
+
+
+def test_box_jitter_moves_the_points_by_less_than_a_pixel_on_a_photograph(tmp_path, cli):
+    from skimage import data
+
+    from reflectmm_cli.artifacts import write_png
+
+    img = data.astronaut()
+    plain = detect_landmarks(img)[0].landmarks
+    jit = detect_landmarks(img, box_jitter=0.05)[0].landmarks
+    d = np.linalg.norm(plain - jit, axis=1)
+    assert 0.05 < np.median(d) < 2.0
+    write_png(tmp_path / "astronaut.png", img)
+    res = cli("detect-landmarks", tmp_path / "astronaut.png", "--out", tmp_path / "lm", "--box-jitter", "0.05")
+    assert res.exit_code == 0, res.stderr
+    assert np.allclose(read_landmarks(tmp_path / "lm" / "astronaut.pts"), jit, atol=1e-3)
