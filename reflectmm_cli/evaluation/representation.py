@@ -227,16 +227,19 @@ class RepresentationResult:
     psnr: np.ndarray  # (N, R) mean over held-out pairs
     ssim: np.ndarray  # (N, R)
     lpips: np.ndarray | None  # (N, R) or None when no LPIPS weights
-    psnr_pairs: np.ndarray  # (N, R, H)
+    psnr_pairs: np.ndarray  # (N, R, H) H the most held-out pairs of an identity; NaN beyond an identity's own
     ssim_pairs: np.ndarray  # (N, R, H)
     train_psnr: np.ndarray  # (N, R) PSNR on the training pairs (fit quality)
     fit_seconds: np.ndarray  # (N, R)
-    n_holdout_pairs: int
+    n_holdout_pairs: int  # the most held-out pairs of an identity (H)
     figure: dict[str, Any] = field(default_factory=dict)  # renders of the first identity for the figure
     space: str = "uv"
     #: (N,) image space: fraction of lit face pixels of the held-out pairs left out because their UV footprint
     #: leaves the maps' domain (NaN in UV space)
     outside_domain: np.ndarray | None = None
+    #: (N,) held-out pairs per identity: identities whose captures keep different views (a detector's
+    #: landmarks place different views per identity) hold different numbers of them
+    pairs_per_identity: np.ndarray | None = None
 
     def mean(self, what: str = "psnr") -> np.ndarray:
         arr = getattr(self, what)
@@ -298,17 +301,13 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
     per_pair_p, per_pair_s = [], []
     outside = np.full(N, np.nan)
     fig: dict[str, Any] = {}
-    H = None
+    n_pairs = np.zeros(N, np.int64)
     for n, (obs, ident) in enumerate(progress(list(zip(observations, ids)), desc="identities")):
         held = holdout_pairs(obs, holdout)
         train = ~held
         hp = np.flatnonzero(held)
         tr = np.flatnonzero(train)
-        if H is None:
-            H = hp.size
-        elif hp.size != H:
-            raise ReflectmmError(f"evaluate representation: identity {ident} has {hp.size} held-out pairs, "
-                                 f"the first had {H} (all identities must share the rig)")
+        H = n_pairs[n] = hp.size
         isr = image_space[n] if image_space is not None else None
         if isr is not None and hasattr(isr, "set_domain"):
             isr.set_domain(np.asarray(obs["mask"], bool))  # the maps of every representation are defined there
@@ -375,9 +374,12 @@ def compare_representations(observations: Sequence[Mapping[str, np.ndarray]], id
                 fig["renders"].append((rep.name, pred[k]))
         per_pair_p.append(pp)
         per_pair_s.append(sp)
+    H = int(n_pairs.max())
+    pad = lambda a: np.pad(a, ((0, 0), (0, H - a.shape[1])), constant_values=np.nan)  # noqa: E731
     return RepresentationResult(reps, list(ids), list(holdout), ps, ss, lp if lpips is not None else None,
-                                np.stack(per_pair_p), np.stack(per_pair_s), tp, secs, int(H or 0), fig,
-                                space="uv" if image_space is None else "image", outside_domain=outside)
+                                np.stack([pad(a) for a in per_pair_p]), np.stack([pad(a) for a in per_pair_s]),
+                                tp, secs, H, fig, space="uv" if image_space is None else "image",
+                                outside_domain=outside, pairs_per_identity=n_pairs)
 
 
 def _figure_pair_index(obs, hp, figure_pair):
@@ -418,8 +420,12 @@ def comparison_table(res: RepresentationResult) -> str:
     where = ("re-rendered in UV space over the texels observed in each held-out pair" if res.space == "uv" else
              "re-rendered in image space (fitted mesh ray cast into the capture windows) against the captured OLAT "
              "images over face ∧ inside the maps' UV domain ∧ lit ∧ unsaturated pixels")
+    counts = res.pairs_per_identity if res.pairs_per_identity is not None else [res.n_holdout_pairs]
+    lo, hi = int(np.min(counts)), int(np.max(counts))
+    pairs = f"{hi} pairs per identity" if lo == hi else (
+        f"{lo}–{hi} pairs per identity, each identity's mean over its own; their captures keep different views")
     foot = (f"\n{len(res.ids)} identities; held-out flashes {', '.join(res.holdout)} (all views, "
-            f"{res.n_holdout_pairs} pairs per identity); {where}; metrics on clip(x,0,1)^(1/1.2), peak 1.")
+            f"{pairs}); {where}; metrics on clip(x,0,1)^(1/1.2), peak 1.")
     if res.space == "image" and res.outside_domain is not None and np.isfinite(res.outside_domain).any():
         foot += (f" Lit face pixels left out because their UV lookup leaves the maps' domain: "
                  f"{100 * np.nanmean(res.outside_domain):.2f} % (mean over identities).")

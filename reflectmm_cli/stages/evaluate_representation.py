@@ -173,6 +173,7 @@ def run(ctx: StageContext) -> list[Path]:
               "psnr": res.psnr, "ssim": res.ssim, "psnr_pairs": res.psnr_pairs, "ssim_pairs": res.ssim_pairs,
               "train_psnr": res.train_psnr, "fit_seconds": res.fit_seconds,
               "outside_domain": np.asarray(res.outside_domain, np.float64),
+              "pairs_per_identity": np.asarray(res.pairs_per_identity, np.int64),
               "holdout_flashes": np.array(holdout, dtype=str), "skipped_ids": np.array(skipped, dtype=str)}
     if res.lpips is not None:
         arrays["lpips"] = res.lpips
@@ -203,5 +204,5 @@ def run(ctx: StageContext) -> list[Path]:
 
 # version 2: image-space region inside the maps' domain; symmetry_mode. version 3: prior_tail version 4: adaptive
 # version 6: the diffuse-only baseline fills the texels without data from their neighbours (as fit-reflectance)
-STAGE = Stage(VERB, version=7, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
+STAGE = Stage(VERB, version=8, run=run, per_identity=False, outputs=_rep_outputs, params=PARAMS,
               help="the paper's Table 1: global exponents vs multi-lobe on held-out flashes", inputs=INPUTS)

@@ -278,3 +278,22 @@ def test_diffuse_only_fills_texels_without_data_from_neighbours():
     seen = obs["observed"].any(0)
     np.testing.assert_allclose(a[:, seen], const[:, seen], rtol=1e-3)
     assert (a[:, ~obs["mask"]] == 0).all()
+
+
+def test_identities_with_different_view_sets_are_compared_on_their_own_pairs(exact_obs):
+    """A detector's landmarks keep different views per identity, so identities hold different numbers of held-out
+    pairs: each is scored on its own, and the per-pair arrays are padded with NaN."""
+    (o0, _), (o1, _) = exact_obs
+    keep = np.asarray(o1["pair_view"]) < 6                       # the second identity lost views 6-8
+    P = len(o1["pair_view"])
+    fewer = {k: (np.asarray(v)[keep] if np.ndim(v) and np.shape(v)[0] == P else v) for k, v in o1.items()}
+    reps = default_representations("8;1,8,64")
+    res = compare_representations([o0, fewer], ["000", "001"], reps)
+    assert list(res.pairs_per_identity) == [18, 12] and res.n_holdout_pairs == 18
+    assert res.psnr_pairs.shape == (2, len(reps), 18)
+    assert np.isnan(res.psnr_pairs[1, :, 12:]).all() and np.isfinite(res.psnr_pairs[1, :, :12]).all()
+    alone = compare_representations([fewer], ["001"], reps)
+    np.testing.assert_allclose(res.psnr[1], alone.psnr[0])       # scored on its own pairs, as if alone
+    np.testing.assert_allclose(res.psnr_pairs[1, :, :12], alone.psnr_pairs[0])
+    assert "12–18 pairs per identity" in comparison_table(res)
+    assert "18 pairs per identity" in comparison_table(compare_representations([o0, o0], ["a", "b"], reps))
