@@ -150,7 +150,7 @@ def predict_shape(predictor, image: np.ndarray, box: tuple[int, int, int, int], 
 
     dlib returns whole pixels, and where its regression puts a point depends on where the detector put the box,
     with one error shared by a group of points.  The mean over nearby boxes is sub-pixel and less tied to that one
-    box (docs/capture.md, "Landmarks from a detector").
+    box (docs/wild.md, "detect-landmarks"; docs/benchmarks.md, "Averaging the shape predictor over boxes").
     """
     import dlib
 
