@@ -188,23 +188,39 @@ def _table2_gains(per_method: Mapping[str, dict], results: Mapping[str, dict], g
 def psnr_gap_closed(gains: dict, gain, unequal: dict) -> dict[str, float]:
     """The share of the oracle's PSNR gain that ``gain`` = (A, B) reaches, ``(A − B) / (oracle − B)`` of the mean
     paired PSNR gains, encoder-only and refined (issue 21's "gap closed" for Table 2), where both gains are
-    reported at equal encoder budgets; NaN when the oracle does not gain."""
+    reported at equal encoder budgets.  NaN where the oracle's gain is not above zero by its confidence interval:
+    a share of a gain that may be nothing measures nothing (:func:`gap_sentence` says so)."""
     a, b = gain
     out = {}
     for suffix, label in (("", "encoder-only"), ("-refined", "refined")):
         ab, ob = gains.get(f"{a}{suffix} - {b}{suffix}"), gains.get(f"oracle{suffix} - {b}{suffix}")
         if ab is None or ob is None or a == "oracle" or f"{a} - {b}" in unequal or f"oracle - {b}" in unequal:
             continue
-        den = float(ob["psnr"]["mean"])
-        out[label] = float(ab["psnr"]["mean"]) / den if den > 0 else float("nan")
+        den, lo = float(ob["psnr"]["mean"]), float(ob["psnr"].get("lo", float("nan")))
+        out[label] = float(ab["psnr"]["mean"]) / den if den > 0 and lo > 0 else float("nan")
     return out
 
 
-def gap_sentence(gap: dict[str, float], gain) -> str:
-    """One line of :func:`psnr_gap_closed`'s shares, for the table's markdown and the report."""
+def _gain_text(summary: Mapping[str, Any]) -> str:
+    """``+0.12 ± 0.32 dB`` of a :func:`mean_ci` summary."""
+    half = float(summary.get("half_width", float("nan")))
+    return f"{float(summary['mean']):+.2f}" + (f" ± {half:.2f}" if np.isfinite(half) else "") + " dB"
+
+
+def gap_sentence(gap: dict[str, float], gain, gains: Mapping[str, Any] | None = None) -> str:
+    """One line of :func:`psnr_gap_closed`'s shares, for the table's markdown and the report; with ``gains`` (the
+    paired gains it was computed from) an unmeasured share names the oracle's gain."""
     a, b = gain
-    parts = [f"{k} {100 * v:.0f} %" if np.isfinite(v) else f"{k} undefined (the oracle does not gain)"
-             for k, v in gap.items()]
+    parts = []
+    for k, v in gap.items():
+        if np.isfinite(v):
+            parts.append(f"{k} {100 * v:.0f} %")
+            continue
+        ob = (gains or {}).get(f"oracle{'-refined' if k == 'refined' else ''} - "
+                               f"{b}{'-refined' if k == 'refined' else ''}")
+        why = (f"the oracle's gain, {_gain_text(ob['psnr'])}, is not above zero by its interval" if ob else
+               "the oracle does not gain")
+        parts.append(f"{k} not measured ({why})")
     return (f"Gap to the oracle closed in PSNR by `{a}` from `{b}` (({a} − {b}) / (oracle − {b}) of the mean gains): "
             + ", ".join(parts) + ".")
 

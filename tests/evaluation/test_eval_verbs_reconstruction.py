@@ -222,10 +222,12 @@ def test_more_gains_report_the_oracle_over_the_control(data, cli, tmp_path):
     assert g["mean"] == pytest.approx(d.mean()) and g["mean"] > 1  # the oracle's head knows test image 3
     md = out.with_suffix(".md").read_text()
     assert "| oracle - initial |" in md and "the ceiling of the finetuning gain" in md
-    # the share of the oracle's gain that the finetuned row reaches (here its encoder is the control's: 0 %)
-    share = art.meta["gains"]["finetuned - initial"]["psnr"]["mean"] / g["mean"]
-    assert art.meta["psnr_gap_closed"] == {"encoder-only": pytest.approx(share)} and abs(share) < 1e-9
-    assert "Gap to the oracle closed in PSNR by `finetuned` from `initial`" in md and "encoder-only 0 %" in md
+    # the share of the oracle's gain that the finetuned row reaches is not measured: over 3 images the oracle's
+    # gain is not above zero by its interval (psnr_gap_closed's unit test measures a share)
+    assert g["lo"] <= 0 and np.isnan(float(art.meta["psnr_gap_closed"]["encoder-only"]))
+    assert "Gap to the oracle closed in PSNR by `finetuned` from `initial`" in md
+    assert (f"encoder-only not measured (the oracle's gain, {g['mean']:+.2f} ± {g['half_width']:.2f} dB, is not "
+            "above zero by its interval)") in md
     assert art.meta["paper_numbers"]["table2.psnr_gain_finetune"] == pytest.approx(0.0, abs=1e-9)
 
     out2 = tmp_path / "g2.npz"
@@ -256,8 +258,10 @@ def test_report_states_the_ceiling_of_the_gain(data, cli, tmp_path):
         md = (ws / "evaluate-report" / "evaluate-report.md").read_text()
         art = read_artifact(ws / "evaluate-reconstruction" / "evaluate-reconstruction.npz", "evaluation")
         if with_oracle:
-            g = art.meta["gains"]["oracle - initial"]["psnr"]["mean"]
-            assert f"is {g:+.2f} dB (Table 2's gains table)" in md
+            g = art.meta["gains"]["oracle - initial"]["psnr"]
+            zero = (", an interval that holds zero: at this number of test images no ceiling above zero is measured"
+                    if g["lo"] <= 0 else "")
+            assert f"is {g['mean']:+.2f} ± {g['half_width']:.2f} dB{zero} (Table 2's gains table)" in md
             assert "`oracle - initial`: the oracle" in md
         else:
             assert "Its ceiling in this world" not in md and "`oracle - initial`" not in md
