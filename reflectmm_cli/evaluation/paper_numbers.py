@@ -34,14 +34,20 @@ PAPER_NUMBERS: tuple[PaperNumber, ...] = (
 
 
 def paper_vs_ours_rows(ours: Mapping[str, float | None],
-                       commands: Mapping[str, str] | None = None) -> list[dict[str, str]]:
+                       commands: Mapping[str, str] | None = None,
+                       intervals: Mapping[str, float] | None = None) -> list[dict[str, str]]:
     """Rows ``{"table", "quantity", "paper", "reflectmm", "command"}`` for each paper number; ``ours`` maps a
-    :class:`PaperNumber` key to the measured value (missing/None → "not run")."""
+    :class:`PaperNumber` key to the measured value (missing/None → "not run"), ``intervals`` a key to the half
+    width of its 95 % confidence interval (written as ``± h`` after the value)."""
     rows = []
     for p in PAPER_NUMBERS:
         v = ours.get(p.key)
         sign = "+" if p.key.endswith("gain_finetune") else ""
+        h = (intervals or {}).get(p.key)
+        if v is None:
+            text = "not run"
+        else:
+            text = (f"{v:+.2f}" if sign else f"{v:.2f}") + (f" ± {h:.2f}" if h is not None else "") + f" {p.unit}"
         rows.append({"table": p.table, "quantity": p.quantity, "paper": f"{sign}{p.value:.2f} {p.unit}",
-                     "reflectmm": "not run" if v is None else f"{v:+.2f} {p.unit}" if sign else f"{v:.2f} {p.unit}",
-                     "command": (commands or {}).get(p.key, "")})
+                     "reflectmm": text, "command": (commands or {}).get(p.key, "")})
     return rows

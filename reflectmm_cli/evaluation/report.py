@@ -336,6 +336,7 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
     lines: list[str] = []
     ours: dict[str, float] = {}
     commands: dict[str, str] = {}
+    intervals: dict[str, float] = {}  # half widths of the 95 % intervals, where the number has one
     ceiling = None  # the oracle's encoder-only PSNR gain over the control (mean_ci summary), when Table 2 has it
 
     def take(art):
@@ -343,6 +344,11 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
             if v is not None:
                 ours[k] = float(v)
                 commands[k] = art.meta.get("command", "")
+        pair = (art.meta.get("params") or {}).get("gain") or ()
+        if len(pair) == 2 and "table2.psnr_gain_finetune" in ours:  # Table 2's gain: its paired interval
+            g = ((art.meta.get("gains") or {}).get(f"{pair[0]} - {pair[1]}") or {}).get("psnr") or {}
+            if g.get("half_width") is not None and np.isfinite(float(g["half_width"])):
+                intervals["table2.psnr_gain_finetune"] = float(g["half_width"])
 
     for path, art in _evaluations(reconstruction, "reconstruction"):
         take(art)
@@ -420,7 +426,7 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
                       "| " + " | ".join(f"![{w}]({_link_path(q, base)})" if q.is_file() else "missing"
                                         for w, q in (("before", b), ("after", a))) + " |", ""]
     if reconstruction or albedo:
-        rows = paper_vs_ours_rows(ours, {k: f"`{v}`" if v else "" for k, v in commands.items()})
+        rows = paper_vs_ours_rows(ours, {k: f"`{v}`" if v else "" for k, v in commands.items()}, intervals)
         lines += ["## Paper vs reflectmm", "",
                   "The paper measures real photographs and Light Stage scans; reflectmm the synthetic world with exact "
                   "ground truth, so trends and magnitudes compare, not equal numbers. Table 3's reflectmm numbers are "

@@ -121,6 +121,9 @@ def test_paper_vs_ours_rows():
     assert byq["diffuse albedo PSNR (ours)"]["reflectmm"] == "24.50 dB"
     assert byq["PSNR gain of ours over ours w/o finetuning"]["reflectmm"] == "+0.40 dB"
     assert byq["specular albedo PSNR (ours; Σw as specular albedo)"]["reflectmm"] == "not run"
+    rows = paper_vs_ours_rows({"table2.psnr_gain_finetune": -0.14}, {}, {"table2.psnr_gain_finetune": 0.381})
+    assert {r["quantity"]: r for r in rows}["PSNR gain of ours over ours w/o finetuning"]["reflectmm"] == \
+        "-0.14 ± 0.38 dB"
 
 
 def test_evaluate_reconstruction_on_a_tiny_shard():

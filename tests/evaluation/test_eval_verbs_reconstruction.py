@@ -146,7 +146,8 @@ def test_report_gains_table2_samples_and_paper_sections(data, cli, tmp_path):
     assert "../finetune/finetune_samples_before.png" in md and "../finetune/finetune_samples_after.png" in md
     art = read_artifact(ws / "evaluate-reconstruction" / "evaluate-reconstruction.npz", "evaluation")
     gain = art.meta["paper_numbers"]["table2.psnr_gain_finetune"]
-    assert f"| Table 2 | PSNR gain of ours over ours w/o finetuning | +0.95 dB | {gain:+.2f} dB |" in md
+    half = art.meta["gains"]["finetuned - initial"]["psnr"]["half_width"]
+    assert f"| Table 2 | PSNR gain of ours over ours w/o finetuning | +0.95 dB | {gain:+.2f} ± {half:.2f} dB |" in md
     assert "| Table 3 | diffuse albedo PSNR (ours) | 20.13 dB | not run |" in md
     assert "## Table 3" not in md and "## Relighting" not in md
     rep = read_artifact(ws / "evaluate-report" / "evaluate-report.npz", "evaluation")
@@ -262,6 +263,8 @@ def test_report_states_the_ceiling_of_the_gain(data, cli, tmp_path):
             zero = (", an interval that holds zero: at this number of test images no ceiling above zero is measured"
                     if g["lo"] <= 0 else "")
             assert f"is {g['mean']:+.2f} ± {g['half_width']:.2f} dB{zero} (Table 2's gains table)" in md
+            f = art.meta["gains"]["finetuned - initial"]["psnr"]              # Table 2's gain with its interval
+            assert f"| +0.95 dB | {f['mean']:+.2f} ± {f['half_width']:.2f} dB |" in md
             assert "`oracle - initial`: the oracle" in md
         else:
             assert "Its ceiling in this world" not in md and "`oracle - initial`" not in md
