@@ -317,9 +317,10 @@ def _command(art) -> list[str]:
 def _ceiling_text(summary: Mapping[str, Any]) -> str:
     """The oracle's gain of a :func:`~.face_metrics.mean_ci` summary, ``+0.12 ± 0.32 dB``, and whether its interval
     holds zero (then the ceiling itself is not measured at this sample size)."""
-    mean, half = float(summary["mean"]), float(summary.get("half_width", float("nan")))
-    text = f"{mean:+.2f}" + (f" ± {half:.2f}" if np.isfinite(half) else "") + " dB"
-    if np.isfinite(half) and mean - half <= 0:
+    from .tables import gain_text, interval_holds_zero
+
+    text = gain_text(summary)
+    if np.isfinite(float(summary.get("half_width", float("nan")))) and interval_holds_zero(summary):
         text += ", an interval that holds zero: at this number of test images no ceiling above zero is measured"
     return text
 
@@ -345,7 +346,8 @@ def paper_sections(base: Path, *, reconstruction: Sequence[Read] = (), albedo: S
                 ours[k] = float(v)
                 commands[k] = art.meta.get("command", "")
         pair = (art.meta.get("params") or {}).get("gain") or ()
-        if len(pair) == 2 and "table2.psnr_gain_finetune" in ours:  # Table 2's gain: its paired interval
+        if len(pair) == 2 and (art.meta.get("paper_numbers") or {}).get("table2.psnr_gain_finetune") is not None:
+            # Table 2's gain, from this artifact: its paired interval
             g = ((art.meta.get("gains") or {}).get(f"{pair[0]} - {pair[1]}") or {}).get("psnr") or {}
             if g.get("half_width") is not None and np.isfinite(float(g["half_width"])):
                 intervals["table2.psnr_gain_finetune"] = float(g["half_width"])

@@ -19,8 +19,9 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["albedo_evaluation", "Prediction", "reconstruction_evaluation", "paired_gains", "gains_table",
-           "psnr_gap_closed", "gap_sentence", "Reflectance", "relighting_selection", "relighting_evaluation", "ALBEDO_PROTOCOL",
-           "RECONSTRUCTION_PROTOCOL", "RELIGHTING_PROTOCOL", "GAIN_MEASURES"]
+           "psnr_gap_closed", "gap_sentence", "gain_text", "interval_holds_zero", "Reflectance",
+           "relighting_selection", "relighting_evaluation", "ALBEDO_PROTOCOL", "RECONSTRUCTION_PROTOCOL",
+           "RELIGHTING_PROTOCOL", "GAIN_MEASURES"]
 
 ALBEDO_PROTOCOL = ("Each model's coefficients β fitted to the held-out identity's OLAT observations (all pairs; prior "
                    "λ·ȳ²·Σβ²); diffuse albedo PSNR (linear, peak 1) over model domain ∧ truth mask ∧ observed "
@@ -196,15 +197,23 @@ def psnr_gap_closed(gains: dict, gain, unequal: dict) -> dict[str, float]:
         ab, ob = gains.get(f"{a}{suffix} - {b}{suffix}"), gains.get(f"oracle{suffix} - {b}{suffix}")
         if ab is None or ob is None or a == "oracle" or f"{a} - {b}" in unequal or f"oracle - {b}" in unequal:
             continue
-        den, lo = float(ob["psnr"]["mean"]), float(ob["psnr"].get("lo", float("nan")))
-        out[label] = float(ab["psnr"]["mean"]) / den if den > 0 and lo > 0 else float("nan")
+        den = float(ob["psnr"]["mean"])
+        measured = den > 0 and not interval_holds_zero(ob["psnr"])
+        out[label] = float(ab["psnr"]["mean"]) / den if measured else float("nan")
     return out
 
 
-def _gain_text(summary: Mapping[str, Any]) -> str:
-    """``+0.12 ± 0.32 dB`` of a :func:`mean_ci` summary."""
+def gain_text(summary: Mapping[str, Any]) -> str:
+    """``+0.12 ± 0.32 dB`` of a :func:`~.face_metrics.mean_ci` summary of a PSNR gain."""
     half = float(summary.get("half_width", float("nan")))
     return f"{float(summary['mean']):+.2f}" + (f" ± {half:.2f}" if np.isfinite(half) else "") + " dB"
+
+
+def interval_holds_zero(summary: Mapping[str, Any]) -> bool:
+    """Whether a gain's :func:`~.face_metrics.mean_ci` summary is not above zero by its interval (its lower end at
+    or below zero, or no interval)."""
+    lo = float(summary.get("lo", float("nan")))
+    return not lo > 0
 
 
 def gap_sentence(gap: dict[str, float], gain, gains: Mapping[str, Any] | None = None) -> str:
@@ -216,13 +225,13 @@ def gap_sentence(gap: dict[str, float], gain, gains: Mapping[str, Any] | None = 
         if np.isfinite(v):
             parts.append(f"{k} {100 * v:.0f} %")
             continue
-        ob = (gains or {}).get(f"oracle{'-refined' if k == 'refined' else ''} - "
-                               f"{b}{'-refined' if k == 'refined' else ''}")
-        why = (f"the oracle's gain, {_gain_text(ob['psnr'])}, is not above zero by its interval" if ob else
+        sfx = "-refined" if k == "refined" else ""
+        ob = (gains or {}).get(f"oracle{sfx} - {b}{sfx}")
+        why = (f"the oracle's gain, {gain_text(ob['psnr'])}, is not above zero by its interval" if ob else
                "the oracle does not gain")
         parts.append(f"{k} not measured ({why})")
-    return (f"Gap to the oracle closed in PSNR by `{a}` from `{b}` (({a} − {b}) / (oracle − {b}) of the mean gains): "
-            + ", ".join(parts) + ".")
+    return (f"Gap to the oracle closed in PSNR by `{a}` from `{b}` (({a} − {b}) / (oracle − {b}) of the mean "
+            "gains): " + ", ".join(parts) + ".")
 
 
 def _table2_documents(results: Mapping[str, dict], gains: Mapping[str, dict]) -> tuple[dict, dict]:
