@@ -100,6 +100,16 @@ def load_truths(paths: list[Path]) -> tuple[list[dict[str, np.ndarray]], list[st
     return out, ids
 
 
+def _pca_components(requested: int, n: int, what: str, path: Path | None = None) -> int:
+    """The component count of a PCA of ``n`` identities: at least 2 of them (else a one-line error naming ``what``
+    they are), at most N − 1 components (said on stderr when fewer than ``requested``)."""
+    if n < 2:
+        raise ReflectmmError(f"build-baseline: a PCA needs at least 2 {what} identities, got {n}", path)
+    if requested > n - 1:
+        log.info(f"build-baseline: {requested} components requested, {n} identities: using {n - 1}")
+    return min(int(requested), n - 1)
+
+
 def _oracle(ctx: StageContext, fm):
     """The ``oracle`` kind: (model, number of training identities)."""
     from reflectmm_cli.artifacts import read_meta
@@ -118,9 +128,7 @@ def _oracle(ctx: StageContext, fm):
     folder = Path(truths[0])
     tr = load_wild_truth(folder)
     train = tr["train"]
-    if len(train) < 2:
-        raise ReflectmmError(f"build-baseline: a PCA needs at least 2 training identities, got {len(train)}",
-                             folder)
+    _pca_components(1, len(train), "training", folder)  # too few identities: said before the model is read
     exps = read_meta(folder / "identities" / f"id{train[0]:05d}.npz").get("exponents")  # its arrays are read above
     if exps is None:
         raise ReflectmmError("the wild truth does not name its lobe exponents (meta 'exponents')",
@@ -137,9 +145,7 @@ def _oracle(ctx: StageContext, fm):
             raise ReflectmmError(f"build-baseline: the model has {ref.vertex_albedo_mean.shape[0]} vertices, the wild "
                                  f"truth {V} (another face model?)", like[0])
         comps, size = min(comps, ref.n_components), ref.size
-    if comps > len(train) - 1:
-        log.info(f"build-baseline: {comps} components requested, {len(train)} identities: using {len(train) - 1}")
-        comps = len(train) - 1
+    comps = _pca_components(comps, len(train), "training", folder)
     model = oracle_reflectance_model(np.stack([tr["albedo"][i] for i in train]),
                                      np.stack([tr["weights"][i] for i in train]), exps, comps, fm.uv,
                                      fm.triangles, size, ids=[f"wild{i:05d}" for i in train])
@@ -159,14 +165,9 @@ def run(ctx: StageContext) -> list[Path]:
         if ctx.input_list("like", required=False):
             raise ReflectmmError(f"build-baseline: --like applies to kind oracle only, not {p['kind']}")
         files = truth_files(ctx.input_list("truth"), p.get("ids"))
-        if len(files) < 2:
-            raise ReflectmmError(f"build-baseline: a PCA needs at least 2 truth identities, got {len(files)}")
+        comps = _pca_components(int(p["components"]), len(files), "truth")
         truths, ids = load_truths(files)
         fm = load_face_model(fm_path)
-        comps = int(p["components"])
-        if comps > len(files) - 1:
-            log.info(f"build-baseline: {comps} components requested, {len(files)} identities: using {len(files) - 1}")
-            comps = len(files) - 1
         model = build_baseline(p["kind"], truths, components=comps, ids=ids, vertex_uv=fm.uv,
                                exponent=float(p["exponent"]), log=log.info)
         n = len(files)
