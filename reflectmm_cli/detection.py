@@ -28,7 +28,8 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["Face", "EXPOSURES", "DETECTORS", "predictor_path", "cnn_detector_path", "normalize_exposure",
-           "jittered_boxes", "predict_shape", "detect_landmarks", "pick_face", "detect_landmark_files"]
+           "check_box_jitter", "jittered_boxes", "predict_shape", "detect_landmarks", "pick_face",
+           "detect_landmark_files"]
 
 _MISSING = ("landmark detection needs the optional extra: pip install 'reflectmm[landmarks]' "
             "(dlib-bin and face-recognition-models)")
@@ -121,14 +122,20 @@ def normalize_exposure(image_rgb: np.ndarray, percentile: float = 99.5) -> np.nd
     return np.clip(np.rint(img.astype(np.float32) * np.float32(gain)), 0, 255).astype(np.uint8)
 
 
+def check_box_jitter(jitter: float) -> float:
+    """``jitter`` as a float in [0, 0.5), else a one-line error (a box cannot shrink by half or more)."""
+    j = float(jitter)
+    if not 0.0 <= j < 0.5:
+        raise ReflectmmError(f"box jitter must be in [0, 0.5), got {jitter}")
+    return j
+
+
 def jittered_boxes(box: tuple[int, int, int, int], jitter: float) -> list[tuple[int, int, int, int]]:
     """The 27 boxes of a 3 × 3 × 3 grid around ``box`` (left, top, right, bottom): its centre moved by
     ``-jitter``, 0 and ``+jitter`` of its width and of its height, and its size scaled by ``1 - jitter``, 1 and
     ``1 + jitter``; rounded to whole pixels.  ``jitter`` = 0 gives the box alone.
     """
-    j = float(jitter)
-    if not 0.0 <= j < 0.5:
-        raise ReflectmmError(f"box jitter must be in [0, 0.5), got {jitter}")
+    j = check_box_jitter(jitter)
     if j == 0.0:
         return [tuple(int(v) for v in box)]
     left, top, right, bottom = (float(v) for v in box)
@@ -175,7 +182,7 @@ def detect_landmarks(image_rgb: np.ndarray, *, upsample: int = 1, exposure: str 
         raise ReflectmmError(f"detect_landmarks: expected an RGB uint8 image, got {img.dtype} {img.shape}")
     if exposure not in EXPOSURES:
         raise ReflectmmError(f"detect_landmarks: exposure must be one of {', '.join(EXPOSURES)}, got {exposure!r}")
-    jittered_boxes((0, 0, 1, 1), box_jitter)  # a bad value is refused before any work
+    check_box_jitter(box_jitter)  # a bad value is refused before any work
     det, pred = _models(detector)
     if exposure == "auto":
         img = np.ascontiguousarray(normalize_exposure(img))
@@ -212,7 +219,7 @@ def detect_landmark_files(images, out_dir, *, face_index: int | None = None, ups
     from reflectmm_cli.landmarks import write_pts
 
     _models(detector)  # an unknown detector or a missing extra would fail every image: raised at once
-    jittered_boxes((0, 0, 1, 1), box_jitter)
+    check_box_jitter(box_jitter)
     written: list[Path] = []
     errors: list[str] = []
     faceless: list[tuple[Path, str]] = []
