@@ -18,9 +18,9 @@ time of its process (``resource.getrusage`` of the children), so it counts start
 outputs alike for every method; the phase-1 encoder's time is left out of every run. A run given ``phase1=own``
 trains its own phase 1 instead (with ``solver=ls``: on the solved model, as recipes/synthetic.toml's finetune
 stage does), and its CPU time counts it. A run given ``model=oracle`` starts from the oracle (below; ``reflectmm
-build-baseline --kind oracle``) instead of the workspace's build-pca model; with ``model-lr=0,phase1=own`` that is the control's schedule on the oracle, the
-ceiling of the encoder-only gain (what an encoder of this budget gains from a model that already is the training
-population's).
+build-baseline --kind oracle``) instead of the workspace's build-pca model; with ``model-lr=0,phase1=own`` that is
+the control's schedule on the oracle, the ceiling of the encoder-only gain (what an encoder of this budget gains
+from a model that already is the training population's).
 
 Measures per run (the truth is read only here, never by a run):
 

@@ -122,7 +122,8 @@ def run(ctx: StageContext) -> list[Path]:
     if unknown:
         raise ReflectmmError(f"{VERB}: --refine-methods names {', '.join(unknown)}, not among the methods "
                              f"({', '.join(names)})")
-    unequal = unequal_budgets(methods, [tuple(p["gain"])] + _pairs(p.get("more_gains")))
+    more = _pairs(p.get("more_gains"))
+    unequal = unequal_budgets(methods, [tuple(p["gain"])] + more)
     for pair, diff in unequal.items():
         log.warning(f"{VERB}: warning: the encoders of '{pair}' were trained with different budgets ("
                     f"{'; '.join(diff)}): that gain is not the model's alone")
@@ -142,7 +143,7 @@ def run(ctx: StageContext) -> list[Path]:
                                                 else "off (no weights given)"),
                                     released_batch=int(p["released_batch"]), ci=p["ci"],
                                     figure_images=int(p["figure_images"]), gain=p["gain"],
-                                    more_gains=_pairs(p.get("more_gains")))
+                                    more_gains=more)
     out = ctx.output_path()
     png = out.with_suffix(".png")
     cmd = command_line(["evaluate", "reconstruction"], p, ctx.inputs, workspace=ctx.workspace, output=out,
