@@ -33,7 +33,7 @@ import torch
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import axis_angle_to_matrix, camera_centers, project
-from reflectmm_cli.geometry.rotations import skew
+from reflectmm_cli.geometry.rotations import matrix_to_axis_angle, skew
 from reflectmm_cli.geometry_fit.contour import CHIN, jaw_contour, slide
 from reflectmm_cli.geometry_fit.init import rigid_align
 from reflectmm_cli.geometry_fit.landmarks import landmark_weights
@@ -104,6 +104,18 @@ class FitConfig:
                                     # term (:func:`_room_consistency`; with w_room > 0)
     w_room: float = 0.0             # weight of the room-light photo-consistency, a mean relative Charbonnier
                                     # residual like the flash term (0 = off)
+    joint_rounds: int = 0           # after the registration: rounds of the flash term over the views with
+                                    # landmarks *and* the registered views without, these held to the head at
+                                    # their registered places; face, head and the views with landmarks free; the
+                                    # views without landmarks registered again after each round (0 = off;
+                                    # :func:`_joint_rounds`)
+    joint_blur_px: float = 2.0      # Gaussian blur of the images in the joint rounds (px)
+    joint_gate_mm: float = 50.0     # a registered view enters the joint rounds only if its registration left it
+                                    # within this distance of the rig (mm): further, the rig and the images
+                                    # disagree, and a misplaced view would pull the face
+    joint_max_landmark_rise: float = 1.4  # the joint rounds are undone when they raise the median landmark RMS of
+                                          # the views with landmarks by more than this factor (a view that the
+                                          # gate let in pulled the face off its landmarks)
     uncertainty: str = "unmarked"   # per-view pose uncertainty from the curvature of the last stage's objective:
                                     # "unmarked" (the views without landmarks), "all" or "none"
     fit_expression: bool = True
@@ -237,6 +249,8 @@ class GeometryFit:
     rig_shift_mm: np.ndarray | None = None       # (V,) fitted centre − the rig's centre under the fitted head, mm
     registered: np.ndarray | None = None         # (V,) bool: a view without landmarks whose registration by the
                                                  # flash images was kept (False: rejected or not run)
+    joined: np.ndarray | None = None             # (V,) bool: a view without landmarks whose images shaped the face
+                                                 # in the joint rounds (False: left out or not run)
     room_refined: np.ndarray | None = None       # (V,) bool: ... and then refined with the room-light
                                                  # photo-consistency (False: undone or not run)
 
@@ -350,6 +364,7 @@ class _FitProblem:
         self.pose_fn = None  # optional (R, t) -> (R, t) applied to the poses (the joint camera registration)
         self.registered = np.zeros(V, dtype=bool)  # views without landmarks registered by the flash images
         self.room_refined = np.zeros(V, dtype=bool)  # ... and then refined with the room-light photo-consistency
+        self.joined = np.zeros(V, dtype=bool)  # ... whose images shaped the face in the joint rounds
         self.last_loss = None
         self.history: list[dict] = []
         self.n_photo = cfg.photo_rounds if (views.images is not None and cfg.w_photo > 0) else 0
@@ -689,6 +704,10 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
             reg = _register_unmarked(prob, sm)
             if reg is not None:
                 flash_res[~prob.marked] = reg[~prob.marked]
+                if cfg.joint_rounds > 0:
+                    joint = _joint_rounds(prob, sm)
+                    if joint is not None:
+                        flash_res, flash_gain = joint
     for _ in prob.bar:  # close the progress bar
         pass
     return _fit_result(prob, photo, sm, flash_res, flash_gain, t_start)
@@ -730,7 +749,8 @@ def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, fla
                                               np.where(~prob.marked & ~prob.registered, np.nan, flash_res),
                                               room=prob.room_refined),
                        center_sigma_mm=c_sig, rotation_sigma_deg=r_sig, rig_shift_mm=rig_shift(prob),
-                       registered=prob.registered.copy(), room_refined=prob.room_refined.copy())
+                       registered=prob.registered.copy(), room_refined=prob.room_refined.copy(),
+                       joined=prob.joined.copy())
 
 
 class _FlashPairs:
@@ -865,14 +885,15 @@ def _flash_objective(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np
     return flash, images_t, weight
 
 
-def _register_unmarked(prob: _FitProblem, sm: _SubMesh) -> np.ndarray | None:
+def _register_unmarked(prob: _FitProblem, sm: _SubMesh, again: bool = False) -> np.ndarray | None:
     """Registration of the views without landmarks by the flash term, after the joint stages, coarse to fine
     (``register_blur_px``): only their poses move; the face, the head and the views with landmarks are held (the
     flashes on cameras without landmarks are left out of every flash round, :func:`_usable_flashes`).  A view
     whose flash residual does not fall, or that moves more than 3 σ from the rig, goes back where the rig puts
     it (``prob.registered`` False).  The views kept are then refined with the room-light photo-consistency beside
     the flash term (``register_room_blur_px``, :func:`_refine_by_room`).  Returns the (V,) RMS flash residual at
-    the final poses (None: not run)."""
+    the final poses (None: not run).  ``again``: a registration after a joint round, whose rejected views stay
+    where that round left them."""
     cfg, views = prob.cfg, prob.views
     um = ~prob.marked
     usable = _usable_flashes(prob, on_unmarked_too=True)  # a camera's own flash lights the others: its place
@@ -889,15 +910,140 @@ def _register_unmarked(prob: _FitProblem, sm: _SubMesh) -> np.ndarray | None:
     with np.errstate(invalid="ignore"):
         bad = um & ~((after <= before) & (rig_shift(prob) <= 3.0 * prob.unmarked_sigma))
     if bad.any():
-        log.warning("fit-geometry: registration of view(s) %s by the flash images rejected (residual not lower, or "
-                    "moved more than 3 sigma from the rig): kept where the rig puts them",
-                    ", ".join(n for n, b in zip(views.names, bad) if b))
+        (log.info if again else log.warning)(
+            "fit-geometry: registration of view(s) %s by the flash images rejected (residual not lower, or moved "
+            "more than 3 sigma from the rig): kept %s", ", ".join(n for n, b in zip(views.names, bad) if b),
+            "where the joint round left them" if again else "where the rig puts them")
         _restore_poses(prob, saved, bad)
     prob.registered = um & ~bad
     res = np.where(bad, before, after)
     if cfg.register_room_blur_px and cfg.w_room > 0 and prob.registered.any():
         res = _refine_by_room(prob, sm, fp, raw, sat, res)
     return res
+
+
+def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """Rounds of the flash term over every placed view (``joint_rounds``, after :func:`_register_unmarked`).
+
+    The views without landmarks that their flash images registered to within ``joint_gate_mm`` of the rig are held
+    to the head at their registered places (:func:`_held_to_head`): the head, the face and the views with landmarks
+    move, and those views follow the head rigidly, their images and flashes in the term beside the others'.  A
+    head turned in the rig (a pitch that near-frontal landmarks leave loose) then moves every view's image of the
+    face, not only the landmarked ones'.  After each round the views without landmarks are registered again from
+    where the head took them.  Returns the (V,) RMS flash residual per view and the (F,) flash gains at the end, or
+    None when no view without landmarks qualifies (nothing is changed then)."""
+    cfg, views = prob.cfg, prob.views
+    um = ~prob.marked
+    gains = None
+    lm_before = _median_landmark_rms(prob)
+    saved = _snapshot(prob)
+    for rnd in range(cfg.joint_rounds):
+        with np.errstate(invalid="ignore"):
+            joined = um & prob.registered & (rig_shift(prob) <= cfg.joint_gate_mm)
+        if not joined.any():
+            log.info("fit-geometry: no registered view without landmarks within %.0f mm of the rig: %s", cfg.joint_gate_mm,
+                     "no joint round" if rnd == 0 else f"joint rounds stop after {rnd}")
+            break
+        prob.joined |= joined
+        placed = prob.marked | joined
+        fv = views.flash_view
+        usable = np.array([f for f in _usable_flashes(prob, on_unmarked_too=True) if fv[f] < 0 or placed[fv[f]]],
+                          dtype=np.int64)
+        fp = _FlashPairs(prob, usable, seen_by=placed)
+        raw, sat = fp.images()
+        with _held_to_head(prob, um):
+            flash, images_t, _ = _flash_objective(prob, sm, fp, raw, cfg.joint_blur_px, sat)
+
+            def joint():
+                (lf, _, _), R, t = flash(images_t, residual=False)
+                return cfg.w_landmark * prob.landmark_term(R, t) + cfg.w_flash * lf + prob.prior(R, t)
+
+            extra = [fp.log_gain] if cfg.flash_gains else []
+            prob.run_lbfgs([prob.zs, prob.ze] + prob.pose_params + extra, joint, cfg.flash_iters,
+                           f"joint round {rnd + 1}", tick=False)
+        gains = fp.gains()
+        before = prob.registered.copy()
+        _register_unmarked(prob, sm, again=True)
+        # a view registered before whose new registration was undone stays where the head took it: registered
+        prob.registered |= before
+    if gains is None:
+        return None
+    lm_after = _median_landmark_rms(prob)
+    if lm_after > cfg.joint_max_landmark_rise * lm_before:
+        log.warning("fit-geometry: joint rounds undone: they raised the landmark RMS of the views with landmarks from "
+                    "%.2f to %.2f px (more than %.2gx): a view without landmarks pulled the face", lm_before, lm_after,
+                    cfg.joint_max_landmark_rise)
+        _restore(prob, saved)
+        return None
+    # the residuals at the end, each view by its own images (the views without landmarks with every flash)
+    fp_m = _FlashPairs(prob, _usable_flashes(prob), seen_by=prob.marked)
+    res = _view_flash_rms(prob, sm, fp_m, *fp_m.images())
+    fp_u = _FlashPairs(prob, _usable_flashes(prob, on_unmarked_too=True))
+    res_u = _view_flash_rms(prob, sm, fp_u, *fp_u.images())
+    res[um] = res_u[um]
+    return res, gains
+
+
+def _median_landmark_rms(prob: _FitProblem) -> float:
+    """Median over the views with landmarks of each view's RMS landmark error (px) at the current unknowns."""
+    with torch.no_grad():
+        R, t = prob.poses()
+        _, uv = prob.lm_loss(prob.verts(), R, t)
+    err = np.linalg.norm(uv.cpu().numpy() - prob.views.landmarks, axis=-1)
+    used = prob.valid & prob.used
+    return float(np.median([math.sqrt(np.mean(err[v][used[v]] ** 2)) for v in range(prob.V) if used[v].any()]))
+
+
+def _snapshot(prob: _FitProblem) -> dict:
+    """The unknowns and the views' placement flags, to undo the joint rounds."""
+    tensors = {k: getattr(prob, k).detach().clone() for k in ("zs", "ze", "dw", "dtr", "dwh", "dth")}
+    flags = {k: getattr(prob, k).copy() for k in ("registered", "room_refined", "joined")}
+    return {"tensors": tensors, "flags": flags}
+
+
+def _restore(prob: _FitProblem, saved: dict) -> None:
+    with torch.no_grad():
+        for k, v in saved["tensors"].items():
+            getattr(prob, k).copy_(v)
+    for k, v in saved["flags"].items():
+        setattr(prob, k, v.copy())
+
+
+class _held_to_head:
+    """Context: the views ``which`` (V,) follow the head rigidly at their current places in the rig frame (through
+    ``prob.pose_fn``); on exit their poses at the final head are written back into their unknowns."""
+
+    def __init__(self, prob: _FitProblem, which: np.ndarray):
+        self.prob, self.which = prob, torch.as_tensor(which, device=prob.device)
+
+    def __enter__(self):
+        prob = self.prob
+        with torch.no_grad():
+            Rh, th = prob.head()
+            R, t = prob.poses()
+            c = camera_centers(R, t)
+            self.R_rig = R @ Rh                # rig frame → camera
+            self.c_rig = (c - th) @ Rh         # the centres in the rig frame
+
+        def follow(R, t):
+            Rh, th = prob.head()
+            Rf = self.R_rig @ Rh.transpose(-1, -2)
+            cf = self.c_rig @ Rh.transpose(-1, -2) + th
+            tf = -(Rf @ cf[..., None])[..., 0]
+            return (torch.where(self.which[:, None, None], Rf, R), torch.where(self.which[:, None], tf, t))
+
+        prob.pose_fn = follow
+        return self
+
+    def __exit__(self, *exc):
+        prob = self.prob
+        with torch.no_grad():
+            R, t = prob.poses()
+            prob.pose_fn = None
+            w = self.which
+            prob.dw[w] = matrix_to_axis_angle(R @ prob.R0_t.transpose(-1, -2))[w] / prob.r_unit
+            prob.dtr[w] = ((t - prob.t0_t) / prob.tv_unit)[w]
+        return False
 
 
 def _restore_poses(prob: _FitProblem, saved, which: np.ndarray) -> None:

@@ -158,7 +158,9 @@ def placement_report(view_names: list[str], fit) -> list[dict]:
                     "registered_by_flash": None if fit.evidence[v].startswith("landmarks") or fit.registered is None
                     else bool(fit.registered[v]),
                     "refined_by_room": None if fit.evidence[v].startswith("landmarks") or fit.room_refined is None
-                    else bool(fit.room_refined[v])})
+                    else bool(fit.room_refined[v]),
+                    "shaped_face": None if fit.evidence[v].startswith("landmarks") or fit.joined is None
+                    else bool(fit.joined[v])})
     return out
 
 

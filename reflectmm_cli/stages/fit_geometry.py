@@ -100,6 +100,18 @@ PARAMS = (
               "across views beside the flash term, at this weight (0 = off; docs/fit-geometry.md)."),
     _cfg("register_room_blur_px", "floats", range=(0.0, None), option="--register-room-blur", unit="px",
          help="with --w-room: one refinement round per blur."),
+    _cfg("joint_rounds", "int", range=(0, 20),
+         help="after the registration: rounds of the flash term in which the registered views without landmarks "
+              "follow the head at their registered places and their images shape the face beside the others', "
+              "each round followed by a new registration (0 = off; for a rig whose cameras the registration "
+              "confirms: docs/fit-geometry.md, Joint rounds)."),
+    _cfg("joint_blur_px", "float", range=(0.0, None), option="--joint-blur", unit="px",
+         help="Gaussian blur of the images in the joint rounds."),
+    _cfg("joint_gate_mm", "float", range=(0.0, None), option="--joint-gate", unit="mm",
+         help="a registered view without landmarks enters the joint rounds only within this distance of the rig."),
+    _cfg("joint_max_landmark_rise", "float", range=(1.0, None), option="",
+         help="the joint rounds are undone when they raise the median landmark RMS of the views with landmarks by "
+              "more than this factor."),
     _cfg("uncertainty", "str", choices=("none", "unmarked", "all"),
          help="report the pose uncertainty of the views without landmarks (unmarked), of every view, or none "
               "(12 gradient evaluations per view)."),
@@ -246,9 +258,9 @@ def _log_placement(identity: str, placement: list[dict]) -> None:
         if p["evidence"].startswith("landmarks"):
             continue
         log.info("fit-geometry %s: view %s placed by %s: photometric RMS %s, flash RMS %s, centre ±%s mm, aim ±%s°, "
-                 "%s mm from the rig", identity, p["view"], p["evidence"], f(p["photo_residual"], ".4f"),
+                 "%s mm from the rig%s", identity, p["view"], p["evidence"], f(p["photo_residual"], ".4f"),
                  f(p["flash_residual"], ".4f"), f(p["center_sigma_mm"], ".1f"), f(p["rotation_sigma_deg"], ".2f"),
-                 f(p["rig_shift_mm"], ".1f"))
+                 f(p["rig_shift_mm"], ".1f"), "; its images shaped the face" if p.get("shaped_face") else "")
 
 
 STAGE = Stage(VERB, version=1, run=run, per_identity=True, outputs=_outputs, params=PARAMS,

@@ -1,7 +1,9 @@
 """benchmarks/bench_head_rotation.py (docs/benchmarks.md, "The cameras' error is the head's rotation"): the
-rotation fitted to the views with landmarks, and the errors it leaves."""
+rotation fitted to the views with landmarks, and the errors it leaves; benchmarks/bench_face_shape.py ("The joint
+rounds"): a fit's error split into size and shape."""
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from _benchmarks import load_benchmark
@@ -68,3 +70,30 @@ def test_the_workspace_summary(tmp_path, capsys):
     assert "6 of 12 within 20 mm" in out.split("views without landmarks, as fitted")[1].split("\n")[0]
     assert "12 of 12 within 20 mm" in out.split("views without landmarks, after")[1].split("\n")[0]
     assert bench.main(["--workspace", str(tmp_path / "none")]) == 1
+
+
+def test_face_shape_split_reads_a_known_similarity(tmp_path, capsys):
+    """benchmarks/bench_face_shape.py: a face turned, moved and scaled 3 % is off as fitted, not after the
+    similarity, whose scale is the inverse; a bent face keeps its bend in every column."""
+    bench = load_benchmark("bench_face_shape")
+    rng = np.random.default_rng(3)
+    truth = rng.normal(0.0, 40.0, (500, 3))
+    turn = Rotation.from_rotvec([0.02, -0.01, 0.03]).as_matrix()
+    fitted = 1.03 * truth @ turn.T + [1.0, -2.0, 0.5]
+    rms, s = bench.align(fitted, truth, True)
+    assert rms < 1e-9 and s == pytest.approx(1 / 1.03)
+    rigid, s1 = bench.align(fitted, truth, False)
+    assert s1 == 1.0 and rigid > 0.5
+    bent = truth.copy()
+    bent[:, 2] += 0.002 * bent[:, 0] ** 2
+    want = np.sqrt(((bent - bent.mean(0) - (truth - truth.mean(0))) ** 2).sum(1).mean())
+    assert bench.align(bent, truth, True)[0] <= want + 1e-9  # the similarity can only lower the bend's RMS
+    assert bench.align(bent, truth, True)[0] > 0.5 * want
+    (tmp_path / "fit").mkdir()
+    (tmp_path / "truth").mkdir()
+    np.savez(tmp_path / "fit" / "001.npz", vertices=fitted)
+    np.savez(tmp_path / "truth" / "001.npz", vertices=truth)
+    assert bench.main([f"x={tmp_path / 'fit'}:{tmp_path / 'truth'}"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("x: raw ") and "| shape 0.00 (mean 0.00) | scale 0.971" in out
+    assert bench.main(["nonsense"]) == 2

@@ -442,3 +442,12 @@ def test_face_model_embed_landmarks_end_to_end(world, cli, tmp_path):
     r = cli("face-model", "embed-landmarks", "--face-model", fm_path, "--capture", cap2, "--geometry", small,
             "-o", bad, "-w", tmp_path)
     assert r.exit_code != 0 and str(small) in r.stderr and "has 100 vertices" in r.stderr and not bad.exists()
+
+
+@pytest.mark.parametrize("args, msg", [(["--joint-rounds", "-1"], "--joint-rounds"),
+                                       (["--joint-gate", "-5"], "--joint-gate"),
+                                       (["--joint-blur", "-1"], "--joint-blur")])
+def test_bad_joint_round_settings_are_refused_before_any_work(world, cli, args, msg):
+    out = world / "fit-geometry" / "bad_joint.npz"
+    r = cli("fit-geometry", "--id", "001", "-w", world, "-o", out, *args)
+    assert r.exit_code != 0 and msg in r.stderr and not out.exists()
