@@ -110,9 +110,11 @@ class FitConfig:
                                     # views without landmarks registered again after each round (0 = off;
                                     # :func:`_joint_rounds`)
     joint_blur_px: float = 2.0      # Gaussian blur of the images in the joint rounds (px)
-    joint_gate_mm: float = 50.0     # a registered view enters the joint rounds only if its registration left it
+    joint_gate_mm: float = 25.0     # a registered view enters the joint rounds only if its registration left it
                                     # within this distance of the rig (mm): further, the rig and the images
                                     # disagree, and a misplaced view would pull the face
+    joint_register: bool = False    # register the views without landmarks again after each joint round (finest
+                                    # blur only): about 5 s more per round and identity, and on the demo no better
     joint_max_landmark_rise: float = 1.4  # the joint rounds are undone when they raise the median landmark RMS of
                                           # the views with landmarks by more than this factor (a view that the
                                           # gate let in pulled the face off its landmarks)
@@ -905,7 +907,9 @@ def _register_unmarked(prob: _FitProblem, sm: _SubMesh, again: bool = False) -> 
     raw, sat = fp.images()
     before = _view_flash_rms(prob, sm, fp, raw, sat)
     saved = prob.dw.detach().clone(), prob.dtr.detach().clone()
-    _registration_rounds(prob, sm, fp, raw, sat, um, cfg.register_blur_px, room=False)
+    # after a joint round the views start next to their places: the finest blur alone
+    blurs = cfg.register_blur_px[-1:] if again else cfg.register_blur_px
+    _registration_rounds(prob, sm, fp, raw, sat, um, blurs, room=False)
     after = _view_flash_rms(prob, sm, fp, raw, sat)
     with np.errstate(invalid="ignore"):
         bad = um & ~((after <= before) & (rig_shift(prob) <= 3.0 * prob.unmarked_sigma))
@@ -929,8 +933,8 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
     to the head at their registered places (:func:`_held_to_head`): the head, the face and the views with landmarks
     move, and those views follow the head rigidly, their images and flashes in the term beside the others'.  A
     head turned in the rig (a pitch that near-frontal landmarks leave loose) then moves every view's image of the
-    face, not only the landmarked ones'.  After each round the views without landmarks are registered again from
-    where the head took them.  Returns the (V,) RMS flash residual per view and the (F,) flash gains at the end, or
+    face, not only the landmarked ones'.  With ``joint_register`` the views without landmarks are registered again
+    after each round from where the head took them; otherwise they stay held.  Returns the (V,) RMS flash residual per view and the (F,) flash gains at the end, or
     None when no view without landmarks qualifies (nothing is changed then)."""
     cfg, views = prob.cfg, prob.views
     um = ~prob.marked
@@ -962,10 +966,11 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
             prob.run_lbfgs([prob.zs, prob.ze] + prob.pose_params + extra, joint, cfg.flash_iters,
                            f"joint round {rnd + 1}", tick=False)
         gains = fp.gains()
-        before = prob.registered.copy()
-        _register_unmarked(prob, sm, again=True)
-        # a view registered before whose new registration was undone stays where the head took it: registered
-        prob.registered |= before
+        if cfg.joint_register:
+            before = prob.registered.copy()
+            _register_unmarked(prob, sm, again=True)
+            # a view registered before whose new registration was undone stays where the head took it: registered
+            prob.registered |= before
     if gains is None:
         return None
     lm_after = _median_landmark_rms(prob)

@@ -102,13 +102,16 @@ PARAMS = (
          help="with --w-room: one refinement round per blur."),
     _cfg("joint_rounds", "int", range=(0, 20),
          help="after the registration: rounds of the flash term in which the registered views without landmarks "
-              "follow the head at their registered places and their images shape the face beside the others', "
-              "each round followed by a new registration (0 = off; for a rig whose cameras the registration "
-              "confirms: docs/fit-geometry.md, Joint rounds)."),
+              "follow the head at their registered places and their images shape the face beside the others' "
+              "(0 = off; for a rig whose cameras the registration confirms: docs/fit-geometry.md, Views without "
+              "landmarks)."),
     _cfg("joint_blur_px", "float", range=(0.0, None), option="--joint-blur", unit="px",
          help="Gaussian blur of the images in the joint rounds."),
     _cfg("joint_gate_mm", "float", range=(0.0, None), option="--joint-gate", unit="mm",
          help="a registered view without landmarks enters the joint rounds only within this distance of the rig."),
+    _cfg("joint_register", "bool",
+         help="register the views without landmarks again after each joint round (about 5 s more per round and "
+              "identity)."),
     _cfg("joint_max_landmark_rise", "float", range=(1.0, None), option="",
          help="the joint rounds are undone when they raise the median landmark RMS of the views with landmarks by "
               "more than this factor."),

@@ -108,3 +108,13 @@ def test_joint_rounds_that_pull_the_face_off_its_landmarks_are_undone(exact_rig)
     np.testing.assert_array_equal(undone.vertices, base.vertices)
     np.testing.assert_array_equal(undone.t, base.t)
     np.testing.assert_array_equal(undone.flash_residual, base.flash_residual)
+
+
+def test_registered_again_after_each_round(exact_rig):
+    """With ``joint_register`` the views without landmarks are registered again after each round: the view stays
+    registered and joined, and its place moves from where the rounds alone leave it."""
+    held, _, c_held = _fit(exact_rig, joint_rounds=2, joint_blur_px=0.0)
+    again, v, c_again = _fit(exact_rig, joint_rounds=2, joint_blur_px=0.0, joint_register=True)
+    assert again.registered[0] and again.joined[0] and again.evidence[0] == "rig+flash"
+    assert not np.array_equal(again.R[0], held.R[0])
+    assert np.isfinite(v) and c_again.max() < 30.0, c_again
