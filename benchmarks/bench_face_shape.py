@@ -18,7 +18,8 @@ import numpy as np
 
 
 def align(a: np.ndarray, b: np.ndarray, scale: bool) -> tuple[float, float]:
-    """(RMS of ‖s·R·(a − ā) + b̄ − b‖, s) for the best rotation R and, with ``scale``, the best scale s (Umeyama)."""
+    """(RMS of ‖s·R·(a − ā) + b̄ − b‖, s) for the best rotation R and, with ``scale``, the best scale s
+    (Umeyama's closed form)."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     a0, b0 = a - a.mean(0), b - b.mean(0)
     U, S, Vt = np.linalg.svd(a0.T @ b0)

@@ -76,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         R, before, after = split(fit["cam_centers"], truth["cam_centers"][idx], marked)
         rv = rotation_degrees(R)
         print(f"{path.stem}: head rotation x {rv[0]:+.2f}° y {rv[1]:+.2f}° z {rv[2]:+.2f}° "
-              f"({int(marked.sum())} views with landmarks); centres {before.mean():.1f} → {after.mean():.1f} mm mean, "
+              f"({int(marked.sum())} views with landmarks); centres {before.mean():.1f} → {after.mean():.1f} mm "
+              f"mean, "
               f"{before.max():.1f} → {after.max():.1f} mm max")
         acc["unmarked_before"] += list(before[~marked])
         acc["unmarked_after"] += list(after[~marked])

@@ -106,15 +106,14 @@ class FitConfig:
                                     # residual like the flash term (0 = off)
     joint_rounds: int = 0           # after the registration: rounds of the flash term over the views with
                                     # landmarks *and* the registered views without, these held to the head at
-                                    # their registered places; face, head and the views with landmarks free; the
-                                    # views without landmarks registered again after each round (0 = off;
-                                    # :func:`_joint_rounds`)
+                                    # their registered places; face, head and the views with landmarks free
+                                    # (0 = off; :func:`_joint_rounds`)
     joint_blur_px: float = 2.0      # Gaussian blur of the images in the joint rounds (px)
     joint_gate_mm: float = 25.0     # a registered view enters the joint rounds only if its registration left it
                                     # within this distance of the rig (mm): further, the rig and the images
                                     # disagree, and a misplaced view would pull the face
     joint_register: bool = False    # register the views without landmarks again after each joint round (finest
-                                    # blur only): about 5 s more per round and identity, and on the demo no better
+                                    # blur only): a little closer on the demo, about 5 s more per round and identity
     joint_max_landmark_rise: float = 1.4  # the joint rounds are undone when they raise the median landmark RMS of
                                           # the views with landmarks by more than this factor (a view that the
                                           # gate let in pulled the face off its landmarks)
@@ -934,8 +933,10 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
     move, and those views follow the head rigidly, their images and flashes in the term beside the others'.  A
     head turned in the rig (a pitch that near-frontal landmarks leave loose) then moves every view's image of the
     face, not only the landmarked ones'.  With ``joint_register`` the views without landmarks are registered again
-    after each round from where the head took them; otherwise they stay held.  Returns the (V,) RMS flash residual per view and the (F,) flash gains at the end, or
-    None when no view without landmarks qualifies (nothing is changed then)."""
+    after each round from where the head took them; otherwise they stay held.  The rounds are undone when they
+    raise the landmark RMS of the views with landmarks more than ``joint_max_landmark_rise``.  Returns the (V,) RMS
+    flash residual per view and the (F,) flash gains at the end, or None when no round ran or the rounds were
+    undone (the fit is then the one without them)."""
     cfg, views = prob.cfg, prob.views
     um = ~prob.marked
     gains = None
@@ -945,8 +946,8 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
         with np.errstate(invalid="ignore"):
             joined = um & prob.registered & (rig_shift(prob) <= cfg.joint_gate_mm)
         if not joined.any():
-            log.info("fit-geometry: no registered view without landmarks within %.0f mm of the rig: %s", cfg.joint_gate_mm,
-                     "no joint round" if rnd == 0 else f"joint rounds stop after {rnd}")
+            log.info("fit-geometry: no registered view without landmarks within %.0f mm of the rig: %s",
+                     cfg.joint_gate_mm, "no joint round" if rnd == 0 else f"joint rounds stop after {rnd}")
             break
         prob.joined |= joined
         placed = prob.marked | joined
