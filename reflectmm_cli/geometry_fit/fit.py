@@ -113,7 +113,7 @@ class FitConfig:
                                     # within this distance of the rig (mm): further, the rig and the images
                                     # disagree, and a misplaced view would pull the face
     joint_register: bool = False    # register the views without landmarks again after each joint round (finest
-                                    # blur only): a little closer on the demo, about 5 s more per round and identity
+                                    # blur only): a little closer on the demo, about 2 s more per round and identity
     joint_max_landmark_rise: float = 1.4  # the joint rounds are undone when they raise the median landmark RMS of
                                           # the views with landmarks by more than this factor (a view that the
                                           # gate let in pulled the face off its landmarks)

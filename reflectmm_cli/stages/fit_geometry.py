@@ -110,7 +110,7 @@ PARAMS = (
     _cfg("joint_gate_mm", "float", range=(0.0, None), option="--joint-gate", unit="mm",
          help="a registered view without landmarks enters the joint rounds only within this distance of the rig."),
     _cfg("joint_register", "bool",
-         help="register the views without landmarks again after each joint round (about 5 s more per round and "
+         help="register the views without landmarks again after each joint round (about 2 s more per round and "
               "identity)."),
     _cfg("joint_max_landmark_rise", "float", range=(1.0, None), option="",
          help="the joint rounds are undone when they raise the median landmark RMS of the views with landmarks by "
