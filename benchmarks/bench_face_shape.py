@@ -16,17 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
+from reflectmm_cli.geometry.align import rigid_align
+
 
 def align(a: np.ndarray, b: np.ndarray, scale: bool) -> tuple[float, float]:
-    """(RMS of ‖s·R·(a − ā) + b̄ − b‖, s) for the best rotation R and, with ``scale``, the best scale s
-    (Umeyama's closed form)."""
+    """(RMS of ‖s·R·a + t − b‖, s) for the best rotation R, shift t and, with ``scale``, the best scale s
+    (:func:`reflectmm_cli.geometry.align.rigid_align`)."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    a0, b0 = a - a.mean(0), b - b.mean(0)
-    U, S, Vt = np.linalg.svd(a0.T @ b0)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    s = float((S * np.diag(D)).sum() / (a0 ** 2).sum()) if scale else 1.0
-    return float(np.sqrt((((s * a0 @ R.T) - b0) ** 2).sum(1).mean())), s
+    R, t, s = rigid_align(a, b, scale=scale)
+    return float(np.sqrt((((s * a @ R.T + t) - b) ** 2).sum(1).mean())), float(s)
 
 
 def measure(fit_dir: Path, truth_dir: Path) -> list[tuple[str, float, float, float, float]]:

@@ -22,7 +22,10 @@ import numpy as np
 
 
 def head_rotation(fitted: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation R (about the origin) that minimises Σ‖R·fitted_i − true_i‖² over the (N, 3) centres."""
+    """(3, 3) rotation R (about the origin) that minimises Σ‖R·fitted_i − true_i‖² over the (N, 3) centres.
+
+    Kabsch without centring: the turn is about the head, which sits at the model's origin, not about the cameras'
+    centroid, so :func:`reflectmm_cli.geometry.align.rigid_align` (which always fits a shift) does not apply."""
     H = np.asarray(fitted, np.float64).T @ np.asarray(true, np.float64)
     U, _, Vt = np.linalg.svd(H)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])

@@ -714,25 +714,36 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
     return _fit_result(prob, photo, sm, flash_res, flash_gain, t_start)
 
 
+def _landmark_rmse(prob: _FitProblem) -> tuple[np.ndarray, np.ndarray]:
+    """(V,) RMS landmark error per view (px; NaN for a view without a landmark the fit weighs) and the (V, 68, 2)
+    projections, at the current unknowns; a point on the outline (``jaw_contour``) counts its distance across it,
+    as the fit measures it."""
+    views = prob.views
+    with torch.no_grad():
+        R, t = prob.poses()
+        _, uv = prob.lm_loss(prob.verts(), R, t)
+    uv = uv.cpu().numpy().astype(np.float64)
+    err = np.linalg.norm(uv - views.landmarks, axis=-1)
+    if prob.jaw is not None:
+        across = (prob.lm_normals ** 2).sum(-1) > 0
+        err[across] = np.abs(((uv - views.landmarks) * prob.lm_normals).sum(-1))[across]
+    used = prob.valid & prob.used
+    rmse = np.array([math.sqrt(np.mean(err[v][used[v]] ** 2)) if used[v].any() else math.nan
+                     for v in range(prob.V)])
+    return rmse, uv
+
+
 def _fit_result(prob: _FitProblem, photo: _PhotoResult, sm: _SubMesh | None, flash_res, flash_gain,
                 t_start: float) -> GeometryFit:
     """Gather the :class:`GeometryFit` at the final unknowns (landmark RMSE per view, coefficients, vertices)."""
-    model, cfg, views, V, valid = prob.model, prob.cfg, prob.views, prob.V, prob.valid
+    model, cfg, views, V = prob.model, prob.cfg, prob.views, prob.V
     which = {"all": np.arange(V), "unmarked": np.nonzero(~prob.marked)[0]}.get(cfg.uncertainty, [])
     with torch.no_grad():
         dist = np.linalg.norm(camera_centers(*prob.poses()).cpu().numpy(), axis=-1)
     c_sig, r_sig = pose_sigmas(pose_curvature(prob, which), dist)
+    rmse, uv = _landmark_rmse(prob)
     with torch.no_grad():
-        X = prob.verts()
         R, t = prob.poses()
-        _, uv = prob.lm_loss(X, R, t)
-    uv = uv.cpu().numpy().astype(np.float64)
-    err = np.linalg.norm(uv - views.landmarks, axis=-1)
-    if prob.jaw is not None:  # points on the outline: their distance across it, as the fit measured them
-        across = (prob.lm_normals ** 2).sum(-1) > 0
-        err[across] = np.abs(((uv - views.landmarks) * prob.lm_normals).sum(-1))[across]
-    used = valid & prob.used
-    rmse = np.array([math.sqrt(np.mean(err[v][used[v]] ** 2)) if used[v].any() else math.nan for v in range(V)])
     zs_np = prob.zs.detach().cpu().numpy().astype(np.float64)
     ze_np = prob.ze.detach().cpu().numpy().astype(np.float64)
     shape_coeffs = zs_np * model.shape_sigma
@@ -940,7 +951,7 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
     cfg, views = prob.cfg, prob.views
     um = ~prob.marked
     gains = None
-    lm_before = _median_landmark_rms(prob)
+    lm_before = float(np.nanmedian(_landmark_rmse(prob)[0]))
     saved = _snapshot(prob)
     for rnd in range(cfg.joint_rounds):
         with np.errstate(invalid="ignore"):
@@ -974,7 +985,7 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
             prob.registered |= before
     if gains is None:
         return None
-    lm_after = _median_landmark_rms(prob)
+    lm_after = float(np.nanmedian(_landmark_rmse(prob)[0]))
     if lm_after > cfg.joint_max_landmark_rise * lm_before:
         log.warning("fit-geometry: joint rounds undone: they raised the landmark RMS of the views with landmarks from "
                     "%.2f to %.2f px (more than %.2gx): a view without landmarks pulled the face", lm_before, lm_after,
@@ -990,16 +1001,6 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
     return res, gains
 
 
-def _median_landmark_rms(prob: _FitProblem) -> float:
-    """Median over the views with landmarks of each view's RMS landmark error (px) at the current unknowns."""
-    with torch.no_grad():
-        R, t = prob.poses()
-        _, uv = prob.lm_loss(prob.verts(), R, t)
-    err = np.linalg.norm(uv.cpu().numpy() - prob.views.landmarks, axis=-1)
-    used = prob.valid & prob.used
-    return float(np.median([math.sqrt(np.mean(err[v][used[v]] ** 2)) for v in range(prob.V) if used[v].any()]))
-
-
 def _snapshot(prob: _FitProblem) -> dict:
     """The unknowns and the views' placement flags, to undo the joint rounds."""
     tensors = {k: getattr(prob, k).detach().clone() for k in ("zs", "ze", "dw", "dtr", "dwh", "dth")}
@@ -1013,6 +1014,14 @@ def _restore(prob: _FitProblem, saved: dict) -> None:
             getattr(prob, k).copy_(v)
     for k, v in saved["flags"].items():
         setattr(prob, k, v.copy())
+
+
+def pose_under_head(R_rig: torch.Tensor, c_rig: torch.Tensor, Rh: torch.Tensor, th: torch.Tensor):
+    """Model → camera poses (R (..., 3, 3), t (..., 3)) of cameras given in the rig frame — orientations ``R_rig``
+    (rig → camera) and centres ``c_rig`` (..., 3) — with the head at (Rh, th) (rig → model: ``x = Rh x_rig + th``)."""
+    R = R_rig @ Rh.transpose(-1, -2)
+    c = c_rig @ Rh.transpose(-1, -2) + th
+    return R, -(R @ c[..., None])[..., 0]
 
 
 class _held_to_head:
@@ -1032,10 +1041,7 @@ class _held_to_head:
             self.c_rig = (c - th) @ Rh         # the centres in the rig frame
 
         def follow(R, t):
-            Rh, th = prob.head()
-            Rf = self.R_rig @ Rh.transpose(-1, -2)
-            cf = self.c_rig @ Rh.transpose(-1, -2) + th
-            tf = -(Rf @ cf[..., None])[..., 0]
+            Rf, tf = pose_under_head(self.R_rig, self.c_rig, *prob.head())
             return (torch.where(self.which[:, None, None], Rf, R), torch.where(self.which[:, None], tf, t))
 
         prob.pose_fn = follow

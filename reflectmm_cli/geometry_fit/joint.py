@@ -39,7 +39,8 @@ from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import axis_angle_to_matrix, matrix_to_axis_angle
 from reflectmm_cli.geometry_fit.fit import (FitConfig, ViewSet, _FitProblem, _FlashPairs, _flash_objective,
-                                            _sub_mesh, _SubMesh, _usable_flashes, _view_flash_rms, lbfgs_minimise)
+                                            _sub_mesh, _SubMesh, _usable_flashes, _view_flash_rms, lbfgs_minimise,
+                                            pose_under_head)
 from reflectmm_cli.geometry_fit.init import place_by_rig
 from reflectmm_cli.geometry_fit.placement import data_cut_psd
 from reflectmm_cli.geometry_fit.model import ShapeModel
@@ -227,11 +228,10 @@ class _Shared:
             if len(rows) == 0:
                 return R, t
             Rk, ck = self.rig_pose()
-            Rv = Rk[rows_t] @ Rh.T
-            cv = ck[rows_t] @ Rh.T + th
+            Rv, tv = pose_under_head(Rk[rows_t], ck[rows_t], Rh, th)
             R, t = R.clone(), t.clone()
             R[idx] = Rv
-            t[idx] = -(Rv @ cv[..., None])[..., 0]
+            t[idx] = tv
             return R, t
 
         ident.prob.pose_fn = pose_fn
