@@ -17,10 +17,12 @@ then no better start or longer optimisation brings the fit to the truth, and the
 
     python benchmarks/bench_joint_objective.py --workspace WS [--ids 001,006] [--starts fit,cameras,truth]
         [--recipe recipes/synthetic.toml] [--stage fit-geometry] [--set key=value ...]
+        [--capture-dir DIR --face-model FILE --rig FILE --truth-dir DIR]
 
 The fit's parameters are the stage's ``params`` in the recipe (``--set`` overrides one); its inputs are the
-workspace's (WS/preprocess-multipie, WS/face-model-embed, WS/calibrate-rig, WS/synth-multipie/truth). One line per
-identity and start on stdout; a summary at the end.
+workspace's (WS/preprocess-multipie, WS/face-model-embed, WS/calibrate-rig, WS/synth-multipie/truth), or, for a
+world made outside a workspace, ``--capture-dir``, ``--face-model``, ``--rig`` and ``--truth-dir`` (then
+``--workspace`` is not needed). One line per identity and start on stdout; a summary at the end.
 """
 from __future__ import annotations
 
@@ -176,18 +178,17 @@ def stage_params(recipe: Path, stage: str, overrides: list[str]) -> dict:
     return params
 
 
-def run_one(ws: Path, ident: str, starts, params: dict) -> dict:
+def run_one(inputs: dict, ident: str, starts, params: dict) -> dict:
     from reflectmm_cli.geometry_fit.identity import fit_identity
     from reflectmm_cli.stages.fit_geometry import config_from_params
 
-    truth_path = ws / "synth-multipie" / "truth" / f"{ident}.npz"
+    truth_path = inputs["truth_dir"] / f"{ident}.npz"
     with np.load(truth_path) as z:
         truth = {k: z[k] for k in z.files}
     record: dict = {}
     with compared(starts, truth, record):
-        fit_identity(ws / "preprocess-multipie" / f"{ident}.npz", ws / "face-model-embed" / "face-model-embed.npz",
-                     ident, rig_path=ws / "calibrate-rig" / "rig.toml", config=config_from_params(params),
-                     truth_path=truth_path)
+        fit_identity(inputs["capture_dir"] / f"{ident}.npz", inputs["face_model"], ident, rig_path=inputs["rig"],
+                     config=config_from_params(params), truth_path=truth_path)
     if not record:
         sys.exit(f"identity {ident}: the joint rounds did not run")
     return record
@@ -195,25 +196,39 @@ def run_one(ws: Path, ident: str, starts, params: dict) -> dict:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--workspace", type=Path, required=True)
-    ap.add_argument("--ids", default="", help="comma-separated identities (default: every fit in WS/STAGE)")
+    ap.add_argument("--workspace", type=Path)
+    ap.add_argument("--capture-dir", type=Path, help="default WS/preprocess-multipie")
+    ap.add_argument("--face-model", type=Path, help="default WS/face-model-embed/face-model-embed.npz")
+    ap.add_argument("--rig", type=Path, help="default WS/calibrate-rig/rig.toml")
+    ap.add_argument("--truth-dir", type=Path, help="default WS/synth-multipie/truth")
+    ap.add_argument("--ids", default="", help="comma-separated identities (default: every capture)")
     ap.add_argument("--starts", default=",".join(STARTS))
     ap.add_argument("--recipe", type=Path, default=Path(__file__).resolve().parents[1] / "recipes" / "synthetic.toml")
-    ap.add_argument("--stage", default="fit-geometry")
+    ap.add_argument("--stage", default="fit-geometry", help="the recipe's stage whose params the fit takes")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args(argv)
     starts = ["fit"] + [s for s in a.starts.split(",") if s and s != "fit"]
     bad = [s for s in starts if s not in STARTS]
     if bad:
         sys.exit(f"--starts: unknown start(s) {', '.join(bad)} (choose from {', '.join(STARTS)})")
-    ids = [i for i in a.ids.split(",") if i] or sorted(p.stem for p in (a.workspace / a.stage).glob("*.npz"))
+    defaults = {"capture_dir": "preprocess-multipie", "face_model": "face-model-embed/face-model-embed.npz",
+                "rig": "calibrate-rig/rig.toml", "truth_dir": "synth-multipie/truth"}
+    inputs = {}
+    for key, rel in defaults.items():
+        given = getattr(a, key)
+        if given is None and a.workspace is None:
+            sys.exit(f"--{key.replace('_', '-')} or --workspace is needed")
+        inputs[key] = given if given is not None else a.workspace / rel
+        if not inputs[key].exists():
+            sys.exit(f"{inputs[key]}: not found")
+    ids = [i for i in a.ids.split(",") if i] or sorted(p.stem for p in inputs["capture_dir"].glob("*.npz"))
     if not ids:
-        sys.exit(f"{a.workspace / a.stage}: no fits found")
+        sys.exit(f"{inputs['capture_dir']}: no captures found")
     params = stage_params(a.recipe, a.stage, a.set)
     verts: dict[str, list[float]] = {s: [] for s in starts}
     deeper: dict[str, int] = {s: 0 for s in starts}
     for ident in ids:
-        rec = run_one(a.workspace, ident, starts, params)
+        rec = run_one(inputs, ident, starts, params)
         for s in starts:
             v, cams = rec[s]["errors"]
             verts[s].append(v)

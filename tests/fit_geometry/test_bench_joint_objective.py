@@ -96,3 +96,14 @@ def test_the_comparison_leaves_the_fit_as_it_was(world):
     assert v_fit == pytest.approx(float(np.sqrt(((plain.vertices - truth["vertices"]) ** 2).sum(-1).mean())),
                                   rel=1e-9)
     assert record["truth"]["errors"][0] < v_fit
+
+
+def test_inputs_are_checked(tmp_path):
+    """Without a workspace every input must be given, and each must exist: one line naming what is missing."""
+    bench = load_benchmark("bench_joint_objective")
+    with pytest.raises(SystemExit, match="--face-model or --workspace is needed"):
+        bench.main(["--capture-dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="preprocess-multipie: not found"):
+        bench.main(["--workspace", str(tmp_path)])
+    with pytest.raises(SystemExit, match="unknown start"):
+        bench.main(["--workspace", str(tmp_path), "--starts", "fit,elsewhere"])
