@@ -264,8 +264,9 @@ def _detected_section(detected: Sequence[Read], truth_by_id: Mapping[str, Any], 
             "camera centre error, max (mm): views with landmarks | views without |",
             "|---|---:|---:|---:|---:|---:|---:|", *rows, "",
             f"Median ratio {_f(med, '{:.2f}')} (the target is ≤ 1.3; docs/benchmarks.md, \"The demo on dlib's "
-            f"landmarks\", \"The detector's per-camera offsets\", \"The flash rounds' optimisation budget\" and "
-            "\"The joint rounds\", say where it stands and what limits it).", ""]
+            f"landmarks\", \"The detector's per-camera offsets\", \"The flash rounds' optimisation budget\", "
+            "\"The joint rounds\" and \"What holds the joint rounds back\", say where it stands and what limits it).",
+            ""]
 
 
 def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), maps: Sequence[Read] = (),

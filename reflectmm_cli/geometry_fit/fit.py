@@ -114,6 +114,9 @@ class FitConfig:
                                     # disagree, and a misplaced view would pull the face
     joint_register: bool = False    # register the views without landmarks again after each joint round (finest
                                     # blur only): a little closer on the demo, about 2 s more per round and identity
+    joint_unmarked_weight: float = 1.0  # weight of the images of the views without landmarks in the joint rounds,
+                                        # relative to the others' (their flashes count in full); below 1 a view a
+                                        # few mm off its true place bends the face less
     joint_max_landmark_rise: float = 1.4  # the joint rounds are undone when they raise the median landmark RMS of
                                           # the views with landmarks by more than this factor (a view that the
                                           # gate let in pulled the face off its landmarks)
@@ -877,16 +880,20 @@ def _flash_weights(prob: _FitProblem, sm: _SubMesh, fp: _FlashPairs, sat: np.nda
 
 
 def _flash_objective(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np.ndarray, blur: float,
-                     sat: np.ndarray | None):
+                     sat: np.ndarray | None, view_weight: np.ndarray | None = None):
     """The flash term of one round at the current geometry: (loss(images, residual) closure, blurred images
-    (P, h, w, 3) tensor); weights, visibility and the residual scale fixed at the round's start."""
+    (P, h, w, 3) tensor, the (P, M) bool sample mask); weights, visibility and the residual scale fixed at the
+    round's start.  ``view_weight`` (V,): each view's images weighted by it (default 1 for all)."""
     images_t = torch.as_tensor(_blur(raw, blur), device=prob.device)  # (P, h, w, 3) channels last
     weight, uv = _flash_weights(prob, sm, fp, sat)
     sp, sm_ = np.nonzero(weight)
     seen = gather_bilinear(images_t, torch.as_tensor(sp, device=prob.device),
                            torch.as_tensor(uv[fp.pv[sp], sm_], device=prob.device)).cpu().numpy()
     scale = max(float(np.median(seen)) if seen.size else 1.0, 1e-3)
-    weight_t = prob.tt(weight.astype(np.float64))
+    w = weight.astype(np.float64)
+    if view_weight is not None:
+        w *= np.asarray(view_weight, dtype=np.float64)[fp.pv][:, None]
+    weight_t = prob.tt(w)
 
     def flash(images, residual=True):
         Xs, nv = sm.surface(prob)
@@ -941,7 +948,8 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
 
     The views without landmarks that their flash images registered to within ``joint_gate_mm`` of the rig are held
     to the head at their registered places (:func:`_held_to_head`): the head, the face and the views with landmarks
-    move, and those views follow the head rigidly, their images and flashes in the term beside the others'.  A
+    move, and those views follow the head rigidly, their images (weighted by ``joint_unmarked_weight``) and
+    flashes in the term beside the others'.  A
     head turned in the rig (a pitch that near-frontal landmarks leave loose) then moves every view's image of the
     face, not only the landmarked ones'.  With ``joint_register`` the views without landmarks are registered again
     after each round from where the head took them; otherwise they stay held.  The rounds are undone when they
@@ -968,7 +976,8 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
         fp = _FlashPairs(prob, usable, seen_by=placed)
         raw, sat = fp.images()
         with _held_to_head(prob, um):
-            flash, images_t, _ = _flash_objective(prob, sm, fp, raw, cfg.joint_blur_px, sat)
+            flash, images_t, _ = _flash_objective(prob, sm, fp, raw, cfg.joint_blur_px, sat,
+                                                  view_weight=np.where(um, cfg.joint_unmarked_weight, 1.0))
 
             def joint():
                 (lf, _, _), R, t = flash(images_t, residual=False)

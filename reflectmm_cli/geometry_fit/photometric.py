@@ -163,8 +163,9 @@ def flash_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torch.Tens
     brightness between flashes — photometric stereo with known lights — and the image positions between views.
 
     Args:
-        vertices, normals: (N, 3) current (sub-)mesh; sample (M,) vertex ids; weight (P, M) 0/1 (camera and
-            flash visibility, no highlight, not saturated).
+        vertices, normals: (N, 3) current (sub-)mesh; sample (M,) vertex ids; weight (P, M) ≥ 0: 0 leaves a sample out
+            (camera and flash visibility, no highlight, not saturated), else its weight in the albedo and the loss
+            (1, or a pair's view weight).
         K, R (V, 3, 3), t (V, 3): cameras (K in the images' pixel frame); images (P, h, w, 3) linear
             (channels last, any float dtype: only the samples are converted);
             pair_view (P,) view index of each pair; light_pos (P, 3) and light_int (P,) the pair's flash.

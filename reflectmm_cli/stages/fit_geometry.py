@@ -112,6 +112,9 @@ PARAMS = (
     _cfg("joint_register", "bool",
          help="register the views without landmarks again after each joint round (about 2 s more per round and "
               "identity)."),
+    _cfg("joint_unmarked_weight", "float", range=(0.0, 1.0), option="--joint-unmarked-weight",
+         help="weight of the images of the views without landmarks in the joint rounds, relative to the others' "
+              "(their flashes count in full)."),
     _cfg("joint_max_landmark_rise", "float", range=(1.0, None), option="",
          help="the joint rounds are undone when they raise the median landmark RMS of the views with landmarks by "
               "more than this factor."),

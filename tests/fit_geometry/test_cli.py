@@ -446,7 +446,9 @@ def test_face_model_embed_landmarks_end_to_end(world, cli, tmp_path):
 
 @pytest.mark.parametrize("args, msg", [(["--joint-rounds", "-1"], "--joint-rounds"),
                                        (["--joint-gate", "-5"], "--joint-gate"),
-                                       (["--joint-blur", "-1"], "--joint-blur")])
+                                       (["--joint-blur", "-1"], "--joint-blur"),
+                                       (["--joint-unmarked-weight", "1.5"], "--joint-unmarked-weight"),
+                                       (["--joint-unmarked-weight", "-0.1"], "--joint-unmarked-weight")])
 def test_bad_joint_round_settings_are_refused_before_any_work(world, cli, args, msg):
     out = world / "fit-geometry" / "bad_joint.npz"
     r = cli("fit-geometry", "--id", "001", "-w", world, "-o", out, *args)
