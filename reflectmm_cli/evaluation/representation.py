@@ -424,8 +424,8 @@ def comparison_table(res: RepresentationResult) -> str:
     lo, hi = int(np.min(counts)), int(np.max(counts))
     pairs = f"{hi} pairs per identity" if lo == hi else (
         f"{lo}–{hi} pairs per identity, each identity's mean over its own; their captures keep different views")
-    foot = (f"\n{len(res.ids)} identities; held-out flashes {', '.join(res.holdout)} (all views, "
-            f"{pairs}); {where}; metrics on clip(x,0,1)^(1/1.2), peak 1.")
+    foot = (f"\n{len(res.ids)} identities ({', '.join(res.ids)}); held-out flashes {', '.join(res.holdout)} "
+            f"(all views, {pairs}); {where}; metrics on clip(x,0,1)^(1/1.2), peak 1.")
     if res.space == "image" and res.outside_domain is not None and np.isfinite(res.outside_domain).any():
         foot += (f" Lit face pixels left out because their UV lookup leaves the maps' domain: "
                  f"{100 * np.nanmean(res.outside_domain):.2f} % (mean over identities).")

@@ -103,6 +103,8 @@ def test_three_lobe_beats_global_exponents_on_three_lobe_truth(exact_obs):
     assert res.lpips is None
     table = comparison_table(res)
     assert "LPIPS: off (no weights given)" in table and "| off |" in table
+    # the identities are named: which ones a run's Table 1 took decides its numbers
+    assert f"{len(res.ids)} identities ({', '.join(res.ids)}); held-out flashes" in table
     assert table.splitlines()[:2] == ["| representation | PSNR (dB) ↑ | SSIM ↑ | LPIPS ↓ | train PSNR (dB) | "
                                       "fit time (s) |", "|---|---:|---:|---:|---:|---:|"]
     assert f"| 3-lobe (1,8,64) | **{mp[i3]:.2f}** |" in table
