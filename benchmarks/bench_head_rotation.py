@@ -80,8 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         rv = rotation_degrees(R)
         print(f"{path.stem}: head rotation x {rv[0]:+.2f}° y {rv[1]:+.2f}° z {rv[2]:+.2f}° "
               f"({int(marked.sum())} views with landmarks); centres {before.mean():.1f} → {after.mean():.1f} mm "
-              f"mean, "
-              f"{before.max():.1f} → {after.max():.1f} mm max")
+              f"mean, {before.max():.1f} → {after.max():.1f} mm max")
         acc["unmarked_before"] += list(before[~marked])
         acc["unmarked_after"] += list(after[~marked])
         acc["marked_before"] += list(before[marked])

@@ -49,17 +49,15 @@ def put_truth(prob, truth: dict, what: str) -> None:
     registered (the joint rounds take only registered views)."""
     from reflectmm_cli.geometry.align import rigid_align
     from reflectmm_cli.geometry.rotations import matrix_to_axis_angle
+    from reflectmm_cli.geometry_fit.fit import write_poses
 
     names = [str(n) for n in np.asarray(truth["camera_names"]).reshape(-1)]
     idx = [names.index(n) for n in prob.views.names]
     which = ~prob.marked if what == "cameras" else np.ones(prob.V, dtype=bool)
-    w = torch.as_tensor(which, device=prob.device)
-    with torch.no_grad():
-        Rt, tt_ = prob.tt(np.asarray(truth["R"])[idx]), prob.tt(np.asarray(truth["t"])[idx])
-        prob.dw[w] = (matrix_to_axis_angle(Rt @ prob.R0_t.transpose(-1, -2)) / prob.r_unit)[w]
-        prob.dtr[w] = ((tt_ - prob.t0_t) / prob.tv_unit)[w]
-        if what == "truth":
-            m = prob.model
+    write_poses(prob, prob.tt(np.asarray(truth["R"])[idx]), prob.tt(np.asarray(truth["t"])[idx]), which)
+    if what == "truth":
+        m = prob.model
+        with torch.no_grad():
             prob.zs.copy_(prob.tt(np.asarray(truth["shape_coeffs"], np.float64)[:m.n_shape] / m.shape_sigma))
             k = prob.ze.numel()
             if k:
@@ -73,20 +71,15 @@ def put_truth(prob, truth: dict, what: str) -> None:
 
 def joint_terms(prob, sm):
     """The joint rounds' objective as a function of the current unknowns, term by term: returns ``terms()`` →
-    (landmarks, flash, shape prior, rig prior) floats, with the flash samples' weights, blur and scale fixed at the
-    state of this call.  Every registered view without landmarks is held to the head, as in the rounds."""
+    (landmarks, flash, shape prior, rig prior) floats, with the flash term of the rounds (its view weights, blur,
+    sample weights and scale fixed at the state of this call; :func:`reflectmm_cli.geometry_fit.fit.joint_flash_term`).
+    Every registered view without landmarks is held to the head, as in the rounds."""
     from reflectmm_cli.geometry_fit import fit as F
 
-    cfg, views = prob.cfg, prob.views
+    cfg = prob.cfg
     um = ~prob.marked
-    placed = prob.marked | (um & prob.registered)
-    fv = views.flash_view
-    usable = np.array([f for f in F._usable_flashes(prob, on_unmarked_too=True) if fv[f] < 0 or placed[fv[f]]],
-                      dtype=np.int64)
-    fp = F._FlashPairs(prob, usable, seen_by=placed)
-    raw, sat = fp.images()
     with F._held_to_head(prob, um):
-        flash, images_t, _ = F._flash_objective(prob, sm, fp, raw, cfg.joint_blur_px, sat)
+        _, flash, images_t = F.joint_flash_term(prob, sm, prob.marked | (um & prob.registered))
 
     def terms() -> tuple[float, float, float, float]:
         with F._held_to_head(prob, um), torch.no_grad():

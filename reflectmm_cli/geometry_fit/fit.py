@@ -949,14 +949,14 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
     The views without landmarks that their flash images registered to within ``joint_gate_mm`` of the rig are held
     to the head at their registered places (:func:`_held_to_head`): the head, the face and the views with landmarks
     move, and those views follow the head rigidly, their images (weighted by ``joint_unmarked_weight``) and
-    flashes in the term beside the others'.  A
-    head turned in the rig (a pitch that near-frontal landmarks leave loose) then moves every view's image of the
-    face, not only the landmarked ones'.  With ``joint_register`` the views without landmarks are registered again
-    after each round from where the head took them; otherwise they stay held.  The rounds are undone when they
+    flashes in the term beside the others' (:func:`joint_flash_term`).  A head turned in the rig (a pitch that
+    near-frontal landmarks leave loose) then moves every view's image of the face, not only the landmarked ones'.
+    With ``joint_register`` the views without landmarks are registered again after each round from where the head
+    took them; otherwise they stay held.  The rounds are undone when they
     raise the landmark RMS of the views with landmarks more than ``joint_max_landmark_rise``.  Returns the (V,) RMS
     flash residual per view and the (F,) flash gains at the end, or None when no round ran or the rounds were
     undone (the fit is then the one without them)."""
-    cfg, views = prob.cfg, prob.views
+    cfg = prob.cfg
     um = ~prob.marked
     gains = None
     lm_before = float(np.nanmedian(_landmark_rmse(prob)[0]))
@@ -969,15 +969,8 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
                      cfg.joint_gate_mm, "no joint round" if rnd == 0 else f"joint rounds stop after {rnd}")
             break
         prob.joined |= joined
-        placed = prob.marked | joined
-        fv = views.flash_view
-        usable = np.array([f for f in _usable_flashes(prob, on_unmarked_too=True) if fv[f] < 0 or placed[fv[f]]],
-                          dtype=np.int64)
-        fp = _FlashPairs(prob, usable, seen_by=placed)
-        raw, sat = fp.images()
         with _held_to_head(prob, um):
-            flash, images_t, _ = _flash_objective(prob, sm, fp, raw, cfg.joint_blur_px, sat,
-                                                  view_weight=np.where(um, cfg.joint_unmarked_weight, 1.0))
+            fp, flash, images_t = joint_flash_term(prob, sm, prob.marked | joined)
 
             def joint():
                 (lf, _, _), R, t = flash(images_t, residual=False)
@@ -1008,6 +1001,31 @@ def _joint_rounds(prob: _FitProblem, sm: _SubMesh) -> tuple[np.ndarray, np.ndarr
     res_u = _view_flash_rms(prob, sm, fp_u, *fp_u.images())
     res[um] = res_u[um]
     return res, gains
+
+
+def joint_flash_term(prob: _FitProblem, sm: _SubMesh, placed: np.ndarray):
+    """The flash term of a joint round over the views ``placed`` (V,) bool: their images, lit by the flashes on
+    them and on stands, the images of the views without landmarks weighted by ``joint_unmarked_weight``, blurred by
+    ``joint_blur_px``; sample weights and scale fixed at the current geometry.  Returns (the flash pairs, the
+    loss closure of :func:`_flash_objective`, the blurred images).  Called where the rounds hold the views without
+    landmarks to the head (:class:`_held_to_head`), as they are evaluated."""
+    cfg, fv = prob.cfg, prob.views.flash_view
+    usable = np.array([f for f in _usable_flashes(prob, on_unmarked_too=True) if fv[f] < 0 or placed[fv[f]]],
+                      dtype=np.int64)
+    fp = _FlashPairs(prob, usable, seen_by=placed)
+    raw, sat = fp.images()
+    flash, images_t, _ = _flash_objective(prob, sm, fp, raw, cfg.joint_blur_px, sat,
+                                          view_weight=np.where(prob.marked, 1.0, cfg.joint_unmarked_weight))
+    return fp, flash, images_t
+
+
+def write_poses(prob: _FitProblem, R: torch.Tensor, t: torch.Tensor, which) -> None:
+    """Set the pose unknowns of the views ``which`` (V,) bool so that :meth:`_FitProblem.poses` gives (R, t) for
+    them (without a ``pose_fn``)."""
+    w = torch.as_tensor(which, device=prob.device)
+    with torch.no_grad():
+        prob.dw[w] = (matrix_to_axis_angle(R @ prob.R0_t.transpose(-1, -2)) / prob.r_unit)[w]
+        prob.dtr[w] = ((t - prob.t0_t) / prob.tv_unit)[w]
 
 
 def _snapshot(prob: _FitProblem) -> dict:
@@ -1060,10 +1078,8 @@ class _held_to_head:
         prob = self.prob
         with torch.no_grad():
             R, t = prob.poses()
-            prob.pose_fn = None
-            w = self.which
-            prob.dw[w] = matrix_to_axis_angle(R @ prob.R0_t.transpose(-1, -2))[w] / prob.r_unit
-            prob.dtr[w] = ((t - prob.t0_t) / prob.tv_unit)[w]
+        prob.pose_fn = None
+        write_poses(prob, R, t, self.which)
         return False
 
 

@@ -139,6 +139,9 @@ def test_view_weight_of_the_flash_objective(exact_rig):
         return float(loss), albedo.numpy()
 
     plain, c_plain = evaluate(raw, None)
+    ones, c_ones = evaluate(raw, np.ones(prob.V))  # the joint rounds' weight 1: the term as it was, to the bit
+    assert ones == plain
+    np.testing.assert_array_equal(c_ones, c_plain)
     half, c_half = evaluate(raw, np.full(prob.V, 0.5))
     assert half == pytest.approx(plain, rel=1e-10)
     np.testing.assert_allclose(c_half, c_plain, rtol=1e-10, atol=1e-12)
