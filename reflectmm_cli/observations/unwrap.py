@@ -298,37 +298,97 @@ def landmarked_flashes(geometry: Mapping[str, np.ndarray], geometry_path=None) -
     placed = _placed_by_landmarks(geometry, ("flash_from_view", "flash_ids", "flash_pos", "cam_centers"), "flashes",
                                   geometry_path)
     ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
+    return [fid for fid, v in zip(ids, _carrying_views(geometry)) if v is not None and placed[v]]
+
+
+#: ``unwrap-uv --flashes trusted``: the landmarked flashes, plus those on cameras that the images registered well.
+TRUSTED = "trusted"
+
+#: Defaults of the ``trusted`` selection: a registered camera's centre 1-σ (mm) and its flash residual as a
+#: multiple of the median over the views that landmarks placed.
+TRUST_CENTER_SIGMA_MM = 10.0
+TRUST_RESIDUAL_RATIO = 3.0
+
+
+def _carrying_views(geometry: Mapping[str, np.ndarray]) -> list[int | None]:
+    """For each flash of ``geometry``, the index of the fitted view that carries it (its ``cam_centers`` row equals
+    the flash position to 1e-9 relative and ``flash_from_view`` is set), else None (a free-standing flash)."""
     carried = np.asarray(geometry["flash_from_view"], bool).reshape(-1)
     pos = np.asarray(geometry["flash_pos"], np.float64).reshape(-1, 3)
     centers = np.asarray(geometry["cam_centers"], np.float64).reshape(-1, 3)
-    keep = []
-    for i, fid in enumerate(ids):
+    out: list[int | None] = []
+    for i in range(len(pos)):
         d = np.linalg.norm(centers - pos[i], axis=1)
         v = int(np.argmin(d))
-        if carried[i] and d[v] <= 1e-9 * max(1.0, float(np.linalg.norm(pos[i]))) and placed[v]:
+        ok = carried[i] and d[v] <= 1e-9 * max(1.0, float(np.linalg.norm(pos[i])))
+        out.append(v if ok else None)
+    return out
+
+
+def trusted_flashes(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: float = TRUST_CENTER_SIGMA_MM,
+                    max_residual_ratio: float = TRUST_RESIDUAL_RATIO, geometry_path=None) -> list[str]:
+    """The flash ids of a ``geometry`` whose place can be trusted: carried by a view that landmarks placed
+    (:func:`landmarked_flashes`), or by a view without landmarks whose registration by its images was kept
+    (``view_evidence`` ``rig+flash`` / ``rig+room``...) and checks out on both of the fit's own measures:
+
+    - its ``center_sigma_mm`` (the Laplace 1-σ of the camera centre) is finite and at most ``max_center_sigma_mm``;
+    - its ``flash_residual`` is at most ``max_residual_ratio`` × the median ``flash_residual`` of the views that
+      landmarks placed.
+
+    A camera placed by the rig alone (evidence ``rig``), a free-standing flash, and every registered camera when no
+    landmarked view has a finite flash residual to compare with, are left out."""
+    placed = _placed_by_landmarks(geometry, ("flash_from_view", "flash_ids", "flash_pos", "cam_centers",
+                                             "center_sigma_mm", "flash_residual"), "flashes", geometry_path)
+    ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
+    evidence = [str(e) for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
+    sigma = np.asarray(geometry["center_sigma_mm"], np.float64).reshape(-1)
+    resid = np.asarray(geometry["flash_residual"], np.float64).reshape(-1)
+    ref = resid[np.asarray(placed, bool) & np.isfinite(resid)]
+    ref_med = float(np.median(ref)) if ref.size else np.nan
+    keep = []
+    for fid, v in zip(ids, _carrying_views(geometry)):
+        if v is None:
+            continue
+        if placed[v]:
+            keep.append(fid)
+            continue
+        registered = "+" in evidence[v]                        # "rig" alone: the rig's guess, no image evidence
+        good = (registered and np.isfinite(sigma[v]) and sigma[v] <= max_center_sigma_mm
+                and np.isfinite(ref_med) and np.isfinite(resid[v]) and resid[v] <= max_residual_ratio * ref_med)
+        if good:
             keep.append(fid)
     return keep
 
 
 def reflectance_flashes(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
-                        flashes: str | Sequence[str] | None = None, geometry_path=None) -> list[str] | None:
+                        flashes: str | Sequence[str] | None = None, geometry_path=None,
+                        max_center_sigma_mm: float = TRUST_CENTER_SIGMA_MM,
+                        max_residual_ratio: float = TRUST_RESIDUAL_RATIO) -> list[str] | None:
     """The capture flashes whose images enter the reflectance fit: ``None`` (all), a list / comma string of flash
-    ids, or ``"landmarked"`` (:func:`landmarked_flashes`).  Refuses an empty selection in one line."""
+    ids, ``"landmarked"`` (:func:`landmarked_flashes`) or ``"trusted"`` (:func:`trusted_flashes`, with the two
+    bounds).  Refuses an empty selection in one line."""
     if flashes is None:
         return None
     fs = _names(flashes)
     if fs == ["all"]:
         return None
-    if fs == [LANDMARKED]:
+    if fs in ([LANDMARKED], [TRUSTED]):
         have = [str(f) for f in np.asarray(capture["flash_ids"]).reshape(-1)]
-        placed = set(landmarked_flashes(geometry, geometry_path))
+        if fs == [LANDMARKED]:
+            placed = set(landmarked_flashes(geometry, geometry_path))
+            why = "not carried by a camera that landmarks placed"
+        else:
+            placed = set(trusted_flashes(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path))
+            why = (f"not carried by a camera that landmarks placed or that its images registered within "
+                   f"{max_center_sigma_mm:g} mm (1-sigma) and {max_residual_ratio:g}x the landmarked views' "
+                   "flash residual")
         fs = [f for f in have if f in placed]
         left = [f for f in have if f not in placed]
         if left:
-            log.info("unwrap-uv: leaving out flash(es) %s (not carried by a camera that landmarks placed)",
-                     ", ".join(left))
+            log.info("unwrap-uv: leaving out flash(es) %s (%s)", ", ".join(left), why)
     if not fs:
-        raise ReflectmmError("no flash left to unwrap: no camera that carries a flash was placed by landmarks",
+        raise ReflectmmError("no flash left to unwrap: no camera that carries a flash was placed by landmarks"
+                             + (" or registered well by its images" if _names(flashes) == [TRUSTED] else ""),
                              geometry_path)
     return fs
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.observations.unwrap import TRUST_CENTER_SIGMA_MM, TRUST_RESIDUAL_RATIO
 from reflectmm_cli.params import Param
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 from reflectmm_cli.stages.fit_reflectance import EXPONENTS
@@ -33,9 +34,17 @@ PARAMS = (
           help="Capture views to unwrap, comma separated, 'all', or 'landmarked': the views whose camera landmarks "
                "placed (default: every view but the raised 08_1 / 19_1, which only place flashes 14 / 18)."),
     Param("flashes", "strs", None,
-          help="Capture flashes to unwrap, comma separated, 'all' (the default) or 'landmarked': only the flashes "
+          help="Capture flashes to unwrap, comma separated, 'all' (the default), 'landmarked': only the flashes "
                "carried by cameras that landmarks placed (a camera placed by the rig or by its flash images puts "
-               "its flash where it was guessed)."),
+               "its flash where it was guessed), or 'trusted': those, plus the flashes of cameras without "
+               "landmarks whose registration by their images checks out (--trust-center-sigma, "
+               "--trust-residual-ratio)."),
+    Param("trust_center_sigma", "float", TRUST_CENTER_SIGMA_MM, range=(0.0, None), low_open=True, unit="mm",
+          help="--flashes trusted: largest 1-sigma of a registered camera's centre (fit-geometry's "
+               "center_sigma_mm) whose flash is kept."),
+    Param("trust_residual_ratio", "float", TRUST_RESIDUAL_RATIO, range=(0.0, None), low_open=True,
+          help="--flashes trusted: largest flash residual of a registered camera, as a multiple of the median "
+               "flash residual of the views that landmarks placed, whose flash is kept."),
 )
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
@@ -92,8 +101,10 @@ def run(ctx: StageContext) -> list[Path]:
     views = reflectance_views(cap.arrays, p.get("views"), geo.arrays, geo_path)
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
                                          select_views=views,
-                                         select_flashes=reflectance_flashes(cap.arrays, geo.arrays,
-                                                                            p.get("flashes"), geo_path),
+                                         select_flashes=reflectance_flashes(
+                                             cap.arrays, geo.arrays, p.get("flashes"), geo_path,
+                                             max_center_sigma_mm=p["trust_center_sigma"],
+                                             max_residual_ratio=p["trust_residual_ratio"]),
                                          uv_size=p["uv_size"], grazing_deg=p["grazing_deg"],
                                          edge_margin=p["edge_margin"],
                                          exponents=tuple(p["exponents"]),

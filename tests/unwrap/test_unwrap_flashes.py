@@ -76,3 +76,61 @@ def test_unwrap_with_a_flash_subset_equals_the_full_unwrap_restricted(tmp_path, 
     assert "flashes" not in a.meta["params"]                          # not recorded unless given
     res, bad = _unwrap(cli, tmp_path, scene, "bad", "--flashes", "09")
     assert res.exit_code != 0 and "flash(es) 09 are not in the capture" in res.stderr and not bad.exists()
+
+
+def _registered_geometry():
+    """Five views: two placed by landmarks, three without; every view carries one flash."""
+    centers = np.array([[0.0, 0.0, 1300.0], [300.0, 0.0, 1250.0], [900.0, 0.0, 900.0], [-900.0, 0.0, 900.0],
+                        [0.0, 500.0, 1200.0]])
+    return {"view_names": np.array(["05_1", "14_0", "19_0", "08_0", "19_1"]), "cam_centers": centers,
+            "view_evidence": np.array(["landmarks+flash", "landmarks+flash", "rig+flash", "rig+flash", "rig"]),
+            "center_sigma_mm": np.array([np.nan, np.nan, 6.0, 6.0, 5.2]),
+            "flash_residual": np.array([0.004, 0.006, 0.012, 0.012, 0.001]),
+            "flash_ids": np.array(["07", "08", "10", "04", "18"]), "flash_pos": centers.copy(),
+            "flash_from_view": np.ones(5, bool)}
+
+
+def test_trusted_flashes_keep_registered_cameras_that_check_out():
+    from reflectmm_cli.observations.unwrap import trusted_flashes
+
+    g = _registered_geometry()
+    # the landmarked median residual is 0.005: 0.012 is 2.4x, within 3x; 19_1 was placed by the rig alone
+    assert trusted_flashes(g) == ["07", "08", "10", "04"]
+    assert trusted_flashes(g, max_residual_ratio=2.0) == ["07", "08"]
+    g["center_sigma_mm"][2] = 12.0                                   # 19_0's centre is loose: its flash goes
+    assert trusted_flashes(g) == ["07", "08", "04"]
+    assert trusted_flashes(g, max_center_sigma_mm=15.0) == ["07", "08", "10", "04"]
+    g["center_sigma_mm"][3] = np.inf                                 # no curvature at all: never trusted
+    assert trusted_flashes(g, max_center_sigma_mm=1e9) == ["07", "08", "10"]
+    g["flash_residual"][2] = np.nan
+    assert trusted_flashes(g, max_center_sigma_mm=1e9) == ["07", "08"]
+    # no landmarked view with a finite residual to compare with: only the landmarked flashes stay
+    g = _registered_geometry()
+    g["flash_residual"][:2] = np.nan
+    assert trusted_flashes(g) == ["07", "08"]
+    # a free-standing flash is never trusted, whatever its nearest camera
+    g = _registered_geometry()
+    g["flash_from_view"][2] = False
+    assert trusted_flashes(g) == ["07", "08", "04"]
+
+
+def test_trusted_selection_through_reflectance_flashes(tmp_path, capfd):
+    cap = {"flash_ids": np.array(["04", "07", "08", "10", "18"])}
+    g = _registered_geometry()
+    assert reflectance_flashes(cap, g, "trusted") == ["04", "07", "08", "10"]
+    assert "leaving out flash(es) 18" in capfd.readouterr().err
+    assert reflectance_flashes(cap, g, "trusted", max_residual_ratio=2.0) == ["07", "08"]
+    g["view_evidence"] = np.array(["rig+flash"] * 4 + ["rig"])
+    with pytest.raises(ReflectmmError, match="no flash left.*registered well"):
+        reflectance_flashes(cap, g, "trusted", tmp_path / "g.npz")
+    g = _registered_geometry()
+    del g["center_sigma_mm"]
+    with pytest.raises(ReflectmmError, match="center_sigma_mm.*rerun fit-geometry"):
+        reflectance_flashes(cap, g, "trusted", tmp_path / "g.npz")
+
+
+@pytest.mark.parametrize("flag,value", [("--trust-center-sigma", "0"), ("--trust-residual-ratio", "-1")])
+def test_trust_bounds_out_of_range_are_refused(cli, tmp_path, flag, value):
+    res = cli("unwrap-uv", "--id", "001", "--flashes", "trusted", flag, value, "--workspace", tmp_path / "ws")
+    assert res.exit_code != 0 and flag in res.stderr
+    assert not (tmp_path / "ws" / "unwrap-uv").exists()
