@@ -205,30 +205,42 @@ def _names(value: str | Sequence[str]) -> list[str]:
 
 
 def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[str] | None = None,
-                      geometry: Mapping[str, np.ndarray] | None = None, geometry_path=None) -> list[str]:
+                      geometry: Mapping[str, np.ndarray] | None = None, geometry_path=None,
+                      max_center_sigma_mm: float | None = None, max_residual_ratio: float | None = None
+                      ) -> list[str]:
     """The capture views whose images enter the reflectance fit.
 
     ``views`` if given (a comma string or a list; ``"all"`` = every view of the capture; ``"landmarked"`` = the
-    views that landmarks placed, :func:`landmarked_views` of ``geometry``), else every view of
+    views that landmarks placed, :func:`landmarked_views` of ``geometry``; ``"trusted"`` = those and the views
+    registered by their images that check out, :func:`trusted_views` with the two bounds), else every view of
     ``capture["view_names"]`` but the raised cameras 08_1 / 19_1 (the paper uses them only to place flashes 14 / 18).
-    A capture holding only raised cameras keeps them (with a warning)."""
+    The raised cameras are left out of ``landmarked`` and ``trusted`` too.  A capture holding only raised cameras
+    keeps them (with a warning)."""
     from reflectmm_cli.rig import RAISED_CAMERAS
 
     have = [str(v) for v in np.asarray(capture["view_names"]).reshape(-1)]
     if views is not None:
         vs = _names(views)
-        if vs == [LANDMARKED]:
+        if vs in ([LANDMARKED], [TRUSTED]):
             if geometry is None:
-                raise ReflectmmError("--views landmarked needs the geometry (which views landmarks placed)",
+                raise ReflectmmError(f"--views {vs[0]} needs the geometry (which views were placed, and how)",
                                      geometry_path)
-            placed = set(landmarked_views(geometry, geometry_path))
+            if vs == [LANDMARKED]:
+                placed = set(landmarked_views(geometry, geometry_path))
+                how = "placed by landmarks"
+            else:
+                sig = TRUST_CENTER_SIGMA_MM if max_center_sigma_mm is None else max_center_sigma_mm
+                ratio = TRUST_RESIDUAL_RATIO if max_residual_ratio is None else max_residual_ratio
+                placed = set(trusted_views(geometry, sig, ratio, geometry_path))
+                how = (f"placed by landmarks or registered by their images within {sig:g} mm (1-sigma) and "
+                       f"{ratio:g}x the landmarked views' flash residual")
             keep = [v for v in have if v in placed and v not in RAISED_CAMERAS]
             left = [v for v in have if v not in keep]
             if not keep:
-                raise ReflectmmError("no view left to unwrap: landmarks placed none of the capture's views "
-                                     f"({', '.join(have)}) but raised ones", geometry_path)
+                raise ReflectmmError(f"no view left to unwrap: none of the capture's views ({', '.join(have)}) "
+                                     f"was {how}, but raised ones", geometry_path)
             if left:
-                log.info("unwrap-uv: leaving out view(s) %s (raised, or not placed by landmarks)", ", ".join(left))
+                log.info("unwrap-uv: leaving out view(s) %s (raised, or not %s)", ", ".join(left), how)
             return keep
         return have if vs == ["all"] else vs
     keep = [v for v in have if v not in RAISED_CAMERAS]
@@ -325,39 +337,56 @@ def _carrying_views(geometry: Mapping[str, np.ndarray]) -> list[int | None]:
     return out
 
 
-def trusted_flashes(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: float = TRUST_CENTER_SIGMA_MM,
-                    max_residual_ratio: float = TRUST_RESIDUAL_RATIO, geometry_path=None) -> list[str]:
-    """The flash ids of a ``geometry`` whose place can be trusted: carried by a view that landmarks placed
-    (:func:`landmarked_flashes`), or by a view without landmarks whose registration by its images was kept
-    (``view_evidence`` ``rig+flash`` / ``rig+room``...) and checks out on both of the fit's own measures:
-
-    - its ``center_sigma_mm`` (the Laplace 1-σ of the camera centre) is finite and at most ``max_center_sigma_mm``;
-    - its ``flash_residual`` is at most ``max_residual_ratio`` × the median ``flash_residual`` of the views that
-      landmarks placed.
-
-    A camera placed by the rig alone (evidence ``rig``), a free-standing flash, and every registered camera when no
-    landmarked view has a finite flash residual to compare with, are left out."""
-    placed = _placed_by_landmarks(geometry, ("flash_from_view", "flash_ids", "flash_pos", "cam_centers",
-                                             "center_sigma_mm", "flash_residual"), "flashes", geometry_path)
-    ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
+def _trusted_placement(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: float, max_residual_ratio: float,
+                       geometry_path=None) -> list[bool]:
+    """(V,) whether each view's place can be trusted: landmarks placed it, or its images registered it (evidence
+    ``rig+…``, not ``rig`` alone) with a finite centre 1-σ ≤ ``max_center_sigma_mm`` and a flash residual ≤
+    ``max_residual_ratio`` × the median flash residual of the views that landmarks placed (no such median: no
+    registered view is trusted)."""
+    placed = _placed_by_landmarks(geometry, ("view_names", "center_sigma_mm", "flash_residual"), "views or flashes",
+                                  geometry_path)
     evidence = [str(e) for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
     sigma = np.asarray(geometry["center_sigma_mm"], np.float64).reshape(-1)
     resid = np.asarray(geometry["flash_residual"], np.float64).reshape(-1)
     ref = resid[np.asarray(placed, bool) & np.isfinite(resid)]
     ref_med = float(np.median(ref)) if ref.size else np.nan
-    keep = []
-    for fid, v in zip(ids, _carrying_views(geometry)):
-        if v is None:
-            continue
-        if placed[v]:
-            keep.append(fid)
-            continue
+    out = []
+    for v, lm in enumerate(placed):
         registered = "+" in evidence[v]                        # "rig" alone: the rig's guess, no image evidence
-        good = (registered and np.isfinite(sigma[v]) and sigma[v] <= max_center_sigma_mm
-                and np.isfinite(ref_med) and np.isfinite(resid[v]) and resid[v] <= max_residual_ratio * ref_med)
-        if good:
-            keep.append(fid)
-    return keep
+        out.append(bool(lm) or bool(registered and np.isfinite(sigma[v]) and sigma[v] <= max_center_sigma_mm
+                                    and np.isfinite(ref_med) and np.isfinite(resid[v])
+                                    and resid[v] <= max_residual_ratio * ref_med))
+    return out
+
+
+def trusted_views(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: float = TRUST_CENTER_SIGMA_MM,
+                  max_residual_ratio: float = TRUST_RESIDUAL_RATIO, geometry_path=None) -> list[str]:
+    """The view names of a ``geometry`` whose place can be trusted: placed by landmarks, or registered by their
+    images and checking out on both of the fit's own measures of that registration:
+
+    - ``center_sigma_mm`` (the Laplace 1-σ of the camera centre) finite and at most ``max_center_sigma_mm``;
+    - ``flash_residual`` at most ``max_residual_ratio`` × the median ``flash_residual`` of the views that
+      landmarks placed.
+
+    A view placed by the rig alone (evidence ``rig``), and every registered view when no landmarked view has a
+    finite flash residual to compare with, are left out."""
+    names = [str(v) for v in np.asarray(geometry["view_names"]).reshape(-1)]
+    ok = _trusted_placement(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path)
+    return [n for n, k in zip(names, ok) if k]
+
+
+def trusted_flashes(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: float = TRUST_CENTER_SIGMA_MM,
+                    max_residual_ratio: float = TRUST_RESIDUAL_RATIO, geometry_path=None) -> list[str]:
+    """The flash ids of a ``geometry`` carried by a view whose place can be trusted (:func:`trusted_views`): the
+    landmarked flashes (:func:`landmarked_flashes`) and those of the registered cameras that check out.  A
+    free-standing flash is left out."""
+    for key in ("flash_from_view", "flash_ids", "flash_pos", "cam_centers"):
+        if key not in geometry:
+            raise ReflectmmError(f"geometry has no '{key}' (written before fit-geometry recorded each view's "
+                                 "evidence): rerun fit-geometry, or name the flashes to keep", geometry_path)
+    ok = _trusted_placement(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path)
+    ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
+    return [fid for fid, v in zip(ids, _carrying_views(geometry)) if v is not None and ok[v]]
 
 
 def reflectance_flashes(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],

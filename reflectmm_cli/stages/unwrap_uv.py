@@ -31,8 +31,10 @@ PARAMS = (
                "registration error of that size does not sample the background, hair or another surface."),
     replace(EXPONENTS, help="Lobe exponents used for the conditioning map."),
     Param("views", "strs", None,
-          help="Capture views to unwrap, comma separated, 'all', or 'landmarked': the views whose camera landmarks "
-               "placed (default: every view but the raised 08_1 / 19_1, which only place flashes 14 / 18)."),
+          help="Capture views to unwrap, comma separated, 'all', 'landmarked': the views whose camera landmarks "
+               "placed, or 'trusted': those, plus the views without landmarks whose registration by their images "
+               "checks out (--trust-center-sigma, --trust-residual-ratio) (default: every view but the raised "
+               "08_1 / 19_1, which only place flashes 14 / 18; 'landmarked' and 'trusted' leave them out too)."),
     Param("flashes", "strs", None,
           help="Capture flashes to unwrap, comma separated, 'all' (the default), 'landmarked': only the flashes "
                "carried by cameras that landmarks placed (a camera placed by the rig or by its flash images puts "
@@ -40,10 +42,10 @@ PARAMS = (
                "landmarks whose registration by their images checks out (--trust-center-sigma, "
                "--trust-residual-ratio)."),
     Param("trust_center_sigma", "float", TRUST_CENTER_SIGMA_MM, range=(0.0, None), low_open=True, unit="mm",
-          help="--flashes trusted: largest 1-sigma of a registered camera's centre (fit-geometry's "
+          help="--views / --flashes trusted: largest 1-sigma of a registered camera's centre (fit-geometry's "
                "center_sigma_mm) whose flash is kept."),
     Param("trust_residual_ratio", "float", TRUST_RESIDUAL_RATIO, range=(0.0, None), low_open=True,
-          help="--flashes trusted: largest flash residual of a registered camera, as a multiple of the median "
+          help="--views / --flashes trusted: largest flash residual of a registered camera, as a multiple of the median "
                "flash residual of the views that landmarks placed, whose flash is kept."),
 )
 
@@ -98,7 +100,8 @@ def run(ctx: StageContext) -> list[Path]:
     geo = check_identity(read_artifact(geo_path, "geometry"), ctx.identity)
     model = load_face_model(fm_path)
     p = ctx.params
-    views = reflectance_views(cap.arrays, p.get("views"), geo.arrays, geo_path)
+    views = reflectance_views(cap.arrays, p.get("views"), geo.arrays, geo_path,
+                              max_center_sigma_mm=p["trust_center_sigma"], max_residual_ratio=p["trust_residual_ratio"])
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
                                          select_views=views,
                                          select_flashes=reflectance_flashes(

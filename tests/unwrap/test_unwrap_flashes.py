@@ -134,3 +134,23 @@ def test_trust_bounds_out_of_range_are_refused(cli, tmp_path, flag, value):
     res = cli("unwrap-uv", "--id", "001", "--flashes", "trusted", flag, value, "--workspace", tmp_path / "ws")
     assert res.exit_code != 0 and flag in res.stderr
     assert not (tmp_path / "ws" / "unwrap-uv").exists()
+
+
+def test_trusted_views_follow_the_same_rule_and_leave_out_raised_cameras(tmp_path):
+    from reflectmm_cli.observations.unwrap import reflectance_views, trusted_views
+
+    g = _registered_geometry()
+    assert trusted_views(g) == ["05_1", "14_0", "19_0", "08_0"]        # 19_1: the rig alone
+    g["center_sigma_mm"][2] = 12.0
+    assert trusted_views(g) == ["05_1", "14_0", "08_0"]
+    cap = {"view_names": np.array(["08_0", "05_1", "19_0", "14_0", "19_1"])}
+    assert reflectance_views(cap, "trusted", g) == ["08_0", "05_1", "14_0"]        # the capture's order
+    assert reflectance_views(cap, "trusted", g, max_center_sigma_mm=15.0) == ["08_0", "05_1", "19_0", "14_0"]
+    g["view_evidence"][4] = "rig+flash"                                    # 19_1 registered and checking out,
+    g["center_sigma_mm"][4] = 5.0                                          # but raised: still left out
+    assert "19_1" in trusted_views(g) and "19_1" not in reflectance_views(cap, "trusted", g)
+    g["view_evidence"][:] = "rig"
+    with pytest.raises(ReflectmmError, match="no view left to unwrap"):
+        reflectance_views(cap, "trusted", g, tmp_path / "g.npz")
+    with pytest.raises(ReflectmmError, match="needs the geometry"):
+        reflectance_views(cap, "trusted")
