@@ -1,6 +1,7 @@
 """The demo's capture chain from images alone, end to end on a small painted world: dlib's landmarks where it finds
 a face, an annotated reference for the landmark embedding, calibrate-rig and fit-geometry on dlib's points, and
-unwrap-uv on the views and flashes that landmarks placed (recipes/synthetic.toml, docs/capture.md)."""
+unwrap-uv on the views and flashes that landmarks placed, and on those whose placement checks out (the demo's
+`trusted`; recipes/synthetic.toml, docs/capture.md)."""
 import json
 
 import numpy as np
@@ -59,7 +60,31 @@ params = {{ rig_sigma_mm = 3.0, rig_rot_sigma_deg = 0.3, photo_rounds = 0, flash
 foreach = "all found"
 inputs = {{ capture = "@preprocess-multipie.output", geometry = "@fit-geometry.output", face_model = "@synth-multipie.outputs.face_model" }}
 params = {{ uv_size = 64, views = ["landmarked"], flashes = ["landmarked"] }}
+
+[stages.unwrap-trusted]
+verb = "unwrap-uv"
+foreach = "all found"
+inputs = {{ capture = "@preprocess-multipie.output", geometry = "@fit-geometry.output", face_model = "@synth-multipie.outputs.face_model" }}
+params = {{ uv_size = 64, views = ["trusted"], flashes = ["trusted"] }}
 """
+
+
+def _trusted_by_hand(geo):
+    """The views and flashes that `trusted` should keep, computed here from the geometry's own arrays: landmarked
+    views, and views registered by their images whose centre 1-sigma <= 10 mm and flash residual <= 3x the
+    landmarked views' median; the flashes that sit exactly on a kept view's centre."""
+    names = [str(v) for v in geo["view_names"]]
+    ev = [str(e) for e in geo["view_evidence"]]
+    lm = np.array([e.startswith("landmarks") for e in ev])
+    res, sig = np.asarray(geo["flash_residual"], float), np.asarray(geo["center_sigma_mm"], float)
+    med = np.median(res[lm & np.isfinite(res)])
+    keep = [n for v, n in enumerate(names)
+            if lm[v] or ("+" in ev[v] and np.isfinite(sig[v]) and sig[v] <= 10.0 and res[v] <= 3.0 * med)]
+    centers = {n: np.asarray(geo["cam_centers"], float)[i] for i, n in enumerate(names)}
+    flashes = [str(f) for f, p, carried in zip(geo["flash_ids"], np.asarray(geo["flash_pos"], float),
+                                               geo["flash_from_view"])
+               if carried and any(np.array_equal(p, centers[n]) for n in keep)]
+    return keep, flashes
 
 
 def test_the_capture_chain_runs_on_dlib_landmarks(tmp_path, cli):
@@ -70,6 +95,7 @@ def test_the_capture_chain_runs_on_dlib_landmarks(tmp_path, cli):
     # dlib finds no face on the 45° view: it has no landmarks in any capture and is listed as such
     no_face = (tmp_path / "detect-landmarks" / "no_face.txt").read_text()
     assert "_190_00.png" in no_face
+    kept_registered = left_registered = 0
     for ident in ("001", "002", "003"):
         cap = read_artifact(tmp_path / "preprocess-multipie" / f"{ident}.npz", "capture")
         names = [str(v) for v in cap["view_names"]]
@@ -87,6 +113,17 @@ def test_the_capture_chain_runs_on_dlib_landmarks(tmp_path, cli):
         obs = read_artifact(tmp_path / "unwrap-uv" / f"{ident}.npz", "uv-observations")
         placed = [v for v in VIEWS if evidence[v].startswith("landmarks")]
         assert [str(v) for v in obs["view_names"]] == placed
+        # the trusted selection: those, and the registered views (and their flashes) that check out
+        trusted = read_artifact(tmp_path / "unwrap-trusted" / f"{ident}.npz", "uv-observations")
+        views, flashes = _trusted_by_hand(geo)
+        assert [str(v) for v in trusted["view_names"]] == [v for v in VIEWS if v in views]
+        assert sorted(str(f) for f in trusted["flash_ids"]) == sorted(flashes)
+        assert set(placed) <= set(views) and set(str(f) for f in obs["flash_ids"]) <= set(flashes)
+        registered = [v for v in VIEWS if "+" in evidence[v] and not evidence[v].startswith("landmarks")]
+        kept_registered += sum(v in views for v in registered)
+        left_registered += sum(v not in views for v in registered)
+    # this world has both: a registered view that checks out (kept) and one that does not (left out)
+    assert kept_registered >= 1 and left_registered >= 1
     rig = read_artifact(tmp_path / "calibrate-rig" / "calibrate-rig.npz", "rig")
     assert any("per-camera offsets" in a for a in rig.meta["assumptions"])
     # nothing to do the second time
