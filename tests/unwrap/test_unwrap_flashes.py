@@ -1,6 +1,8 @@
-"""unwrap-uv --flashes: which flash images enter the observations."""
+"""unwrap-uv --flashes and --views: which flash images and views enter the observations."""
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from _sphere_scene import make_scene
 from reflectmm_cli.artifacts import read_artifact, write_artifact
@@ -154,3 +156,29 @@ def test_trusted_views_follow_the_same_rule_and_leave_out_raised_cameras(tmp_pat
         reflectance_views(cap, "trusted", g, tmp_path / "g.npz")
     with pytest.raises(ReflectmmError, match="needs the geometry"):
         reflectance_views(cap, "trusted")
+
+
+_finite_or_not = st.one_of(st.floats(0.0, 50.0), st.just(float("nan")), st.just(float("inf")))
+
+
+@settings(max_examples=60, deadline=None)
+@given(evidence=st.lists(st.sampled_from(["landmarks", "landmarks+flash", "rig", "rig+flash", "rig+flash+room"]),
+                         min_size=5, max_size=5),
+       sigma=st.lists(_finite_or_not, min_size=5, max_size=5),
+       resid=st.lists(_finite_or_not, min_size=5, max_size=5),
+       bounds=st.tuples(st.floats(0.1, 30.0), st.floats(0.1, 10.0), st.floats(1.0, 3.0)))
+def test_trusted_contains_landmarked_and_grows_with_the_bounds(evidence, sigma, resid, bounds):
+    from reflectmm_cli.observations.unwrap import landmarked_flashes, trusted_flashes, trusted_views
+
+    g = _registered_geometry()
+    g["view_evidence"] = np.array(evidence)
+    g["center_sigma_mm"], g["flash_residual"] = np.array(sigma), np.array(resid)
+    s, r, grow = bounds
+    views, flashes = trusted_views(g, s, r), trusted_flashes(g, s, r)
+    names = [str(v) for v in g["view_names"]]
+    assert set(landmarked_flashes(g)) <= set(flashes)
+    assert {n for n, e in zip(names, evidence) if e.startswith("landmarks")} <= set(views)
+    assert set(views) <= set(trusted_views(g, s * grow, r * grow))            # wider bounds never drop a view
+    for v in set(views) - {n for n, e in zip(names, evidence) if e.startswith("landmarks")}:
+        i = names.index(v)                                                   # each added view checks out
+        assert evidence[i] != "rig" and np.isfinite(sigma[i]) and sigma[i] <= s and np.isfinite(resid[i])
