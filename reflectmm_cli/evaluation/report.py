@@ -109,13 +109,35 @@ def _geometry_section(geometry: Sequence[Read], truth_by_id: Mapping[str, Any], 
     return lines
 
 
+def _taken(observations: Sequence[Read], doc: dict[str, Any]) -> tuple[dict[str, tuple[list[str], list[str]]],
+                                                                       list[str]]:
+    """Identity → (views, flashes) of its observations (unwrap-uv), and the lines that list them: which images
+    each reflectance fit took (``unwrap-uv --views`` / ``--flashes`` may leave some out)."""
+    taken: dict[str, tuple[list[str], list[str]]] = {}
+    for op, art in observations:
+        if "view_names" in art.arrays and "flash_ids" in art.arrays:
+            taken[_ident(art, op)] = ([str(v) for v in np.asarray(art["view_names"]).reshape(-1)],
+                                      [str(f) for f in np.asarray(art["flash_ids"]).reshape(-1)])
+    if not taken:
+        return taken, []
+    doc["observations"] = {i: {"views": len(v), "flashes": len(f)} for i, (v, f) in taken.items()}
+    lines = ["The views and flashes each fit took (unwrap-uv; with `--views` / `--flashes` `landmarked` or `trusted` "
+             "it leaves out those of cameras that were not placed well; docs/capture.md, \"unwrap-uv\"):", ""]
+    lines += [f"- {i}: {len(v)} views ({', '.join(v)}); {len(f)} flashes ({', '.join(f)})"
+              for i, (v, f) in sorted(taken.items())]
+    return taken, lines + [""]
+
+
 def _reflectance_section(maps: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable,
-                        doc: dict[str, Any], base: Path) -> tuple[list[str], list[tuple[Path, dict]]]:
-    """The "Reflectance maps" section (errors against the truth, previews) and each map's (path, arrays)."""
+                        doc: dict[str, Any], base: Path, observations: Sequence[Read] = ()
+                        ) -> tuple[list[str], list[tuple[Path, dict]]]:
+    """The "Reflectance maps" section (errors against the truth, the views and flashes each fit took, previews)
+    and each map's (path, arrays)."""
     lines: list[str] = []
     maps_arrays: list[tuple[Path, dict]] = []
     if not maps:
         return lines, maps_arrays
+    _, taken_lines = _taken(observations, doc)
     rows, vals = [], []
     previews = []
     for mp, art in progress(maps, desc="reflectance"):
@@ -169,6 +191,7 @@ def _reflectance_section(maps: Sequence[Read], truth_by_id: Mapping[str, Any], p
                   f"{_f(mean['raw.observable.spec_ratio_median'], '{:.2f}')} |", ""]
     else:
         lines += ["## Reflectance maps", "", f"{len(maps)} fitted identities; no matching ground truth.", ""]
+    lines += taken_lines
     if previews:
         lines += ["Previews: " + ", ".join(f"[{q.name}]({_link_path(q, base)})" for q in previews[:60]), ""]
     return lines, maps_arrays
@@ -275,7 +298,7 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), m
                  reconstruction: Sequence[Read] = (), albedo: Sequence[Read] = (), relighting: Sequence[Read] = (),
                  finetune: Sequence[Path] = (), expressive: Sequence[Read] = (),
                  viewer: Sequence[Path] = (), detected: Sequence[Read] = (),
-                 reference: Sequence[Read] = ()) -> tuple[str, dict[str, Any]]:
+                 reference: Sequence[Read] = (), observations: Sequence[Read] = ()) -> tuple[str, dict[str, Any]]:
     """Markdown text and a document of numbers, from what the stage read (:data:`Read` pairs; nothing is read
     here).  ``geometry`` / ``maps``: geometry and reflectance-maps artifacts; ``truth``: identity → synth-truth
     arrays; ``models``: reflectance models; ``representation`` / ``reconstruction`` / ``albedo`` / ``relighting`` /
@@ -283,7 +306,9 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), m
     when ``reconstruction`` or ``albedo`` is non-empty, i.e. when files were given, readable or not);
     ``finetune``: finetuned model paths (their sample PNGs are shown); ``viewer``: pages of ``reflectmm view``
     (linked); ``detected``: geometry artifacts fitted from a detector's landmarks, compared with ``reference``
-    (fits of the same identities with landmarks on every view) or, without it, with ``geometry``."""
+    (fits of the same identities with landmarks on every view) or, without it, with ``geometry``;
+    ``observations``: uv-observations artifacts (their ``view_names`` and ``flash_ids`` are listed under the
+    reflectance maps)."""
     base = Path(out_md).parent
     truth_by_id = truth if truth is not None else {}
     doc: dict[str, Any] = {}
@@ -292,7 +317,7 @@ def build_report(workspace: Path, out_md: Path, geometry: Sequence[Read] = (), m
         lines += ["No ground truth found: errors against truth are not available.", ""]
     lines += _geometry_section(geometry, truth_by_id, progress, doc)
     lines += _detected_section(detected, truth_by_id, progress, doc, reference)
-    refl_lines, maps_arrays = _reflectance_section(maps, truth_by_id, progress, doc, base)
+    refl_lines, maps_arrays = _reflectance_section(maps, truth_by_id, progress, doc, base, observations)
     lines += refl_lines
     lines += _pca_sections(models, maps_arrays, doc, base)
     lines += _representation_sections(representation, doc, base)

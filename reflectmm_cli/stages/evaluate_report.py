@@ -34,6 +34,8 @@ INPUTS = (
     Input('reference', 'geometry', upstream='fit-geometry', many=True,
           help="fits of the detected role's identities with landmarks on every view"),
     Input('maps', 'reflectance-maps', upstream='fit-reflectance', many=True, default=_FOUND),
+    Input('observations', 'uv-observations', upstream='unwrap-uv', many=True, default=_FOUND,
+          help="the observations the reflectance fits took: the views and flashes of each are listed"),
     Input('model', 'reflectance-model', upstream='build-pca', many=True, default=_FOUND),
     Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True,
           default=Default('truth', optional=True, listed=True)),
@@ -53,19 +55,19 @@ class Artifacts(Sequence):
     order they did when the report read the files itself).  ``skip``: an unreadable file is left out instead of
     raising.  ``len()`` (and truth) count the paths given."""
 
-    def __init__(self, paths: list[Path], kind: str, skip: bool = False):
-        self.paths, self.kind, self.skip = [Path(p) for p in paths], kind, skip
+    def __init__(self, paths: list[Path], kind: str, skip: bool = False, members: Sequence[str] | None = None):
+        self.paths, self.kind, self.skip, self.members = [Path(p) for p in paths], kind, skip, members
 
     def __len__(self) -> int:
         return len(self.paths)
 
     def __getitem__(self, i):
-        return (self.paths[i], read_artifact(self.paths[i], self.kind))
+        return (self.paths[i], read_artifact(self.paths[i], self.kind, members=self.members))
 
     def __iter__(self) -> Iterator[tuple[Path, Any]]:
         for p in self.paths:
             try:
-                art = read_artifact(p, self.kind)
+                art = read_artifact(p, self.kind, members=self.members)
             except ReflectmmError:
                 if self.skip:
                     continue
@@ -106,12 +108,14 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.evaluation.report import build_report
 
     out_npz, out_md = _report_outputs(ctx)
-    def given(role: str, kind: str, skip: bool = True) -> Artifacts:
-        return Artifacts(ctx.input_list(role, required=False), kind, skip)
+    def given(role: str, kind: str, skip: bool = True, members: Sequence[str] | None = None) -> Artifacts:
+        return Artifacts(ctx.input_list(role, required=False), kind, skip, members)
 
     text, doc = build_report(ctx.workspace, out_md,
                              geometry=given("geometry", "geometry", skip=False),
                              maps=given("maps", "reflectance-maps", skip=False),
+                             observations=given("observations", "uv-observations",
+                                                members=("view_names", "flash_ids")),
                              models=given("model", "reflectance-model"),
                              truth=TruthByIdentity(ctx.input_list("truth", required=False)),
                              representation=given("representation", EVAL_KIND),
@@ -137,6 +141,6 @@ def run(ctx: StageContext) -> list[Path]:
 # version 4: + the finetuning gains of Table 2 and the expressive-power section; 5: + the viewer's link;
 # 6: + the detector's chain; 7: + its reference fits; 8: + Table 2's ceiling (the oracle's gain), the gap to it
 # closed in PSNR and the encoders' unequal budgets; 9: the ceiling with its interval; 10: Table 2's gain with its
-# interval in "Paper vs reflectmm"
-STAGE = Stage(VERB, version=10, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
+# interval in "Paper vs reflectmm"; 11: the views and flashes each reflectance fit took
+STAGE = Stage(VERB, version=11, run=run, per_identity=False, outputs=_report_outputs, params=PARAMS,
               help="closing report of a run: errors of every stage against ground truth", inputs=INPUTS)

@@ -85,6 +85,13 @@ def test_evaluate_report_cli(ggx_ws, cli):
     assert r.exit_code == 0, r.stderr
     text = out.read_text()
     assert "## Reflectance maps" in text and "| 000 |" in text and "| **mean** |" in text
+    # the views and flashes each reflectance fit took, as its observations hold them
+    for obs in sorted((ggx_ws / "unwrap-uv").glob("*.npz")):
+        o = read_artifact(obs, "uv-observations")
+        views, flashes = [str(v) for v in o["view_names"]], [str(f) for f in o["flash_ids"]]
+        assert (f"- {obs.stem}: {len(views)} views ({', '.join(views)}); {len(flashes)} flashes "
+                f"({', '.join(flashes)})") in text
+    assert "The views and flashes each fit took" in text
     assert "## PCA reflectance model" in text and "Reconstruction of the held-in maps" in text
     assert "## Representation comparison" in text
     art = read_artifact(out.with_suffix(".npz"), "evaluation")
