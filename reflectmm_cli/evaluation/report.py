@@ -109,23 +109,22 @@ def _geometry_section(geometry: Sequence[Read], truth_by_id: Mapping[str, Any], 
     return lines
 
 
-def _taken(observations: Sequence[Read], doc: dict[str, Any]) -> tuple[dict[str, tuple[list[str], list[str]]],
-                                                                       list[str]]:
-    """Identity → (views, flashes) of its observations (unwrap-uv), and the lines that list them: which images
-    each reflectance fit took (``unwrap-uv --views`` / ``--flashes`` may leave some out)."""
+def _taken(observations: Sequence[Read], doc: dict[str, Any]) -> list[str]:
+    """The lines that list the views and flashes of each identity's observations (unwrap-uv): which images each
+    reflectance fit took (``unwrap-uv --views`` / ``--flashes`` may leave some out); their counts go to ``doc``."""
     taken: dict[str, tuple[list[str], list[str]]] = {}
     for op, art in observations:
         if "view_names" in art.arrays and "flash_ids" in art.arrays:
             taken[_ident(art, op)] = ([str(v) for v in np.asarray(art["view_names"]).reshape(-1)],
                                       [str(f) for f in np.asarray(art["flash_ids"]).reshape(-1)])
     if not taken:
-        return taken, []
+        return []
     doc["observations"] = {i: {"views": len(v), "flashes": len(f)} for i, (v, f) in taken.items()}
     lines = ["The views and flashes each fit took (unwrap-uv; with `--views` / `--flashes` `landmarked` or `trusted` "
              "it leaves out those of cameras that were not placed well; docs/capture.md, \"unwrap-uv\"):", ""]
     lines += [f"- {i}: {len(v)} views ({', '.join(v)}); {len(f)} flashes ({', '.join(f)})"
               for i, (v, f) in sorted(taken.items())]
-    return taken, lines + [""]
+    return lines + [""]
 
 
 def _reflectance_section(maps: Sequence[Read], truth_by_id: Mapping[str, Any], progress: Callable,
@@ -137,7 +136,7 @@ def _reflectance_section(maps: Sequence[Read], truth_by_id: Mapping[str, Any], p
     maps_arrays: list[tuple[Path, dict]] = []
     if not maps:
         return lines, maps_arrays
-    _, taken_lines = _taken(observations, doc)
+    taken_lines = _taken(observations, doc)
     rows, vals = [], []
     previews = []
     for mp, art in progress(maps, desc="reflectance"):

@@ -204,10 +204,20 @@ def _names(value: str | Sequence[str]) -> list[str]:
     return [str(x).strip() for x in items if str(x).strip()]
 
 
+#: ``unwrap-uv --views / --flashes trusted``: the landmarked views and flashes, plus those of the cameras that the
+#: images registered well (:func:`trusted_views`, :func:`trusted_flashes`).
+TRUSTED = "trusted"
+
+#: Defaults of the ``trusted`` selection: a registered camera's centre 1-σ (mm) and its flash residual as a
+#: multiple of the median over the views that landmarks placed.
+TRUST_CENTER_SIGMA_MM = 10.0
+TRUST_RESIDUAL_RATIO = 3.0
+
+
 def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[str] | None = None,
                       geometry: Mapping[str, np.ndarray] | None = None, geometry_path=None,
-                      max_center_sigma_mm: float | None = None, max_residual_ratio: float | None = None
-                      ) -> list[str]:
+                      max_center_sigma_mm: float = TRUST_CENTER_SIGMA_MM,
+                      max_residual_ratio: float = TRUST_RESIDUAL_RATIO) -> list[str]:
     """The capture views whose images enter the reflectance fit.
 
     ``views`` if given (a comma string or a list; ``"all"`` = every view of the capture; ``"landmarked"`` = the
@@ -229,11 +239,9 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
                 placed = set(landmarked_views(geometry, geometry_path))
                 how = "placed by landmarks"
             else:
-                sig = TRUST_CENTER_SIGMA_MM if max_center_sigma_mm is None else max_center_sigma_mm
-                ratio = TRUST_RESIDUAL_RATIO if max_residual_ratio is None else max_residual_ratio
-                placed = set(trusted_views(geometry, sig, ratio, geometry_path))
-                how = (f"placed by landmarks or registered by their images within {sig:g} mm (1-sigma) and "
-                       f"{ratio:g}x the landmarked views' flash residual")
+                placed = set(trusted_views(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path))
+                how = (f"placed by landmarks or registered by their images within {max_center_sigma_mm:g} mm "
+                       f"(1-sigma) and {max_residual_ratio:g}x the landmarked views' flash residual")
             keep = [v for v in have if v in placed and v not in RAISED_CAMERAS]
             left = [v for v in have if v not in keep]
             if not keep:
@@ -311,15 +319,6 @@ def landmarked_flashes(geometry: Mapping[str, np.ndarray], geometry_path=None) -
                                   geometry_path)
     ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
     return [fid for fid, v in zip(ids, _carrying_views(geometry)) if v is not None and placed[v]]
-
-
-#: ``unwrap-uv --flashes trusted``: the landmarked flashes, plus those on cameras that the images registered well.
-TRUSTED = "trusted"
-
-#: Defaults of the ``trusted`` selection: a registered camera's centre 1-σ (mm) and its flash residual as a
-#: multiple of the median over the views that landmarks placed.
-TRUST_CENTER_SIGMA_MM = 10.0
-TRUST_RESIDUAL_RATIO = 3.0
 
 
 def _carrying_views(geometry: Mapping[str, np.ndarray]) -> list[int | None]:
