@@ -861,8 +861,11 @@ def _flash_weights(prob: _FitProblem, sm: _SubMesh, fp: _FlashPairs, sat: np.nda
         lpos_np = lpos.cpu().numpy().astype(np.float64)
     nrm = vertex_normals(Xn, model.triangles, dtype=np.float64)
     centers = camera_centers(Rn, tn)
-    cam_vis = vertex_visibility(Xn, model.triangles, nrm, centers, sample=sample, cos_cutoff=cfg.photo_min_cos)
-    fl_vis = vertex_visibility(Xn, model.triangles, nrm, lpos_np, sample=sample, cos_cutoff=cfg.flash_min_cos)
+    # one ray scene for the cameras and the flashes; a flash on a camera shares that camera's rays
+    vis = vertex_visibility(Xn, model.triangles, nrm, np.concatenate([centers, lpos_np]), sample=sample,
+                            cos_cutoff=np.r_[np.full(len(centers), cfg.photo_min_cos),
+                                             np.full(len(lpos_np), cfg.flash_min_cos)])
+    cam_vis, fl_vis = vis[:len(centers)], vis[len(centers):]
     uv, _ = project(Xn[sample][None].repeat(V, 0), sm.Kimg, Rn, tn)
     inside = inside_image(uv, w, h)
     p, n = Xn[sample], nrm[sample]

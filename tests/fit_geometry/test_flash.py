@@ -227,3 +227,57 @@ def test_wrong_flash_positions_show_in_the_flash_residual():
     right, wrong = fit(0.0), fit(80.0)
     assert np.median(wrong.flash_residual) > 3 * np.median(right.flash_residual), (right.flash_residual,
                                                                                       wrong.flash_residual)
+
+
+def test_vertex_visibility_shares_rays_between_eyes_at_one_place_and_applies_each_cutoff():
+    # a bumpy sheet seen from three eyes, two of them at one place (a camera and the flash it carries): one call
+    # with per-eye cutoffs equals separate calls, and an independent test (n·dir, then a dense segment check
+    # against every triangle) agrees
+    g = np.linspace(-1.0, 1.0, 9)
+    xx, yy = np.meshgrid(g, g)
+    zz = 0.3 * np.sin(3 * xx) * np.cos(2 * yy)
+    v = np.c_[xx.ravel(), yy.ravel(), zz.ravel()]
+    tri = []
+    for i in range(8):
+        for j in range(8):
+            a = i * 9 + j
+            tri += [[a, a + 1, a + 10], [a, a + 10, a + 9]]
+    tri = np.array(tri)
+    n = vertex_normals(v, tri, dtype=np.float64)
+    eyes = np.array([[2.0, 0.0, 1.0], [2.0, 0.0, 1.0], [3.0, 0.5, 0.4]])   # grazing: some vertices occluded
+    cut = np.array([0.6, 0.0, 0.1])
+    both = vertex_visibility(v, tri, n, eyes, cos_cutoff=cut)
+    for k in range(3):
+        np.testing.assert_array_equal(both[k], vertex_visibility(v, tri, n, eyes[k:k + 1], cos_cutoff=cut[k])[0])
+    assert (both[1] & ~both[0]).any()                     # the same rays, a looser cutoff: more vertices
+    facing = ((eyes[2] - v) / np.linalg.norm(eyes[2] - v, axis=1)[:, None] * n).sum(1) > cut[2]
+    assert (facing & ~both[2]).sum() >= 5                 # and the occlusion test has work to do
+    # independent: facing by the cutoff, unoccluded by a dense Möller–Trumbore test of every triangle
+    for k, c in enumerate(eyes):
+        for m in range(len(v)):
+            d = c - v[m]
+            dist = np.linalg.norm(d)
+            d /= dist
+            if (n[m] @ d) <= cut[k]:
+                assert not both[k, m]
+                continue
+            if (n[m] @ d) <= cut[k] + 0.1:   # grazing: the ray leaves along the vertex's own faces, where the ray
+                continue                     # caster's offset start decides; not a test of the sharing
+            hit = False
+            for t0, t1, t2 in tri:
+                if m in (t0, t1, t2):
+                    continue
+                e1, e2 = v[t1] - v[t0], v[t2] - v[t0]
+                pv = np.cross(d, e2)
+                det = e1 @ pv
+                if abs(det) < 1e-12:
+                    continue
+                tv = v[m] - v[t0]
+                u = (tv @ pv) / det
+                qv = np.cross(tv, e1)
+                w = (d @ qv) / det
+                s = (e2 @ qv) / det
+                if u >= 0 and w >= 0 and u + w <= 1 and 1e-6 < s < dist:
+                    hit = True
+                    break
+            assert both[k, m] == (not hit), (k, m)
