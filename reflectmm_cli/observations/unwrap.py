@@ -235,13 +235,8 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
             if geometry is None:
                 raise ReflectmmError(f"--views {vs[0]} needs the geometry (which views were placed, and how)",
                                      geometry_path)
-            if vs == [LANDMARKED]:
-                placed = set(landmarked_views(geometry, geometry_path))
-                how = "placed by landmarks"
-            else:
-                placed = set(trusted_views(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path))
-                how = (f"placed by landmarks or registered by their images within {max_center_sigma_mm:g} mm "
-                       f"(1-sigma) and {max_residual_ratio:g}x the landmarked views' flash residual")
+            placed, how = _kept_by_rule(vs[0], geometry, "views", max_center_sigma_mm, max_residual_ratio,
+                                        geometry_path)
             keep = [v for v in have if v in placed and v not in RAISED_CAMERAS]
             left = [v for v in have if v not in keep]
             if not keep:
@@ -388,6 +383,19 @@ def trusted_flashes(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: flo
     return [fid for fid, v in zip(ids, _carrying_views(geometry)) if v is not None and ok[v]]
 
 
+def _kept_by_rule(rule: str, geometry: Mapping[str, np.ndarray], what: str, max_center_sigma_mm: float,
+                  max_residual_ratio: float, geometry_path=None) -> tuple[set[str], str]:
+    """The ``what`` ("views" or "flashes") of ``geometry`` that the selection ``rule`` (``landmarked`` or
+    ``trusted``) keeps, and the words that say how their cameras were placed (for stderr and errors)."""
+    if rule == LANDMARKED:
+        pick = landmarked_views if what == "views" else landmarked_flashes
+        return set(pick(geometry, geometry_path)), "placed by landmarks"
+    pick = trusted_views if what == "views" else trusted_flashes
+    return (set(pick(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path)),
+            f"placed by landmarks or registered by their images within {max_center_sigma_mm:g} mm (1-sigma) and "
+            f"{max_residual_ratio:g}x the landmarked views' flash residual")
+
+
 def reflectance_flashes(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.ndarray],
                         flashes: str | Sequence[str] | None = None, geometry_path=None,
                         max_center_sigma_mm: float = TRUST_CENTER_SIGMA_MM,
@@ -402,18 +410,12 @@ def reflectance_flashes(capture: Mapping[str, np.ndarray], geometry: Mapping[str
         return None
     if fs in ([LANDMARKED], [TRUSTED]):
         have = [str(f) for f in np.asarray(capture["flash_ids"]).reshape(-1)]
-        if fs == [LANDMARKED]:
-            placed = set(landmarked_flashes(geometry, geometry_path))
-            why = "not carried by a camera that landmarks placed"
-        else:
-            placed = set(trusted_flashes(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path))
-            why = (f"not carried by a camera that landmarks placed or that its images registered within "
-                   f"{max_center_sigma_mm:g} mm (1-sigma) and {max_residual_ratio:g}x the landmarked views' "
-                   "flash residual")
+        placed, how = _kept_by_rule(fs[0], geometry, "flashes", max_center_sigma_mm, max_residual_ratio,
+                                    geometry_path)
         fs = [f for f in have if f in placed]
         left = [f for f in have if f not in placed]
         if left:
-            log.info("unwrap-uv: leaving out flash(es) %s (%s)", ", ".join(left), why)
+            log.info("unwrap-uv: leaving out flash(es) %s (not carried by a camera %s)", ", ".join(left), how)
     if not fs:
         raise ReflectmmError("no flash left to unwrap: no camera that carries a flash was placed by landmarks"
                              + (" or registered well by its images" if _names(flashes) == [TRUSTED] else ""),
