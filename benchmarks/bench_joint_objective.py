@@ -27,10 +27,8 @@ world made outside a workspace, ``--capture-dir``, ``--face-model``, ``--rig`` a
 from __future__ import annotations
 
 import argparse
-import ast
 import statistics
 import sys
-import tomllib
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -158,14 +156,18 @@ def compared(starts, truth: dict, record: dict):
 
 
 def stage_params(recipe: Path, stage: str, overrides: list[str]) -> dict:
-    with open(recipe, "rb") as f:
-        params = dict(tomllib.load(f)["stages"][stage].get("params", {}))
-    for item in overrides:
-        key, _, value = item.partition("=")
-        try:
-            params[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            params[key] = value
+    """The params of the recipe's ``stage`` as ``reflectmm run --set STAGE.KEY=VALUE`` would give them (the
+    project's recipe loader: ``[defaults]`` merged, each override a TOML value)."""
+    from reflectmm_cli.errors import ReflectmmError
+    from reflectmm_cli.recipes.recipe import load_recipe
+
+    try:
+        spec = load_recipe(recipe, [f"{stage}.{item}" for item in overrides]).stages.get(stage)
+    except ReflectmmError as exc:
+        sys.exit(str(exc))
+    if spec is None:
+        sys.exit(f"{recipe}: no stage {stage}")
+    params = dict(spec.params)
     if int(params.get("joint_rounds", 0)) <= 0:
         sys.exit(f"{recipe}: stage {stage} runs no joint round (joint_rounds = 0): nothing to measure")
     return params
