@@ -332,13 +332,13 @@ def _carrying_views(geometry: Mapping[str, np.ndarray]) -> list[int | None]:
 
 
 def _trusted_placement(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: float, max_residual_ratio: float,
-                       geometry_path=None) -> list[bool]:
+                       geometry_path=None, keys: Sequence[str] = ("view_names",), what: str = "views") -> list[bool]:
     """(V,) whether each view's place can be trusted: landmarks placed it, or its images registered it (evidence
     ``rig+…``, not ``rig`` alone) with a finite centre 1-σ ≤ ``max_center_sigma_mm`` and a flash residual ≤
     ``max_residual_ratio`` × the median flash residual of the views that landmarks placed (no such median: no
-    registered view is trusted)."""
-    placed = _placed_by_landmarks(geometry, ("view_names", "center_sigma_mm", "flash_residual"), "views or flashes",
-                                  geometry_path)
+    registered view is trusted).  ``keys`` / ``what``: the other arrays the caller needs, and what it selects (for
+    :func:`_placed_by_landmarks`' error)."""
+    placed = _placed_by_landmarks(geometry, (*keys, "center_sigma_mm", "flash_residual"), what, geometry_path)
     evidence = [str(e) for e in np.asarray(geometry["view_evidence"]).reshape(-1)]
     sigma = np.asarray(geometry["center_sigma_mm"], np.float64).reshape(-1)
     resid = np.asarray(geometry["flash_residual"], np.float64).reshape(-1)
@@ -374,11 +374,8 @@ def trusted_flashes(geometry: Mapping[str, np.ndarray], max_center_sigma_mm: flo
     """The flash ids of a ``geometry`` carried by a view whose place can be trusted (:func:`trusted_views`): the
     landmarked flashes (:func:`landmarked_flashes`) and those of the registered cameras that check out.  A
     free-standing flash is left out."""
-    for key in ("flash_from_view", "flash_ids", "flash_pos", "cam_centers"):
-        if key not in geometry:
-            raise ReflectmmError(f"geometry has no '{key}' (written before fit-geometry recorded each view's "
-                                 "evidence): rerun fit-geometry, or name the flashes to keep", geometry_path)
-    ok = _trusted_placement(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path)
+    ok = _trusted_placement(geometry, max_center_sigma_mm, max_residual_ratio, geometry_path,
+                            keys=("flash_from_view", "flash_ids", "flash_pos", "cam_centers"), what="flashes")
     ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
     return [fid for fid, v in zip(ids, _carrying_views(geometry)) if v is not None and ok[v]]
 

@@ -43,10 +43,10 @@ PARAMS = (
                "--trust-residual-ratio)."),
     Param("trust_center_sigma", "float", TRUST_CENTER_SIGMA_MM, range=(0.0, None), low_open=True, unit="mm",
           help="--views / --flashes trusted: largest 1-sigma of a registered camera's centre (fit-geometry's "
-               "center_sigma_mm) whose flash is kept."),
+               "center_sigma_mm) whose view and flash are kept."),
     Param("trust_residual_ratio", "float", TRUST_RESIDUAL_RATIO, range=(0.0, None), low_open=True,
-          help="--views / --flashes trusted: largest flash residual of a registered camera, as a multiple of the median "
-               "flash residual of the views that landmarks placed, whose flash is kept."),
+          help="--views / --flashes trusted: largest flash residual of a registered camera, as a multiple of the "
+               "median flash residual of the views that landmarks placed, whose view and flash are kept."),
 )
 
 #: The stage's input roles (checked in recipes and on the command line; shown in --help).
