@@ -23,6 +23,7 @@ images' agreement across views (``w_room``, :func:`_room_consistency`); per-view
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -522,7 +523,8 @@ class _FitProblem:
         record the final loss in ``history`` (``tick``: one step of the progress bar)."""
         if iters <= 0:
             return
-        opt = lbfgs_minimise(params, closure_loss, iters)
+        with self._held_out_of(params):
+            opt = lbfgs_minimise(params, closure_loss, iters)
         self.last_loss = closure_loss
         with torch.no_grad():
             final = float(closure_loss())
@@ -530,6 +532,21 @@ class _FitProblem:
         if tick:
             next(self.bar, None)
         log.debug("fit-geometry: %s loss %.6g after %d evaluations", stage, final, self.history[-1]["evals"])
+
+    @contextlib.contextmanager
+    def _held_out_of(self, params):
+        """The problem's unknowns that are not in ``params`` taken out of autograd for the run (a registration
+        moves only the views' poses: the face and the head are then constants, and the backward pass does not go
+        through the mesh).  The gradients of ``params`` are the same, so the run is too, to the bit."""
+        held = [p for p in (self.zs, self.ze, self.dw, self.dtr, self.dwh, self.dth)
+                if p.requires_grad and not any(p is q for q in params)]
+        for p in held:
+            p.requires_grad_(False)
+        try:
+            yield
+        finally:
+            for p in held:
+                p.requires_grad_(True)
 
     def numpy_geometry(self):
         """Current vertices (n, 3) float64 and poses R (V, 3, 3), t (V, 3) as numpy (no gradient)."""

@@ -92,6 +92,38 @@ def test_landmark_stage_lowers_the_loss_and_records_it(scene):
     assert total() < 0.5 * before
 
 
+def test_a_poses_only_run_holds_the_face_out_of_autograd_and_moves_as_before(scene):
+    # run_lbfgs over the poses alone: the face and the head are constants of that run.  Against the same run with
+    # every unknown in autograd and the face's steps masked to zero (what the registration did before), the poses
+    # must come out the same to the bit; the face gets no gradient and is an unknown again afterwards.
+    m, verts, K, R, t, lm, R0, t0 = scene
+    vs = ViewSet(names=[str(a) for a in AZ], K=K, R0=R0, t0=t0 + [4.0, -3.0, 10.0], landmarks=lm,
+                 image_size=(W, H), rig_centers=camera_centers(R, t))
+
+    def loss_of(prob):
+        def loss():
+            R_, t_ = prob.poses()
+            return prob.landmark_term(R_, t_) + prob.prior(R_, t_)
+        return loss
+
+    held = _FitProblem(m, vs, FitConfig(), "cpu")
+    with torch.no_grad():
+        held.zs.copy_(torch.linspace(-0.5, 0.5, m.n_shape, dtype=torch.float64))
+    held.run_lbfgs([held.dw, held.dtr], loss_of(held), 25, "poses", tick=False)
+    assert all(p.grad is None for p in (held.zs, held.ze, held.dwh, held.dth))
+    assert all(p.requires_grad for p in (held.zs, held.ze, held.dwh, held.dth))
+
+    masked = _FitProblem(m, vs, FitConfig(), "cpu")
+    with torch.no_grad():
+        masked.zs.copy_(torch.linspace(-0.5, 0.5, m.n_shape, dtype=torch.float64))
+    from reflectmm_cli.geometry_fit.fit import lbfgs_minimise
+    lbfgs_minimise([masked.dw, masked.dtr], loss_of(masked), 25)  # the face's gradients computed, then unused
+    assert masked.zs.grad is not None and float(masked.zs.grad.abs().sum()) > 0
+    assert torch.equal(held.dw, masked.dw) and torch.equal(held.dtr, masked.dtr)
+    assert torch.equal(held.zs, masked.zs)
+    assert float(held.dw.detach().abs().sum()) > 0  # the run did move the poses
+
+
 def test_sub_mesh_normals_are_the_full_mesh_normals(scene):
     m = scene[0]
     prob = _FitProblem(m, _views(scene), FitConfig(photo_vertices=300), "cpu")
