@@ -714,13 +714,16 @@ def _fit(model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str) -> Geom
     t_start = time.perf_counter()
     prob = _FitProblem(model, views, cfg, device)
     _landmark_stage(prob)
+    place_unmarked_by_rig(prob)  # after each stage that moved the head without them
     photo = _PhotoResult(None, None, np.full(prob.V, np.nan), np.zeros(prob.V, dtype=np.int64))
     flash_res = flash_gain = None
     sm = _sub_mesh(prob) if (prob.n_photo or prob.n_flash) else None
     if prob.n_photo:
         photo = _photometric_stage(prob, sm)
+        place_unmarked_by_rig(prob)
     if prob.n_flash:  # point lights at the flashes (docs/fit-geometry.md)
         flash_res, flash_gain = _flash_stage(prob, sm)
+        place_unmarked_by_rig(prob)
         if not prob.marked.all() and cfg.register_blur_px:
             reg = _register_unmarked(prob, sm)
             if reg is not None:
@@ -1046,6 +1049,27 @@ def write_poses(prob: _FitProblem, R: torch.Tensor, t: torch.Tensor, which) -> N
     with torch.no_grad():
         prob.dw[w] = (matrix_to_axis_angle(R @ prob.R0_t.transpose(-1, -2)) / prob.r_unit)[w]
         prob.dtr[w] = ((t - prob.t0_t) / prob.tv_unit)[w]
+
+
+def place_unmarked_by_rig(prob: _FitProblem) -> None:
+    """Put each view without landmarks where the rig puts it under the current head: centre ``Rh c_rig + th``,
+    orientation ``R_rig Rhᵀ`` (the minimum of its rig prior).
+
+    The views start where the head of the initial landmark poses put them (:func:`.init.place_by_rig`).  The
+    landmark and flash stages then move the head, often by tens of millimetres, while nothing but a wide prior
+    (``unmarked_sigma_mm``) draws those views along, too weakly for the optimiser to take them there: on a
+    benchmark world they were left 93–158 mm from their rig places.  :func:`_fit` calls this after the landmark,
+    photometric and flash stages: the registration starts from here, a view whose registration is rejected
+    comes back here, and without flash images the fit leaves them here."""
+    um = ~prob.marked
+    if not um.any() or not prob.use_rig:
+        return
+    with torch.no_grad():
+        Rh, th = prob.head()
+        R = prob.rigR_t @ Rh.T
+        c = prob.rig_t @ Rh.T + th
+        t = -(R @ c[..., None])[..., 0]
+    write_poses(prob, R, t, um)
 
 
 def _snapshot(prob: _FitProblem) -> dict:

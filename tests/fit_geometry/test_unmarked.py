@@ -184,3 +184,53 @@ def test_view_evidence_names_the_room_refinement():
     assert view_evidence(marked, None, flash, room=np.array([False, True, False])) == \
         ["landmarks+flash", "rig+flash+room", "rig"]
     assert view_evidence(marked, None, flash) == ["landmarks+flash", "rig+flash", "rig"]
+
+
+def test_place_unmarked_by_rig_is_the_minimum_of_their_rig_prior():
+    # the views without landmarks go to the rig's place under the current head, computed here in numpy; the views
+    # with landmarks do not move
+    import torch
+
+    from reflectmm_cli.geometry_fit.fit import _FitProblem, place_unmarked_by_rig
+    from reflectmm_cli.geometry_fit.placement import rig_shift
+
+    m, verts, R, t, views = _displaced_world(50.0, 3.0)
+    vs = views(False)
+    prob = _FitProblem(m, vs, FitConfig(photo_rounds=0, unmarked_sigma_mm=100.0), "cpu")
+    with torch.no_grad():
+        prob.dwh.copy_(torch.tensor([0.2, -0.1, 0.05], dtype=torch.float64))
+        prob.dth.copy_(torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64))
+        prob.dw.copy_(torch.full_like(prob.dw, 0.07))
+        prob.dtr.copy_(torch.full_like(prob.dtr, -0.4))
+    marked_before = prob.dw[1:].clone(), prob.dtr[1:].clone()
+    assert rig_shift(prob)[0] > 5.0
+    place_unmarked_by_rig(prob)
+    with torch.no_grad():
+        Rh, th = (x.numpy() for x in prob.head())
+        Rf, tf = (x.numpy() for x in prob.poses())
+    want_R = vs.rig_R[0] @ Rh.T
+    want_c = Rh @ vs.rig_centers[0] + th
+    assert np.allclose(Rf[0], want_R, atol=1e-10)
+    assert np.allclose(camera_centers(Rf[:1], tf[:1])[0], want_c, atol=1e-8)
+    assert rig_shift(prob)[0] == pytest.approx(0.0, abs=1e-8)
+    assert torch.equal(prob.dw[1:], marked_before[0]) and torch.equal(prob.dtr[1:], marked_before[1])
+
+
+def test_a_view_without_landmarks_ends_at_the_rig_place_under_the_fitted_head():
+    # the view without landmarks starts where an initial head put it, 150 mm from where the rig puts it (a wrong
+    # initial head on a real capture), and its prior is too wide to draw it back while the other views fit their
+    # landmarks.  Without images it must end where the rig puts it under the head the fit found; with its flash
+    # images the registration starts there
+    m, verts, R, t, views = _displaced_world(0.0, 0.0)
+    vs = views(False)
+    c0 = camera_centers(vs.R0[:1], vs.t0[:1])[0]
+    d = np.array([0.8, -0.5, 0.3])
+    vs.t0[0] = -vs.R0[0] @ (c0 + 150.0 * d / np.linalg.norm(d))
+    fit = fit_geometry(m, vs, FitConfig(photo_rounds=0, unmarked_sigma_mm=1000.0))
+    assert fit.evidence[0] == "rig"
+    assert fit.rig_shift_mm[0] < 0.5, fit.rig_shift_mm  # left where it started, it would be about 150 mm off
+    vs_f = views()
+    vs_f.t0[0] = vs.t0[0]
+    flash = fit_geometry(m, vs_f, FitConfig(photo_rounds=0, flash_rounds=2, w_flash=100.0, unmarked_sigma_mm=1000.0))
+    assert flash.evidence[0] == "rig+flash"
+    assert np.linalg.norm(flash.cam_centers[0] - camera_centers(R, t)[0]) < 20.0
