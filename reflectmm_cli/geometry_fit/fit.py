@@ -322,6 +322,9 @@ class _FitProblem:
     L-BFGS run and ``bar`` ticks once per stage.
     """
 
+    #: The names of the unknowns (torch leaves), for the code that holds, saves or restores all of them.
+    UNKNOWNS = ("zs", "ze", "dw", "dtr", "dwh", "dth")
+
     def __init__(self, model: ShapeModel, views: ViewSet, cfg: FitConfig, device: str):
         self.model, self.views, self.cfg, self.device = model, views, cfg, device
         self.dtype = dtype = {"float64": torch.float64, "float32": torch.float32}[cfg.dtype]
@@ -538,7 +541,7 @@ class _FitProblem:
         """The problem's unknowns that are not in ``params`` taken out of autograd for the run (a registration
         moves only the views' poses: the face and the head are then constants, and the backward pass does not go
         through the mesh).  The gradients of ``params`` are the same, so the run is too, to the bit."""
-        held = [p for p in (self.zs, self.ze, self.dw, self.dtr, self.dwh, self.dth)
+        held = [p for p in (getattr(self, k) for k in self.UNKNOWNS)
                 if p.requires_grad and not any(p is q for q in params)]
         for p in held:
             p.requires_grad_(False)
@@ -1065,16 +1068,13 @@ def place_unmarked_by_rig(prob: _FitProblem) -> None:
     if not um.any() or not prob.use_rig:
         return
     with torch.no_grad():
-        Rh, th = prob.head()
-        R = prob.rigR_t @ Rh.T
-        c = prob.rig_t @ Rh.T + th
-        t = -(R @ c[..., None])[..., 0]
+        R, t = pose_under_head(prob.rigR_t, prob.rig_t, *prob.head())
     write_poses(prob, R, t, um)
 
 
 def _snapshot(prob: _FitProblem) -> dict:
     """The unknowns and the views' placement flags, to undo the joint rounds."""
-    tensors = {k: getattr(prob, k).detach().clone() for k in ("zs", "ze", "dw", "dtr", "dwh", "dth")}
+    tensors = {k: getattr(prob, k).detach().clone() for k in prob.UNKNOWNS}
     flags = {k: getattr(prob, k).copy() for k in ("registered", "room_refined", "joined")}
     return {"tensors": tensors, "flags": flags}
 
