@@ -526,7 +526,7 @@ class _FitProblem:
         record the final loss in ``history`` (``tick``: one step of the progress bar)."""
         if iters <= 0:
             return
-        with self._held_out_of(params):
+        with self.held_out_of(params):
             opt = lbfgs_minimise(params, closure_loss, iters)
         self.last_loss = closure_loss
         with torch.no_grad():
@@ -537,10 +537,11 @@ class _FitProblem:
         log.debug("fit-geometry: %s loss %.6g after %d evaluations", stage, final, self.history[-1]["evals"])
 
     @contextlib.contextmanager
-    def _held_out_of(self, params):
+    def held_out_of(self, params=()):
         """The problem's unknowns that are not in ``params`` taken out of autograd for the run (a registration
-        moves only the views' poses: the face and the head are then constants, and the backward pass does not go
-        through the mesh).  The gradients of ``params`` are the same, so the run is too, to the bit."""
+        moves only the views' poses: the face and the head are then constants, the backward pass does not go
+        through the mesh and :meth:`_SubMesh.surface` computes the surface once).  The gradients of ``params``
+        are the same, so the run is too, to the bit."""
         held = [p for p in (getattr(self, k) for k in self.UNKNOWNS)
                 if p.requires_grad and not any(p is q for q in params)]
         for p in held:
@@ -571,9 +572,26 @@ class _SubMesh:
     Kimg: np.ndarray
     Kimg_t: torch.Tensor
 
+    _held: tuple | None = field(default=None, repr=False, compare=False)  # a held face's surface, see surface()
+
     def surface(self, prob: _FitProblem):
-        """(vertices, vertex normals) of the sub-mesh at the current coefficients (exactly the full mesh's)."""
-        Xs = self.sub.vertices(prob.zs, prob.ze)
+        """(vertices, vertex normals) of the sub-mesh at the current coefficients (exactly the full mesh's).
+
+        While the face is held (its coefficients out of autograd, as in a registration or the pose curvature)
+        the surface is a constant: it is computed once and given again until the coefficients change."""
+        zs, ze = prob.zs, prob.ze
+        if zs.requires_grad or ze.requires_grad:
+            self._held = None
+            return self._surface(zs, ze)
+        # the same tensors (kept alive here, so never another's address) at the same in-place version
+        key = (zs, zs._version, ze, ze._version)
+        if self._held is None or not all(a is b if torch.is_tensor(a) else a == b
+                                         for a, b in zip(self._held[0], key)):
+            self._held = (key, *self._surface(zs, ze))
+        return self._held[1], self._held[2]
+
+    def _surface(self, zs: torch.Tensor, ze: torch.Tensor):
+        Xs = self.sub.vertices(zs, ze)
         return Xs, vertex_normals(Xs, self.sub_tri_t)
 
 
@@ -920,12 +938,14 @@ def _flash_objective(prob: _FitProblem, sm: _SubMesh, fp: "_FlashPairs", raw: np
     if view_weight is not None:
         w *= np.asarray(view_weight, dtype=np.float64)[fp.pv][:, None]
     weight_t = prob.tt(w)
+    index = torch.nonzero(weight_t > 0, as_tuple=True)  # fixed for the round
 
     def flash(images, residual=True):
         Xs, nv = sm.surface(prob)
         R, t = prob.poses()
         return flash_loss(Xs, nv, sm.sample_t, weight_t, sm.Kimg_t, R, t, images, fp.pv_t,
-                          fp.positions(R, t)[fp.pf_t], fp.intensities(), scale, residual=residual), R, t
+                          fp.positions(R, t)[fp.pf_t], fp.intensities(), scale, residual=residual,
+                          index=index), R, t
 
     return flash, images_t, weight
 

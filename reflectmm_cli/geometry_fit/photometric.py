@@ -153,7 +153,8 @@ def gather_bilinear(images: torch.Tensor, pair: torch.Tensor, uv: torch.Tensor) 
 def flash_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torch.Tensor, weight: torch.Tensor,
                K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, images: torch.Tensor, pair_view: torch.Tensor,
                light_pos: torch.Tensor, light_int: torch.Tensor, scale: float, eps: float = 0.02,
-               residual: bool = True) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+               residual: bool = True, index: tuple[torch.Tensor, torch.Tensor] | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """Point-light Lambertian photometric term of flash images, the albedo eliminated per vertex.
 
     Each (view, flash) pair ``p`` is an image of the surface lit by one point light.  The Lambertian prediction
@@ -171,6 +172,8 @@ def flash_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torch.Tens
             pair_view (P,) view index of each pair; light_pos (P, 3) and light_int (P,) the pair's flash.
         scale: intensity scale of the residuals; eps: Charbonnier ε (relative to ``scale``).
         residual: also return the residuals (else None: the optimiser's closure needs only the loss).
+        index: ``torch.nonzero(weight > 0, as_tuple=True)`` when the caller holds it (a weight fixed over many
+            evaluations); computed here otherwise.
     Returns:
         (loss, residual (P, M, 3) — 0 where the weight is 0, albedo/π (M, 3)).
     Only the (pair, vertex) samples of non-zero weight are evaluated.
@@ -179,7 +182,7 @@ def flash_loss(vertices: torch.Tensor, normals: torch.Tensor, sample: torch.Tens
     n = normals[sample]
     uv, _ = project(p[None].expand(K.shape[0], -1, -1), K, R, t)  # (V, M, 2)
     # only the samples that count: (pair, vertex) index lists
-    sp, sm = torch.nonzero(weight > 0, as_tuple=True)
+    sp, sm = torch.nonzero(weight > 0, as_tuple=True) if index is None else index
     w = weight[sp, sm]
     obs = gather_bilinear(images, sp, uv[pair_view[sp], sm])  # (S, 3)
     E, _ = point_irradiance(p[sm], n[sm], light_pos[sp], light_int[sp])  # (S,)

@@ -54,12 +54,14 @@ def pose_curvature(prob, views, h_rot: float = 2.0, h_mm: float = 2.0) -> np.nda
     semi-definite part: where the image terms curve down (they are not convex far from a pixel-sharp optimum)
     they inform nothing, and the priors still bound the pose.
 
-    ``prob`` is a fit problem (``fit._FitProblem``): its ``poses()`` applies ``prob.probe`` (V, 6)."""
+    ``prob`` is a fit problem (``fit._FitProblem``): its ``poses()`` applies ``prob.probe`` (V, 6), and its
+    ``held_out_of()`` takes the unknowns out of autograd while the differences are taken."""
     steps = np.array([h_rot] * 3 + [h_mm] * 3)
     if prob.last_loss is None:
         return np.full((prob.V, 6, 6), np.nan)
-    total = _fd_curvature(prob, prob.last_loss, views, steps)
-    prior = _fd_curvature(prob, lambda: prob.prior(*prob.poses()), views, steps)
+    with prob.held_out_of():  # only the probe moves: every unknown is a constant of these differences
+        total = _fd_curvature(prob, prob.last_loss, views, steps)
+        prior = _fd_curvature(prob, lambda: prob.prior(*prob.poses()), views, steps)
     H = np.full_like(total, np.nan)
     for v in views:
         H[v] = data_cut_psd(total[v], prior[v])

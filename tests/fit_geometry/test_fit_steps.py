@@ -139,6 +139,33 @@ def test_sub_mesh_normals_are_the_full_mesh_normals(scene):
     assert np.allclose(nv[sm.sample_t].numpy(), full[sm.sample], atol=1e-9)
 
 
+def test_a_held_face_computes_its_surface_once_and_again_after_a_change(scene):
+    # With the face out of autograd (a registration, the pose curvature) the sub-mesh surface is a constant: the
+    # same tensors come back while the coefficients are unchanged, and a new surface — equal to the one computed
+    # from scratch — after an in-place change of them.  With the face in autograd nothing is kept.
+    m = scene[0]
+    prob = _FitProblem(m, _views(scene), FitConfig(photo_vertices=300), "cpu")
+    sm = _sub_mesh(prob)
+    free = sm.surface(prob)
+    assert free[0].requires_grad and sm._held is None
+    with prob.held_out_of([prob.dw, prob.dtr]):
+        X1, n1 = sm.surface(prob)
+        X2, n2 = sm.surface(prob)
+        assert X1 is X2 and n1 is n2 and not X1.requires_grad
+        assert torch.equal(X1, free[0].detach()) and torch.equal(n1, free[1].detach())
+        with torch.no_grad():
+            prob.zs.add_(0.3)  # an in-place change: a new surface
+        X3, n3 = sm.surface(prob)
+        assert X3 is not X1 and not torch.equal(X3, X1)
+        fresh = sm._surface(prob.zs, prob.ze)
+        assert torch.equal(X3, fresh[0]) and torch.equal(n3, fresh[1])
+        with torch.no_grad():
+            prob.ze.sub_(0.2)
+        assert not torch.equal(sm.surface(prob)[0], X3)
+    again = sm.surface(prob)  # the face is an unknown again: computed with its graph
+    assert again[0].requires_grad and sm._held is None
+
+
 def test_albedo_mode_and_round_blurs():
     m = toy.toy_model(n_shape=2, n_exp=1, texture=False)
     assert _albedo_mode(m, FitConfig()) == "per-vertex"
