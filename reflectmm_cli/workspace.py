@@ -12,7 +12,10 @@
   ``<ws>/synth/face_model.npz`` → ``<ws>/synth-multipie/face_model.npz``.
 * Rig: ``rig.toml`` of the capture's dataset folder, else None (the packaged Multi-PIE rig). A per-identity fit
   (``fit-geometry``) takes the workspace's calibrated rig (``calibrate-rig/rig.toml``) first, with the soft
-  constraints that go with it (:data:`CALIBRATED_RIG_SIGMAS`), and says on stderr which rig it took.
+  constraints that go with it (:data:`CALIBRATED_RIG_SIGMAS`), and says on stderr which rig it took.  A
+  calibrated rig also brings the landmark definition it was calibrated with (:func:`rig_calibration`): the
+  command's default face model and landmark weights are the calibration's, and a fit on that rig with others is
+  warned about.
 * In-the-wild images (:func:`find_wild_truth`, :func:`wild_face_model`): the ``synth wild`` folder of an
   images folder is its parent when that holds ``manifest.npz``; the face model defaults to that folder's
   ``face_model.npz``.
@@ -29,12 +32,14 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_workspace", "stage_dir",
            "stage_output", "capture_root",
            "face_model_from_geometry", "find_face_model", "find_rig", "calibrated_rig", "find_fit_rig", "CALIBRATED_RIG_SIGMAS",
+           "RigCalibration", "rig_calibration",
            "find_truth_dir",
            "files_in", "list_artifacts", "face_model_recorded_by", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
@@ -179,6 +184,53 @@ CALIBRATED_RIG_SIGMAS = {"rig_sigma_mm": 3.0, "rig_rot_sigma_deg": 0.3}
 def calibrated_rig(workspace: Path) -> Path:
     """``<ws>/calibrate-rig/rig.toml``: where ``calibrate-rig`` writes the rig table a per-identity fit takes first."""
     return Path(workspace) / "calibrate-rig" / "rig.toml"
+
+
+@dataclass(frozen=True)
+class RigCalibration:
+    """What a per-identity fit on a calibrated rig must share with the calibration: its landmark definition.
+
+    The calibration placed the cameras from landmarks on the vertices of ``face_model`` (None: not recorded or not
+    found) weighted by ``landmark_weights`` (per group; groups at 1 left out); a fit with another face model or
+    other weights (a detector's jaw points on the model's fixed jaw vertices) puts its face in another frame than
+    the rig's."""
+
+    artifact: Path
+    face_model: Path | None
+    landmark_weights: dict
+
+
+def rig_calibration(rig: Path | None) -> RigCalibration | None:
+    """The ``calibrate-rig`` artifact that wrote the rig table ``rig``, as a :class:`RigCalibration`: an NPZ of
+    schema ``reflectmm.rig`` beside it whose meta names it (``toml``) — ``<stage>/<stage>.npz`` in a workspace,
+    else the newest such file in the folder.  None when no calibration wrote it (a nominal or hand-made table)."""
+    if rig is None or Path(rig).suffix.lower() != ".toml":
+        return None
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.errors import ReflectmmError
+
+    rig = Path(rig)
+    first = rig.parent / f"{rig.parent.name}.npz"
+    others = sorted((p for p in rig.parent.glob("*.npz") if p != first), key=lambda p: -p.stat().st_mtime)
+    for art_path in ([first] if first.is_file() else []) + others:
+        try:
+            meta = read_artifact(art_path, "rig", members=()).meta
+        except ReflectmmError:
+            continue
+        if meta.get("toml") == rig.name:
+            return _calibration_from_meta(art_path, meta)
+    return None
+
+
+def _calibration_from_meta(art_path: Path, meta: dict) -> RigCalibration:
+    weights = {str(k): float(v) for k, v in ((meta.get("params") or {}).get("landmark_weights") or {}).items()
+               if float(v) != 1.0}
+    fm = next((i.get("path") for i in meta.get("inputs") or [] if i.get("role") == "face_model"), None)
+    fm_path = None
+    if fm:
+        fm_path = Path(fm) if Path(fm).is_absolute() else (art_path.parent / fm)
+        fm_path = Path(os.path.normpath(fm_path)) if fm_path.is_file() else None
+    return RigCalibration(art_path, fm_path, weights)
 
 
 def find_fit_rig(workspace: Path, capture: Any = None) -> tuple[Path | None, str]:

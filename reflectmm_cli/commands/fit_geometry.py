@@ -15,7 +15,7 @@ from reflectmm_cli.commands._common import (device_option, emit, given_params, i
 from reflectmm_cli.stages.defaults import default_inputs
 from reflectmm_cli.stages.fit_geometry import PARAMS, STAGE, VERB
 from reflectmm_cli.progress import log
-from reflectmm_cli.workspace import CALIBRATED_RIG_SIGMAS, calibrated_rig, resolve_workspace
+from reflectmm_cli.workspace import CALIBRATED_RIG_SIGMAS, calibrated_rig, resolve_workspace, rig_calibration
 
 
 @click.command(VERB)
@@ -23,11 +23,13 @@ from reflectmm_cli.workspace import CALIBRATED_RIG_SIGMAS, calibrated_rig, resol
 @click.option("--capture", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="capture artifact (default <ws>/preprocess-multipie/<id>.npz).")
 @click.option("--face-model", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="face model: face-model artifact or BFM09/Deep3DFaceRecon .mat (default: face_model.npz of the "
-                   "capture's dataset folder, else <ws>/face_model.npz).")
+              help="face model: face-model artifact or BFM09/Deep3DFaceRecon .mat (default: the one the workspace's "
+                   "calibrated rig was made with, else face_model.npz of the capture's dataset folder, else "
+                   "<ws>/face_model.npz).")
 @click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig table TOML (default: the workspace's calibrated rig <ws>/calibrate-rig/rig.toml with "
-                   "--rig-sigma 3 --rig-rot-sigma 0.3 unless given, else rig.toml of the capture's dataset "
+                   "--rig-sigma 3 --rig-rot-sigma 0.3 and its calibration's face model and landmark weights unless "
+                   "given, else rig.toml of the capture's dataset "
                    "folder, else the packaged Multi-PIE rig; stderr says which).")
 @click.option("--landmarks", "landmarks_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="folder with landmark files <view>.{pts,txt,npy} or *_<CCC>_00_lm.{pts,txt,npy} "
@@ -61,14 +63,25 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
                               device=device)
         emit(paths, as_json)
         return
+    # the workspace's calibrated rig, the default rig when it exists, brings the landmark definition it was made
+    # with: its face model and landmark weights, unless given (stages/fit_geometry.check_rig_landmarks)
+    cal = rig_calibration(calibrated_rig(ws)) if rig is None and calibrated_rig(ws).is_file() else None
+    took = []
+    if cal is not None and face_model is None and cal.face_model is not None:
+        given["face_model"] = [cal.face_model]
+        took.append(f"face model {cal.face_model}")
+    if cal is not None and "landmark_weights" not in params and cal.landmark_weights:
+        params["landmark_weights"] = dict(cal.landmark_weights)
+        took.append("landmark weights " + ",".join(f"{k}={v:g}" for k, v in sorted(cal.landmark_weights.items())))
     inputs = default_inputs(STAGE, ws, {**given, "truth": [truth]}, identity=identity)
     if rig is None:  # the default rig: the calibrated one brings its soft constraints; stderr says which
         rig = (inputs.get("rig") or [None])[0]
         if rig is not None and rig == calibrated_rig(ws):
             for k, v in CALIBRATED_RIG_SIGMAS.items():
                 params.setdefault(k, v)
-            log.info("fit-geometry: rig: the workspace's calibrated rig %s (σ %g mm, %g°)", rig,
-                     params["rig_sigma_mm"], params["rig_rot_sigma_deg"])
+            log.info("fit-geometry: rig: the workspace's calibrated rig %s (σ %g mm, %g°%s)", rig,
+                     params["rig_sigma_mm"], params["rig_rot_sigma_deg"],
+                     "; its calibration's " + ", ".join(took) if took else "")
         else:
             log.info("fit-geometry: rig: %s", f"the capture dataset's {rig}" if rig is not None
                      else "the packaged Multi-PIE rig")

@@ -216,8 +216,14 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     if not marked.all():
         R0, t0, _, _ = place_by_rig(R0, t0, marked, R_rig, t_rig)
         init_rms[~marked] = np.nan
-        log.info("fit-geometry %s: no landmarks for view(s) %s: placed by the rig and the other views, refined by "
-                 "the image terms", identity, ", ".join(n for n, m in zip(view_names, marked) if not m))
+        unmarked = ", ".join(n for n, m in zip(view_names, marked) if not m)
+        if (cfg.flash_rounds <= 0 or cfg.w_flash <= 0) and "olat" in capture.arrays:
+            log.warning("fit-geometry %s: no landmarks for view(s) %s and no flash rounds: those views stay where the "
+                        "rig puts them under the head; --flash-rounds 3 registers them by their flash images "
+                        "(docs/fit-geometry.md, \"Views without landmarks\")", identity, unmarked)
+        else:
+            log.info("fit-geometry %s: no landmarks for view(s) %s: placed by the rig and the other views, refined "
+                     "by the image terms", identity, unmarked)
     log.info("fit-geometry %s: %d views, %d vertices, initial landmark RMS %s px", identity, len(view_names),
              model.n_vertices, " ".join(f"{e:.1f}" for e in init_rms))
     flash_kw = _flash_inputs(capture, capture_path, rig, view_names, flash_ids, room.shape[1:3], flash_intensity) \

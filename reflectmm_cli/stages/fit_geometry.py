@@ -222,6 +222,8 @@ def run(ctx: StageContext) -> list[Path]:
     rig_list = ctx.input_list("rig", required=False)
     lm_list = ctx.input_list("landmarks", required=False)
     cfg = config_from_params(ctx.params)
+    if rig_list:
+        check_rig_landmarks(identity, rig_list[0], fm_path, cfg)
     arrays, report, ex = fit_identity(capture_path, fm_path, identity, rig_path=rig_list[0] if rig_list else None,
                                       landmarks_dir=lm_list[0] if lm_list else None, focal=ctx.params.get("focal"),
                                       config=cfg, truth_path=truth_path, device=ctx.device,
@@ -253,6 +255,42 @@ def run(ctx: StageContext) -> list[Path]:
     log.info("%s; %.1f s", msg, time.perf_counter() - t0)
     _log_placement(identity, report["placement"])
     return written
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """The same file, or two files with the same bytes (a copied face model)."""
+    import filecmp
+
+    try:
+        return a.resolve() == b.resolve() or filecmp.cmp(a, b, shallow=False)
+    except OSError:
+        return False
+
+
+def check_rig_landmarks(identity: str, rig: Path, face_model: Path, cfg: FitConfig) -> bool:
+    """Warn (one stderr line) when the rig is a calibration's whose landmark definition — face model, landmark
+    weights — is not the fit's.  The calibration placed the cameras from landmarks on its model's vertices with its
+    weights; a fit with other ones (a detector's jaw points on the model's fixed jaw vertices) turns and moves the
+    head in the rig, 17–26 mm of vertex error on the demo's identity 003 against 1.0 mm (docs/fit-geometry.md,
+    "A calibrated rig's landmark definition").  Returns True when they agree or the rig has no calibration."""
+    from reflectmm_cli.workspace import rig_calibration
+
+    cal = rig_calibration(rig)
+    if cal is None:
+        return True
+    ours = {k: float(v) for k, v in (cfg.group_weights or {}).items() if float(v) != 1.0}
+    differ = []
+    if ours != cal.landmark_weights:
+        def fmt(w):
+            return ",".join(f"{k}={v:g}" for k, v in sorted(w.items())) or "all at 1"
+        differ.append(f"landmark weights {fmt(ours)} where it used {fmt(cal.landmark_weights)}"
+                      + (f" (--landmark-weights {fmt(cal.landmark_weights)})" if cal.landmark_weights else ""))
+    if cal.face_model is not None and not _same_file(Path(face_model), cal.face_model):
+        differ.append(f"face model {face_model} where it used {cal.face_model} (--face-model)")
+    if differ:
+        log.warning("fit-geometry %s: the rig %s was calibrated with another landmark definition: this fit has %s; "
+                    "its face would sit in another frame than the rig's cameras", identity, rig, "; ".join(differ))
+    return not differ
 
 
 def _log_placement(identity: str, placement: list[dict]) -> None:

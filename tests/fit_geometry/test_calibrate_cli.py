@@ -270,3 +270,71 @@ def test_calibrate_rig_and_fit_without_the_side_landmarks(world, cli, tmp_path):
             world / "syn" / "rig.toml", "--focal", true.camera("05_1").focal_px, "-o", tmp_path / "bad" / "c.npz")
     assert r.exit_code != 0 and "2 geometry file(s) for 3 capture(s)" in r.output
     assert len(r.output.strip().splitlines()) == 1 and not (tmp_path / "bad" / "c.npz").exists()
+
+
+def test_a_calibrated_rig_brings_its_landmark_definition(world, cli, tmp_path):
+    """A calibration placed the cameras from landmarks on its face model's vertices with its landmark weights.
+    fit-geometry in that workspace takes both by default and says so; on that rig with other weights (given
+    explicitly) it warns in one line naming the rig and what to pass; with the calibration's weights and a byte
+    copy of its face model it does not.  A table that no calibration wrote has no landmark definition."""
+    import shutil
+
+    from reflectmm_cli.geometry_fit import FitConfig
+    from reflectmm_cli.stages.fit_geometry import check_rig_landmarks
+    from reflectmm_cli.workspace import rig_calibration
+
+    ws2 = tmp_path / "ws2"
+    ws2.mkdir()
+    fm = tmp_path / "fm.npz"
+    shutil.copy(world / "syn" / "face_model.npz", fm)
+    caps = [a for i in range(1, 5) for a in ("--capture", world / "preprocess-multipie" / f"{i:03d}.npz")]
+    true = load_rig(world / "syn" / "rig.toml")
+    r = cli("calibrate-rig", *caps, "-w", ws2, "--face-model", fm, "--rig", world / "syn" / "rig.toml", "--focal",
+            true.camera("05_1").focal_px, "--landmark-weights", "jaw=0")
+    assert r.exit_code == 0, r.output
+    rig = ws2 / "calibrate-rig" / "rig.toml"
+    cal = rig_calibration(rig)
+    assert cal.face_model.resolve() == fm.resolve() and cal.landmark_weights == {"jaw": 0.0}
+    assert rig_calibration(world / "syn" / "rig.toml") is None
+
+    cap001 = world / "preprocess-multipie" / "001.npz"
+    common = ("--id", "001", "-w", ws2, "--capture", cap001, "--iters", "30", "--photo-rounds", "0", "--no-overlay")
+    r = cli("fit-geometry", *common, "-o", tmp_path / "g.npz")
+    assert r.exit_code == 0, r.output + r.stderr
+    assert f"its calibration's face model {fm}" in r.stderr and "landmark weights jaw=0" in r.stderr
+    assert "another landmark definition" not in r.stderr
+    g = read_artifact(tmp_path / "g.npz", "geometry")
+    assert g.meta["params"]["landmark_weights"] == {"jaw": 0.0}
+    assert [i["path"] for i in g.meta["inputs"] if i["role"] == "face_model"][0].endswith("fm.npz")
+
+    # the rig given explicitly, with the dataset's face model (the same bytes) but the weights left at 1
+    r = cli("fit-geometry", *common, "--rig", rig, "--face-model", world / "syn" / "face_model.npz",
+            "-o", tmp_path / "g2.npz")
+    assert r.exit_code == 0, r.output + r.stderr
+    warn = [ln for ln in r.stderr.splitlines() if "another landmark definition" in ln]
+    assert len(warn) == 1 and str(rig) in warn[0] and "--landmark-weights jaw=0" in warn[0]
+    assert "face model" not in warn[0]  # a byte copy of the calibration's model is that model
+    assert check_rig_landmarks("001", rig, fm, FitConfig(group_weights={"jaw": 0.0}))
+    other = tmp_path / "other.npz"
+    other.write_bytes(b"not the same model")
+    assert not check_rig_landmarks("001", rig, other, FitConfig(group_weights={"jaw": 0.0}))
+
+
+def test_views_without_landmarks_and_no_flash_rounds_are_warned_about(world, cli, tmp_path):
+    # without flash rounds a view without landmarks stays where the rig puts it: fit-geometry says so, and what to pass
+    from reflectmm_cli.artifacts import write_artifact
+
+    cap = read_artifact(world / "preprocess-multipie" / "001.npz", "capture")
+    arrays = dict(cap.arrays)
+    arrays["landmarks"] = arrays["landmarks"].copy()
+    arrays["landmarks"][VIEWS.split(",").index("19_1")] = np.nan
+    path = tmp_path / "001.npz"
+    write_artifact(path, "capture", arrays, params=cap.params, inputs=cap.meta["inputs"],
+                   extra_meta={"report": cap.meta.get("report", {})})
+    common = ("--id", "001", "-w", world, "--capture", path, "--face-model", world / "syn" / "face_model.npz",
+              "--rig", world / "syn" / "rig.toml", "--iters", "30", "--photo-rounds", "0", "--no-overlay")
+    for flash, warned in (("0", True), ("1", False)):
+        r = cli("fit-geometry", *common, "--flash-rounds", flash, "-o", tmp_path / f"g{flash}.npz")
+        assert r.exit_code == 0, r.output + r.stderr
+        lines = [ln for ln in r.stderr.splitlines() if "no flash rounds" in ln]
+        assert len(lines) == int(warned) and all("19_1" in ln and "--flash-rounds 3" in ln for ln in lines)
