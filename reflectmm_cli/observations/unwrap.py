@@ -256,6 +256,36 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
     return keep
 
 
+def rig_placed(geometry: Mapping[str, np.ndarray], views: Sequence[str], flashes: Sequence[str]
+               ) -> tuple[list[str], list[str]]:
+    """Of ``views`` and ``flashes``, those whose camera only the rig placed: ``view_evidence`` exactly ``rig`` (no
+    landmarks, and no image registration that held).  Their texels and their flashes' light rest on the rig's
+    guess.  A geometry without ``view_evidence`` has none."""
+    if "view_evidence" not in geometry or "view_names" not in geometry:
+        return [], []
+    names = [str(v) for v in np.asarray(geometry["view_names"]).reshape(-1)]
+    guessed = {n for n, e in zip(names, np.asarray(geometry["view_evidence"]).reshape(-1)) if str(e) == "rig"}
+    fl: list[str] = []
+    if guessed and all(k in geometry for k in ("flash_from_view", "flash_ids", "flash_pos", "cam_centers")):
+        ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
+        fl = [f for f, v in zip(ids, _carrying_views(geometry)) if v is not None and names[v] in guessed
+              and f in set(flashes)]
+    return [v for v in views if v in guessed], fl
+
+
+def warn_rig_placed(geometry: Mapping[str, np.ndarray], views: Sequence[str], flashes: Sequence[str],
+                    identity: str = "") -> None:
+    """One stderr warning when the unwrap takes views or flashes whose camera only the rig placed
+    (:func:`rig_placed`): a side view of a detector capture fitted without flash rounds, say."""
+    vs, fs = rig_placed(geometry, views, flashes)
+    if vs or fs:
+        log.warning("unwrap-uv%s: cameras placed by the rig alone (fit-geometry's evidence 'rig': no landmarks, no "
+                    "image registration), so these observations rest on the rig's guess: %s; --views trusted "
+                    "--flashes trusted leaves them out", f" {identity}" if identity else "",
+                    "; ".join(x for x in (f"view(s) {', '.join(vs)}" if vs else "",
+                                          f"flash(es) {', '.join(fs)} on those cameras" if fs else "") if x))
+
+
 def landmarked_views(geometry: Mapping[str, np.ndarray], geometry_path=None) -> list[str]:
     """The view names of a ``geometry`` whose ``view_evidence`` starts with ``landmarks``: the views whose camera
     landmarks placed (a view placed by the rig or registered by its flash images is left out)."""

@@ -7,6 +7,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.observations.unwrap import TRUST_CENTER_SIGMA_MM, TRUST_RESIDUAL_RATIO
@@ -86,7 +88,7 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.capture.preprocess import encode_png
     from reflectmm_cli.geometry.face_model import load_face_model
     from reflectmm_cli.observations.unwrap import (previews, reflectance_flashes, reflectance_views,
-                                                   unwrap_observations)
+                                                   unwrap_observations, warn_rig_placed)
 
     t0 = time.perf_counter()
     cap_path = ctx.input("capture")
@@ -102,12 +104,14 @@ def run(ctx: StageContext) -> list[Path]:
     p = ctx.params
     views = reflectance_views(cap.arrays, p.get("views"), geo.arrays, geo_path,
                               max_center_sigma_mm=p["trust_center_sigma"], max_residual_ratio=p["trust_residual_ratio"])
+    flashes = reflectance_flashes(cap.arrays, geo.arrays, p.get("flashes"), geo_path,
+                                  max_center_sigma_mm=p["trust_center_sigma"],
+                                  max_residual_ratio=p["trust_residual_ratio"])
+    warn_rig_placed(geo.arrays, views, [str(f) for f in np.asarray(cap["flash_ids"]).reshape(-1)]
+                    if flashes is None else flashes, ctx.identity)
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
                                          select_views=views,
-                                         select_flashes=reflectance_flashes(
-                                             cap.arrays, geo.arrays, p.get("flashes"), geo_path,
-                                             max_center_sigma_mm=p["trust_center_sigma"],
-                                             max_residual_ratio=p["trust_residual_ratio"]),
+                                         select_flashes=flashes,
                                          uv_size=p["uv_size"], grazing_deg=p["grazing_deg"],
                                          edge_margin=p["edge_margin"],
                                          exponents=tuple(p["exponents"]),

@@ -182,3 +182,25 @@ def test_trusted_contains_landmarked_and_grows_with_the_bounds(evidence, sigma, 
     for v in set(views) - {n for n, e in zip(names, evidence) if e.startswith("landmarks")}:
         i = names.index(v)                                                   # each added view checks out
         assert evidence[i] != "rig" and np.isfinite(sigma[i]) and sigma[i] <= s and np.isfinite(resid[i])
+
+
+def test_views_and_flashes_that_only_the_rig_placed_are_named(capfd):
+    # evidence exactly "rig": no landmarks and no image registration that held.  Only those are named, among the
+    # views and flashes that the unwrap takes; a registered camera ("rig+flash") and a landmarked one are not.
+    from reflectmm_cli.observations.unwrap import rig_placed, warn_rig_placed
+
+    g = _registered_geometry()  # 19_1 (flash 18) only the rig placed
+    all_views = ["05_1", "14_0", "19_0", "08_0", "19_1"]
+    assert rig_placed(g, all_views, ["07", "08", "10", "04", "18"]) == (["19_1"], ["18"])
+    assert rig_placed(g, all_views[:4], ["07", "18"]) == ([], ["18"])  # its flash lights the others
+    assert rig_placed(g, all_views[:4], ["07", "08"]) == ([], [])
+    g["view_evidence"][2] = "rig"  # 19_0's registration did not hold
+    assert rig_placed(g, all_views, ["10"]) == (["19_0", "19_1"], ["10"])
+    warn_rig_placed(g, all_views, ["07", "10"], "001")
+    err = capfd.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "view(s) 19_0, 19_1" in err and "flash(es) 10" in err
+    assert "--views trusted --flashes trusted" in err
+    warn_rig_placed(g, ["05_1", "14_0"], ["07"], "001")
+    assert capfd.readouterr().err == ""
+    del g["view_evidence"]  # a geometry written before fit-geometry recorded the evidence: nothing to say
+    assert rig_placed(g, all_views, ["10"]) == ([], [])
