@@ -338,3 +338,43 @@ def test_views_without_landmarks_and_no_flash_rounds_are_warned_about(world, cli
         assert r.exit_code == 0, r.output + r.stderr
         lines = [ln for ln in r.stderr.splitlines() if "no flash rounds" in ln]
         assert len(lines) == int(warned) and all("19_1" in ln and "--flash-rounds 3" in ln for ln in lines)
+
+
+def test_calibrate_rig_refuses_landmarks_that_do_not_fit_one_rig(world, cli, tmp_path):
+    # landmarks that read the face otherwise than the model (here each view's 68 points in reverse order) leave most
+    # of them far from any rig: a one-line error naming the face model and the likely causes, no rig written.  A
+    # fifth of the points displaced by 25 px is a calibration that is written, with a warning that says why.
+    from reflectmm_cli.artifacts import write_artifact
+
+    rng = np.random.default_rng(4)
+
+    def captures(name, change):
+        paths = []
+        for i in range(1, 5):
+            cap = read_artifact(world / "preprocess-multipie" / f"{i:03d}.npz", "capture")
+            arrays = dict(cap.arrays)
+            arrays["landmarks"] = change(np.asarray(arrays["landmarks"], np.float64).copy())
+            paths.append(tmp_path / name / f"{i:03d}.npz")
+            write_artifact(paths[-1], "capture", arrays, params=cap.params, inputs=cap.meta["inputs"],
+                           extra_meta={"report": cap.meta.get("report", {})})
+        return [a for c in paths for a in ("--capture", c)]
+
+    def displaced(lm):
+        hit = rng.random(lm.shape[:2]) < 0.2
+        lm[hit] += rng.normal(size=(int(hit.sum()), 2)) * 25.0
+        return lm
+
+    fm = world / "syn" / "face_model.npz"
+    focal = load_rig(world / "syn" / "rig.toml").camera("05_1").focal_px
+    common = ("-w", tmp_path, "--face-model", fm, "--rig", world / "syn" / "rig.toml", "--focal", focal)
+    r = cli("-q", "calibrate-rig", *captures("reversed", lambda lm: lm[:, ::-1].copy()), *common,
+            "-o", tmp_path / "bad" / "calibrate-rig.npz")
+    assert r.exit_code != 0
+    line = r.stderr.strip()
+    assert len(line.splitlines()) == 1 and str(fm) in line and "no rig written" in line and "jaw=0" in line, line
+    assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
+    r = cli("calibrate-rig", *captures("displaced", displaced), *common, "-o", tmp_path / "ok" / "calibrate-rig.npz")
+    assert r.exit_code == 0, r.output + r.stderr
+    assert (tmp_path / "ok" / "rig.toml").is_file()
+    warn = [ln for ln in r.stderr.splitlines() if "further than" in ln]
+    assert len(warn) == 1 and "% of those used" in warn[0] and "Landmarks from a detector" in warn[0]
