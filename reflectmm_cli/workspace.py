@@ -12,7 +12,8 @@
   ``<ws>/synth/face_model.npz`` → ``<ws>/synth-multipie/face_model.npz``.
 * Rig: ``rig.toml`` of the capture's dataset folder, else None (the packaged Multi-PIE rig). A per-identity fit
   (``fit-geometry``) takes the workspace's calibrated rig (``calibrate-rig/rig.toml``) first, with the soft
-  constraints that go with it (:data:`CALIBRATED_RIG_SIGMAS`), and says on stderr which rig it took.  A
+  constraints that go with it (:data:`CALIBRATED_RIG_SIGMAS`) and, for a capture with flash images, the flash
+  rounds (:data:`CALIBRATED_RIG_FLASH_ROUNDS`), and says on stderr which rig it took.  A
   calibrated rig also brings the landmark definition it was calibrated with (:func:`rig_calibration`): the
   command's default face model and landmark weights are the calibration's, and a fit on that rig with others is
   warned about.
@@ -38,8 +39,8 @@ from typing import Any
 
 __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_workspace", "stage_dir",
            "stage_output", "capture_root",
-           "face_model_from_geometry", "find_face_model", "find_rig", "calibrated_rig", "find_fit_rig", "CALIBRATED_RIG_SIGMAS",
-           "RigCalibration", "rig_calibration",
+           "face_model_from_geometry", "find_face_model", "find_rig", "calibrated_rig", "find_fit_rig",
+           "CALIBRATED_RIG_SIGMAS", "CALIBRATED_RIG_FLASH_ROUNDS", "RigCalibration", "rig_calibration",
            "find_truth_dir",
            "files_in", "list_artifacts", "face_model_recorded_by", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
@@ -179,6 +180,11 @@ def find_rig(capture: Any) -> Path | None:
 #: The soft rig constraints that go with a calibrated rig (docs/fit-geometry.md): camera centres within 3 mm and
 #: aims within 0.3° of the calibrated table, moved rigidly.
 CALIBRATED_RIG_SIGMAS = {"rig_sigma_mm": 3.0, "rig_rot_sigma_deg": 0.3}
+
+#: The rounds that go with a calibrated rig when the capture has flash images: its flashes sit on its cameras,
+#: placed to a few millimetres, so the flash term shapes the face instead of the room-light rounds, and registers
+#: the views without landmarks (docs/fit-geometry.md, "Flash term").
+CALIBRATED_RIG_FLASH_ROUNDS = {"photo_rounds": 0, "flash_rounds": 3}
 
 
 def calibrated_rig(workspace: Path) -> Path:

@@ -15,7 +15,8 @@ from reflectmm_cli.commands._common import (device_option, emit, given_params, i
 from reflectmm_cli.stages.defaults import default_inputs
 from reflectmm_cli.stages.fit_geometry import PARAMS, STAGE, VERB
 from reflectmm_cli.progress import log
-from reflectmm_cli.workspace import CALIBRATED_RIG_SIGMAS, calibrated_rig, resolve_workspace, rig_calibration
+from reflectmm_cli.workspace import (CALIBRATED_RIG_FLASH_ROUNDS, CALIBRATED_RIG_SIGMAS, calibrated_rig,
+                                     resolve_workspace, rig_calibration)
 
 
 @click.command(VERB)
@@ -28,9 +29,9 @@ from reflectmm_cli.workspace import CALIBRATED_RIG_SIGMAS, calibrated_rig, resol
                    "<ws>/face_model.npz).")
 @click.option("--rig", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="rig table TOML (default: the workspace's calibrated rig <ws>/calibrate-rig/rig.toml with "
-                   "--rig-sigma 3 --rig-rot-sigma 0.3 and its calibration's face model and landmark weights unless "
-                   "given, else rig.toml of the capture's dataset "
-                   "folder, else the packaged Multi-PIE rig; stderr says which).")
+                   "--rig-sigma 3 --rig-rot-sigma 0.3, with flash images --photo-rounds 0 --flash-rounds 3, and "
+                   "its calibration's face model and landmark weights, each unless given; else rig.toml of the "
+                   "capture's dataset folder, else the packaged Multi-PIE rig; stderr says which).")
 @click.option("--landmarks", "landmarks_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="folder with landmark files <view>.{pts,txt,npy} or *_<CCC>_00_lm.{pts,txt,npy} "
                    "(full-frame pixels; default: the landmarks stored in the capture).")
@@ -79,8 +80,13 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
         if rig is not None and rig == calibrated_rig(ws):
             for k, v in CALIBRATED_RIG_SIGMAS.items():
                 params.setdefault(k, v)
-            log.info("fit-geometry: rig: the workspace's calibrated rig %s (σ %g mm, %g°%s)", rig,
-                     params["rig_sigma_mm"], params["rig_rot_sigma_deg"],
+            rounds = ""
+            if _has_flash_images(inputs["capture"][0]):
+                for k, v in CALIBRATED_RIG_FLASH_ROUNDS.items():
+                    params.setdefault(k, v)
+                rounds = f", {params['photo_rounds']} room-light and {params['flash_rounds']} flash rounds"
+            log.info("fit-geometry: rig: the workspace's calibrated rig %s (σ %g mm, %g°%s%s)", rig,
+                     params["rig_sigma_mm"], params["rig_rot_sigma_deg"], rounds,
                      "; its calibration's " + ", ".join(took) if took else "")
         else:
             log.info("fit-geometry: rig: %s", f"the capture dataset's {rig}" if rig is not None
@@ -91,6 +97,17 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
     paths = run_stage_cli(VERB, workspace=ws, identity=identity, params=params, inputs=inputs, output=output,
                           device=device)
     emit(paths, as_json)
+
+
+def _has_flash_images(capture: Path) -> bool:
+    """Whether the capture holds flash images (a flash id; an unreadable file is the stage's to refuse)."""
+    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.errors import ReflectmmError
+
+    try:
+        return bool(len(read_artifact(capture, "capture", members=("flash_ids",)).arrays.get("flash_ids", ())))
+    except (ReflectmmError, OSError):
+        return False
 
 
 COMMANDS = [fit_geometry_cmd]

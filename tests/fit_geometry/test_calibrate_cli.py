@@ -73,6 +73,9 @@ def test_fit_geometry_takes_the_workspace_calibrated_rig(world, cli, tmp_path):
     assert "no room-light photometric rounds" in r.stderr and "nan" not in r.stderr.lower()
     g = read_artifact(out, "geometry")
     assert g.meta["params"]["rig_sigma_mm"] == 3.0 and g.meta["params"]["rig_rot_sigma_deg"] == 0.5
+    # the capture has flash images: the flash rounds that go with a calibrated rig, the room-light ones as given
+    assert g.meta["params"]["flash_rounds"] == 3 and g.meta["params"]["photo_rounds"] == 0
+    assert "0 room-light and 3 flash rounds" in r.stderr
     assert any(i["role"] == "rig" and i["path"].endswith("calibrate-rig/rig.toml") for i in g.meta["inputs"])
     empty = tmp_path / "ws2"
     empty.mkdir()
