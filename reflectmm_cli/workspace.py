@@ -197,9 +197,9 @@ class RigCalibration:
     """What a per-identity fit on a calibrated rig must share with the calibration: its landmark definition.
 
     The calibration placed the cameras from landmarks on the vertices of ``face_model`` (None: not recorded or not
-    found) weighted by ``landmark_weights`` (per group; groups at 1 left out); a fit with another face model or
-    other weights (a detector's jaw points on the model's fixed jaw vertices) puts its face in another frame than
-    the rig's."""
+    found) weighted by ``landmark_weights`` (per group, as its params recorded them; the groups not named keep
+    their default weight); a fit with another face model or other weights (a detector's jaw points on the model's
+    fixed jaw vertices) puts its face in another frame than the rig's."""
 
     artifact: Path
     face_model: Path | None
@@ -220,23 +220,14 @@ def rig_calibration(rig: Path | None) -> RigCalibration | None:
     others = sorted((p for p in rig.parent.glob("*.npz") if p != first), key=lambda p: -p.stat().st_mtime)
     for art_path in ([first] if first.is_file() else []) + others:
         try:
-            meta = read_artifact(art_path, "rig", members=()).meta
+            art = read_artifact(art_path, "rig", members=())
         except ReflectmmError:
             continue
-        if meta.get("toml") == rig.name:
-            return _calibration_from_meta(art_path, meta)
+        if art.meta.get("toml") == rig.name:
+            weights = (art.meta.get("params") or {}).get("landmark_weights") or {}
+            return RigCalibration(art_path, face_model_recorded_by(art),
+                                  {str(k): float(v) for k, v in weights.items()})
     return None
-
-
-def _calibration_from_meta(art_path: Path, meta: dict) -> RigCalibration:
-    weights = {str(k): float(v) for k, v in ((meta.get("params") or {}).get("landmark_weights") or {}).items()
-               if float(v) != 1.0}
-    fm = next((i.get("path") for i in meta.get("inputs") or [] if i.get("role") == "face_model"), None)
-    fm_path = None
-    if fm:
-        fm_path = Path(fm) if Path(fm).is_absolute() else (art_path.parent / fm)
-        fm_path = Path(os.path.normpath(fm_path)) if fm_path.is_file() else None
-    return RigCalibration(art_path, fm_path, weights)
 
 
 def find_fit_rig(workspace: Path, capture: Any = None) -> tuple[Path | None, str]:

@@ -12,6 +12,7 @@ import click
 
 from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
                                             output_option, param_options, run_stage_cli, workspace_option)
+from reflectmm_cli.geometry_fit.landmarks import format_group_weights
 from reflectmm_cli.stages.defaults import default_inputs
 from reflectmm_cli.stages.fit_geometry import PARAMS, STAGE, VERB
 from reflectmm_cli.progress import log
@@ -71,9 +72,9 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
     if cal is not None and face_model is None and cal.face_model is not None:
         given["face_model"] = [cal.face_model]
         took.append(f"face model {cal.face_model}")
-    if cal is not None and "landmark_weights" not in params and cal.landmark_weights:
+    if cal is not None and "landmark_weights" not in params and format_group_weights(cal.landmark_weights):
         params["landmark_weights"] = dict(cal.landmark_weights)
-        took.append("landmark weights " + ",".join(f"{k}={v:g}" for k, v in sorted(cal.landmark_weights.items())))
+        took.append(f"landmark weights {format_group_weights(cal.landmark_weights)}")
     inputs = default_inputs(STAGE, ws, {**given, "truth": [truth]}, identity=identity)
     if rig is None:  # the default rig: the calibrated one brings its soft constraints; stderr says which
         rig = (inputs.get("rig") or [None])[0]

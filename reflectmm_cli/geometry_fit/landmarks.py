@@ -67,6 +67,13 @@ def parse_group_weights(items) -> dict[str, float]:
     return out
 
 
+def format_group_weights(group_weights: dict[str, float] | None) -> str:
+    """``"jaw=0,eyes=1"``: the groups whose weight differs from :data:`DEFAULT_GROUP_WEIGHTS`, in :data:`GROUPS`
+    order, as :func:`parse_group_weights` and ``--landmark-weights`` read them ("" for the defaults)."""
+    gw = group_weights or {}
+    return ",".join(f"{k}={float(gw[k]):g}" for k in GROUPS if k in gw and float(gw[k]) != DEFAULT_GROUP_WEIGHTS[k])
+
+
 def find_landmark_file(folder: str | Path, view_name: str) -> Path | None:
     """The landmark file of a view in ``folder``: ``<view>.{pts,txt,npy}`` or a Multi-PIE style
     ``*_<CCC>_00_lm.{pts,txt,npy}`` (searched recursively); None if there is none."""

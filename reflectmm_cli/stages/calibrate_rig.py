@@ -145,9 +145,9 @@ def run(ctx: StageContext) -> list[Path]:
 
 #: More landmarks than this fraction further than ``outlier_px`` from the calibration: warned about with the likely
 #: causes; more than :data:`MAX_OUTLIER_FRACTION`: refused, nothing written.  On the demo's dlib points (8
-#: identities, 1938–2584 landmarks used) the model's own landmark vertices with every group at weight 1 leave 90 %
-#: outliers and faces 1.25x too large, with the jaw at weight 0 19 %, the embedded model with the jaw 13 %, and the
-#: embedded model without it (the recipe) 0.1 % (docs/capture.md, "Landmarks from a detector").
+#: identities, 1938–2584 landmarks used) the model's own landmark vertices with the default weights (jaw 0.5)
+#: leave 90 % outliers and faces 1.25x too large, with the jaw at weight 0 19 %, the embedded model with the jaw
+#: 13 %, and the embedded model without it (the recipe) 0.1 % (docs/capture.md, "Landmarks from a detector").
 WARN_OUTLIER_FRACTION = 0.1
 MAX_OUTLIER_FRACTION = 0.5
 

@@ -18,7 +18,7 @@ from reflectmm_cli.artifacts import check_identity, path_for_meta, read_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit import FitConfig
 from reflectmm_cli.geometry_fit.identity import fit_identity, geometry_from_truth
-from reflectmm_cli.geometry_fit.landmarks import GROUPS, parse_group_weights
+from reflectmm_cli.geometry_fit.landmarks import GROUPS, format_group_weights, landmark_weights, parse_group_weights
 from reflectmm_cli.params import Param
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
@@ -278,13 +278,11 @@ def check_rig_landmarks(identity: str, rig: Path, face_model: Path, cfg: FitConf
     cal = rig_calibration(rig)
     if cal is None:
         return True
-    ours = {k: float(v) for k, v in (cfg.group_weights or {}).items() if float(v) != 1.0}
     differ = []
-    if ours != cal.landmark_weights:
-        def fmt(w):
-            return ",".join(f"{k}={v:g}" for k, v in sorted(w.items())) or "all at 1"
-        differ.append(f"landmark weights {fmt(ours)} where it used {fmt(cal.landmark_weights)}"
-                      + (f" (--landmark-weights {fmt(cal.landmark_weights)})" if cal.landmark_weights else ""))
+    if not np.array_equal(landmark_weights(cfg.group_weights), landmark_weights(cal.landmark_weights)):
+        ours, theirs = (format_group_weights(w) for w in (cfg.group_weights, cal.landmark_weights))
+        differ.append(f"landmark weights {ours or 'the defaults'} where it used {theirs or 'the defaults'}"
+                      + (f" (--landmark-weights {theirs})" if theirs else ""))
     if cal.face_model is not None and not _same_file(Path(face_model), cal.face_model):
         differ.append(f"face model {face_model} where it used {cal.face_model} (--face-model)")
     if differ:

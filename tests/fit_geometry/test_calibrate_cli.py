@@ -318,6 +318,9 @@ def test_a_calibrated_rig_brings_its_landmark_definition(world, cli, tmp_path):
     assert len(warn) == 1 and str(rig) in warn[0] and "--landmark-weights jaw=0" in warn[0]
     assert "face model" not in warn[0]  # a byte copy of the calibration's model is that model
     assert check_rig_landmarks("001", rig, fm, FitConfig(group_weights={"jaw": 0.0}))
+    # the weights compare as the fit uses them: a group named at its default weight is the same definition
+    assert check_rig_landmarks("001", rig, fm, FitConfig(group_weights={"jaw": 0.0, "brows": 1.0}))
+    assert not check_rig_landmarks("001", rig, fm, FitConfig(group_weights={"jaw": 1.0}))
     other = tmp_path / "other.npz"
     other.write_bytes(b"not the same model")
     assert not check_rig_landmarks("001", rig, other, FitConfig(group_weights={"jaw": 0.0}))
@@ -381,3 +384,20 @@ def test_calibrate_rig_refuses_landmarks_that_do_not_fit_one_rig(world, cli, tmp
     assert (tmp_path / "ok" / "rig.toml").is_file()
     warn = [ln for ln in r.stderr.splitlines() if "further than" in ln]
     assert len(warn) == 1 and "% of those used" in warn[0] and "Landmarks from a detector" in warn[0]
+
+
+def test_landmark_weights_compare_as_the_fit_uses_them(monkeypatch, tmp_path):
+    # a calibration with the default weights: a fit naming a group at its default weight (jaw 0.5) reads the
+    # landmarks the same way; one that names another weight (jaw 1, not the default) does not
+    import reflectmm_cli.workspace as workspace
+    from reflectmm_cli.geometry_fit import FitConfig
+    from reflectmm_cli.geometry_fit.landmarks import DEFAULT_GROUP_WEIGHTS
+    from reflectmm_cli.stages.fit_geometry import check_rig_landmarks
+
+    monkeypatch.setattr(workspace, "rig_calibration",
+                        lambda rig: workspace.RigCalibration(tmp_path / "cal.npz", None, {}))
+    rig = tmp_path / "rig.toml"
+    assert DEFAULT_GROUP_WEIGHTS["jaw"] == 0.5
+    assert check_rig_landmarks("001", rig, tmp_path / "fm.npz", FitConfig())
+    assert check_rig_landmarks("001", rig, tmp_path / "fm.npz", FitConfig(group_weights={"jaw": 0.5}))
+    assert not check_rig_landmarks("001", rig, tmp_path / "fm.npz", FitConfig(group_weights={"jaw": 1.0}))

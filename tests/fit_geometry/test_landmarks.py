@@ -2,10 +2,13 @@
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry_fit.landmarks import (
     DEFAULT_GROUP_WEIGHTS,
+    GROUPS,
     find_landmark_file,
     landmark_weights,
     write_pts,
@@ -84,3 +87,16 @@ def test_a_bad_landmark_weight_in_a_recipe_names_the_file_and_stage(recipe_error
     line = recipe_error("fit-geometry", 'foreach = ["001"]\ninputs = { capture = "c.npz", face_model = "f.npz" }\n'
                                         'params = { landmark_weights = { chin = 0 } }\n')
     assert "landmark_weights: unknown group 'chin'" in line
+
+
+@given(st.dictionaries(st.sampled_from(sorted(GROUPS)), st.sampled_from([0.0, 0.5, 1.0, 2.0, 3.0, 0.25])))
+def test_format_group_weights_is_read_back_to_the_same_weights(gw):
+    # what format_group_weights writes, --landmark-weights reads back to the same per-landmark weights; the groups
+    # at their default weight are left out, so the defaults are ""
+    from reflectmm_cli.geometry_fit.landmarks import format_group_weights, parse_group_weights
+
+    text = format_group_weights(gw)
+    back = parse_group_weights([text]) if text else {}
+    assert np.array_equal(landmark_weights(back), landmark_weights(gw))
+    assert all(DEFAULT_GROUP_WEIGHTS[k] != v for k, v in back.items())
+    assert format_group_weights(dict(DEFAULT_GROUP_WEIGHTS)) == ""
