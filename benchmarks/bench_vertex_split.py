@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.geometry.align import rigid_align
@@ -27,7 +28,7 @@ def split(fitted: np.ndarray, true: np.ndarray) -> dict[str, float | np.ndarray]
     X, T = np.asarray(fitted, np.float64), np.asarray(true, np.float64)
     R, t, _ = rigid_align(X, T)
     aligned = X @ R.T + t
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    angle = float(np.degrees(Rotation.from_matrix(R).magnitude()))  # not arccos of the trace: flat near 0
     return {"rms": float(np.sqrt(((X - T) ** 2).sum(1).mean())), "shift": X.mean(0) - T.mean(0),
             "rotation_deg": angle, "aligned_rms": float(np.sqrt(((aligned - T) ** 2).sum(1).mean()))}
 
