@@ -584,11 +584,10 @@ class _SubMesh:
             self._held = None
             return self._surface(zs, ze)
         # the same tensors (kept alive here, so never another's address) at the same in-place version
-        key = (zs, zs._version, ze, ze._version)
-        if self._held is None or not all(a is b if torch.is_tensor(a) else a == b
-                                         for a, b in zip(self._held[0], key)):
-            self._held = (key, *self._surface(zs, ze))
-        return self._held[1], self._held[2]
+        held = self._held
+        if held is None or held[0] is not zs or held[1] is not ze or held[2] != (zs._version, ze._version):
+            self._held = held = (zs, ze, (zs._version, ze._version), *self._surface(zs, ze))
+        return held[3], held[4]
 
     def _surface(self, zs: torch.Tensor, ze: torch.Tensor):
         Xs = self.sub.vertices(zs, ze)

@@ -256,11 +256,12 @@ def reflectance_views(capture: Mapping[str, np.ndarray], views: str | Sequence[s
     return keep
 
 
-def rig_placed(geometry: Mapping[str, np.ndarray], views: Sequence[str], flashes: Sequence[str]
+def rig_placed(geometry: Mapping[str, np.ndarray], views: Sequence[str], flashes: Sequence[str] | None
                ) -> tuple[list[str], list[str]]:
-    """Of ``views`` and ``flashes``, those whose camera only the rig placed: ``view_evidence`` exactly ``rig`` (no
-    landmarks, and no image registration that held).  Their texels and their flashes' light rest on the rig's
-    guess.  A geometry without ``view_evidence`` has none."""
+    """Of ``views`` and ``flashes`` (None: all, as :func:`reflectance_flashes` returns them), those whose camera
+    only the rig placed: ``view_evidence`` exactly ``rig`` (no landmarks, and no image registration that held).
+    Their texels and their flashes' light rest on the rig's guess.  A geometry without ``view_evidence`` has
+    none."""
     if "view_evidence" not in geometry or "view_names" not in geometry:
         return [], []
     names = [str(v) for v in np.asarray(geometry["view_names"]).reshape(-1)]
@@ -269,11 +270,11 @@ def rig_placed(geometry: Mapping[str, np.ndarray], views: Sequence[str], flashes
     if guessed and all(k in geometry for k in ("flash_from_view", "flash_ids", "flash_pos", "cam_centers")):
         ids = [str(f) for f in np.asarray(geometry["flash_ids"]).reshape(-1)]
         fl = [f for f, v in zip(ids, _carrying_views(geometry)) if v is not None and names[v] in guessed
-              and f in set(flashes)]
+              and (flashes is None or f in set(flashes))]
     return [v for v in views if v in guessed], fl
 
 
-def warn_rig_placed(geometry: Mapping[str, np.ndarray], views: Sequence[str], flashes: Sequence[str],
+def warn_rig_placed(geometry: Mapping[str, np.ndarray], views: Sequence[str], flashes: Sequence[str] | None,
                     identity: str = "") -> None:
     """One stderr warning when the unwrap takes views or flashes whose camera only the rig placed
     (:func:`rig_placed`): a side view of a detector capture fitted without flash rounds, say."""

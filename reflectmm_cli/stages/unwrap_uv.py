@@ -7,8 +7,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.observations.unwrap import TRUST_CENTER_SIGMA_MM, TRUST_RESIDUAL_RATIO
@@ -107,8 +105,7 @@ def run(ctx: StageContext) -> list[Path]:
     flashes = reflectance_flashes(cap.arrays, geo.arrays, p.get("flashes"), geo_path,
                                   max_center_sigma_mm=p["trust_center_sigma"],
                                   max_residual_ratio=p["trust_residual_ratio"])
-    warn_rig_placed(geo.arrays, views, [str(f) for f in np.asarray(cap["flash_ids"]).reshape(-1)]
-                    if flashes is None else flashes, ctx.identity)
+    warn_rig_placed(geo.arrays, views, flashes, ctx.identity)
     arrays, report = unwrap_observations(cap.arrays, geo.arrays, model.triangles, model.uv,
                                          select_views=views,
                                          select_flashes=flashes,

@@ -192,6 +192,7 @@ def test_views_and_flashes_that_only_the_rig_placed_are_named(capfd):
     g = _registered_geometry()  # 19_1 (flash 18) only the rig placed
     all_views = ["05_1", "14_0", "19_0", "08_0", "19_1"]
     assert rig_placed(g, all_views, ["07", "08", "10", "04", "18"]) == (["19_1"], ["18"])
+    assert rig_placed(g, all_views, None) == (["19_1"], ["18"])  # None: every flash, as reflectance_flashes says
     assert rig_placed(g, all_views[:4], ["07", "18"]) == ([], ["18"])  # its flash lights the others
     assert rig_placed(g, all_views[:4], ["07", "08"]) == ([], [])
     g["view_evidence"][2] = "rig"  # 19_0's registration did not hold
