@@ -141,6 +141,29 @@ def check_in_frame(points: np.ndarray, width: int, height: int, path: str | Path
     return points
 
 
+#: A view's landmarks place it only from this many points on (a pose and a face need more than a handful).
+MIN_VIEW_LANDMARKS = 6
+
+
+def check_view_landmarks(points: np.ndarray, view: str, width: int, height: int,
+                         path: str | Path | None = None) -> bool:
+    """Whether a view's (68, 2) landmarks (NaN: missing) place it: False with none, True with at least
+    :data:`MIN_VIEW_LANDMARKS`; a one-line ReflectmmError naming ``path`` and ``view`` for 1 to 5 points (a view
+    is annotated or not) and for points far outside the ``width`` × ``height`` frame (:func:`check_in_frame`)."""
+    pts = np.asarray(points, dtype=np.float64)
+    n = int(np.isfinite(pts).all(-1).sum())
+    if n == 0:
+        return False
+    if n < MIN_VIEW_LANDMARKS:
+        raise ReflectmmError(f"view {view} has {n} landmark(s): at least {MIN_VIEW_LANDMARKS} are needed to place a "
+                             "view; give them, or none (the view is then placed by the rig and the images)", path)
+    try:
+        check_in_frame(pts, width, height)
+    except ReflectmmError as e:
+        raise ReflectmmError(f"view {view}: {e}", path) from None
+    return True
+
+
 def format_pts(points: np.ndarray, decimals: int = 3) -> str:
     """iBUG ``.pts`` text for ``(n, 2)`` points."""
     pts = np.asarray(points, np.float64)

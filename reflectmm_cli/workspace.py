@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -203,13 +203,34 @@ class RigCalibration:
 
     artifact: Path
     face_model: Path | None
-    landmark_weights: dict
+    face_model_problem: str = ""   # the recorded face model is gone or changed since (empty: it is as recorded)
+    face_model_sha256: str = ""    # the recorded face model's sha256 (empty: not recorded)
+    landmark_weights: dict = field(default_factory=dict)
+
+
+CALIBRATED_RIG_HEADER = "Rig calibrated by calibrate-rig"
+"""The first line of a rig table that ``calibrate-rig`` wrote (after the TOML comment sign)."""
+
+
+def written_by_calibration(rig: Path) -> bool:
+    """Whether the rig table ``rig`` says (its first line, :data:`CALIBRATED_RIG_HEADER`) that calibrate-rig wrote it."""
+    try:
+        with open(rig, encoding="utf-8", errors="replace") as f:
+            first = f.readline()
+    except OSError:
+        return False
+    return first.lstrip("# ").startswith(CALIBRATED_RIG_HEADER)
 
 
 def rig_calibration(rig: Path | None) -> RigCalibration | None:
     """The ``calibrate-rig`` artifact that wrote the rig table ``rig``, as a :class:`RigCalibration`: an NPZ of
     schema ``reflectmm.rig`` beside it whose meta names it (``toml``) — ``<stage>/<stage>.npz`` in a workspace,
-    else the newest such file in the folder.  None when no calibration wrote it (a nominal or hand-made table)."""
+    else the newest such file in the folder.  None when no calibration wrote it (a nominal or hand-made table).
+
+    A table that says calibrate-rig wrote it but has no readable artifact beside it is a one-line error: its
+    landmark definition, which a fit on it must share, is then unknown (the caller may catch it where that
+    definition is given explicitly).  A recorded face model that is gone or whose bytes changed since is named in
+    ``face_model_problem``."""
     if rig is None or Path(rig).suffix.lower() != ".toml":
         return None
     from reflectmm_cli.artifacts import read_artifact
@@ -218,16 +239,43 @@ def rig_calibration(rig: Path | None) -> RigCalibration | None:
     rig = Path(rig)
     first = rig.parent / f"{rig.parent.name}.npz"
     others = sorted((p for p in rig.parent.glob("*.npz") if p != first), key=lambda p: -p.stat().st_mtime)
+    unreadable = []
     for art_path in ([first] if first.is_file() else []) + others:
         try:
             art = read_artifact(art_path, "rig", members=())
-        except ReflectmmError:
+        except ReflectmmError as e:
+            unreadable.append(str(e))
             continue
         if art.meta.get("toml") == rig.name:
             weights = (art.meta.get("params") or {}).get("landmark_weights") or {}
-            return RigCalibration(art_path, face_model_recorded_by(art),
-                                  {str(k): float(v) for k, v in weights.items()})
+            return RigCalibration(art_path, *_recorded_face_model(art, art_path),
+                                  landmark_weights={str(k): float(v) for k, v in weights.items()})
+    if written_by_calibration(rig):
+        why = "; ".join(unreadable) if unreadable else f"no {first.name} beside it"
+        raise ReflectmmError(
+            f"written by calibrate-rig, but no readable calibration artifact beside it names it ({why}): the face "
+            "model and landmark weights it was calibrated with are unknown; run calibrate-rig again, or give "
+            "--face-model and --landmark-weights as they were", rig)
     return None
+
+
+def _recorded_face_model(art: Any, art_path: Path) -> tuple[Path | None, str, str]:
+    """The face model a calibration artifact records, what is wrong with it and its recorded sha256: (path, "",
+    sha) when it is there with the recorded bytes, (None, "", "") when none is recorded, else (path or None, the
+    problem, sha)."""
+    from reflectmm_cli.artifacts import sha256_file
+
+    for ref in art.meta.get("inputs", []):
+        if str(ref.get("role", "")).replace("-", "_") != "face_model":
+            continue
+        p = (art_path.parent / ref.get("path", "")).resolve()
+        want = str(ref.get("sha256") or "")
+        if not p.is_file():
+            return None, f"the face model it was calibrated with, {p}, is gone", want
+        if want and sha256_file(p) != want:
+            return p, f"the face model it was calibrated with, {p}, has changed since (not the recorded sha256)", want
+        return p, "", want
+    return None, "", ""
 
 
 def find_fit_rig(workspace: Path, capture: Any = None) -> tuple[Path | None, str]:

@@ -140,3 +140,26 @@ def write_png(path: str | Path, codes: np.ndarray) -> Path:
         raise ReflectmmError("cannot encode PNG", path)
     path.write_bytes(buf.tobytes())
     return path
+
+
+def check_finite_images(images: np.ndarray, name: str, view_names, path: str | Path | None = None,
+                        flash_ids=None) -> np.ndarray:
+    """Refuse a capture's image stack with NaN or infinite pixels; return ``images`` unchanged.
+
+    Args:
+        images: ``(V, h, w, 3)`` (``room``) or ``(V, F, h, w, 3)`` (``olat``) linear pixels.
+        name: the array's name in the capture; view_names (V,) and flash_ids (F,) name where the first bad pixel is.
+        path: the capture file, named in the one-line error.
+    """
+    a = np.asarray(images)
+    if not np.issubdtype(a.dtype, np.floating):
+        return images
+    ok = np.isfinite(a)
+    if ok.all():
+        return images
+    bad = np.argwhere(~ok)[0]
+    where = f"view {view_names[bad[0]]}" if len(bad) and bad[0] < len(view_names) else "an image"
+    if a.ndim == 5 and flash_ids is not None and bad[1] < len(flash_ids):
+        where += f", flash {flash_ids[bad[1]]}"
+    raise ReflectmmError(f"capture '{name}' has {int((~ok).sum())} NaN or infinite pixel value(s) (the first in "
+                         f"{where}): a corrupt capture; run preprocess-multipie again", path)

@@ -13,6 +13,7 @@ import click
 from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
                                             output_option, param_options, run_stage_cli, workspace_option)
 from reflectmm_cli.geometry_fit.landmarks import format_group_weights
+from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.defaults import default_inputs
 from reflectmm_cli.stages.fit_geometry import PARAMS, STAGE, VERB
 from reflectmm_cli.progress import log
@@ -67,7 +68,17 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
         return
     # the workspace's calibrated rig, the default rig when it exists, brings the landmark definition it was made
     # with: its face model and landmark weights, unless given (stages/fit_geometry.check_rig_landmarks)
-    cal = rig_calibration(calibrated_rig(ws)) if rig is None and calibrated_rig(ws).is_file() else None
+    cal = None
+    if rig is None and calibrated_rig(ws).is_file():
+        try:
+            cal = rig_calibration(calibrated_rig(ws))
+        except ReflectmmError:
+            if face_model is None or "landmark_weights" not in params:
+                raise  # the defaults would come from a calibration that cannot be read
+            # both given: the stage says that it cannot compare them with the calibration
+    if cal is not None and face_model is None and cal.face_model_problem:
+        raise ReflectmmError(f"{cal.face_model_problem}: run calibrate-rig again, or give --face-model (the same "
+                             "model)", cal.artifact)
     took = []
     if cal is not None and face_model is None and cal.face_model is not None:
         given["face_model"] = [cal.face_model]
@@ -103,7 +114,6 @@ def fit_geometry_cmd(identity, capture, face_model, rig, landmarks_dir, iters, t
 def _has_flash_images(capture: Path) -> bool:
     """Whether the capture holds flash images (a flash id; an unreadable file is the stage's to refuse)."""
     from reflectmm_cli.artifacts import read_artifact
-    from reflectmm_cli.errors import ReflectmmError
 
     try:
         return bool(len(read_artifact(capture, "capture", members=("flash_ids",)).arrays.get("flash_ids", ())))

@@ -1061,7 +1061,9 @@ def write_rig_calibration(cal: RigCalibration, path: str | Path, *, toml_path: s
     extra.update({"assumptions": cal.assumptions, "report": cal.report, "toml": tpath.name})
     out = write_artifact(path, RIG_KIND, rig_calibration_arrays(cal), extra_meta=extra, **artifact_kw)
     sig = np.linalg.norm(cal.center_sigma_mm, axis=1)
-    header = ("Rig calibrated by calibrate-rig from the landmarks of "
+    from reflectmm_cli.workspace import CALIBRATED_RIG_HEADER
+
+    header = (f"{CALIBRATED_RIG_HEADER} from the landmarks of "
               f"{len(cal.identities)} identities x {len(cal.camera_names)} views.\n"
               f"Landmark RMS {cal.report.get('landmark_rmse_px_median', float('nan')):.2f} px (median); "
               f"camera centre 1-sigma {np.nanmedian(sig):.1f} mm (median, rigid gauge removed).\n"
@@ -1167,8 +1169,10 @@ def landmarks_from_captures(capture_paths: Sequence[str | Path], views: Sequence
     Captures whose frame sizes differ for the same camera are refused.
     """
     from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.landmarks import check_view_landmarks
 
     per: list[tuple[str, list[str], np.ndarray]] = []
+    first_path: dict[str, str | Path] = {}
     names: list[str] = [] if views is None else list(views)
     size: dict[str, tuple[int, int]] = {}
     for p in capture_paths:
@@ -1188,6 +1192,15 @@ def landmarks_from_captures(capture_paths: Sequence[str | Path], views: Sequence
                 names.append(v)
         rep = art.meta.get("report", {}) if isinstance(art.meta.get("report"), dict) else {}
         ident = str(rep.get("identity") or art.meta.get("params", {}).get("id") or Path(p).stem)
+        if ident in first_path:
+            raise ReflectmmError(f"identity {ident} is given twice (also {first_path[ident]}): each identity counts "
+                                 "once in the calibration", p)
+        first_path[ident] = p
+        used = [k for k, v in enumerate(vn) if views is None or v in names]
+        if not any([check_view_landmarks(lm[k], vn[k], W, H, p) for k in used]):  # every view checked
+            among = f" of {', '.join(names)}" if views else ""
+            raise ReflectmmError(f"identity {ident} has no landmarks in any view{among}: it cannot take part in the "
+                                 "calibration; leave it out", p)
         per.append((ident, vn, lm))
     if not per:
         raise ReflectmmError("calibrate-rig: no capture artifacts given")

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from reflectmm_cli.capture.images import check_finite_images
 from reflectmm_cli.artifacts import Artifact, check_identity, read_artifact
 from reflectmm_cli.errors import ReflectmmError
 
@@ -43,9 +44,10 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
     view without any, which the fit places by the rig and the images), and where each came from (``""`` for none);
     a clear error naming the expected file when no view of the identity has landmarks."""
     from reflectmm_cli.geometry_fit.landmarks import find_landmark_file
-    from reflectmm_cli.landmarks import check_in_frame, read_landmarks
+    from reflectmm_cli.landmarks import check_in_frame, check_view_landmarks, read_landmarks
 
     V = len(view_names)
+    size = tuple(int(x) for x in np.asarray(capture["image_size"]).reshape(-1)[:2])
     out = np.full((V, 68, 2), np.nan)
     src = ["" for _ in range(V)]
     cap_lm = capture.arrays.get("landmarks")
@@ -60,10 +62,10 @@ def gather_landmarks(capture: Artifact, identity: str, view_names: list[str], la
         if landmarks_dir is not None:
             f = find_landmark_file(landmarks_dir, name)
             if f is not None:
-                out[v] = check_in_frame(read_landmarks(f), *np.asarray(capture["image_size"]).reshape(-1)[:2], f)
+                out[v] = check_in_frame(read_landmarks(f), *size, f)
                 src[v] = str(f)
                 continue
-        if cap_lm is not None and np.isfinite(cap_lm[v]).all(-1).sum() >= 6:
+        if cap_lm is not None and check_view_landmarks(cap_lm[v], name, *size, capture.path):
             out[v] = cap_lm[v]
             src[v] = "capture"
     if not any(src):
@@ -125,6 +127,7 @@ def _flash_inputs(capture: Artifact, capture_path: Path, rig, view_names: list[s
     V, F = len(view_names), len(flash_ids)
     if olat.shape != (V, F, *hw, 3):
         raise ReflectmmError(f"capture 'olat' has shape {olat.shape}, expected {(V, F, *hw, 3)}", capture_path)
+    check_finite_images(olat, "olat", view_names, capture_path, flash_ids)
     fview, fpos, fint = flash_mounts(rig, flash_ids, view_names)
     fpos[fview >= 0] = np.nan  # these move with their fitted view
     if flash_intensity is not None:
@@ -205,6 +208,7 @@ def fit_identity(capture_path: Path, face_model_path: Path, identity: str, *, ri
     if room.ndim != 4 or room.shape[0] != len(view_names) or room.shape[3] != 3:
         raise ReflectmmError(f"capture 'room' has shape {room.shape}, expected ({len(view_names)}, H, W, 3)",
                              capture_path)
+    check_finite_images(room, "room", view_names, capture_path)
     origin = np.asarray(capture.arrays.get("crop_origin", np.zeros((len(view_names), 2))), dtype=np.float64)
     lm, lm_src = gather_landmarks(capture, identity, view_names, landmarks_dir)
     lm, bias_note = correct_by_face_model(lm, view_names, fm.info, face_model_path)

@@ -62,8 +62,13 @@ def parse_group_weights(items) -> dict[str, float]:
         except (TypeError, ValueError):
             w = float("nan")
         if not np.isfinite(w) or w < 0:
-            raise ParamError(f"--landmark-weights {k}={v}: the weight must be a number ≥ 0; group {k} has {v}")
+            raise ParamError(f"--landmark-weights {k}={v}: the weight must be a finite number ≥ 0; group {k} has {v}")
+        if k in out:
+            raise ParamError(f"--landmark-weights {k}={v}: group {k} is given twice ({k}={out[k]:g} before)")
         out[k] = w
+    if out and not landmark_weights(out).any():
+        raise ParamError(f"--landmark-weights {format_group_weights(out)}: every landmark has weight 0, so nothing "
+                         "is left to fit; keep at least one group above 0")
     return out
 
 

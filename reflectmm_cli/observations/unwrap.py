@@ -26,6 +26,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from reflectmm_cli.capture.images import check_finite_images
 from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import project
@@ -310,9 +311,16 @@ def _placed_by_landmarks(geometry: Mapping[str, np.ndarray], keys: Sequence[str]
 def _positions(have, select: Sequence[str], what: str, capture_path=None) -> list[int]:
     """Indices of the names ``select`` in the capture's names ``have``; a one-line error names those missing."""
     have = [str(x) for x in np.asarray(have).reshape(-1)]
+    twice = sorted({x for x in select if list(select).count(x) > 1})
+    if twice:
+        raise ReflectmmError(f"{what} {', '.join(twice)} named more than once: each would count again in the "
+                             "reflectance fit", capture_path)
     missing = [x for x in select if x not in have]
     if missing:
-        raise ReflectmmError(f"{what} {', '.join(missing)} are not in the capture (it has {', '.join(have)})",
+        words = [x for x in missing if x.lower() in ("all", LANDMARKED, TRUSTED)]
+        hint = (f" ({', '.join(words)}: the selections all, {LANDMARKED} and {TRUSTED} are written in lower case and "
+                "stand alone, not in a list of names)") if words else ""
+        raise ReflectmmError(f"{what} {', '.join(missing)} are not in the capture (it has {', '.join(have)}){hint}",
                              capture_path)
     return [have.index(x) for x in select]
 
@@ -497,6 +505,7 @@ def _pair_inputs(capture: Mapping[str, np.ndarray], geometry: Mapping[str, np.nd
         raise ReflectmmError(f"capture 'olat' has shape {olat.shape}, expected ({V}, {F}, h, w, 3)", capture_path)
     if satur.shape != olat.shape[:4]:
         raise ReflectmmError(f"capture 'saturated' has shape {satur.shape}, expected {olat.shape[:4]}", capture_path)
+    check_finite_images(olat, "olat", views, capture_path, flashes)
     if crop.shape != (V, 2):
         raise ReflectmmError(f"capture 'crop_origin' has shape {crop.shape}, expected ({V}, 2)", capture_path)
     return _PairInputs(

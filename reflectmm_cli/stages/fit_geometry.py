@@ -273,9 +273,16 @@ def check_rig_landmarks(identity: str, rig: Path, face_model: Path, cfg: FitConf
     weights; a fit with other ones (a detector's jaw points on the model's fixed jaw vertices) turns and moves the
     head in the rig, 17–26 mm of vertex error on the demo's identity 003 against 1.0 mm (docs/fit-geometry.md,
     "A calibrated rig's landmark definition").  Returns True when they agree or the rig has no calibration."""
+    from reflectmm_cli.artifacts import sha256_file
+    from reflectmm_cli.errors import ReflectmmError
     from reflectmm_cli.workspace import rig_calibration
 
-    cal = rig_calibration(rig)
+    try:
+        cal = rig_calibration(rig)
+    except ReflectmmError as e:
+        log.warning("fit-geometry %s: cannot check the fit's landmark definition against the rig's calibration: %s",
+                    identity, e)
+        return False
     if cal is None:
         return True
     differ = []
@@ -283,7 +290,12 @@ def check_rig_landmarks(identity: str, rig: Path, face_model: Path, cfg: FitConf
         ours, theirs = (format_group_weights(w) for w in (cfg.group_weights, cal.landmark_weights))
         differ.append(f"landmark weights {ours or 'the defaults'} where it used {theirs or 'the defaults'}"
                       + (f" (--landmark-weights {theirs})" if theirs else ""))
-    if cal.face_model is not None and not _same_file(Path(face_model), cal.face_model):
+    if cal.face_model_sha256:  # the bytes it was calibrated with, wherever the fit's copy lives
+        if sha256_file(face_model) != cal.face_model_sha256:
+            differ.append(f"face model {face_model} where it used another"
+                          + (f" ({cal.face_model_problem})" if cal.face_model_problem
+                             else f", {cal.face_model} (--face-model)"))
+    elif cal.face_model is not None and not _same_file(Path(face_model), cal.face_model):
         differ.append(f"face model {face_model} where it used {cal.face_model} (--face-model)")
     if differ:
         log.warning("fit-geometry %s: the rig %s was calibrated with another landmark definition: this fit has %s; "

@@ -7,6 +7,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from reflectmm_cli.artifacts import atomic_write_bytes, check_identity, read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.observations.unwrap import TRUST_CENTER_SIGMA_MM, TRUST_RESIDUAL_RATIO
@@ -82,6 +84,37 @@ def _resolved_inputs(ctx: StageContext) -> dict[str, list[Path]]:
     return files
 
 
+#: How far (mm) a face model may put a geometry's vertices, from the geometry's own coefficients, from where the
+#: geometry has them: the same model gives them to the bit on the CPU, a float32 fit on a GPU to about 1e-3 mm;
+#: another model or vertex order puts them millimetres to centimetres off.
+MODEL_MISMATCH_MM = 0.1
+
+
+def check_model_of_geometry(model, geometry, fm_path, geo_path) -> None:
+    """Refuse a face model that is not the one the geometry was fitted with: from the geometry's shape and
+    expression coefficients it must give the geometry's vertices (:data:`MODEL_MISMATCH_MM`).  A model with
+    the same vertex count but another vertex order, mean or basis would otherwise unwrap a scrambled face.  A model
+    that differs only in its landmark vertices (``face-model embed-landmarks``) gives the same mesh and passes.
+    Geometries without coefficients, or whose vertex count differs (the library names that), are left alone."""
+    g = geometry
+    if "shape_coeffs" not in g or "vertices" not in g:
+        return
+    verts = np.asarray(g["vertices"], np.float64)
+    if verts.shape != np.asarray(model.mean_shape).shape:
+        return
+    try:
+        v = model.vertices(np.asarray(g["shape_coeffs"]).reshape(-1),
+                           np.asarray(g["exp_coeffs"]).reshape(-1) if "exp_coeffs" in g else None)
+    except ReflectmmError as e:
+        raise ReflectmmError(f"cannot give the geometry's vertices from its coefficients ({e}): not the face model "
+                             f"{geo_path} was fitted with", fm_path) from None
+    off = float(np.abs(v - verts).max())
+    if not off <= MODEL_MISMATCH_MM:
+        raise ReflectmmError(f"gives the geometry's vertices, from its coefficients, up to {off:.3g} mm from where "
+                             f"{geo_path} has them: not the face model it was fitted with (another model, or its "
+                             "vertices in another order)", fm_path)
+
+
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.capture.preprocess import encode_png
     from reflectmm_cli.geometry.face_model import load_face_model
@@ -99,6 +132,7 @@ def run(ctx: StageContext) -> list[Path]:
     cap = check_identity(read_artifact(cap_path, "capture"), ctx.identity)
     geo = check_identity(read_artifact(geo_path, "geometry"), ctx.identity)
     model = load_face_model(fm_path)
+    check_model_of_geometry(model, geo.arrays, fm_path, geo_path)
     p = ctx.params
     views = reflectance_views(cap.arrays, p.get("views"), geo.arrays, geo_path,
                               max_center_sigma_mm=p["trust_center_sigma"], max_residual_ratio=p["trust_residual_ratio"])

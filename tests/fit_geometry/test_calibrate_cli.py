@@ -326,6 +326,75 @@ def test_a_calibrated_rig_brings_its_landmark_definition(world, cli, tmp_path):
     assert not check_rig_landmarks("001", rig, other, FitConfig(group_weights={"jaw": 0.0}))
 
 
+def test_a_calibrated_rig_whose_record_is_lost_or_changed_is_refused(world, cli, tmp_path):
+    """A calibrated rig's landmark definition comes from the calibration artifact beside it.  Without that artifact,
+    or with the face model it records gone or changed, the defaults would silently be the dataset's model and the
+    default weights (a face 19 mm off on the demo): fit-geometry refuses in one line and writes nothing.  Given both
+    explicitly it runs, and says that it cannot check them; a copy of the recorded model's bytes elsewhere is that
+    model."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    fm = tmp_path / "fm.npz"
+    shutil.copy(world / "syn" / "face_model.npz", fm)
+    caps = [a for i in range(1, 5) for a in ("--capture", world / "preprocess-multipie" / f"{i:03d}.npz")]
+    true = load_rig(world / "syn" / "rig.toml")
+    r = cli("calibrate-rig", *caps, "-w", ws, "--face-model", fm, "--rig", world / "syn" / "rig.toml", "--focal",
+            true.camera("05_1").focal_px, "--landmark-weights", "jaw=0")
+    assert r.exit_code == 0, r.output
+    art = ws / "calibrate-rig" / "calibrate-rig.npz"
+    common = ("--id", "001", "-w", ws, "--capture", world / "preprocess-multipie" / "001.npz", "--iters", "20",
+              "--photo-rounds", "0", "--flash-rounds", "0", "--no-overlay")
+    out = tmp_path / "g.npz"
+
+    def refused(*extra):
+        r = cli("fit-geometry", *common, *extra, "-o", out)
+        assert r.exit_code == 1 and not out.exists(), r.output + r.stderr
+        return [ln for ln in r.stderr.splitlines() if ln.startswith("reflectmm: error:")][0]
+
+    fm.write_bytes(fm.read_bytes()[:-8] + b"12345678")  # other bytes at the recorded path
+    line = refused()
+    assert str(art) in line and "has changed since" in line and "--face-model" in line
+    fm.unlink()
+    line = refused()
+    assert str(art) in line and f"{fm.resolve()}, is gone" in line
+    copy = tmp_path / "elsewhere.npz"  # the recorded bytes at another path: that model, no warning
+    shutil.copy(world / "syn" / "face_model.npz", copy)
+    r = cli("fit-geometry", *common, "--face-model", copy, "-o", out)
+    assert r.exit_code == 0 and "another landmark definition" not in r.stderr, r.output + r.stderr
+    out.unlink()
+    art.unlink()
+    line = refused()
+    assert str(ws / "calibrate-rig" / "rig.toml") in line and "written by calibrate-rig" in line
+    r = cli("fit-geometry", *common, "--face-model", copy, "--landmark-weights", "jaw=0", "-o", out)
+    assert r.exit_code == 0 and "cannot check the fit's landmark definition" in r.stderr, r.output + r.stderr
+
+
+def test_calibrate_rig_refuses_an_identity_twice_or_without_landmarks(world, cli, tmp_path):
+    # the same identity twice counted double; one without landmarks got a made-up head pose and moved the rig's
+    # scale; both were written over the workspace's rig
+    from reflectmm_cli.artifacts import write_artifact
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    caps = [world / "preprocess-multipie" / f"{i:03d}.npz" for i in range(1, 4)]
+    cap = read_artifact(caps[1], "capture")
+    arrays = {k: np.array(v) for k, v in cap.arrays.items()}
+    kw = {"params": cap.params, "inputs": cap.meta["inputs"], "extra_meta": {"report": cap.meta["report"]}}
+    write_artifact(tmp_path / "002_copy.npz", "capture", arrays, **kw)
+    arrays["landmarks"][:] = np.nan
+    write_artifact(tmp_path / "002_none.npz", "capture", arrays, **kw)
+    base = ("-w", ws, "--face-model", world / "syn" / "face_model.npz", "--rig", world / "syn" / "rig.toml",
+            "--focal", load_rig(world / "syn" / "rig.toml").camera("05_1").focal_px)
+    for extra, msg in (([caps[1], tmp_path / "002_copy.npz"], "identity 002 is given twice"),
+                       ([tmp_path / "002_none.npz"], "identity 002 has no landmarks in any view")):
+        files = [a for c in [caps[0], caps[2], *extra] for a in ("--capture", c)]
+        r = cli("calibrate-rig", *files, *base)
+        assert r.exit_code == 1 and msg in r.stderr and str(extra[-1]) in r.stderr, r.output + r.stderr
+        assert not (ws / "calibrate-rig").exists()
+
+
 def test_views_without_landmarks_and_no_flash_rounds_are_warned_about(world, cli, tmp_path):
     # without flash rounds a view without landmarks stays where the rig puts it: fit-geometry says so, and what to pass
     from reflectmm_cli.artifacts import write_artifact
@@ -395,7 +464,7 @@ def test_landmark_weights_compare_as_the_fit_uses_them(monkeypatch, tmp_path):
     from reflectmm_cli.stages.fit_geometry import check_rig_landmarks
 
     monkeypatch.setattr(workspace, "rig_calibration",
-                        lambda rig: workspace.RigCalibration(tmp_path / "cal.npz", None, {}))
+                        lambda rig: workspace.RigCalibration(tmp_path / "cal.npz", None, landmark_weights={}))
     rig = tmp_path / "rig.toml"
     assert DEFAULT_GROUP_WEIGHTS["jaw"] == 0.5
     assert check_rig_landmarks("001", rig, tmp_path / "fm.npz", FitConfig())

@@ -141,6 +141,46 @@ def test_no_landmarks_for_any_view(world, cli, tmp_path):
     assert not out.exists()
 
 
+def _capture_changed(world, tmp_path, change):
+    """The world's capture with ``change(arrays, view_names)`` applied (a corrupt or hand-edited capture)."""
+    cap = read_artifact(world / "preprocess-multipie" / "001.npz", "capture")
+    arrays = {k: np.array(v) for k, v in cap.arrays.items()}
+    change(arrays, [str(v) for v in cap["view_names"]])
+    out = tmp_path / "capture.npz"
+    write_artifact(out, "capture", arrays, params=cap.params, inputs=cap.meta["inputs"])
+    return out
+
+
+@pytest.mark.parametrize("what", ["room", "olat", "few", "far"])
+def test_a_corrupt_capture_is_refused_naming_the_view(world, cli, tmp_path, what):
+    # NaN pixels made the flash term fail inside torch and the room-light term crash the process; landmarks far
+    # outside the frame put the cameras 1e10 mm away; a view with 3 points was silently dropped
+    def change(a, names):
+        v = names.index("05_1")
+        if what == "room":
+            a["room"][v, 10:12, 10:12] = np.nan
+        elif what == "olat":
+            a["olat"][v, 1, 5, 5, 0] = np.inf
+        elif what == "few":
+            a["landmarks"][v, 3:] = np.nan
+        else:
+            a["landmarks"][v, 7] = [1e9, 1e9]
+
+    bad = _capture_changed(world, tmp_path, change)
+    out = tmp_path / "g.npz"
+    rounds = ["--photo-rounds", "1", "--flash-rounds", "0"] if what == "room" else ["--photo-rounds", "0",
+                                                                                   "--flash-rounds", "1"]
+    msg = _err(cli("fit-geometry", "--id", "001", "-w", world, "--capture", bad, "--iters", "20", *rounds,
+                   "--face-model", world / "syn" / "face_model.npz", "--rig", world / "syn" / "rig.toml",
+                   "--no-overlay", "-o", out))
+    assert str(bad) in msg and not out.exists()
+    expected = {"room": "capture 'room' has 12 NaN or infinite pixel value(s) (the first in view 05_1)",
+                "olat": "capture 'olat' has 1 NaN or infinite pixel value(s) (the first in view 05_1, flash 18)",
+                "few": "view 05_1 has 3 landmark(s): at least 6 are needed",
+                "far": "view 05_1: 1 landmark(s) far outside the 240x180 frame (landmark 8 at (1e+09, 1e+09) px)"}
+    assert expected[what] in msg, msg
+
+
 def test_views_without_landmarks_are_placed_by_the_rig_and_the_images(world, tmp_path):
     # the side views 13_0 and 04_1 without landmarks; placed by the rig under the head pose of the other three and
     # refined by the flash term; each view's evidence, residuals and uncertainty in the report and on stderr

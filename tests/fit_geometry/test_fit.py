@@ -246,7 +246,7 @@ def test_zero_group_weight_equals_leaving_the_group_out():
 
 
 def test_parse_group_weights():
-    from reflectmm_cli.geometry_fit.landmarks import landmark_weights, parse_group_weights
+    from reflectmm_cli.geometry_fit.landmarks import GROUPS, landmark_weights, parse_group_weights
 
     assert parse_group_weights(["jaw=0", "eyes=2.5,brows=1"]) == {"jaw": 0.0, "eyes": 2.5, "brows": 1.0}
     assert parse_group_weights({"jaw": 0}) == {"jaw": 0.0}
@@ -254,7 +254,9 @@ def test_parse_group_weights():
     w = landmark_weights(parse_group_weights(["jaw=0"]))
     assert (w[:17] == 0).all() and (w[17:] > 0).all()
     for bad, msg in (("chin=0", "unknown group 'chin'"), ("jaw", "expected GROUP=WEIGHT"),
-                     ("jaw=-1", "must be a number ≥ 0"), ("jaw=x", "must be a number ≥ 0"),
-                     ("jaw=nan", "must be a number ≥ 0")):
+                     ("jaw=-1", "must be a finite number ≥ 0"), ("jaw=x", "must be a finite number ≥ 0"),
+                     ("jaw=nan", "must be a finite number ≥ 0"), ("jaw=inf", "must be a finite number ≥ 0"),
+                     ("jaw=0,jaw=1", "group jaw is given twice"),
+                     (",".join(f"{g}=0" for g in GROUPS), "every landmark has weight 0")):
         with pytest.raises(ReflectmmError, match=msg):
             parse_group_weights([bad])

@@ -170,6 +170,38 @@ def test_mismatched_geometry_errors(tmp_path, cli):
     assert res.exit_code == 1 and "expected a 'geometry' artifact" in res.stderr
 
 
+def test_views_named_twice_and_a_face_model_of_another_order_are_refused(tmp_path, cli):
+    # a view or flash named twice counted twice in the reflectance fit; a face model with the geometry's vertex
+    # count but its vertices in another order unwrapped a scrambled face; both with exit 0
+    from reflectmm_cli.geometry import load_face_model
+
+    scene = make_scene(tmp_path / "mp", tmp_path / "ws")
+    root, ws = tmp_path / "mp", tmp_path / "ws"
+    assert cli("preprocess-multipie", "--root", root, "--id", "001", "--views", "05_1,14_0", "--flashes", "07,14",
+               "--workspace", ws).exit_code == 0
+    out = ws / "unwrap-uv" / "001.npz"
+    fm = scene["face_model_path"]
+    for extra, msg in ((["--views", "05_1,05_1"], "view(s) 05_1 named more than once"),
+                       (["--flashes", "07,14,07"], "flash(es) 07 named more than once"),
+                       (["--views", "trusted,05_1"], "stand alone, not in a list of names")):
+        res = cli("unwrap-uv", "--id", "001", "--face-model", fm, "--workspace", ws, *extra)
+        assert res.exit_code == 1 and msg in res.stderr and not out.exists(), res.stderr
+    geo = dict(scene["geometry"])
+    model = load_face_model(fm)
+    assert "shape_coeffs" in geo and np.abs(model.vertices(geo["shape_coeffs"]) - geo["vertices"]).max() < 1e-3
+    perm = np.random.default_rng(0).permutation(len(model.mean_shape))
+    z = dict(np.load(fm))
+    for k in ("mean_shape", "uv"):
+        z[k] = z[k][perm]
+    z["shape_basis"] = z["shape_basis"][:, perm] if "shape_basis" in z else z.get("shape_basis")
+    np.savez(tmp_path / "permuted.npz", **{k: v for k, v in z.items() if v is not None})
+    res = cli("unwrap-uv", "--id", "001", "--face-model", tmp_path / "permuted.npz", "--workspace", ws)
+    assert res.exit_code == 1 and not out.exists(), res.stderr
+    assert "permuted.npz" in res.stderr and "not the face model it was fitted with" in res.stderr
+    res = cli("unwrap-uv", "--id", "001", "--face-model", fm, "--workspace", ws)
+    assert res.exit_code == 0, res.stderr
+
+
 def test_bilinear_matches_cv2_remap():
     import cv2
 
