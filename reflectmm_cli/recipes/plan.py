@@ -141,6 +141,15 @@ class _PlanError(Exception):
 
 # --------------------------------------------------------------------------- planner
 
+def _defer(name: str, outside_only: bool, deferred: list[str], unplanned: set[str]) -> None:
+    """A stage whose identities are not known yet: deferred (planned again once its upstream has run), or, outside
+    ``--only``, left unplanned (it would not run in this run, so nothing waits for it and nothing is blocked)."""
+    if outside_only:
+        unplanned.add(name)
+    else:
+        deferred.append(name)
+
+
 def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only: str | None = None,
               ids: list[str] | None = None, hash_memo: dict[str, Any] | None = None,
               prior: dict[str, str] | None = None) -> Plan:
@@ -187,17 +196,19 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
     stage_tasks: dict[str, list[str]] = {}
     deferred: list[str] = []
     empty: list[str] = []
+    unplanned: set[str] = set()  # deferred stages outside --only: they would not run, so they wait for nothing
     for name in order:
         spec, stage = recipe.stages[name], stages[name]
-        if any(u in deferred for u in spec.upstream()):
-            deferred.append(name)
+        outside = only is not None and only != name
+        if any(u in deferred or u in unplanned for u in spec.upstream()):
+            _defer(name, outside, deferred, unplanned)
             continue
         selected = (only is None or only == name)
         if ids is not None and not spec.per_identity and per_id_closure[name]:
             selected = False  # an aggregate over identities is never built from a --ids subset
         stage_ids = _stage_ids(recipe, spec, stage, workspace, tasks, stage_tasks, hash_memo)
         if stage_ids is _DEFER:
-            deferred.append(name)
+            _defer(name, outside, deferred, unplanned)
             continue
         _check_ids(stage_ids, spec, recipe.path)
         if spec.per_identity and not stage_ids:

@@ -241,6 +241,22 @@ def test_all_found_by_discovery_waits_for_upstream(ws):
     assert set(statuses(run_recipe(ws / "recipe.toml", ws, dry_run=True)).values()) == {"skip"}
 
 
+def test_only_leaves_a_deferred_stage_it_does_not_select_out_of_the_run(ws):
+    # --only other on a fresh workspace: "found" waits for manifest's outputs, and neither is selected, so "found"
+    # neither waits nor counts as blocked (it did: the run failed with "0 task(s) failed, 1 blocked"); --only found
+    # before manifest has run is blocked, as its upstream outputs must exist
+    (ws / "recipe.toml").write_text('schema = "reflectmm.recipe/1"\n' + DISCOVER_STAGES
+                                    + '[stages.other]\nverb = "checksum"\ninputs = { files = "data/001" }\n')
+    rep = run_recipe(ws / "recipe.toml", ws, only="other")
+    assert rep.ok and statuses(rep) == {"other": "ok"}
+    rep = run_recipe(ws / "recipe.toml", ws, only="found")
+    assert not rep.ok and statuses(rep) == {"found": "blocked"}
+    rep = run_recipe(ws / "recipe.toml", ws, only="manifest")
+    assert rep.ok and statuses(rep) == {"manifest/002": "ok", "manifest/004": "ok"}
+    rep = run_recipe(ws / "recipe.toml", ws, only="found")
+    assert rep.ok and statuses(rep) == {"found/002": "ok", "found/004": "ok"}
+
+
 def test_id_placeholder_in_aggregate_stage_is_a_task_error(ws):
     (ws / "recipe.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.s]\nverb = "checksum"\n'
                                     'inputs = { files = "data/{id}" }\n')
