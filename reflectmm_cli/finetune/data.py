@@ -317,6 +317,22 @@ def name_split(name: str, fractions=(0.9, 0.05, 0.05)) -> str:
     return SPLITS[int(np.searchsorted(f, u, side="right"))] if u < f[-1] else SPLITS[-1]
 
 
+def check_truth_mesh(truth_dir: Path, face_model, face_model_path=None) -> None:
+    """``--from-truth`` applies the truth's coefficients to ``face_model`` and stores the truth's per-vertex
+    reflectance beside them: both must be of one mesh.  One line naming the face model when the synth-wild
+    identities have another vertex count."""
+    from reflectmm_cli.artifacts import read_artifact
+
+    first = next(iter(sorted((truth_dir / "identities").glob("id*.npz"))), None)
+    if first is None:
+        return  # the per-image reads name the missing files
+    n_truth = int(read_artifact(first, "wild-truth", members=("vertex_albedo",))["vertex_albedo"].shape[0])
+    n = int(np.asarray(face_model.mean_shape).shape[0])
+    if n != n_truth:
+        raise ReflectmmError(f"has {n} vertices, the synth-wild truth {n_truth} ({first}): --from-truth needs the "
+                             "face model the truth was made with", face_model_path)
+
+
 def _truth_for(truth_dir: Path, name: str):
     from reflectmm_cli.artifacts import read_artifact
 
@@ -423,6 +439,12 @@ def _truth_arrays(tr, identity_truth, S: int) -> dict[str, np.ndarray]:
             "truth_specular": _truth_at_size(np.asarray(tr["specular"], np.float32), S).astype(np.float16)}
 
 
+#: A 68-point face spans at least this many pixels both ways (a detector's smallest faces span about 40).
+MIN_LANDMARK_SPAN_PX = 4.0
+#: A fitted face covers at least this fraction of its aligned crop (about a third in the Deep3DFaceRecon crop).
+MIN_FACE_FRACTION = 0.02
+
+
 def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareConfig, *,
                         truth_dir: str | Path | None = None, splits: Mapping[str, str] | None = None,
                         progress_fn=None) -> tuple[dict[str, np.ndarray], dict, list[str]]:
@@ -460,7 +482,13 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
             img = read_image_u8(inp.image)
             if not img.any():
                 raise ReflectmmError("image is all black (nothing to reconstruct)", inp.image)
+            if (img == 255).all():
+                raise ReflectmmError("image is all white (saturated: nothing to reconstruct)", inp.image)
             lm = check_in_frame(read_landmarks(inp.landmarks), img.shape[1], img.shape[0], inp.landmarks)
+            span = np.nanmax(lm, 0) - np.nanmin(lm, 0)
+            if not (span >= MIN_LANDMARK_SPAN_PX).all():
+                raise ReflectmmError(f"landmarks span {span[0]:.3g} x {span[1]:.3g} px: no face (they collapse to a "
+                                     "point or a line)", inp.landmarks)
             tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
             encoding = tr.meta.get("encoding", cfg.encoding) if tr is not None else cfg.encoding
             crop, lm_c, A = _aligned_crop(inp, img, lm, face_model, cfg, S)
@@ -470,8 +498,10 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
             cam = Camera(K, R, t, S, S, inp.name)
             gb = gbuffer_from_raster(rasterize(RayScene(verts, face_model.triangles), cam), face_model.triangles,
                                      cam)
-            if not gb["face_mask"].any():
-                raise ReflectmmError("the fitted face covers no pixel of the crop", inp.image)
+            covered = int(np.asarray(gb["face_mask"]).sum())
+            if covered < MIN_FACE_FRACTION * S * S:
+                raise ReflectmmError(f"the fitted face covers {covered} pixel(s) of the {S}x{S} crop: a failed fit "
+                                     "(landmarks of another image, or of no face)", inp.image)
             proj, _ = cam.project(verts[face_model.landmarks])
             rep_lm = float(np.sqrt(np.mean(np.sum((proj - lm_c) ** 2, -1))))
             skin = _skin_mask(inp, A, gb, face_model, cfg, tr, lin, S)
@@ -549,6 +579,8 @@ def prepare_wild_shard(images_dir, out_dir, face_model, face_model_path, cfg: Pr
     chunk = inputs[shard_index * M:(shard_index + 1) * M]
     if not chunk:
         raise ReflectmmError(f"shard {shard_index} is empty ({len(inputs)} images, {M} per shard)", images_dir)
+    if cfg.from_truth and truth_dir is not None:
+        check_truth_mesh(Path(truth_dir), face_model, face_model_path)
     splits = None
     if truth_dir is not None and (Path(truth_dir) / "manifest.npz").is_file():
         man = read_artifact(Path(truth_dir) / "manifest.npz", "wild-manifest")

@@ -30,12 +30,15 @@ if it lowers E_b, so E_b never increases. The result is deterministic (no sampli
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
+
+log = logging.getLogger("reflectmm")
 
 __all__ = ["RefineConfig", "RefineResult", "PixelTransport", "pixel_transport", "refine_batch", "image_objective"]
 
@@ -299,6 +302,10 @@ def _refine_one(img: _Image, light: _Light, st: _State, cfg: RefineConfig, name:
     import torch
 
     e0 = e = _energy(img, light, st, cfg)
+    if img.target.shape[0] == 0:  # nothing to fit: the start is kept, and said
+        log.warning("refine: image %s has no skin pixel to fit (all saturated, or outside the face): not refined, "
+                    "its start kept", name)
+        return st, e0, e0, 0
     if not math.isfinite(e0):
         raise ReflectmmError(f"refine: image {name}: the objective is not finite at the start (NaN/inf in the "
                              f"model, the light model or the image)")

@@ -60,6 +60,10 @@ class FinetuneResult:
     image_size: int | None = None  # the side S of the training images (recorded in the encoder's meta)
 
 
+#: A step loss this many times the run's first is taken as divergence (the run stops, nothing is written).
+DIVERGED_FACTOR = 1e4
+
+
 def load_models(model_path, light_path):
     """(ReflectanceModel, LightModel) from a ``reflectance-model`` and a ``light-model`` artifact."""
     from reflectmm_cli.artifacts import read_artifact
@@ -68,7 +72,7 @@ def load_models(model_path, light_path):
 
     art = read_artifact(model_path, MODEL_KIND)
     _check_finite(art.arrays, model_path)
-    model = model_from_arrays(art.arrays, art.meta.get("stats"))
+    model = model_from_arrays(art.arrays, art.meta.get("stats"), path=model_path)
     lart = read_artifact(light_path, LIGHT_MODEL_KIND)
     _check_finite(lart.arrays, light_path)
     light = light_model_from_arrays(lart.arrays)
@@ -554,6 +558,13 @@ class Trainer:
         if not torch.isfinite(total):
             raise ReflectmmError(f"finetune: the loss became {float(total)} at step {self.global_step} "
                                  f"(phase {phase}, epoch {ep}); lower the learning rate")
+        first = getattr(self, "_first_loss", None)
+        if first is None:
+            self._first_loss = first = max(float(total.detach()), 1e-12)
+        elif float(total.detach()) > DIVERGED_FACTOR * first:
+            raise ReflectmmError(f"finetune: the loss grew from {first:.3g} to {float(total):.3g} at step "
+                                 f"{self.global_step} (phase {phase}, epoch {ep}): training diverged; lower the "
+                                 "learning rate")
         self.opt.zero_grad(set_to_none=True)
         total.backward()
         self.opt.step()

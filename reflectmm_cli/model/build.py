@@ -25,7 +25,13 @@ def load_maps(paths: list[Path]):
     the shared (K,) exponents."""
     ids, albedos, weights, masks, flagged = [], [], [], [], []
     exps = None
+    seen: dict[Path, Path] = {}
     for p in progress(paths, desc="maps", unit="map"):
+        key = Path(p).resolve()
+        if key in seen:
+            raise ReflectmmError(f"given twice (also as {seen[key]}): each identity's maps count once in the model",
+                                 p)
+        seen[key] = Path(p)
         art = read_artifact(p, "reflectance-maps")
         e = np.asarray(art["exponents"], np.float64).reshape(-1)
         if exps is None:
@@ -38,7 +44,28 @@ def load_maps(paths: list[Path]):
         weights.append(art["weights"])
         masks.append(art["mask"] if "mask" in art.arrays else np.ones(art["albedo"].shape[1:], bool))
         flagged.append(art["flagged"] if "flagged" in art.arrays else np.zeros(art["albedo"].shape[1:], bool))
+        _check_fit(p, albedos[-1], weights[-1], masks[-1], flagged[-1])
     return ids, albedos, weights, masks, flagged, exps
+
+
+#: Albedo or lobe weights below −this in a map's face mask are refused (fit-reflectance's solvers keep them ≥ 0).
+NEGATIVE_MAP_TOL = 1e-3
+
+
+def _check_fit(path, albedo, weights, mask, flagged) -> None:
+    """Refuse maps that are not a fit: every texel of the face mask flagged (nothing was fitted, the values are
+    fill), or albedo / lobe weights below zero (another convention, or a damaged file)."""
+    m = np.asarray(mask, bool)
+    if m.any() and np.asarray(flagged, bool)[m].all():
+        raise ReflectmmError(f"every one of its {int(m.sum())} face texels is flagged: nothing was fitted (check "
+                             "fit-reflectance's log); leave these maps out", path)
+    for what, a in (("albedo", albedo), ("lobe weights", weights)):
+        v = np.asarray(a)[:, m]
+        with np.errstate(invalid="ignore"):
+            neg = int((v < -NEGATIVE_MAP_TOL).sum())
+        if neg:
+            raise ReflectmmError(f"{what} below 0 at {neg} value(s) of the face mask (min {float(np.nanmin(v)):.3g}): "
+                                 "reflectance maps are ≥ 0", path)
 
 
 def build_reflectance_model(map_paths: list[Path], components: int = 80, face_model: Path | None = None):

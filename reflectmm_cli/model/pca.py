@@ -403,10 +403,19 @@ def model_arrays(model: ReflectanceModel) -> dict[str, np.ndarray]:
     return out
 
 
-def model_from_arrays(arrays: Mapping[str, np.ndarray], stats: Mapping[str, Any] | None = None
-                      ) -> ReflectanceModel:
-    """Inverse of :func:`model_arrays` (e.g. ``model_from_arrays(read_artifact(p, MODEL_KIND).arrays)``)."""
+def model_from_arrays(arrays: Mapping[str, np.ndarray], stats: Mapping[str, Any] | None = None,
+                      path=None) -> ReflectanceModel:
+    """Inverse of :func:`model_arrays` (e.g. ``model_from_arrays(read_artifact(p, MODEL_KIND).arrays)``).
+
+    A model whose ``sigma`` is not > 0 everywhere is refused (one line naming ``path``): coefficients are in units
+    of σ, so a component at σ = 0 can only give the mean and a negative one flips its basis."""
     g = lambda k: arrays[k] if k in arrays else None  # noqa: E731
+    sigma = np.asarray(arrays["sigma"], np.float64)
+    bad = ~(sigma > 0)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise ReflectmmError(f"reflectance-model 'sigma' must be > 0: {int(bad.sum())} of its {sigma.size} values are "
+                             f"not (first: component {k}, {sigma.flat[k]:g})", path)
     return ReflectanceModel(
         albedo_mean=arrays["albedo_mean"], albedo_basis=arrays["albedo_basis"],
         weights_mean=arrays["weights_mean"], weights_basis=arrays["weights_basis"],

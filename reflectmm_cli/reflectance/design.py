@@ -358,7 +358,21 @@ def check_observations(obs: Mapping[str, np.ndarray], path=None) -> int:
     if bad.any():
         raise ReflectmmError(f"uv-observations 'radiance' has {int(bad.sum())} NaN/inf values in observed texels",
                              path)
+    if P == 0 or not obsm.any():
+        raise ReflectmmError("uv-observations has no observed texel (" + ("no view-flash pair" if P == 0 else
+                             f"{P} pairs, none observed") + "): nothing to fit; check unwrap-uv's --views and "
+                             "--flashes and the geometry", path)
+    seen = rad[obsm]
+    neg = int((seen < -NEGATIVE_RADIANCE_TOL * max(float(np.abs(seen).max()), 1e-12)).sum())
+    if neg:
+        raise ReflectmmError(f"uv-observations 'radiance' has {neg} negative values in observed texels (linear "
+                             "radiance is ≥ 0): a capture in another encoding, or a corrupt file", path)
     return S
+
+
+#: Observed radiance below −this × the largest observed magnitude is refused (linear radiance is ≥ 0; a little
+#: below 0 is left for noise that a camera pipeline kept).
+NEGATIVE_RADIANCE_TOL = 0.01
 
 
 def conditioning_from_obs(obs: Mapping[str, np.ndarray], exponents: Sequence[float] = DEFAULT_EXPONENTS,

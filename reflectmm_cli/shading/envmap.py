@@ -99,7 +99,8 @@ def envmap_rgb(image) -> np.ndarray:
 
     Accepts (H, W) or (H, W, 1) grey maps (repeated to RGB) and (H, W, C ≥ 3) maps (the first three channels
     are R, G, B; alpha and further channels are ignored). Refuses 2 channels (grey + alpha or an incomplete
-    colour map is ambiguous), non-numeric, NaN/inf and negative pixels with a one-line ReflectmmError (no file
+    colour map is ambiguous), maps that are not 2:1 (equirectangular: 360° by 180°), non-numeric, NaN/inf and
+    negative pixels with a one-line ReflectmmError (no file
     name: :func:`load_envmap` adds it). The one check shared by ``render --envmap`` and ``build-light-pca``.
     """
     img = np.asarray(image)
@@ -111,6 +112,9 @@ def envmap_rgb(image) -> np.ndarray:
         raise ReflectmmError(f"not an (H, W, C) image (shape {img.shape})")
     if img.shape[2] == 2:
         raise ReflectmmError("has 2 channels; an environment map needs 1 (grey) or 3 or more (R, G, B first)")
+    H, W = img.shape[:2]
+    if abs(W - 2 * H) > 1:
+        raise ReflectmmError(f"is {W}x{H}; an equirectangular environment map is twice as wide as high (W = 2H)")
     img = np.repeat(img, 3, axis=2) if img.shape[2] == 1 else img[..., :3]
     img = img.astype(np.float32, copy=False)
     bad = ~np.isfinite(img)

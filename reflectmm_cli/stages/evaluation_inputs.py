@@ -30,7 +30,7 @@ def load_model(path: Path):
     from reflectmm_cli.model.pca import MODEL_KIND, model_from_arrays
 
     art = read_artifact(path, MODEL_KIND)
-    return model_from_arrays(art.arrays, art.meta.get("stats"))
+    return model_from_arrays(art.arrays, art.meta.get("stats"), path=path)
 
 
 def load_light_model(path: Path):
@@ -80,7 +80,12 @@ def albedo_inputs(methods: Sequence[Method], observations: Sequence[Path], truth
         if iid in idents:
             raise ReflectmmError(f"evaluate albedo: identity '{iid}' given twice", p)
         obs = read_artifact(p, "uv-observations").arrays
-        tr = read_artifact(truths[iid], "synth-truth").arrays
+        tart = read_artifact(truths[iid], "synth-truth")
+        told = str(tart.meta.get("identity") or iid)
+        if told != iid:  # matched by file name: a renamed truth file would score another identity's fit
+            raise ReflectmmError(f"evaluate albedo: is identity {told}'s truth, but {p} holds identity {iid}'s "
+                                 "observations", truths[iid])
+        tr = tart.arrays
         for k in ("albedo", "spec_albedo"):
             if k not in tr:
                 raise ReflectmmError(f"evaluate albedo: truth has no '{k}' array (a synth multipie truth file is "

@@ -47,8 +47,13 @@ INPUTS = (
 
 
 def _two(v: list) -> None:
+    """Adam's betas: two numbers, each in [0, 1) (at 1 its moment estimates never forget and its bias correction
+    divides by zero)."""
     if len(v) != 2:
         raise ValueError(f"expected two numbers, got {len(v)}")
+    for b in v:
+        if not b < 1.0:
+            raise ValueError(f"{b:g} is not below 1 (Adam's betas lie in [0, 1))")
 
 
 def config_params() -> tuple[Param, ...]:
@@ -212,6 +217,10 @@ def run(ctx: StageContext) -> list[Path]:
         log.info("finetune: perceptual loss off (no --identity-weights given)")
     fm_path = _one(ctx, "face_model") or find_face_model(ctx.workspace, geometry=data[0])
     face_model = load_face_model(fm_path) if fm_path is not None else None
+    if face_model is not None and model.vertex_albedo_mean is not None \
+            and len(face_model.uv) != len(model.vertex_albedo_mean):  # checked before hours of training, not after
+        raise ReflectmmError(f"has {len(face_model.uv)} vertices, the reflectance model {ctx.input('model')} "
+                             f"{len(model.vertex_albedo_mean)}: not the face model it was built on", fm_path)
     train_model, solve_report = model, None
     if p["solver"] == "ls":
         mesh = (face_model.mean_shape, face_model.triangles) if face_model is not None else None

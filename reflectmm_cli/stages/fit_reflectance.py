@@ -118,6 +118,10 @@ def run(ctx: StageContext) -> list[Path]:
     fi = p.get("flash_intensity")
     cfg = FitMapsConfig.from_flat(**{k: p[k] for k in _SETTINGS}, device=ctx.device)
     maps = fit_maps(obs.arrays, cfg, flash_intensity=fi, progress=progress, path=src)
+    if maps.stats["n_texels"] and maps.stats["n_flagged"] >= maps.stats["n_texels"]:
+        raise ReflectmmError(f"no texel could be fitted: all {maps.stats['n_texels']} are ill-conditioned for the "
+                             f"lobes of exponents {', '.join(f'{e:g}' for e in maps.exponents)} (too many or too close "
+                             "for the view-flash pairs observed); nothing written", src)
     stats = {k: v for k, v in maps.stats.items() if k != "time_s"}  # no timings in artifacts (byte-identical reruns)
     out = ctx.output_path()
     resolved = {q.name: p.get(q.name) for q in sorted(PARAMS, key=lambda q: q.name)}

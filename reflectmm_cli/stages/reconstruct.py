@@ -30,6 +30,9 @@ INPUTS = (
     Input('light_model', 'light-model', upstream='build-light-pca', default=Default()),
     Input('data', 'wild-shard', upstream='prepare-wild', many=True),
     Input('images', 'photos', many=True),
+    Input('landmarks', 'landmark folder', upstream='detect-landmarks',
+          help='--images: <stem>.pts/.txt/.npy (default: the images folder, then ../landmarks)'),
+    Input('masks', 'face-parsing label folder', help='--images: CelebAMask-HQ label images <stem>.png'),
     Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
           default=Default('face-model', missing='--images needs --face-model (no face model found in the workspace)')),
 )

@@ -176,6 +176,9 @@ def model_data(arrays: Mapping[str, Any], components: int, name: str, source: Pa
                     ("albedo basis", ab), ("weights basis", wb)):
         if not np.all(np.isfinite(a)):
             raise ReflectmmError(f"view: the model's {what} contains NaN or inf", where)
+    if not np.all(sigma > 0):
+        raise ReflectmmError(f"view: the model's sigma must be > 0 ({int((~(sigma > 0)).sum())} of its {sigma.size} "
+                             "values are not): its sliders would move nothing", where)
     return ModelData(name, exps, sigma[:m], am, ab, wm, wb, n_components_total=int(sigma.size),
                      source=str(source))
 

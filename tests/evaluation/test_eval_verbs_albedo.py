@@ -159,3 +159,18 @@ def test_evaluate_albedo_bad_inputs(world, cli, tmp_path):
             "-o", tmp_path / "a.npz")
     assert r.exit_code == 1 and "UV size 8" in r.stderr
     assert not (tmp_path / "a.npz").exists()
+
+
+def test_evaluate_albedo_refuses_a_truth_file_of_another_identity(world, cli, tmp_path):
+    # truth files are found by name: another identity's truth under this name was scored without a word
+    import shutil
+
+    ws = world["ws"]
+    ours = _ours(world, tmp_path / "ours.npz")
+    fake = tmp_path / "fake_truth"
+    fake.mkdir()
+    shutil.copy(ws / "truth" / f"{TRAIN[0]}.npz", fake / f"{HELD[0]}.npz")
+    r = cli("evaluate", "albedo", "--ids", HELD[0], "--truth", fake, "-w", ws, "--method", "ours", ours, "-",
+            "-o", tmp_path / "a.npz")
+    assert r.exit_code == 1 and f"is identity {TRAIN[0]}'s truth" in r.stderr and str(fake) in r.stderr, r.stderr
+    assert not (tmp_path / "a.npz").exists()

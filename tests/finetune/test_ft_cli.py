@@ -437,3 +437,30 @@ def test_solver_ls_trains_phase1_on_the_solved_model(cli, data, tmp_path):
     assert mine.keys() == encs["solved"].keys()
     assert all(np.array_equal(mine[k], encs["solved"][k]) for k in mine)
     assert not all(np.array_equal(mine[k], encs["initial"][k]) for k in mine)
+
+
+def test_finetune_refuses_before_training_what_it_used_to_find_after(cli, data, tmp_path):
+    """A face model of another mesh was found only after both phases (hours at the paper's settings) and after the
+    failed run had written over the previous run's work folder; a model with σ ≤ 0 trained (its components could
+    only give the mean); betas of 1 failed inside torch; a learning rate that blows the loss up wrote its encoder."""
+    from _shards import cap_mesh
+
+    out = tmp_path / "ft" / "m.npz"
+    base = ("--light-model", data["light_path"], "--data", data["shards"][0], "-o", out, *TINY)
+    V, tri, uv = cap_mesh(5)
+    other = write_face_model(tmp_path / "other_fm.npz", V, tri, uv)
+    r = cli("finetune", "--model", data["init_path"], "--face-model", other, *base)
+    assert r.exit_code == 1 and "other_fm.npz: has 25 vertices" in r.stderr and "built on" in r.stderr, r.stderr
+    assert not (tmp_path / "ft").exists()  # refused before training: no work folder either
+    init = read_artifact(data["init_path"], "reflectance-model")
+    zero = write_artifact(tmp_path / "zero_sigma.npz", "reflectance-model", {**init.arrays,
+                          "sigma": np.zeros_like(init["sigma"])}, extra_meta={"stats": init.meta.get("stats")})
+    for verb in (("finetune", "--model", zero, "--face-model", data["face_model"], *base),
+                 ("reconstruct", "--refine", "--refine-from", "zero", "--model", zero, "--light-model",
+                  data["light_path"], "--data", data["shards"][0], "-o", tmp_path / "rec.npz")):
+        r = cli(*verb)
+        assert r.exit_code == 1 and "zero_sigma.npz: reflectance-model 'sigma' must be > 0" in r.stderr, r.stderr
+    r = cli("finetune", "--model", data["init_path"], "--face-model", data["face_model"], *base, "--betas", "0.9,1")
+    assert r.exit_code == 1 and "--betas: 1 is not below 1" in r.stderr and "internal error" not in r.stderr
+    r = cli("finetune", "--model", data["init_path"], "--face-model", data["face_model"], *base, "--lr1", "1e6")
+    assert r.exit_code == 1 and "training diverged" in r.stderr and not out.exists(), r.stderr

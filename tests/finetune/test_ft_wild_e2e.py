@@ -128,3 +128,54 @@ params = {{ split = "train" }}
             "--samples", 4)
     assert r.exit_code == 0, r.stderr
     assert read_artifact(tmp_path / "cli" / "finetune.npz").meta["cache_key"] == key
+
+
+def test_bad_wild_inputs_are_refused_or_said(cli, wild, tmp_path):
+    """reconstruct --landmarks DIR was refused as an unknown input; prepare-wild --from-truth with another mesh wrote
+    a shard whose truth and vertex ids disagree; landmarks collapsed to a point placed a face 350 m away; an image
+    without a skin pixel crashed the refinement."""
+    from reflectmm_cli.geometry import procedural_face_model
+    from reflectmm_cli.geometry.face_model import save_face_model
+
+    photos = tmp_path / "photos"
+    (photos / "images").mkdir(parents=True)
+    (photos / "lms").mkdir()  # not beside the images nor ../landmarks: only --landmarks finds them
+    names = sorted(p.stem for p in (wild["out"] / "images").glob("*.png"))[:3]
+    for n in names:
+        shutil.copy(wild["out"] / "images" / f"{n}.png", photos / "images" / f"{n}.png")
+        shutil.copy(wild["out"] / "landmarks" / f"{n}.pts", photos / "lms" / f"{n}.pts")
+    light = tmp_path / "light.npz"
+    assert cli("build-light-pca", wild["out"] / "envmaps", "--order", 8, "--rotations", 2, "--components", 4,
+               "-o", light).exit_code == 0
+    enc_ws = tmp_path / "ws"
+    r = cli("finetune", "--model", wild["init"], "--data", wild["shard"], "--light-model", light, "-w", enc_ws,
+            *TINY)
+    assert r.exit_code == 0, r.stderr
+    rec = ("reconstruct", "--images", photos / "images", "--face-model", wild["out"] / "face_model.npz", "--size",
+           64, "-w", enc_ws, "--light-model", light)
+    r = cli(*rec, "--landmarks", photos / "lms", "-o", tmp_path / "a.npz")
+    assert r.exit_code == 0 and read_artifact(tmp_path / "a.npz")["names"].tolist() == names, r.stderr
+    # one image's landmarks collapsed to a point: skipped and named, the others written, exit 1
+    pts = (photos / "lms" / f"{names[2]}.pts").read_text().splitlines()
+    (photos / "lms" / f"{names[2]}.pts").write_text("\n".join(
+        ln if not ln[:1].isdigit() else "30.0 30.0" for ln in pts) + "\n")
+    r = cli(*rec, "--landmarks", photos / "lms", "-o", tmp_path / "b.npz")
+    assert r.exit_code == 1 and f"{names[2]}.pts: landmarks span 0 x 0 px" in r.stderr, r.stderr
+    assert read_artifact(tmp_path / "b.npz")["names"].tolist() == names[:2]
+    # a shard image without a skin pixel: the refinement keeps its start and says so
+    a = read_artifact(wild["shard"])
+    arrays = dict(a.arrays)
+    arrays["skin_mask"] = arrays["skin_mask"].copy()
+    arrays["skin_mask"][0] = False
+    noskin = write_artifact(tmp_path / "noskin.npz", "wild-shard", arrays, extra_meta={
+        k: v for k, v in a.meta.items() if k not in ("schema", "kind", "producer", "created")}, compress=False)
+    r = cli("reconstruct", "--data", noskin, "-w", enc_ws, "--light-model", light, "--refine", "--refine-iterations",
+            2, "-o", tmp_path / "c.npz")
+    assert r.exit_code == 0 and "has no skin pixel to fit" in r.stderr and "internal error" not in r.stderr, r.stderr
+    # --from-truth with a face model of another mesh
+    other = tmp_path / "other_fm.npz"
+    save_face_model(procedural_face_model(grid=(31, 25), n_shape=2, n_exp=1, seed=0), other)
+    r = cli("prepare-wild", "--images", wild["out"] / "images", "--truth", wild["out"], "--from-truth", "--size", 64,
+            "--face-model", other, "--out", tmp_path / "shards")
+    assert r.exit_code == 1 and "other_fm.npz: has" in r.stderr and "--from-truth needs the face model" in r.stderr
+    assert not (tmp_path / "shards").exists() or not any((tmp_path / "shards").glob("*.npz"))

@@ -108,3 +108,26 @@ def test_cap_message_is_logged(tmp_path, cli):
         logging.getLogger("reflectmm").removeHandler(h)
     assert r.exit_code == 0
     assert any("N - 1 = 2" in s for s in seen)
+
+
+def test_build_pca_refuses_maps_twice_unfitted_or_negative(tmp_path, cli):
+    # the same maps twice counted twice; maps whose every texel was flagged (nothing fitted, all zero) or with
+    # negative albedo made a model, with exit 0
+    _write_maps(tmp_path, n=3)
+    d = tmp_path / "fit-reflectance"
+    out = tmp_path / "build-pca" / "build-pca.npz"
+
+    def refused(files, msg):
+        r = cli("build-pca", *[a for f in files for a in ("-i", f)], "--workspace", tmp_path)
+        assert r.exit_code == 1 and msg in r.stderr and str(files[-1]) in r.stderr and not out.exists(), r.stderr
+
+    refused([d / "000.npz", d / "001.npz", d / "000.npz"], "given twice")
+    art = read_artifact(d / "002.npz")
+    arr = dict(art.arrays)
+    write_artifact(tmp_path / "unfitted.npz", "reflectance-maps",
+                   {**arr, "albedo": np.zeros_like(arr["albedo"]), "flagged": np.ones_like(arr["flagged"])})
+    refused([d / "000.npz", d / "001.npz", tmp_path / "unfitted.npz"], "face texels is flagged: nothing was fitted")
+    write_artifact(tmp_path / "negative.npz", "reflectance-maps", {**arr, "albedo": -arr["albedo"]})
+    refused([d / "000.npz", d / "001.npz", tmp_path / "negative.npz"], "albedo below 0")
+    r = cli("build-pca", "-i", d / "000.npz", "-i", d / "001.npz", "-i", d / "002.npz", "--workspace", tmp_path)
+    assert r.exit_code == 0, r.stderr

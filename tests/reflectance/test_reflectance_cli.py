@@ -152,3 +152,27 @@ def test_refine_normals_on_the_cli_and_in_a_recipe_with_one_cache_key(cli, tmp_p
     r = cli("fit-reflectance", "--id", "042", "-w", ws, "--output", tmp_path / "a.npz", "--solver", "adam",
             "--steps", "5", "--refine-normals", "1")
     assert r.exit_code == 1 and "fast solver" in r.stderr
+
+
+def test_observations_with_nothing_to_fit_are_refused(cli, tmp_path):
+    # no pair, no observed texel, negative radiance, or lobes that no texel can separate: each used to write
+    # all-zero maps with exit 0 (or, with no pair, fail with an internal error); now one line and nothing written
+    ws = tmp_path / "ws"
+    obs, _, path = _write_obs(ws)
+    out = ws / "fit-reflectance" / "042.npz"
+
+    def refused(arrays, msg, *extra):
+        write_artifact(path, "uv-observations", arrays)
+        r = cli("fit-reflectance", "--id", "042", "--workspace", ws, *extra)
+        assert r.exit_code == 1 and msg in r.stderr and str(path) in r.stderr and not out.exists(), r.stderr
+
+    none = {k: (v[:0] if k in ("radiance", "observed", "saturated", "pair_view", "pair_flash") else v)
+            for k, v in obs.items()}
+    refused(none, "has no observed texel (no view-flash pair)")
+    refused({**obs, "observed": np.zeros_like(obs["observed"])}, "none observed")
+    refused({**obs, "radiance": -np.abs(obs["radiance"]) - 0.1}, "negative values in observed texels")
+    small = {**obs, "radiance": np.where(obs["observed"][..., None], obs["radiance"], 0.0)}
+    small["radiance"] = small["radiance"] - 1e-4 * np.abs(small["radiance"]).max()  # noise a little below 0: kept
+    write_artifact(path, "uv-observations", small)
+    assert cli("fit-reflectance", "--id", "042", "--workspace", ws, "-o", tmp_path / "ok.npz").exit_code == 0
+    refused(obs, "no texel could be fitted", "--exponents", ",".join(str(e) for e in range(1, 21)))

@@ -116,6 +116,15 @@ def test_fit_pca_single_sample_and_skips():
     assert len(skipped) == 2 and "NaN or infinite" in skipped[0][1] and "negative" in skipped[1][1]
     with pytest.raises(ReflectmmError, match="none of the 2"):
         build_light_model([bad, neg], order=2)
+    # a map that is not 2:1 is not equirectangular: skipped like the others, and named by envmap_rgb
+    square = good[:, : good.shape[0]]
+    model, skipped = build_light_model([good, square], order=2, components=3, rotations=2)
+    assert len(skipped) == 1 and "twice as wide as high" in skipped[0][1]
+    from reflectmm_cli.shading.envmap import envmap_rgb
+
+    with pytest.raises(ReflectmmError, match=r"is 8x8; an equirectangular"):
+        envmap_rgb(np.ones((8, 8, 3)))
+    assert envmap_rgb(np.ones((8, 17, 3))).shape == (8, 17, 3)  # a pixel off 2:1 is kept
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -171,6 +171,12 @@ def test_bad_inputs_are_one_line_errors(small, cli, tmp_path):
     r = cli("view", small["model"], "--face-model", tmp_path / "other.npz", "-o", tmp_path / "v.html")
     assert r.exit_code == 1 and f"the face model {other.n_vertices}" in r.stderr
     assert not (tmp_path / "v.html").exists()
+    a = dict(art.arrays)
+    a["sigma"] = np.zeros_like(a["sigma"])  # coefficients in units of σ: at 0 the sliders would move nothing
+    write_artifact(tmp_path / "zero_sigma.npz", "reflectance-model", a)
+    r = cli("view", tmp_path / "zero_sigma.npz", "--face-model", small["fm_path"], "-o", tmp_path / "v.html")
+    assert r.exit_code == 1 and "zero_sigma.npz" in r.stderr and "sigma must be > 0" in r.stderr
+    assert not (tmp_path / "v.html").exists()
     with pytest.raises(ReflectmmError):
         ViewerOptions(encoding="f8")
 
