@@ -87,6 +87,21 @@ def _check_finite(arrays, path) -> None:
             raise ReflectmmError(f"array '{k}' contains NaN or inf ({int((~np.isfinite(a)).sum())} values)", path)
 
 
+def _shard_face_model_vertices(shards) -> int | None:
+    """The vertex count of the face model the shards' meta records, when that file is a readable face-model
+    artifact (None otherwise: the vertex-id bound above is then the only check)."""
+    from reflectmm_cli.artifacts import read_artifact
+
+    ref = getattr(shards, "face_model", None) or {}
+    path = ref.get("resolved")
+    if not path or not str(path).endswith(".npz") or not Path(path).is_file():
+        return None
+    try:
+        return int(read_artifact(path, "face-model", members=("mean_shape",))["mean_shape"].shape[0])
+    except ReflectmmError:
+        return None
+
+
 def check_inputs(shards: ShardSet, model, light, verb: str = "finetune") -> None:
     """One-line errors (prefixed with ``verb``) for a model/light-model/shard mismatch (vertex count, SH order,
     per-vertex part)."""
@@ -97,6 +112,11 @@ def check_inputs(shards: ShardSet, model, light, verb: str = "finetune") -> None
     if vmax >= V:
         raise ReflectmmError(f"{verb}: the shards reference vertex {vmax} but the reflectance model has {V} "
                              f"vertices (shards made with another face model?)")
+    n_fm = _shard_face_model_vertices(shards)
+    if n_fm is not None and n_fm != V:  # a smaller mesh's ids all lie below V: only its face model tells
+        raise ReflectmmError(f"{verb}: the shards were made with a face model of {n_fm} vertices "
+                             f"({shards.face_model.get('resolved')}), the reflectance model has {V}",
+                             shards.sources[0] if getattr(shards, "sources", None) else None)
     if int(light.order) != int(shards.sh_order):
         raise ReflectmmError(f"{verb}: the light model has SH order {light.order} but the shards were prepared "
                              f"for order {shards.sh_order}")

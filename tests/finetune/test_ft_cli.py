@@ -464,3 +464,12 @@ def test_finetune_refuses_before_training_what_it_used_to_find_after(cli, data, 
     assert r.exit_code == 1 and "--betas: 1 is not below 1" in r.stderr and "internal error" not in r.stderr
     r = cli("finetune", "--model", data["init_path"], "--face-model", data["face_model"], *base, "--lr1", "1e6")
     assert r.exit_code == 1 and "training diverged" in r.stderr and not out.exists(), r.stderr
+    # shards made with a smaller mesh: their vertex ids all lie below the model's count; their face model tells
+    import dataclasses
+
+    from reflectmm_cli.finetune.train import check_inputs
+
+    ss = load_shards(data["shards"])
+    check_inputs(ss, data["truth"], data["light"])
+    with pytest.raises(ReflectmmError, match="made with a face model of 25 vertices"):
+        check_inputs(dataclasses.replace(ss, face_model={"resolved": str(other)}), data["truth"], data["light"])
