@@ -358,12 +358,11 @@ def check_observations(obs: Mapping[str, np.ndarray], path=None) -> int:
     if bad.any():
         raise ReflectmmError(f"uv-observations 'radiance' has {int(bad.sum())} NaN/inf values in observed texels",
                              path)
-    if P == 0 or not obsm.any():
-        raise ReflectmmError("uv-observations has no observed texel (" + ("no view-flash pair" if P == 0 else
-                             f"{P} pairs, none observed") + "): nothing to fit; check unwrap-uv's --views and "
-                             "--flashes and the geometry", path)
+    if P == 0:
+        raise ReflectmmError("uv-observations has no observed texel (no view-flash pair): nothing to fit; check "
+                             "unwrap-uv's --views and --flashes and the geometry", path)
     seen = rad[obsm]
-    neg = int((seen < -NEGATIVE_RADIANCE_TOL * max(float(np.abs(seen).max()), 1e-12)).sum())
+    neg = int((seen < -NEGATIVE_RADIANCE_TOL * max(float(np.abs(seen).max()), 1e-12)).sum()) if seen.size else 0
     if neg:
         raise ReflectmmError(f"uv-observations 'radiance' has {neg} negative values in observed texels (linear "
                              "radiance is ≥ 0): a capture in another encoding, or a corrupt file", path)

@@ -10,6 +10,8 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import numpy as np
+
 from reflectmm_cli.artifacts import make_meta, read_artifact, write_artifact, write_exr, write_png
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
@@ -115,6 +117,10 @@ def run(ctx: StageContext) -> list[Path]:
     if not src.exists():
         raise ReflectmmError("uv-observations input not found (run unwrap-uv first or give --input)", src)
     obs = read_artifact(src, "uv-observations")
+    observed = np.asarray(obs.arrays.get("observed", np.zeros(0, bool)), bool)
+    if observed.size and not observed.any():  # the library would flag every texel; a verb writes no such maps
+        raise ReflectmmError(f"uv-observations has no observed texel ({observed.shape[0]} pairs, none observed): "
+                             "nothing to fit; check unwrap-uv's --views and --flashes and the geometry", src)
     fi = p.get("flash_intensity")
     cfg = FitMapsConfig.from_flat(**{k: p[k] for k in _SETTINGS}, device=ctx.device)
     maps = fit_maps(obs.arrays, cfg, flash_intensity=fi, progress=progress, path=src)

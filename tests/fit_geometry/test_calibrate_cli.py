@@ -275,26 +275,33 @@ def test_calibrate_rig_and_fit_without_the_side_landmarks(world, cli, tmp_path):
     assert len(r.output.strip().splitlines()) == 1 and not (tmp_path / "bad" / "c.npz").exists()
 
 
+def _calibrated_with_a_copied_face_model(world, cli, tmp_path, name):
+    """A workspace ``name`` whose rig calibrate-rig made from the world's four captures with a copy of the world's
+    face model (``fm.npz`` in ``tmp_path``) and ``jaw=0``; returns (workspace, face model copy)."""
+    import shutil
+
+    ws = tmp_path / name
+    ws.mkdir()
+    fm = tmp_path / "fm.npz"
+    shutil.copy(world / "syn" / "face_model.npz", fm)
+    caps = [a for i in range(1, 5) for a in ("--capture", world / "preprocess-multipie" / f"{i:03d}.npz")]
+    true = load_rig(world / "syn" / "rig.toml")
+    r = cli("calibrate-rig", *caps, "-w", ws, "--face-model", fm, "--rig", world / "syn" / "rig.toml", "--focal",
+            true.camera("05_1").focal_px, "--landmark-weights", "jaw=0")
+    assert r.exit_code == 0, r.output
+    return ws, fm
+
+
 def test_a_calibrated_rig_brings_its_landmark_definition(world, cli, tmp_path):
     """A calibration placed the cameras from landmarks on its face model's vertices with its landmark weights.
     fit-geometry in that workspace takes both by default and says so; on that rig with other weights (given
     explicitly) it warns in one line naming the rig and what to pass; with the calibration's weights and a byte
     copy of its face model it does not.  A table that no calibration wrote has no landmark definition."""
-    import shutil
-
     from reflectmm_cli.geometry_fit import FitConfig
     from reflectmm_cli.stages.fit_geometry import check_rig_landmarks
     from reflectmm_cli.workspace import rig_calibration
 
-    ws2 = tmp_path / "ws2"
-    ws2.mkdir()
-    fm = tmp_path / "fm.npz"
-    shutil.copy(world / "syn" / "face_model.npz", fm)
-    caps = [a for i in range(1, 5) for a in ("--capture", world / "preprocess-multipie" / f"{i:03d}.npz")]
-    true = load_rig(world / "syn" / "rig.toml")
-    r = cli("calibrate-rig", *caps, "-w", ws2, "--face-model", fm, "--rig", world / "syn" / "rig.toml", "--focal",
-            true.camera("05_1").focal_px, "--landmark-weights", "jaw=0")
-    assert r.exit_code == 0, r.output
+    ws2, fm = _calibrated_with_a_copied_face_model(world, cli, tmp_path, "ws2")
     rig = ws2 / "calibrate-rig" / "rig.toml"
     cal = rig_calibration(rig)
     assert cal.face_model.resolve() == fm.resolve() and cal.landmark_weights == {"jaw": 0.0}
@@ -334,15 +341,7 @@ def test_a_calibrated_rig_whose_record_is_lost_or_changed_is_refused(world, cli,
     model."""
     import shutil
 
-    ws = tmp_path / "ws"
-    ws.mkdir()
-    fm = tmp_path / "fm.npz"
-    shutil.copy(world / "syn" / "face_model.npz", fm)
-    caps = [a for i in range(1, 5) for a in ("--capture", world / "preprocess-multipie" / f"{i:03d}.npz")]
-    true = load_rig(world / "syn" / "rig.toml")
-    r = cli("calibrate-rig", *caps, "-w", ws, "--face-model", fm, "--rig", world / "syn" / "rig.toml", "--focal",
-            true.camera("05_1").focal_px, "--landmark-weights", "jaw=0")
-    assert r.exit_code == 0, r.output
+    ws, fm = _calibrated_with_a_copied_face_model(world, cli, tmp_path, "ws")
     art = ws / "calibrate-rig" / "calibrate-rig.npz"
     common = ("--id", "001", "-w", ws, "--capture", world / "preprocess-multipie" / "001.npz", "--iters", "20",
               "--photo-rounds", "0", "--flash-rounds", "0", "--no-overlay")
