@@ -159,6 +159,10 @@ class Trainer:
         if config.epochs1 == 0 and config.epochs2 == 0:
             self.log("finetune: warning: --epochs1 0 --epochs2 0: no training step; the encoder written is the "
                      "untrained initialisation and the model is the initial one")
+        elif ((config.epochs1 == 0 or config.lr1 == 0) and (config.epochs2 == 0 or config.lr2 == 0)
+              and (config.epochs2 == 0 or config.model_lr == 0)):
+            self.log("finetune: warning: every learning rate of the phases that run is 0: the steps change nothing; "
+                     "the encoder written is the one the run starts from and the model is the initial one")
         self.M, self.NL = M, NL
         dc = getattr(light, "dc", None)
         self.z0 = float(np.mean(dc)) if dc is not None and np.size(dc) and np.all(np.asarray(dc) > 0) else 1.0

@@ -37,6 +37,9 @@ def load_maps(paths: list[Path]):
         if exps is None:
             exps, first = e, p
         elif e.shape != exps.shape or not np.allclose(e, exps):
+            if e.shape == exps.shape and np.allclose(np.sort(e), np.sort(exps)):
+                raise ReflectmmError(f"lobe exponents {e.tolist()} are those of {first} in another order "
+                                     f"({exps.tolist()}); fit every identity with one order (--exponents)", p)
             raise ReflectmmError(f"lobe exponents {e.tolist()} differ from {exps.tolist()} of {first}; a model "
                                  "needs one set of exponents", p)
         ids.append(str(art.meta.get("identity") or art.meta.get("params", {}).get("id") or Path(p).stem))

@@ -12,6 +12,7 @@ of the per-component standard deviation σ_k, so a standard normal prior on γ m
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,8 @@ from reflectmm_cli.geometry.rotations import rotation_x, rotation_y  # re-export
 from reflectmm_cli.shading._array import any_torch, device_of
 from reflectmm_cli.shading.envmap import envmap_from_sh, envmap_rgb, project_envmap
 from reflectmm_cli.shading.sh import sh_order, sh_rotation
+
+log = logging.getLogger("reflectmm")
 
 __all__ = [
     "LIGHT_MODEL_KIND",
@@ -73,15 +76,22 @@ class LightModel:
 
 
 def find_envmaps(inputs: Iterable[str | Path]) -> list[Path]:
-    """Expand folders (non-recursive … recursive) into HDR map files; keep explicit files as given."""
+    """Expand folders (non-recursive … recursive) into HDR map files; keep explicit files as given.  A file reached
+    twice (named twice, or named and inside a named folder) is kept once, and said: it would count twice."""
     files: list[Path] = []
+    seen: set[Path] = set()
     for p in inputs:
         p = Path(p)
-        if p.is_dir():
-            files.extend(sorted(q for q in p.rglob("*")
-                                if q.is_file() and q.suffix.lower() in ENVMAP_SUFFIXES and not q.name.startswith(".")))
-        else:
-            files.append(p)
+        found = (sorted(q for q in p.rglob("*")
+                        if q.is_file() and q.suffix.lower() in ENVMAP_SUFFIXES and not q.name.startswith("."))
+                 if p.is_dir() else [p])
+        for q in found:
+            key = q.resolve()
+            if key in seen:
+                log.warning("environment map %s given more than once: counted once", q)
+                continue
+            seen.add(key)
+            files.append(q)
     return files
 
 

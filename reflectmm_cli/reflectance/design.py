@@ -105,10 +105,11 @@ def pair_irradiance(flash_intensity, n_flash: int, override=None) -> np.ndarray:
             I = np.full(n_flash, float(I[0]))
     else:
         I = np.asarray(flash_intensity, dtype=np.float64).reshape(-1)
+    what = "--flash-intensity" if override is not None else "the observations' flash_intensity"
     if I.shape != (n_flash,):
-        raise ReflectmmError(f"flash_intensity has {I.size} values, expected 1 or {n_flash} (one per flash)")
+        raise ReflectmmError(f"{what} has {I.size} values, expected 1 or {n_flash} (one per flash)")
     if not np.all(np.isfinite(I)) or np.any(I <= 0):
-        raise ReflectmmError(f"flash_intensity must be finite and > 0, got {I.tolist()}")
+        raise ReflectmmError(f"{what} must be finite and > 0, got {I.tolist()}")
     return I
 
 
@@ -352,6 +353,9 @@ def check_observations(obs: Mapping[str, np.ndarray], path=None) -> int:
         bad = ~np.isfinite(a) if m is None else (~np.isfinite(a)) & m[..., None]
         if bad.any():
             raise ReflectmmError(f"uv-observations '{k}' has {int(bad.sum())} NaN/inf values", path)
+    fi = np.asarray(obs["flash_intensity"], dtype=np.float64)
+    if np.any(fi <= 0):
+        raise ReflectmmError(f"uv-observations 'flash_intensity' must be > 0, got {fi.tolist()}", path)
     rad = np.asarray(obs["radiance"])
     obsm = np.asarray(obs["observed"], bool)
     bad = ~np.isfinite(rad) & obsm[..., None]

@@ -473,3 +473,14 @@ def test_finetune_refuses_before_training_what_it_used_to_find_after(cli, data, 
     check_inputs(ss, data["truth"], data["light"])
     with pytest.raises(ReflectmmError, match="made with a face model of 25 vertices"):
         check_inputs(dataclasses.replace(ss, face_model={"resolved": str(other)}), data["truth"], data["light"])
+
+
+def test_every_learning_rate_at_zero_is_said(cli, data, tmp_path):
+    # like --epochs1 0 --epochs2 0, the run changes nothing: it used to say nothing
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", tmp_path / "m.npz", *TINY,
+            "--lr1", "0", "--lr2", "0", "--model-lr", "0")
+    assert r.exit_code == 0 and "every learning rate of the phases that run is 0" in r.stderr, r.stderr
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", tmp_path / "n.npz", *TINY)
+    assert r.exit_code == 0 and "learning rate" not in r.stderr

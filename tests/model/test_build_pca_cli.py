@@ -129,5 +129,8 @@ def test_build_pca_refuses_maps_twice_unfitted_or_negative(tmp_path, cli):
     refused([d / "000.npz", d / "001.npz", tmp_path / "unfitted.npz"], "face texels is flagged: nothing was fitted")
     write_artifact(tmp_path / "negative.npz", "reflectance-maps", {**arr, "albedo": -arr["albedo"]})
     refused([d / "000.npz", d / "001.npz", tmp_path / "negative.npz"], "albedo below 0")
+    write_artifact(tmp_path / "reordered.npz", "reflectance-maps", {**arr, "exponents": np.array([64.0, 8.0, 1.0]),
+                                                                    "weights": arr["weights"][::-1]})
+    refused([d / "000.npz", d / "001.npz", tmp_path / "reordered.npz"], "in another order")
     r = cli("build-pca", "-i", d / "000.npz", "-i", d / "001.npz", "-i", d / "002.npz", "--workspace", tmp_path)
     assert r.exit_code == 0, r.stderr

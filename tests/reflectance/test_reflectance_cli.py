@@ -176,3 +176,14 @@ def test_observations_with_nothing_to_fit_are_refused(cli, tmp_path):
     write_artifact(path, "uv-observations", small)
     assert cli("fit-reflectance", "--id", "042", "--workspace", ws, "-o", tmp_path / "ok.npz").exit_code == 0
     refused(obs, "no texel could be fitted", "--exponents", ",".join(str(e) for e in range(1, 21)))
+
+
+def test_flash_intensity_errors_name_their_source(cli, tmp_path):
+    ws = tmp_path / "ws"
+    obs, _, path = _write_obs(ws)
+    F = obs["flash_pos"].shape[0]
+    r = cli("fit-reflectance", "--id", "042", "--workspace", ws, "--flash-intensity", "1,2")
+    assert r.exit_code == 1 and f"--flash-intensity has 2 values, expected 1 or {F}" in r.stderr
+    write_artifact(path, "uv-observations", {**obs, "flash_intensity": np.zeros(F)})
+    r = cli("fit-reflectance", "--id", "042", "--workspace", ws)
+    assert r.exit_code == 1 and str(path) in r.stderr and "'flash_intensity' must be > 0" in r.stderr
