@@ -15,6 +15,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.stages import (evaluate_albedo, evaluate_expressive, evaluate_reconstruction, evaluate_relighting, evaluate_report,
                                   evaluate_representation, evaluate_truth)
+from reflectmm_cli.progress import log
 from reflectmm_cli.stages.defaults import default_inputs
 from reflectmm_cli.workspace import resolve_workspace
 
@@ -101,6 +102,16 @@ def _methods(specs) -> tuple[dict, list[str]]:
     return method_inputs(specs)
 
 
+def _without_encoders(inputs: dict, verb: str) -> dict:
+    """The method inputs without their encoders, for the verbs that fit coefficients instead (albedo, expressive);
+    an encoder given anyway is said to be ignored (it was dropped silently)."""
+    given = [k[len("encoder_"):] for k, v in inputs.items() if k.startswith("encoder_") and v]
+    if given:
+        log.warning("evaluate %s: the encoder of method(s) %s is not used (this evaluation fits each model's "
+                    "coefficients; give '-')", verb, ", ".join(given))
+    return {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
+
+
 def _emit_table(paths, as_json):
     art = read_artifact(paths[0], EVAL_KIND)
     if as_json:
@@ -165,7 +176,7 @@ def evaluate_albedo_cmd(ids, obs, truth, method_specs, workspace, output, as_jso
     found = default_inputs(evaluate_albedo.STAGE, resolve_workspace(workspace), {"observations": obs, "truth": truth},
                            ids=parse_ids(ids))
     inputs, names = _methods(method_specs)
-    inputs = {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
+    inputs = _without_encoders(inputs, "albedo")
     inputs.update(found)
     params = given_params(kw, evaluate_albedo.PARAMS)
     params["methods"] = names
@@ -190,7 +201,7 @@ def evaluate_expressive_cmd(truth, method_specs, workspace, output, as_json, **k
     """
     found = default_inputs(evaluate_expressive.STAGE, resolve_workspace(workspace), {"truth": [truth]})
     inputs, names = _methods(method_specs)
-    inputs = {k: v for k, v in inputs.items() if not k.startswith("encoder_")}
+    inputs = _without_encoders(inputs, "expressive")
     inputs.update(found)
     params = given_params(kw, evaluate_expressive.PARAMS)
     params["methods"] = names

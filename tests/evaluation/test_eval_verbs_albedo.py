@@ -174,3 +174,13 @@ def test_evaluate_albedo_refuses_a_truth_file_of_another_identity(world, cli, tm
             "-o", tmp_path / "a.npz")
     assert r.exit_code == 1 and f"is identity {TRAIN[0]}'s truth" in r.stderr and str(fake) in r.stderr, r.stderr
     assert not (tmp_path / "a.npz").exists()
+
+
+def test_an_encoder_given_to_evaluate_albedo_is_said_to_be_unused(world, cli, tmp_path):
+    ws = world["ws"]
+    ours = _ours(world, tmp_path / "ours.npz")
+    enc = tmp_path / "enc.safetensors"
+    enc.write_bytes(b"")
+    r = cli("evaluate", "albedo", "--ids", HELD[0], "--truth", ws / "held_truth", "-w", ws, "--method", "ours", ours,
+            enc, "-o", tmp_path / "a.npz")
+    assert r.exit_code == 0 and "the encoder of method(s) ours is not used" in r.stderr, r.stderr
