@@ -15,6 +15,7 @@ One uncompressed NPZ per shard of N aligned S×S images; its arrays (all documen
 from __future__ import annotations
 
 import json
+import logging
 import os
 import struct
 import zipfile
@@ -296,6 +297,12 @@ def list_wild_inputs(images_dir: str | Path, landmarks_dir: str | Path | None = 
     files = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
     if not files:
         raise ReflectmmError("no images (png/jpg/bmp/tif/webp) in folder", images_dir)
+    other = sorted(p.name for p in images_dir.iterdir() if p.is_file() and not p.name.startswith(".")
+                   and p.suffix.lower() not in IMAGE_EXTENSIONS + tuple(_LM_EXT))
+    if other:
+        logging.getLogger("reflectmm").warning(
+            "%s: %d file(s) of another type left out (images are png/jpg/bmp/tif/webp): %s", images_dir, len(other),
+            ", ".join(other[:5]) + (", …" if len(other) > 5 else ""))
     lm_dirs = [Path(landmarks_dir)] if landmarks_dir else [images_dir, images_dir.parent / "landmarks"]
     out = []
     for f in files:

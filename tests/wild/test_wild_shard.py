@@ -141,3 +141,18 @@ def test_opening_a_shard_checks_index_ranges_and_finiteness(small_face, tmp_path
     with pytest.raises(ReflectmmError, match=match) as exc:
         load_shards([bad])
     assert "bad.npz" in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_files_of_another_type_in_the_images_folder_are_said(tmp_path, caplog):
+    # an .exr among the photos was left out without a word; landmark files beside the images are expected
+    from reflectmm_cli.finetune.data import list_wild_inputs
+
+    (tmp_path / "a.png").write_bytes(b"")
+    (tmp_path / "a.pts").write_text("")
+    (tmp_path / "b.exr").write_bytes(b"")
+    (tmp_path / ".hidden").write_bytes(b"")
+    with caplog.at_level("WARNING", logger="reflectmm"):
+        inputs = list_wild_inputs(tmp_path)
+    assert [i.name for i in inputs] == ["a"]
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 1 and "1 file(s) of another type left out" in msgs[0] and "b.exr" in msgs[0]
