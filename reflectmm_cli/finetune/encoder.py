@@ -291,6 +291,9 @@ def load_encoder(path: str | Path, device="cpu", *, model=None, allow_other_mode
         sd = load_file(str(path))
     except Exception as e:  # safetensors raises several types for a bad header
         raise ReflectmmError(f"not a readable encoder safetensors file ({type(e).__name__}: {e})", path) from None
+    bad = next((k for k, v in sorted(sd.items()) if v.is_floating_point() and not bool(v.isfinite().all())), None)
+    if bad is not None:  # it would surface as a NaN albedo far downstream, naming neither file nor tensor
+        raise ReflectmmError(f"encoder weight '{bad}' contains NaN or inf", path)
     if model is not None:
         check_encoder_model(meta, path, model, allow_other_model=allow_other_model, warn=warn)
     try:

@@ -216,6 +216,20 @@ def test_an_encoder_is_refused_with_a_model_it_was_not_trained_for(cli, data, tm
     r = cli("evaluate", "reconstruction", "--data", data["shards"][0], "--light-model", data["light_path"],
             "--method", "x", other, enc, "--split", "val", "-o", tmp_path / "ev.npz")
     assert r.exit_code == 1 and str(other) in r.stderr and not (tmp_path / "ev.npz").exists()
+    # a NaN weight surfaced as "shading: argument 'albedo' contains NaN", naming neither file nor tensor
+    from safetensors.torch import load_file, save_file
+    from safetensors import safe_open
+
+    sd = load_file(str(enc))
+    with safe_open(str(enc), "pt") as f:
+        meta = f.metadata()
+    name = sorted(k for k, v in sd.items() if v.is_floating_point())[0]
+    sd[name] = sd[name].clone()
+    sd[name].view(-1)[0] = float("nan")
+    save_file(sd, str(tmp_path / "nan_enc.safetensors"), metadata=meta)
+    r = cli("reconstruct", *base[2:], "--encoder", tmp_path / "nan_enc.safetensors", "--model", data["init_path"],
+            "-o", tmp_path / "nan.npz")
+    assert r.exit_code == 1 and f"nan_enc.safetensors: encoder weight '{name}' contains NaN or inf" in r.stderr
 
 
 def test_a_nan_in_the_model_is_refused_at_load_naming_the_file(cli, data, tmp_path):
