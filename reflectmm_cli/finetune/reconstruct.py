@@ -44,7 +44,7 @@ class Reconstruction:
 
 def reconstruct(shards, encoder, model, light, *, indices=None, split: str | None = None, batch_size: int = 8,
                 device="cpu", refine=None, n_reflectance: int | None = None, n_light: int | None = None,
-                progress_fn=None) -> Reconstruction:
+                progress_fn=None, verb: str = "reconstruct") -> Reconstruction:
     """Reconstruct the images ``indices`` (or all of ``split``, or all) of ``shards``.
 
     Args:
@@ -55,13 +55,14 @@ def reconstruct(shards, encoder, model, light, *, indices=None, split: str | Non
             analysis-by-synthesis (the model fixed) after the encoder, or None for the encoder alone.
         n_reflectance, n_light: coefficients fitted without an encoder (default: all of each model).
         progress_fn: wraps the iterable of batches (progress on stderr).
+        verb: what an input error begins with (the verb, and for an evaluation the method and its model file).
     """
     import torch
 
     from .render import ModelParams, batch_gbuffer, lighting, scatter_pixels, shade_gbuffer
     from .train import check_inputs
 
-    check_inputs(shards, model, light, verb="reconstruct")
+    check_inputs(shards, model, light, verb=verb)
     if encoder is None and refine is None:
         raise ReflectmmError("reconstruct: give an encoder, or refine the images without one")
     if encoder is not None:

@@ -168,12 +168,13 @@ def reconstruction_predictions(methods: Sequence[Method], shards, idx: np.ndarra
         model = load_model(m.model)
         enc, _meta = load_encoder(m.encoder, device, model=m.model, allow_other_model=allow_other_model)
         say(f"evaluate reconstruction: {m.name}: {len(idx)} images")
-        rec = reconstruct(shards, enc, model, light, indices=idx, batch_size=batch_size, device=device)
+        verb = f"evaluate reconstruction: method '{m.name}' ({m.model})"
+        rec = reconstruct(shards, enc, model, light, indices=idx, batch_size=batch_size, device=device, verb=verb)
         refined = None
         if refine is not None and (refine_methods is None or m.name in refine_methods):
             say(f"evaluate reconstruction: {m.name}: refining {len(idx)} images")
             refined = reconstruct(shards, enc, model, light, indices=idx, batch_size=batch_size, device=device,
-                                  refine=refine)
+                                  refine=refine, verb=verb)
         yield _vertex_prediction(m.name, model, rec, figure=True)
         if refined is not None:
             yield _vertex_prediction(f"{m.name}-refined", model, refined)
