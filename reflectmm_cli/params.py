@@ -27,6 +27,9 @@ __all__ = ["Param", "ParamError", "parse_list", "parse_ids", "resolve_params", "
 #: Parameter kinds: scalars, comma lists, ``WxH`` sizes, and ``custom`` (a ``convert`` function).
 KINDS = ("int", "float", "str", "bool", "floats", "ints", "strs", "size", "path", "custom")
 
+#: The range of every random seed: numpy's generators take no negative seed, torch's none of 2**63 or more.
+SEED_RANGE = (0, 2 ** 63 - 1)
+
 
 class ParamError(ReflectmmError):
     """A parameter value or name that the declaration refuses (one line, names the parameter)."""

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import SEED_RANGE
 
 __all__ = ["FinetuneConfig", "ARCHS", "PHOTOMETRIC", "MODEL_REG", "TRAINABLE", "VARIANTS", "RELEASED"]
 
@@ -67,7 +68,7 @@ class FinetuneConfig:
     model_lr: float = _f(1e-5, "Phase-2 model learning rate.")
     batch_size: int = _f(8, "Images per step.", range=(1, None))
     betas: tuple[float, float] = _f((0.9, 0.999), "Adam betas (two numbers).", range=(0.0, 1.0))
-    seed: int = _f(0, "Seed (encoder initialisation and batch order).", range=(0, None))
+    seed: int = _f(0, "Seed (encoder initialisation and batch order).", range=SEED_RANGE)
     # bookkeeping
     checkpoint_every: int = _f(500, "Steps between checkpoints (also one at each epoch end).", range=(1, None))
     n_reflectance: int | None = _f(None, "N_R, reflectance coefficients predicted (default: all of the model).",

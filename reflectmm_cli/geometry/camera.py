@@ -245,5 +245,10 @@ def parse_camera_spec(spec: str, *, distance: float = 1000.0, focal_px: float = 
                         focal_px = fv
             except ValueError:
                 raise ReflectmmError(f"--camera '{spec}': bad value in '{part}'") from None
+    for what, v in (("distance", distance), ("focal", focal_px), ("width", width), ("height", height),
+                    ("yaw", yaw), ("pitch", pitch)):
+        if not math.isfinite(v) or (what not in ("yaw", "pitch") and v <= 0):
+            raise ReflectmmError(f"--camera '{spec}': {what} must be finite" + ("" if what in ("yaw", "pitch")
+                                                                               else " and > 0") + f", got {v:g}")
     return orbit_camera(yaw, pitch, distance, (0, 0, 0), focal_px, width, height,
                         "frontal" if spec == "frontal" else spec)

@@ -348,6 +348,9 @@ class DaskExecutor(Executor):
                     self._client = Client(self.scheduler, timeout="20s")
                 except (OSError, TimeoutError) as exc:
                     raise ReflectmmError(f"--scheduler {self.scheduler}: cannot connect ({exc})") from None
+                except (ValueError, TypeError) as exc:  # e.g. "missing port number in address"
+                    raise ReflectmmError(f"--scheduler {self.scheduler}: not a scheduler address such as "
+                                         f"tcp://HOST:8786 ({exc})") from None
             else:
                 self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
                                              dashboard_address=None)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
@@ -431,10 +432,10 @@ def resolve_device(device: str) -> str:
 
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
+    if not re.fullmatch(r"cuda(:\d+)?", device):  # the one code path runs on the CPU and on CUDA only
+        raise ReflectmmError(f"--device {device}: not a usable device (cpu, cuda, cuda:N or auto)")
+    if not torch.cuda.is_available():
         raise ReflectmmError(f"--device {device}: CUDA is not available on this machine (use --device cpu)")
-    try:
-        torch.device(device)
-    except (RuntimeError, ValueError):
-        raise ReflectmmError(f"--device {device}: not a torch device string") from None
+    if ":" in device and int(device.split(":")[1]) >= torch.cuda.device_count():
+        raise ReflectmmError(f"--device {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
     return device

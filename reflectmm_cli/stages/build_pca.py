@@ -12,7 +12,7 @@ from reflectmm_cli.artifacts import write_artifact, write_png
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.model import MODEL_KIND, model_arrays
 from reflectmm_cli.model.build import build_reflectance_model
-from reflectmm_cli.params import Param
+from reflectmm_cli.params import SEED_RANGE, Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 
@@ -21,7 +21,7 @@ VERB = "build-pca"
 PARAMS = (
     Param("components", "int", 80, range=(1, None), help="PCA components (capped by N − 1 with a message)."),
     Param("samples", "int", 30, range=(0, 1000), option="", help="Random samples rendered in the preview."),
-    Param("seed", "int", 0, option="", help="Seed of the preview samples."),
+    Param("seed", "int", 0, option="", range=SEED_RANGE, help="Seed of the preview samples."),
     Param("spread", "float", 2.0, range=(0.0, None), option="", unit="σ",
           help="± spread of the component preview."),
     Param("preview", "bool", True, option="--no-preview", help="Skip the PNG previews."),

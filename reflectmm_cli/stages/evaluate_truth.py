@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reflectmm_cli.artifacts import read_artifact, write_artifact
+from reflectmm_cli.artifacts import check_identity, read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND, flatten
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
@@ -26,17 +26,39 @@ INPUTS = (
 
 def _is_vertex_reflectance(path: Path) -> bool:
     """A plain NPZ (no artifact meta) with per-vertex ``albedo (V, 3)`` (reflectmm_cli.evaluation.external)."""
+    import zipfile
+
     try:
         with np.load(path, allow_pickle=False) as z:
             return "__meta__" not in z.files and "albedo" in z.files and z["albedo"].ndim == 2
-    except (OSError, ValueError):
-        return False
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return False  # not that format: the artifact reader names the problem
+
+
+def _checked(art, keys, path, identity) -> None:
+    """Refuse an input of another identity than the task's, without an array the errors read, with NaN or inf in
+    one, or with lobe weights that do not match its exponents (each would give a wrong or NaN table, exit 0)."""
+    check_identity(art, identity)
+    missing = [k for k in keys if k not in art.arrays]
+    if missing:
+        raise ReflectmmError(f"{art.kind} artifact has no array {', '.join(repr(k) for k in missing)} (has: "
+                             f"{', '.join(sorted(art.arrays))})", path)
+    for k in keys:
+        a = np.asarray(art[k])
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise ReflectmmError(f"{art.kind} array '{k}' has {int((~np.isfinite(a)).sum())} NaN or inf values",
+                                 path)
+    if "weights" in keys and "exponents" in art.arrays:
+        K, E = np.asarray(art["weights"]).shape[0], np.asarray(art["exponents"]).size
+        if K != E:
+            raise ReflectmmError(f"{art.kind} has {K} lobe-weight channels but {E} exponents", path)
 
 
 def evaluate_truth(maps_path: Path | None, truth_path: Path, geometry_path: Path | None = None,
-                   face_model_path: Path | None = None) -> dict:
+                   face_model_path: Path | None = None, identity: str | None = None) -> dict:
     """Library entry: the error document of fitted maps (and geometry) against a synth-truth file, or against
-    per-vertex reflectance (plain NPZ, docs/artifacts.md) laid out in UV with the face model ``face_model_path``."""
+    per-vertex reflectance (plain NPZ, docs/artifacts.md) laid out in UV with the face model ``face_model_path``.
+    ``identity``: the task's; every input that records another is refused."""
     from reflectmm_cli.evaluation.truth import geometry_errors, reflectance_errors
 
     doc: dict = {}
@@ -61,9 +83,13 @@ def evaluate_truth(maps_path: Path | None, truth_path: Path, geometry_path: Path
         raise ReflectmmError(f"is a '{truth.kind}' artifact, expected a 'synth-truth' artifact", truth_path)
     if maps_path is not None:
         maps = read_artifact(maps_path, "reflectance-maps")
+        _checked(maps, ("albedo", "weights"), maps_path, identity)
+        _checked(truth, ("albedo",), truth_path, identity)
         doc["reflectance"] = reflectance_errors(maps.arrays, truth.arrays)
     if geometry_path is not None:
         geo = read_artifact(geometry_path, "geometry")
+        _checked(geo, ("vertices",), geometry_path, identity)
+        _checked(truth, ("vertices",), truth_path, identity)
         doc["geometry"] = geometry_errors(geo.arrays, truth.arrays)
     if not doc:
         raise ReflectmmError("evaluate truth: give --maps and/or --geometry")
@@ -79,7 +105,7 @@ def run(ctx: StageContext) -> list[Path]:
     geo = ctx.input_list("geometry", required=False)
     fms = ctx.input_list("face_model", required=False)
     doc = evaluate_truth(maps[0] if maps else None, ctx.input("truth"), geo[0] if geo else None,
-                         fms[0] if fms else None)
+                         fms[0] if fms else None, identity=ctx.identity)
     flat = flatten("", doc, {})
     names = sorted(flat)
     out = ctx.output_path()

@@ -4,14 +4,14 @@ from __future__ import annotations
 from pathlib import Path
 
 from reflectmm_cli.geometry.face_model_tools import create_model
-from reflectmm_cli.params import Param
+from reflectmm_cli.params import SEED_RANGE, Param
 from reflectmm_cli.stages.base import Stage, StageContext
 
 VERB = "face-model-create"
 
 PARAMS = (
     Param("vertices", "int", 35000, range=(400, 2_000_000), help="Approximate vertex count (grid resolution)."),
-    Param("seed", "int", 0, help="Seed of the random low-frequency basis components."),
+    Param("seed", "int", 0, range=SEED_RANGE, help="Seed of the random low-frequency basis components."),
     Param("shape_components", "int", 40, range=(0, 200), help="Shape basis components."),
     Param("exp_components", "int", 20, range=(0, 100), help="Expression basis components."),
     Param("no_preview", "bool", False, help="Do not write the PNG preview."),

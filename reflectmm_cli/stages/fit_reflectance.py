@@ -12,9 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from reflectmm_cli.artifacts import make_meta, read_artifact, write_artifact, write_exr, write_png
+from reflectmm_cli.artifacts import (artifact_identity, check_identity, make_meta, read_artifact, write_artifact,
+                                     write_exr, write_png)
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.params import Param
+from reflectmm_cli.params import SEED_RANGE, Param
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.reflectance.fit import FitMapsConfig
 from reflectmm_cli.shading.brdf import check_exponents
@@ -62,12 +63,12 @@ SOLVER_PARAMS = (
 )
 
 PARAMS = (EXPONENTS,) + SOLVER_PARAMS + (
-    _cfg("steps", "int", range=(1, None), help="Adam steps."),
+    _cfg("steps", "int", range=(1, 10 ** 7), help="Adam steps."),
     Param("flash_intensity", "floats", None, range=(0.0, None), low_open=True,
           help="Flash radiant intensity (one value or one per flash, comma separated); default: the "
                "observations' values. Sets the global scale of C and W."),
     _cfg("cond_min", "float", range=(0.0, 1.0), help="Flag texels whose pooled conditioning is below this."),
-    _cfg("seed", "int", help="Seed of Adam's random flips."),
+    _cfg("seed", "int", range=SEED_RANGE, help="Seed of Adam's random flips."),
     _cfg("refine_normals", "int", range=(0, 100),
           help="Photometric normal refinement: alternations of Gauss–Newton steps of each texel's normal and the "
                "reflectance solve (fast solver; 0 = off)."),
@@ -116,7 +117,7 @@ def run(ctx: StageContext) -> list[Path]:
     src = input_path(ctx)
     if not src.exists():
         raise ReflectmmError("uv-observations input not found (run unwrap-uv first or give --input)", src)
-    obs = read_artifact(src, "uv-observations")
+    obs = check_identity(read_artifact(src, "uv-observations"), ctx.identity)
     observed = np.asarray(obs.arrays.get("observed", np.zeros(0, bool)), bool)
     if observed.size and not observed.any():  # the library would flag every texel; a verb writes no such maps
         raise ReflectmmError(f"uv-observations has no observed texel ({observed.shape[0]} pairs, none observed): "
@@ -136,6 +137,9 @@ def run(ctx: StageContext) -> list[Path]:
              "scale": "radiance = C·E·cos/π + Σ W·E·f·cos_h^p with E = flash_intensity/d²; scaling "
                       "flash_intensity by k scales C and W by 1/k (global scale ambiguity)",
              "flash_intensity_used": (fi if fi is not None else [float(v) for v in obs["flash_intensity"]])}
+    ident = ctx.identity if ctx.identity is not None else artifact_identity(obs)
+    if ident is not None:  # so that a consumer can refuse another identity's maps (evaluate truth)
+        extra["identity"] = str(ident)
     write_artifact(out, "reflectance-maps", maps.arrays(), params=resolved, inputs=inputs, producer=ctx.producer(),
                    cache_key=ctx.cache_key, extra_meta=extra)
     meta = make_meta("reflectance-maps", params=resolved, inputs=inputs, producer=ctx.producer(),

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from reflectmm_cli.params import Param
+from reflectmm_cli.params import SEED_RANGE, Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Stage, StageContext
 from reflectmm_cli.stages.synth_multipie import out_dir
@@ -23,7 +23,7 @@ def _even(width: int) -> None:
 
 PARAMS = (
     Param("count", "int", aliases=("-n",), default=8, range=(1, 100000), help="Number of maps."),
-    Param("seed", "int", 0, help="Random seed (maps depend on seed and index)."),
+    Param("seed", "int", 0, range=SEED_RANGE, help="Random seed (maps depend on seed and index)."),
     Param("width", "int", 512, range=(8, 16384), unit="px", check=_even,
           help="Equirectangular width (height = width/2; even)."),
 )

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.procedural import MIN_VERTICES
-from reflectmm_cli.params import Param
+from reflectmm_cli.params import SEED_RANGE, Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Input, Stage, StageContext
 
@@ -16,7 +16,7 @@ VERB = "synth-multipie"
 
 PARAMS = (
     Param("identities", "int", aliases=("-n",), default=1, range=(1, 999), help="Number of identities."),
-    Param("seed", "int", 0, help="Random seed (identity k depends on seed, k)."),
+    Param("seed", "int", 0, range=SEED_RANGE, help="Random seed (identity k depends on seed, k)."),
     Param("brdf", "str", "ggx", choices=("ggx", "model"),
           help="Ground-truth BRDF: GGX microfacet (honest) or the 3-lobe model (exact-recovery tests)."),
     Param("skin", "str", None, choices=("single", "two-lobe"),

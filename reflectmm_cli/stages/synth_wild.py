@@ -13,7 +13,7 @@ from pathlib import Path
 
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.procedural import MIN_VERTICES
-from reflectmm_cli.params import Param
+from reflectmm_cli.params import SEED_RANGE, Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Input, Stage, StageContext
 from reflectmm_cli.stages.synth_envmaps import _even
@@ -38,7 +38,7 @@ def check_split_fractions(v: list[float]) -> None:
 
 PARAMS = (
     Param("count", "int", _D.count, aliases=("-n",), range=(1, 10_000_000), help="Number of images."),
-    Param("seed", "int", _D.seed, help="Random seed (image k depends on seed, k)."),
+    Param("seed", "int", _D.seed, range=SEED_RANGE, help="Random seed (image k depends on seed, k)."),
     Param("size", "int", _D.size, range=(32, 1024), unit="px",
           help="Image size S (the Deep3DFaceRecon camera scaled to S x S)."),
     Param("images_per_identity", "int", _D.images_per_identity, range=(1, 100000),

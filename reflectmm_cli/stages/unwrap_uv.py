@@ -150,7 +150,8 @@ def run(ctx: StageContext) -> list[Path]:
     out, prev = _outputs(ctx)
     write_artifact(out, "uv-observations", arrays, params=ctx.resolved_params(),
                    inputs=ctx.input_refs(out.parent, files),
-                   producer=ctx.producer(), cache_key=ctx.cache_key, extra_meta={"report": report})
+                   producer=ctx.producer(), cache_key=ctx.cache_key,
+                   extra_meta={"report": report, **({"identity": str(ctx.identity)} if ctx.identity else {})})
     atomic_write_bytes(prev, encode_png(previews(arrays)))
     log.info("unwrap-uv %s: %d texels, %d views x %d flashes, %d observed texel-pairs; rays: %d view, %d shadow "
              "(skipped %d back-facing, %d unseen); %d texels unseen by every view; %.2f s", ctx.identity,

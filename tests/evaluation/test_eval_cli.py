@@ -76,6 +76,36 @@ def test_evaluate_truth_cli(ggx_ws, cli):
     assert r.exit_code == 1 and "007.npz" in r.stderr
 
 
+def test_evaluate_truth_refuses_what_gave_wrong_or_nan_tables(ggx_ws, cli, tmp_path):
+    """Another identity's maps or truth were scored (albedo error 0.23 instead of 0.05); a NaN truth gave NaN
+    errors over a good output; maps with fewer weight channels than exponents passed; a truncated truth or maps
+    without weights were internal errors."""
+    maps1 = read_artifact(ggx_ws / "fit-reflectance" / "001.npz", "reflectance-maps")
+    truth1 = read_artifact(ggx_ws / "truth" / "001.npz", "synth-truth")
+    out = tmp_path / "t.npz"
+    base = ("evaluate", "truth", "--id", "001", "--workspace", ggx_ws, "-o", out)
+    cases = []
+    write_artifact(tmp_path / "t002.npz", "synth-truth", dict(truth1.arrays), extra_meta={"identity": "000"})
+    cases.append((("--truth", tmp_path / "t002.npz"), "is identity 000's synth-truth, but this task is for identity 001"))
+    cases.append((("--maps", ggx_ws / "fit-reflectance" / "000.npz"), "is identity 000's reflectance-maps"))
+    nan = {k: np.array(v) for k, v in truth1.arrays.items()}
+    nan["albedo"][0, 3, 3] = np.nan
+    write_artifact(tmp_path / "tnan.npz", "synth-truth", nan)
+    cases.append((("--truth", tmp_path / "tnan.npz"), "synth-truth array 'albedo' has 1 NaN or inf values"))
+    two = {**maps1.arrays, "weights": maps1["weights"][:2]}
+    write_artifact(tmp_path / "m2.npz", "reflectance-maps", two, extra_meta={"identity": "001"})
+    cases.append((("--maps", tmp_path / "m2.npz"), "has 2 lobe-weight channels but 3 exponents"))
+    now = {k: v for k, v in maps1.arrays.items() if k != "weights"}
+    write_artifact(tmp_path / "mnow.npz", "reflectance-maps", now, extra_meta={"identity": "001"})
+    cases.append((("--maps", tmp_path / "mnow.npz"), "reflectance-maps artifact has no array 'weights'"))
+    (tmp_path / "trunc.npz").write_bytes((ggx_ws / "truth" / "001.npz").read_bytes()[:5000])
+    cases.append((("--truth", tmp_path / "trunc.npz"), "truncated or corrupt NPZ"))
+    for extra, msg in cases:
+        r = cli(*base, *extra)
+        assert r.exit_code == 1 and msg in r.stderr and "internal error" not in r.stderr, (extra, r.stderr)
+        assert not out.exists()
+
+
 def test_evaluate_report_cli(ggx_ws, cli):
     r = cli("-q", "build-pca", "--ids", "000,001", "--workspace", ggx_ws, "--no-preview")
     assert r.exit_code == 0, r.stderr

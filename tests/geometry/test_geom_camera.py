@@ -32,6 +32,9 @@ def test_center_is_minus_Rt_t_and_yaw_direction():
     assert (c.width, c.height) == (320, 240)
     with pytest.raises(ReflectmmError, match="cannot parse"):
         parse_camera_spec("yaw:30")
+    for bad, what in (("yaw=0,focal=0", "focal"), ("distance=-5", "distance"), ("size=0x48", "width")):
+        with pytest.raises(ReflectmmError, match=f"{what} must be finite and > 0"):  # focal 0: a singular K
+            parse_camera_spec(bad)
 
 
 def test_rays_reproject_to_their_pixels():

@@ -96,7 +96,7 @@ def test_cli_errors(cli, tmp_path):
     r = cli("fit-reflectance", "--input", src, "--exponents", "1,x", "--output", tmp_path / "z.npz")
     assert r.exit_code == 1 and "--exponents" in r.stderr
     r = cli("fit-reflectance", "--input", src, "--flash-intensity", "1,2", "--output", tmp_path / "z.npz")
-    assert r.exit_code == 1 and "flash_intensity" in r.stderr
+    assert r.exit_code == 1 and "--flash-intensity has 2 values" in r.stderr
 
 
 def test_collinear_exponents_are_refused(cli, tmp_path):

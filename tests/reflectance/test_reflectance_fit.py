@@ -141,7 +141,7 @@ def test_bad_options_rejected():
         fit_maps(obs, symmetry=1.5)
     with pytest.raises(ReflectmmError, match="exponents"):
         fit_maps(obs, exponents=(1, -8))
-    with pytest.raises(ReflectmmError, match="flash_intensity"):
+    with pytest.raises(ReflectmmError, match="--flash-intensity has 2 values"):
         fit_maps(obs, flash_intensity=[1.0, 2.0])
     bad = dict(obs)
     bad["normal"] = obs["normal"][:, :3]
