@@ -257,6 +257,11 @@ class Param:
                     self._choice(x)
                 else:
                     self._bounds(x)
+            if k == "strs" and self.check is None:  # a name twice would count its view or flash twice (a param
+                # with its own check, e.g. the methods, says so in its own words)
+                twice = sorted({x for x in out if out.count(x) > 1})
+                if twice:
+                    raise ValueError(f"{', '.join(twice)} named more than once")
             return out
         # custom
         if self.convert is None:

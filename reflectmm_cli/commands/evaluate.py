@@ -249,7 +249,7 @@ def evaluate_relighting_cmd(identity, capture, geometry, face_model, light_model
 
 
 @evaluate_group.command("report")
-@click.option("--truth-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--truth-dir", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
               help="Folder of synth-truth <id>.npz (default <ws>/truth or <ws>/synth/truth).")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Markdown report path (default <ws>/evaluate-report/evaluate-report.md).")

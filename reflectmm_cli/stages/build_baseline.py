@@ -81,6 +81,12 @@ def truth_files(paths: list[Path], ids: list[str] | None) -> list[Path]:
             raise ReflectmmError(f"build-baseline: no truth file for identity '{missing[0]}' "
                                  f"(have {', '.join(sorted(by)) or 'none'})")
         files = [by[i] for i in ids]
+    seen: dict[Path, Path] = {}
+    for f in files:  # a folder and one of its files, or a file twice: that identity would count twice
+        if f.resolve() in seen:
+            raise ReflectmmError(f"build-baseline: given twice (also as {seen[f.resolve()]}): each identity counts "
+                                 "once", f)
+        seen[f.resolve()] = f
     return files
 
 
@@ -168,6 +174,11 @@ def run(ctx: StageContext) -> list[Path]:
         comps = _pca_components(int(p["components"]), len(files), "truth")
         truths, ids = load_truths(files)
         fm = load_face_model(fm_path)
+        nv = {int(np.asarray(t["vertex_albedo"]).shape[0]) for t in truths if t.get("vertex_albedo") is not None}
+        if nv and nv != {int(fm.uv.shape[0])}:  # the truth's own mesh: the per-vertex part must be laid on it
+            raise ReflectmmError(f"build-baseline: has {fm.uv.shape[0]} vertices, the truth's meshes "
+                                 f"{', '.join(str(n) for n in sorted(nv))}: not the face model the truth was made "
+                                 "with", fm_path)
         model = build_baseline(p["kind"], truths, components=comps, ids=ids, vertex_uv=fm.uv,
                                exponent=float(p["exponent"]), log=log.info)
         n = len(files)

@@ -14,7 +14,7 @@ from reflectmm_cli.evaluation.documents import EVAL_KIND
 from reflectmm_cli.params import Param, parse_list
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
-from reflectmm_cli.stages.fit_reflectance import SOLVER_PARAMS
+from reflectmm_cli.stages.fit_reflectance import SOLVER_PARAMS, check_solver_settings
 
 VERB = "evaluate-representation"
 
@@ -132,6 +132,8 @@ def _identities_with_holdout(files: list[Path], holdout: list[str], max_identiti
             break
         art = read_artifact(f, "uv-observations")
         ident = str(art.meta.get("identity") or Path(f).stem)
+        if ident in ids or ident in skipped:
+            raise ReflectmmError(f"evaluate representation: identity {ident} is given twice: each counts once", f)
         why = holdout_problem(art.arrays["flash_ids"], holdout)
         if why is not None:
             skipped.append(ident)
@@ -155,6 +157,7 @@ def run(ctx: StageContext) -> list[Path]:
                                                          comparison_table)
 
     p = ctx.params
+    check_solver_settings(p)
     files = ctx.input_list("observations")
     lp_files = ctx.input_list("lpips_weights", required=False)
     lp = load_lpips(lp_files[0] if lp_files else None, str(p["lpips_net"]))

@@ -108,6 +108,22 @@ def _channel_name(p: float) -> str:
     return f"weight.p{p:g}".replace(".", "_").replace("weight_p", "weight.p")
 
 
+#: Settings of the fast solver that the paper's Adam does not use (it fits its own L1 loss, prior and flips).
+FAST_ONLY = ("loss", "symmetry_mode", "prior", "prior_tail", "prior_tail_obs")
+
+
+def check_solver_settings(p: dict) -> None:
+    """Refuse fast-solver settings given with ``solver = "adam"``: they would be recorded in the artifact and its
+    cache key as used, while the maps are the same to the bit."""
+    if p.get("solver") != "adam":
+        return
+    default = FitMapsConfig().flat()
+    given = [k for k in FAST_ONLY if k in p and p[k] is not None and p[k] != default[k]]
+    if given:
+        raise ReflectmmError(f"{', '.join(f'--{k.replace(chr(95), chr(45))} {p[k]}' for k in given)}: setting(s) of "
+                             "the fast solver, which --solver adam does not use; leave them out")
+
+
 def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.reflectance import fit_maps
     from reflectmm_cli.reflectance.previews import (albedo_preview, flagged_preview, normal_correction_preview,
@@ -123,6 +139,7 @@ def run(ctx: StageContext) -> list[Path]:
         raise ReflectmmError(f"uv-observations has no observed texel ({observed.shape[0]} pairs, none observed): "
                              "nothing to fit; check unwrap-uv's --views and --flashes and the geometry", src)
     fi = p.get("flash_intensity")
+    check_solver_settings(p)
     cfg = FitMapsConfig.from_flat(**{k: p[k] for k in _SETTINGS}, device=ctx.device)
     maps = fit_maps(obs.arrays, cfg, flash_intensity=fi, progress=progress, path=src)
     if maps.stats["n_texels"] and maps.stats["n_flagged"] >= maps.stats["n_texels"]:

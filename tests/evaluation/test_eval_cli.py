@@ -61,6 +61,12 @@ def test_evaluate_representation_cli(ggx_ws, cli, tmp_path):
     assert r.exit_code == 1 and "02" in r.stderr and "03" in r.stderr
 
 
+def test_evaluate_representation_counts_an_identity_once(ggx_ws, cli, tmp_path):
+    f = ggx_ws / "unwrap-uv" / "000.npz"
+    r = cli("evaluate", "representation", "-i", f, "-i", f, "--workspace", ggx_ws, "-o", tmp_path / "x.npz")
+    assert r.exit_code == 1 and "identity 000 is given twice" in r.stderr and not (tmp_path / "x.npz").exists()
+
+
 def test_evaluate_truth_cli(ggx_ws, cli):
     r = cli("-q", "evaluate", "truth", "--id", "001", "--workspace", ggx_ws)
     assert r.exit_code == 0, r.stderr

@@ -184,3 +184,11 @@ def test_an_encoder_given_to_evaluate_albedo_is_said_to_be_unused(world, cli, tm
     r = cli("evaluate", "albedo", "--ids", HELD[0], "--truth", ws / "held_truth", "-w", ws, "--method", "ours", ours,
             enc, "-o", tmp_path / "a.npz")
     assert r.exit_code == 0 and "the encoder of method(s) ours is not used" in r.stderr, r.stderr
+
+
+def test_build_baseline_counts_an_identity_once(world, cli, tmp_path):
+    # a truth folder and one of its files counted that identity twice
+    ws = world["ws"]
+    r = cli("build-baseline", "--kind", "diffuse-only", "--components", "2", "--truth", ws / "truth", "--truth",
+            ws / "truth" / f"{TRAIN[0]}.npz", "--face-model", ws / "face_model.npz", "-o", tmp_path / "b.npz")
+    assert r.exit_code == 1 and "given twice" in r.stderr and not (tmp_path / "b.npz").exists(), r.stderr

@@ -187,3 +187,14 @@ def test_flash_intensity_errors_name_their_source(cli, tmp_path):
     write_artifact(path, "uv-observations", {**obs, "flash_intensity": np.zeros(F)})
     r = cli("fit-reflectance", "--id", "042", "--workspace", ws)
     assert r.exit_code == 1 and str(path) in r.stderr and "'flash_intensity' must be > 0" in r.stderr
+
+
+def test_fast_solver_settings_are_refused_with_adam(cli, tmp_path):
+    # --solver adam --loss l2 wrote maps equal to the bit to the L1 run, with loss = "l2" in their params
+    ws = tmp_path / "ws"
+    _write_obs(ws)
+    for opt, val in (("--loss", "l2"), ("--symmetry-mode", "all"), ("--prior", "0.1")):
+        r = cli("fit-reflectance", "--id", "042", "--workspace", ws, "--solver", "adam", "--steps", "2", opt, val)
+        assert r.exit_code == 1 and f"{opt} {val}: setting(s) of the fast solver" in r.stderr, r.stderr
+    r = cli("fit-reflectance", "--id", "042", "--workspace", ws, "--solver", "adam", "--steps", "2")
+    assert r.exit_code == 0, r.stderr

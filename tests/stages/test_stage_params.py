@@ -255,3 +255,15 @@ def test_execution_details_never_key_the_cache(tmp_path):
     # a result-changing param does key it
     ctx = st.context(workspace=tmp_path, identity="001", params={"w_photo": 2.0})
     assert compute_cache_key(st, ctx) not in keys
+
+
+def test_a_name_given_twice_in_a_list_param_is_refused():
+    # preprocess-multipie --views 05_1,05_1 wrote a capture holding the view twice (and --flashes likewise)
+    from reflectmm_cli.params import resolve_params
+    from reflectmm_cli.stages import preprocess_multipie
+
+    with pytest.raises(Exception, match="views: 05_1 named more than once"):
+        resolve_params(preprocess_multipie.PARAMS, {"views": "05_1,14_0,05_1"})
+    with pytest.raises(Exception, match="07 named more than once"):
+        resolve_params(preprocess_multipie.PARAMS, {"flashes": ["07", "07"]})
+    assert resolve_params(preprocess_multipie.PARAMS, {"views": "05_1,14_0"})["views"] == ["05_1", "14_0"]
