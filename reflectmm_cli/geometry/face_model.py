@@ -613,6 +613,10 @@ def _finish_imported(mean, sb, ss, eb, es, tri, mt, tb, ts, landmarks, uv, skin,
 
     n = mean.shape[0]
     _check_finite(mean, "mean_shape", path)  # before anything is computed from it
+    extent = np.ptp(np.asarray(mean, np.float64).reshape(-1, 3), axis=0) if n else np.zeros(3)
+    if (extent <= 0).sum() > 1:  # every vertex at one point or on one line: no surface (a blank or wrong array)
+        raise ReflectmmError(f"face model: the mean shape spans {extent[0]:g} x {extent[1]:g} x {extent[2]:g} "
+                             "(a point or a line, not a face): a blank or wrong 'meanshape' array", path)
     if uv is not None:
         _check_finite(uv, "uv", path)
     if uv is None:

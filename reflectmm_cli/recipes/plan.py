@@ -182,6 +182,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
         if stages[name].per_identity and not spec.per_identity:
             raise ReflectmmError(f"[stages.{name}]: verb '{spec.verb}' runs per identity; give foreach "
                                  f'(a list of ids, {{ file = "ids.txt" }} or "{ALL_FOUND}")', recipe.path)
+    _check_defaults(recipe, stages)
     for opt, val in (("--force", force), ("--only", only)):
         if val is not None and val != "*" and val not in recipe.stages:
             raise ReflectmmError(f"{opt}: unknown stage '{val}' (stages: {', '.join(recipe.stages)})")
@@ -245,6 +246,21 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
 
 
 _DEFER = object()
+
+
+def _check_defaults(recipe: Recipe, stages: dict[str, Stage]) -> None:
+    """A ``[defaults]`` param that no stage's verb declares is a typo (it was dropped silently): one line naming
+    the recipe file."""
+    known: set[str] = set(NON_INVALIDATING)
+    for name in recipe.stages:
+        st = stages[name]
+        if st.params is None or st.open_params:
+            return  # a verb that takes any param: nothing can be said
+        known |= {p.name for p in st.params}
+    unknown = [k for k in recipe.defaults if k not in known]
+    if unknown:
+        raise ReflectmmError(f"[defaults]: {', '.join(unknown)} is not a param of any stage's verb (a typo?)",
+                             recipe.path)
 
 
 def stage_params(spec: StageSpec, stage: Stage, recipe_path: Path | None,

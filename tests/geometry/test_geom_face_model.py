@@ -248,6 +248,13 @@ def test_load_bfm09_errors(small, tmp_path):
     (tmp_path / "junk.mat").write_bytes(b"not a mat file at all" * 10)
     with pytest.raises(ReflectmmError, match="junk.mat"):
         load_face_model(tmp_path / "junk.mat")
+    # a blank mean shape (every vertex at the origin) imported with exit 0 and failed later without the file
+    _write_bfm09(tmp_path / "z.mat", small, rng)
+    z = scipy.io.loadmat(str(tmp_path / "z.mat"))
+    z["shapeMU"] = np.zeros_like(z["shapeMU"])
+    scipy.io.savemat(str(tmp_path / "z.mat"), {k: v for k, v in z.items() if not k.startswith("__")})
+    with pytest.raises(ReflectmmError, match=r"z.mat: face model: the mean shape spans 0 x 0 x 0"):
+        load_face_model(tmp_path / "z.mat")
 
 
 def test_load_bfm_front(small, tmp_path):

@@ -157,3 +157,14 @@ def test_random_graphs_order_or_name_a_real_cycle(graph):
         assert nodes[0] == nodes[-1]
         hops = list(zip(nodes, nodes[1:]))
         assert all((int(x[1:]), int(y[1:])) in edges for x, y in hops)  # every hop is a real edge
+
+
+def test_a_defaults_param_no_stage_declares_is_refused(tmp_path):
+    # a typo in [defaults] was dropped silently, while the same name in a stage's params is refused
+    from reflectmm_cli.recipes import plan_recipe
+
+    (tmp_path / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[defaults]\nsolverr = "adam"\n'
+                                     '[stages.fit-reflectance]\nforeach = ["001"]\n'
+                                     'inputs = { observations = "o/001.npz" }\n')
+    with pytest.raises(ReflectmmError, match=r"r.toml: \[defaults\]: solverr is not a param of any stage's verb"):
+        plan_recipe(tmp_path / "r.toml", tmp_path)
