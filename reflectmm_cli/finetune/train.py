@@ -156,13 +156,15 @@ class Trainer:
                                       ("--light-components", config.n_light, NL, "light model")):
             if asked is not None and asked > got:
                 self.log(f"finetune: warning: {opt} {asked} but the {what} has {got} components; using {got}")
+        given = ("the model given (solved by --solver ls before training)" if "model_solve" in config.extra
+                 else "the initial one")
         if config.epochs1 == 0 and config.epochs2 == 0:
             self.log("finetune: warning: --epochs1 0 --epochs2 0: no training step; the encoder written is the "
-                     "untrained initialisation and the model is the initial one")
+                     f"untrained initialisation and the model is {given}")
         elif ((config.epochs1 == 0 or config.lr1 == 0) and (config.epochs2 == 0 or config.lr2 == 0)
               and (config.epochs2 == 0 or config.model_lr == 0)):
             self.log("finetune: warning: every learning rate of the phases that run is 0: the steps change nothing; "
-                     "the encoder written is the one the run starts from and the model is the initial one")
+                     f"the encoder written is the one the run starts from and the model is {given}")
         self.M, self.NL = M, NL
         dc = getattr(light, "dc", None)
         self.z0 = float(np.mean(dc)) if dc is not None and np.size(dc) and np.all(np.asarray(dc) > 0) else 1.0
@@ -449,8 +451,15 @@ class Trainer:
                 from None
         if meta.get("schema") != CHECKPOINT_SCHEMA:
             raise ReflectmmError(f"not a finetune checkpoint (schema {meta.get('schema')!r})", p)
-        if meta["config"] != self.cfg.to_dict():
-            diff = sorted(k for k in meta["config"] if meta["config"][k] != self.cfg.to_dict().get(k))
+        mine = self.cfg.to_dict()
+        if meta["config"] != mine:
+            diff = sorted(k for k in set(meta["config"]) | set(mine) if meta["config"].get(k) != mine.get(k)
+                          and k != "extra")
+            old_s = (meta["config"].get("extra") or {}).get("model_solve") or {}
+            new_s = (mine.get("extra") or {}).get("model_solve") or {}
+            diff += sorted(f"ls_{k}" for k in set(old_s) | set(new_s) if old_s.get(k) != new_s.get(k))
+            if not diff:
+                diff = ["extra"]
             raise ReflectmmError(f"checkpoint was made with other settings ({', '.join(diff)}); use the same "
                                  f"options or delete it", p)
         if int(meta.get("n_train", -1)) != int(len(self.train_idx)):

@@ -73,7 +73,8 @@ def run(ctx: StageContext) -> list[Path]:
     methods = methods_from_inputs(ctx.inputs, p.get("methods"), stage=VERB)
     lm = ctx.input_list("light_model", required=False)
     ob = ctx.input_list("observations", required=False)
-    cap, geo, fm = relighting_inputs(ctx.input("capture"), ctx.input("geometry"), ctx.input("face_model"))
+    cap, geo, fm = relighting_inputs(ctx.input("capture"), ctx.input("geometry"), ctx.input("face_model"),
+                                     identity=ctx.identity, observations=ob[0] if ob else None)
     sel = relighting_selection(cap, geo, view=p["view"], input_light=p["input"], holdout=p.get("holdout"),
                                source=ctx.input("capture"))
     reflectances = relighting_reflectances(methods, cap, geo, fm, sel, light_model=lm[0] if lm else None,

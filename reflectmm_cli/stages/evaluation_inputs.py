@@ -197,13 +197,20 @@ def reconstruction_predictions(methods: Sequence[Method], shards, idx: np.ndarra
 
 # --------------------------------------------------------------------------- relighting (Fig. 7)
 
-def relighting_inputs(capture: Path, geometry: Path, face_model: Path) -> tuple[dict, dict, Any]:
-    """The capture's and the geometry's arrays and the face model."""
-    from reflectmm_cli.artifacts import read_artifact
+def relighting_inputs(capture: Path, geometry: Path, face_model: Path, identity: str | None = None,
+                      observations: Path | None = None) -> tuple[dict, dict, Any]:
+    """The capture's and the geometry's arrays and the face model; each input that records another identity than
+    ``identity`` (the task's, else the capture's) is refused (another identity's geometry was accepted)."""
+    from reflectmm_cli.artifacts import artifact_identity, check_identity, read_artifact
     from reflectmm_cli.geometry.face_model import load_face_model
 
-    return (read_artifact(capture, "capture").arrays, read_artifact(geometry, "geometry").arrays,
-            load_face_model(face_model))
+    cap = read_artifact(capture, "capture")
+    ident = identity if identity is not None else artifact_identity(cap)
+    check_identity(cap, ident)
+    geo = check_identity(read_artifact(geometry, "geometry"), ident)
+    if observations is not None:
+        check_identity(read_artifact(observations, members=()), ident)  # its kind is checked where it is used
+    return cap.arrays, geo.arrays, load_face_model(face_model)
 
 
 def input_crop(image_window: np.ndarray, crop_origin, landmarks_full: np.ndarray, K, R, t, vertices, face_model, *,

@@ -225,7 +225,10 @@ def run(ctx: StageContext) -> list[Path]:
     if p["solver"] == "ls":
         mesh = (face_model.mean_shape, face_model.triangles) if face_model is not None else None
         train_model, solve_report = _least_squares_update(model, light, shards, solve_config(p), ctx, mesh)
-        cfg = cfg.replace(model_lr=0.0)  # the encoder is trained on the solved model, which stays fixed
+        # the encoder is trained on the solved model, which stays fixed; the solve's settings go with the run's
+        # config, so that --resume refuses a checkpoint trained on a model solved otherwise
+        solve = {k: v for k, v in dataclasses.asdict(solve_config(p)).items() if k != "shard_images"}  # sharding
+        cfg = cfg.replace(model_lr=0.0, extra={**dict(cfg.extra), "model_solve": solve})  # gives the same solve
     res = finetune(shards, train_model, light, cfg, output_paths(out)["workdir"], device=ctx.device,
                    identity=identity, init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")),
                    phase1_encoder=_one(ctx, "phase1_encoder"), log=log.info, threads=p.get("threads"),

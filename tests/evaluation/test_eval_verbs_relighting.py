@@ -161,6 +161,13 @@ def test_evaluate_relighting_bad_inputs(world, cli, tmp_path):
     assert r.exit_code == 1 and "view '04_1'" in r.stderr
     r = cli(*_args(world, "--exposure", "0", *enc))
     assert r.exit_code == 1 and "--exposure" in r.stderr
+    # another identity's geometry was relit with this identity's images (exit 0)
+    from reflectmm_cli.artifacts import read_artifact, write_artifact
+
+    g = read_artifact(t / "geometry.npz", "geometry")
+    write_artifact(tmp_path / "g901.npz", "geometry", dict(g.arrays), extra_meta={"identity": "901"})
+    r = cli(*[a if a != t / "geometry.npz" else tmp_path / "g901.npz" for a in _args(world, *enc)])
+    assert r.exit_code == 1 and "is identity 901's geometry, but this task is for identity 900" in r.stderr
     assert not (tmp_path / "x.npz").exists()
 
 

@@ -498,3 +498,20 @@ def test_every_learning_rate_at_zero_is_said(cli, data, tmp_path):
     r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
             data["shards"][0], "--face-model", data["face_model"], "-o", tmp_path / "n.npz", *TINY)
     assert r.exit_code == 0 and "learning rate" not in r.stderr
+
+
+def test_resume_refuses_a_checkpoint_of_another_model_solve(cli, data, tmp_path):
+    # --resume with another --ls-pull continued an encoder trained on the model solved with the old pull, and wrote
+    # it over the output beside the new model; --epochs2 0 said "the model is the initial one" of a solved model
+    out = tmp_path / "ls" / "m.npz"
+    base = ("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY, "--solver", "ls",
+            "--ls-rounds", "1", "--ls-max-pixels", "200")
+    r = cli(*base)
+    assert r.exit_code == 0, r.stderr
+    before = out.read_bytes()
+    r = cli(*base, "--ls-pull", "5", "--resume")
+    assert r.exit_code == 1 and "checkpoint was made with other settings (ls_pull)" in r.stderr, r.stderr
+    assert out.read_bytes() == before
+    r = cli(*base, "--epochs1", "0", "--epochs2", "0", "-o", tmp_path / "e0.npz")
+    assert r.exit_code == 0 and "the model is the model given (solved by --solver ls" in r.stderr, r.stderr
