@@ -62,7 +62,8 @@ class FinetuneConfig:
     # schedule
     epochs1: int = _f(20, "Phase-1 epochs (encoder only, the model frozen).", range=(0, None))
     lr1: float = _f(1e-4, "Phase-1 learning rate.")
-    epochs2: int = _f(2, "Phase-2 epochs (encoder + model); 0 = phase 1 only (no SGD update of the model; --solver ls solves it before training).",
+    epochs2: int = _f(2, "Phase-2 epochs (encoder + model); 0 = phase 1 only (no SGD update of the model; "
+                         "--solver ls solves it before training).",
                       range=(0, None))
     lr2: float = _f(1e-5, "Phase-2 encoder learning rate.")
     model_lr: float = _f(1e-5, "Phase-2 model learning rate.")

@@ -43,7 +43,7 @@ from reflectmm_cli.threads import torch_threads
 
 from .model_solve import (SolveConfig, SolveProblem, SolveReport, _expand, _fit_coefficients, _harmonic_basis,
                           _pixel_basis, _render, _theta, fitted_problem, merge_problems, pull_norms, robust_weights,
-                          round_record, solve_model, vertex_arrays)
+                          round_record, solve_model, vertex_arrays, warn_no_progress)
 
 __all__ = ["ShardTask", "run_shard", "normal_equations", "solve_normal_equations", "alternate_sharded",
            "shard_groups"]
@@ -333,6 +333,7 @@ def _rounds(run, train, val, theta0, basis, cfg: SolveConfig, keep_best: bool, s
         report.rounds.append(round_record(rnd, obj, info, v, left_out))
         say(f"model solve: round {rnd}: training objective {info['f_start']:.5g} -> {info['f_end']:.5g}, "
             f"validation objective {v:.5g}")
+        warn_no_progress(rnd, info)
         if not (v >= best[0]) or not keep_best:
             best = (v, [t.clone() for t in theta], rnd)
     report.best_round = best[2]

@@ -467,6 +467,17 @@ def fitted_problem(params, light, gbs, beta, gamma, z, max_pixels: int, n_images
     return merge_problems(probs, n_images)
 
 
+def warn_no_progress(rnd: int, info: dict) -> None:
+    """One warning line when a round's solve did not lower the training objective: the model it writes is then
+    the one it started from (``--ls-pull 0`` leaves the normal equations singular, for one)."""
+    if not info["f_end"] < info["f_start"]:
+        import logging
+
+        logging.getLogger("reflectmm").warning(
+            "model solve: round %d did not lower the training objective (%.5g -> %.5g): the model is unchanged by "
+            "it; check --ls-pull (> 0) and --ls-cg-iterations", rnd, info["f_start"], info["f_end"])
+
+
 def round_record(rnd: int, train_objective: np.ndarray, info: dict, val_objective: float, left_out: float) -> dict:
     """One round's entry of :attr:`SolveReport.rounds`."""
     return {"round": rnd, "train_refined_objective": float(np.mean(train_objective)), "solve_start": info["f_start"],
@@ -550,6 +561,7 @@ def alternate(model, light, shards, config: SolveConfig | None = None, *, refine
         report.rounds.append(round_record(rnd, obj, info, v, left_out))
         say(f"model solve: round {rnd}: training objective {info['f_start']:.5g} -> {info['f_end']:.5g} "
             f"({info['iterations']} CG iterations), validation objective {v:.5g}")
+        warn_no_progress(rnd, info)
         if not (v >= best[0]) or not keep_best:  # lower, or no validation split (NaN): keep this round
             best = (v, [t.clone() for t in theta], rnd)
     report.best_round = best[2]
