@@ -269,9 +269,15 @@ def write_envmaps(out_dir: str | Path, count: int, seed: int = 0, width: int = 5
     if count < 1:
         raise ReflectmmError(f"--count must be ≥ 1, got {count}")
     out = Path(out_dir)
+    made = [make_envmap(seed, i, width) for i in progress(range(count), desc="envmaps", total=count, unit="map")]
+    names = {out / f"env_{i:04d}_{kind}.exr" for i, (_, kind) in enumerate(made)}
+    stale = sorted(p for p in out.glob("env_*.exr") if p not in names) if out.is_dir() else []
+    if stale:  # an earlier run's maps would be read with these (build-light-pca takes the folder)
+        raise ReflectmmError(f"holds {len(stale)} environment map(s) that this run would not overwrite (e.g. "
+                             f"{stale[0].name}: an earlier run's count or seed); give an empty --out, or remove them",
+                             out)
     paths, images = [], []
-    for i in progress(range(count), desc="envmaps", total=count, unit="map"):
-        img, kind = make_envmap(seed, i, width)
+    for i, (img, kind) in enumerate(made):
         meta = dict(meta_base or {})
         meta.setdefault("schema", "reflectmm.envmap/1")
         meta["envmap"] = {"kind": kind, "index": i, "seed": seed, "width": width,

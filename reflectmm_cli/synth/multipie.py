@@ -386,6 +386,27 @@ def _write_png_codes(path: Path, img: np.ndarray) -> Path:
     return atomic_write_bytes(path, buf.tobytes())
 
 
+def _refuse_stale(out: Path, cfg: SynthConfig, cams, fls) -> None:
+    """Refuse an output folder that holds images, landmarks or truth this run would not overwrite (an earlier
+    run's other identities, cameras or flashes): preprocess-multipie would read them as part of this data set,
+    and one capture was built from two different faces.  Nothing is deleted: the folder may be a real data set."""
+    have = [p for d in ("data", "truth") if (out / d).is_dir() for p in (out / d).rglob("*") if p.is_file()]
+    if not have:
+        return
+    mine: set[Path] = set()
+    for k in range(cfg.identities):
+        code = identity_code(cfg.first_id + k)
+        mine.add(out / "truth" / f"{code}.npz")
+        for c in cams:
+            mine.add(landmark_path(out, code, c))
+            mine.update(image_path(out, code, c, shot) for shot in ("00", *fls))
+    stale = sorted(p for p in have if p not in mine)
+    if stale:
+        raise ReflectmmError(f"holds {len(stale)} file(s) that this run would not overwrite (e.g. "
+                             f"{stale[0].relative_to(out)}: an earlier run's identities, cameras or flashes); give "
+                             "an empty --out, or remove them", out)
+
+
 def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, rig: Rig | str | Path | None = None,
                    meta_params: dict | None = None, producer: dict | None = None, cache_key: str | None = None,
                    inputs: list | None = None, progress_fn: Callable | None = None,
@@ -419,6 +440,7 @@ def synth_multipie(out_dir: str | Path, cfg: SynthConfig, *, face_model=None, ri
     if model.landmarks.shape != (68,):
         raise ReflectmmError(f"face model has {model.landmarks.shape[0]} landmarks; synth multipie needs the 68 "
                              "iBUG landmarks")
+    _refuse_stale(out, cfg, cams, fls)
     params = dict(meta_params or cfg.to_params())
     written: list[Path] = []
     written.append(atomic_write_text(out / "rig.toml", rig_to_toml(the_rig, "Rig of this synthetic data set "
