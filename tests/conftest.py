@@ -42,3 +42,24 @@ def recipe_error(cli, tmp_path):
         return line
 
     return run
+
+
+@pytest.fixture
+def reflectmm_log():
+    """The messages logged on the ``reflectmm`` logger during the test (warnings and above), caught by a handler
+    of its own: the CLI's logging set-up stops propagation to the root logger, which pytest's caplog listens on."""
+    import logging
+
+    msgs: list[str] = []
+
+    class _Catch(logging.Handler):
+        def emit(self, record):
+            msgs.append(record.getMessage())
+
+    logger = logging.getLogger("reflectmm")
+    handler = _Catch(level=logging.WARNING)
+    logger.addHandler(handler)
+    try:
+        yield msgs
+    finally:
+        logger.removeHandler(handler)

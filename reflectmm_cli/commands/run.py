@@ -91,6 +91,10 @@ def run_cmd(recipe, workspace, dry_run, force, only, ids, jobs, executor, schedu
         silence_stdout()
     if dry_run:
         log.info("planned in %.3f s", report.plan_seconds)
+        errors = [t for t in report.tasks if t.status == "error"]
+        if errors:  # a layout check that a script can trust: the run would fail these
+            raise ReflectmmError(f"{len(errors)} task(s) would fail as planned (the 'error' rows above; first: "
+                                 f"{errors[0].tid}: {errors[0].reason})")
         return
     counts = report.counts()
     log.info("%s: %d ran, %d skipped, %d failed, %d blocked (plan %.2f s, run %.2f s)", report.recipe,

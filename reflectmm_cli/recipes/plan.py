@@ -249,18 +249,19 @@ _DEFER = object()
 
 
 def _check_defaults(recipe: Recipe, stages: dict[str, Stage]) -> None:
-    """A ``[defaults]`` param that no stage's verb declares is a typo (it was dropped silently): one line naming
-    the recipe file."""
+    """A ``[defaults]`` param that no verb declares is a typo (it was dropped silently): one line naming the recipe
+    file.  A name that some verb declares stays allowed, even if no stage of this recipe runs that verb."""
+    from reflectmm_cli.stages.registry import all_stages
+
     known: set[str] = set(NON_INVALIDATING)
-    for name in recipe.stages:
-        st = stages[name]
-        if st.params is None or st.open_params:
-            return  # a verb that takes any param: nothing can be said
-        known |= {p.name for p in st.params}
+    if any(st.params is None or st.open_params for st in stages.values()):
+        return  # a stage of this recipe takes any param: nothing can be said
+    for st in all_stages().values():
+        if st.params is not None:
+            known |= {p.name for p in st.params}
     unknown = [k for k in recipe.defaults if k not in known]
     if unknown:
-        raise ReflectmmError(f"[defaults]: {', '.join(unknown)} is not a param of any stage's verb (a typo?)",
-                             recipe.path)
+        raise ReflectmmError(f"[defaults]: {', '.join(unknown)} is not a param of any verb (a typo?)", recipe.path)
 
 
 def stage_params(spec: StageSpec, stage: Stage, recipe_path: Path | None,

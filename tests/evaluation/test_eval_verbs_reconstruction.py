@@ -119,16 +119,9 @@ def test_evaluate_reconstruction_bad_inputs(data, cli, tmp_path):
     r = cli(*base, "--method", "initial", data["truth_path"], data["enc_initial"], "--gain", "ours,initial")
     assert r.exit_code == 1 and "--gain names ours, not among the methods (initial)" in r.stderr
     # a model of another mesh: the message names the evaluation, the method and its model (it began "reconstruct:")
-    from reflectmm_cli.artifacts import read_artifact, write_artifact
+    from _shards import model_of_fewer_vertices
 
-    art = read_artifact(data["truth_path"], "reflectance-model")
-    arrays = dict(art.arrays)
-    for k in ("vertex_albedo_mean", "vertex_weights_mean"):
-        arrays[k] = arrays[k][:5]
-    for k in ("vertex_albedo_basis", "vertex_weights_basis"):
-        arrays[k] = arrays[k][:, :5]
-    small = write_artifact(tmp_path / "small.npz", "reflectance-model", arrays,
-                           extra_meta={"stats": art.meta.get("stats")})
+    small = model_of_fewer_vertices(data["truth_path"], tmp_path / "small.npz")
     r = cli(*base, "--method", "s", small, data["enc_initial"], "--allow-other-model")
     assert r.exit_code == 1 and f"evaluate reconstruction: method 's' ({small})" in r.stderr, r.stderr
     assert not (tmp_path / "x.npz").exists()

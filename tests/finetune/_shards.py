@@ -212,3 +212,17 @@ def wrong_initial(truth, V, seed=5):
     init.vertex_albedo_basis = truth.vertex_albedo_basis.copy()
     init.vertex_albedo_basis[2] = b3 / np.linalg.norm(b3)
     return init
+
+
+def model_of_fewer_vertices(src, dst, n=5):
+    """A copy of the reflectance-model artifact ``src`` whose per-vertex part keeps its first ``n`` vertices: a model
+    of another (smaller) mesh, for the checks that refuse it."""
+    from reflectmm_cli.artifacts import read_artifact, write_artifact
+
+    art = read_artifact(src, "reflectance-model")
+    arrays = dict(art.arrays)
+    for k in ("vertex_albedo_mean", "vertex_weights_mean"):
+        arrays[k] = arrays[k][:n]
+    for k in ("vertex_albedo_basis", "vertex_weights_basis"):
+        arrays[k] = arrays[k][:, :n]
+    return write_artifact(dst, "reflectance-model", arrays, extra_meta={"stats": art.meta.get("stats")})

@@ -4,7 +4,8 @@ import json
 import numpy as np
 import pytest
 
-from _shards import make_dataset, small_light_model, write_face_model, write_model, wrong_initial
+from _shards import (make_dataset, model_of_fewer_vertices, small_light_model, write_face_model, write_model,
+                     wrong_initial)
 from reflectmm_cli.artifacts import read_artifact, write_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.finetune.shards import load_shards
@@ -249,13 +250,7 @@ def test_a_nan_in_the_model_is_refused_at_load_naming_the_file(cli, data, tmp_pa
             "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
     assert r.exit_code == 1 and "nan.npz" in r.stderr and not (tmp_path / "rec.npz").exists()
     # a model of another face model: the message names the verb that failed
-    arrays = dict(init.arrays)
-    for k in ("vertex_albedo_mean", "vertex_weights_mean"):
-        arrays[k] = arrays[k][:5]
-    for k in ("vertex_albedo_basis", "vertex_weights_basis"):
-        arrays[k] = arrays[k][:, :5]
-    small = write_artifact(tmp_path / "small.npz", "reflectance-model", arrays,
-                           extra_meta={"stats": init.meta.get("stats")})
+    small = model_of_fewer_vertices(data["init_path"], tmp_path / "small.npz")
     r = cli("reconstruct", "--refine", "--refine-from", "zero", "--model", small, "--light-model", data["light_path"],
             "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
     assert r.exit_code == 1 and "reconstruct: the shards reference vertex" in r.stderr and "finetune:" not in r.stderr

@@ -166,5 +166,12 @@ def test_a_defaults_param_no_stage_declares_is_refused(tmp_path):
     (tmp_path / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[defaults]\nsolverr = "adam"\n'
                                      '[stages.fit-reflectance]\nforeach = ["001"]\n'
                                      'inputs = { observations = "o/001.npz" }\n')
-    with pytest.raises(ReflectmmError, match=r"r.toml: \[defaults\]: solverr is not a param of any stage's verb"):
+    with pytest.raises(ReflectmmError, match=r"r.toml: \[defaults\]: solverr is not a param of any verb"):
         plan_recipe(tmp_path / "r.toml", tmp_path)
+
+
+def test_a_dry_run_that_plans_an_error_exits_1(tmp_path, cli):
+    (tmp_path / "r.toml").write_text('schema = "reflectmm.recipe/1"\n[stages.fit-reflectance]\nforeach = ["001"]\n'
+                                     'inputs = { observations = "o/001.npz" }\n')
+    r = cli("run", tmp_path / "r.toml", "-w", tmp_path, "--dry-run")
+    assert r.exit_code == 1 and "1 task(s) would fail as planned" in r.stderr and "fit-reflectance/001" in r.stderr

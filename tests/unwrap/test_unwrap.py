@@ -181,8 +181,8 @@ def test_views_named_twice_and_a_face_model_of_another_order_are_refused(tmp_pat
                "--workspace", ws).exit_code == 0
     out = ws / "unwrap-uv" / "001.npz"
     fm = scene["face_model_path"]
-    for extra, msg in ((["--views", "05_1,05_1"], "view(s) 05_1 named more than once"),
-                       (["--flashes", "07,14,07"], "flash(es) 07 named more than once"),
+    for extra, msg in ((["--views", "05_1,05_1"], "--views: 05_1 named more than once"),
+                       (["--flashes", "07,14,07"], "--flashes: 07 named more than once"),
                        (["--views", "trusted,05_1"], "stand alone, not in a list of names")):
         res = cli("unwrap-uv", "--id", "001", "--face-model", fm, "--workspace", ws, *extra)
         assert res.exit_code == 1 and msg in res.stderr and not out.exists(), res.stderr
