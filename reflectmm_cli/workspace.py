@@ -213,7 +213,8 @@ CALIBRATED_RIG_HEADER = "Rig calibrated by calibrate-rig"
 
 
 def written_by_calibration(rig: Path) -> bool:
-    """Whether the rig table ``rig`` says (its first line, :data:`CALIBRATED_RIG_HEADER`) that calibrate-rig wrote it."""
+    """Whether the rig table ``rig`` says (its first line, :data:`CALIBRATED_RIG_HEADER`) that calibrate-rig
+    wrote it."""
     try:
         with open(rig, encoding="utf-8", errors="replace") as f:
             first = f.readline()

@@ -92,7 +92,8 @@ def test_evaluate_truth_refuses_what_gave_wrong_or_nan_tables(ggx_ws, cli, tmp_p
     base = ("evaluate", "truth", "--id", "001", "--workspace", ggx_ws, "-o", out)
     cases = []
     write_artifact(tmp_path / "t002.npz", "synth-truth", dict(truth1.arrays), extra_meta={"identity": "000"})
-    cases.append((("--truth", tmp_path / "t002.npz"), "is identity 000's synth-truth, but this task is for identity 001"))
+    cases.append((("--truth", tmp_path / "t002.npz"),
+                  "is identity 000's synth-truth, but this task is for identity 001"))
     cases.append((("--maps", ggx_ws / "fit-reflectance" / "000.npz"), "is identity 000's reflectance-maps"))
     nan = {k: np.array(v) for k, v in truth1.arrays.items()}
     nan["albedo"][0, 3, 3] = np.nan

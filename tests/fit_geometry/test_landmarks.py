@@ -79,7 +79,8 @@ def test_landmark_weights_reach_both_stages_configs():
         assert not stage.config_from_params(resolve_params(stage.PARAMS, {})).group_weights
         with pytest.raises(Exception, match="unknown group 'chin'"):
             resolve_params(stage.PARAMS, {"landmark_weights": ["chin=1"]})
-        with pytest.raises(Exception, match="landmark_weights: the weight must be a finite number ≥ 0; group jaw has -1"):
+        with pytest.raises(Exception,
+                           match="landmark_weights: the weight must be a finite number ≥ 0; group jaw has -1"):
             resolve_params(stage.PARAMS, {"landmark_weights": {"jaw": -1}})  # the group is named, as on the CLI
 
 
