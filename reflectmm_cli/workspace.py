@@ -135,17 +135,21 @@ def capture_root(capture: Any) -> Path | None:
     return None
 
 
+def _recorded_inputs(artifact: Any, is_role):
+    """The inputs an artifact (Artifact or path) records under a role that ``is_role`` accepts (``-`` read as
+    ``_``): (its meta reference, the path it resolves to), in the recorded order."""
+    meta, path = _meta_of(artifact)
+    if path is None:
+        return
+    for ref in meta.get("inputs", []):
+        if is_role(str(ref.get("role", "")).replace("-", "_")):
+            yield ref, (path.parent / ref.get("path", "")).resolve()
+
+
 def face_model_recorded_by(artifact: Any, is_face_model_role=lambda role: role == "face_model") -> Path | None:
     """The face model an artifact (Artifact or path) records among its inputs (a role that
     ``is_face_model_role`` accepts, ``-`` read as ``_``), if that file is present."""
-    meta, path = _meta_of(artifact)
-    for ref in meta.get("inputs", []):
-        role = str(ref.get("role", "")).replace("-", "_")
-        if path is not None and is_face_model_role(role):
-            p = (path.parent / ref.get("path", "")).resolve()
-            if p.is_file():
-                return p
-    return None
+    return next((p for _, p in _recorded_inputs(artifact, is_face_model_role) if p.is_file()), None)
 
 
 def face_model_from_geometry(geometry: Any) -> Path | None:
@@ -249,7 +253,7 @@ def rig_calibration(rig: Path | None) -> RigCalibration | None:
             continue
         if art.meta.get("toml") == rig.name:
             weights = (art.meta.get("params") or {}).get("landmark_weights") or {}
-            return RigCalibration(art_path, *_recorded_face_model(art, art_path),
+            return RigCalibration(art_path, *_recorded_face_model(art),
                                   landmark_weights={str(k): float(v) for k, v in weights.items()})
     if written_by_calibration(rig):
         why = "; ".join(unreadable) if unreadable else f"no {first.name} beside it"
@@ -260,16 +264,13 @@ def rig_calibration(rig: Path | None) -> RigCalibration | None:
     return None
 
 
-def _recorded_face_model(art: Any, art_path: Path) -> tuple[Path | None, str, str]:
+def _recorded_face_model(art: Any) -> tuple[Path | None, str, str]:
     """The face model a calibration artifact records, what is wrong with it and its recorded sha256: (path, "",
     sha) when it is there with the recorded bytes, (None, "", "") when none is recorded, else (path or None, the
     problem, sha)."""
     from reflectmm_cli.artifacts import sha256_file
 
-    for ref in art.meta.get("inputs", []):
-        if str(ref.get("role", "")).replace("-", "_") != "face_model":
-            continue
-        p = (art_path.parent / ref.get("path", "")).resolve()
+    for ref, p in _recorded_inputs(art, lambda role: role == "face_model"):
         want = str(ref.get("sha256") or "")
         if not p.is_file():
             return None, f"the face model it was calibrated with, {p}, is gone", want

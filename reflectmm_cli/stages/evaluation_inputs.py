@@ -66,7 +66,7 @@ def albedo_inputs(methods: Sequence[Method], observations: Sequence[Path], truth
     """The models of ``methods`` by name and ``{identity: (uv-observations arrays, truth arrays)}`` for
     :func:`reflectmm_cli.evaluation.tables.albedo_evaluation`. ``truth``: synth-truth files or folders, matched
     by identity; every model must have the observations' UV size."""
-    from reflectmm_cli.artifacts import read_artifact
+    from reflectmm_cli.artifacts import artifact_identity, read_artifact
 
     if not observations:
         raise ReflectmmError("evaluate albedo: no uv-observations given (input 'observations')")
@@ -81,7 +81,7 @@ def albedo_inputs(methods: Sequence[Method], observations: Sequence[Path], truth
             raise ReflectmmError(f"evaluate albedo: identity '{iid}' given twice", p)
         obs = read_artifact(p, "uv-observations").arrays
         tart = read_artifact(truths[iid], "synth-truth")
-        told = str(tart.meta.get("identity") or iid)
+        told = artifact_identity(tart) or iid
         if told != iid:  # matched by file name: a renamed truth file would score another identity's fit
             raise ReflectmmError(f"evaluate albedo: is identity {told}'s truth, but {p} holds identity {iid}'s "
                                  "observations", truths[iid])
