@@ -158,7 +158,7 @@ def check_finite_images(images: np.ndarray, name: str, view_names, path: str | P
     if ok.all():
         return images
     bad = np.argwhere(~ok)[0]
-    where = f"view {view_names[bad[0]]}" if len(bad) and bad[0] < len(view_names) else "an image"
+    where = f"view {view_names[bad[0]]}" if bad[0] < len(view_names) else "an image"
     if a.ndim == 5 and flash_ids is not None and bad[1] < len(flash_ids):
         where += f", flash {flash_ids[bad[1]]}"
     raise ReflectmmError(f"capture '{name}' has {int((~ok).sum())} NaN or infinite pixel value(s) (the first in "

@@ -13,9 +13,9 @@ from reflectmm_cli.commands._common import (device_option, emit, given_params, i
                                             output_option, param_options, parse_ids, run_stage_cli, workspace_option)
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
+from reflectmm_cli.progress import log
 from reflectmm_cli.stages import (evaluate_albedo, evaluate_expressive, evaluate_reconstruction, evaluate_relighting, evaluate_report,
                                   evaluate_representation, evaluate_truth)
-from reflectmm_cli.progress import log
 from reflectmm_cli.stages.defaults import default_inputs
 from reflectmm_cli.workspace import resolve_workspace
 

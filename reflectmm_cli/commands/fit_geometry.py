@@ -12,8 +12,8 @@ import click
 
 from reflectmm_cli.commands._common import (device_option, emit, given_params, id_callback, json_option,
                                             output_option, param_options, run_stage_cli, workspace_option)
-from reflectmm_cli.geometry_fit.landmarks import format_group_weights
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.geometry_fit.landmarks import format_group_weights
 from reflectmm_cli.stages.defaults import default_inputs
 from reflectmm_cli.stages.fit_geometry import PARAMS, STAGE, VERB
 from reflectmm_cli.progress import log

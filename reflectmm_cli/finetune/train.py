@@ -187,6 +187,7 @@ class Trainer:
         self.opt = self._optimizer(1)
         self.pos = (0, 0)  # (plan index, step within epoch)
         self.global_step = 0
+        self._first_loss: float | None = None  # the run's first step loss, the divergence check's reference
         self.history: list[dict] = []
         self.feat_cache: dict[str, object] = {}
         # the G-buffer never changes, so each image's SH basis of n and r (2·81 floats per pixel at order 8) is
@@ -591,7 +592,7 @@ class Trainer:
         if not torch.isfinite(total):
             raise ReflectmmError(f"finetune: the loss became {float(total)} at step {self.global_step} "
                                  f"(phase {phase}, epoch {ep}); lower the learning rate")
-        first = getattr(self, "_first_loss", None)
+        first = self._first_loss
         if first is None:
             self._first_loss = first = max(float(total.detach()), 1e-12)
         elif float(total.detach()) > DIVERGED_FACTOR * first:

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from reflectmm_cli.capture.images import check_finite_images
 from reflectmm_cli.artifacts import Artifact, check_identity, read_artifact
+from reflectmm_cli.capture.images import check_finite_images
 from reflectmm_cli.errors import ReflectmmError
 
 log = logging.getLogger("reflectmm")

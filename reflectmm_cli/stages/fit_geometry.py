@@ -274,7 +274,6 @@ def check_rig_landmarks(identity: str, rig: Path, face_model: Path, cfg: FitConf
     head in the rig, 17–26 mm of vertex error on the demo's identity 003 against 1.0 mm (docs/fit-geometry.md,
     "A calibrated rig's landmark definition").  Returns True when they agree or the rig has no calibration."""
     from reflectmm_cli.artifacts import sha256_file
-    from reflectmm_cli.errors import ReflectmmError
     from reflectmm_cli.workspace import rig_calibration
 
     try:
