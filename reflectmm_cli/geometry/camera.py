@@ -204,7 +204,12 @@ def deep3d_camera(focal: float = 1015.0, center: float = 112.0, size: int = 224,
     return Camera(K, R, t, size, size, "deep3d")
 
 
-_SPEC = re.compile(r"^(yaw|pitch|distance|dist|focal|f|width|height|size)=(-?[0-9.]+(?:x[0-9]+)?)$")
+_SPEC = re.compile(r"^(yaw|pitch|distance|dist|focal|f|width|height|size)=([-+0-9.eE]+(?:x[0-9]+)?)$")
+#: The keys of a camera spec under one name each (``dist`` is ``distance``, ``f`` is ``focal``; ``size`` sets
+#: ``width`` and ``height``).
+_SPEC_KEY = {"dist": ("distance",), "f": ("focal",), "size": ("width", "height")}
+#: Upper bounds of a camera spec: 1 km away, a focal length of 10⁷ px, 16384 px a side.
+CAMERA_SPEC_MAX = {"distance": 1e6, "focal": 1e7, "width": 16384, "height": 16384}
 
 
 def parse_camera_spec(spec: str, *, distance: float = 1000.0, focal_px: float = 1500.0, width: int = 640,
@@ -221,12 +226,17 @@ def parse_camera_spec(spec: str, *, distance: float = 1000.0, focal_px: float = 
             parts = parse_list(spec, "--camera")
         except ParamError as exc:
             raise ReflectmmError(f"--camera '{spec}': {str(exc).split(': ', 1)[-1]}") from None
+        seen: dict[str, str] = {}
         for part in parts:
             m = _SPEC.match(part)
             if not m:
                 raise ReflectmmError(f"--camera '{spec}': cannot parse '{part}' (use frontal, deep3d or "
                                      "yaw=DEG,pitch=DEG,distance=MM,focal=PX,size=WxH)")
             key, val = m.groups()
+            for name in _SPEC_KEY.get(key, (key,)):
+                if name in seen:
+                    raise ReflectmmError(f"--camera '{spec}': {name} is given twice ('{seen[name]}' and '{part}')")
+                seen[name] = part
             try:
                 if key == "size":
                     w, h = val.split("x")
@@ -250,5 +260,7 @@ def parse_camera_spec(spec: str, *, distance: float = 1000.0, focal_px: float = 
         if not math.isfinite(v) or (what not in ("yaw", "pitch") and v <= 0):
             raise ReflectmmError(f"--camera '{spec}': {what} must be finite" + ("" if what in ("yaw", "pitch")
                                                                                else " and > 0") + f", got {v:g}")
+        if v > CAMERA_SPEC_MAX.get(what, math.inf):
+            raise ReflectmmError(f"--camera '{spec}': {what} must be ≤ {CAMERA_SPEC_MAX[what]:g}, got {v:g}")
     return orbit_camera(yaw, pitch, distance, (0, 0, 0), focal_px, width, height,
                         "frontal" if spec == "frontal" else spec)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -25,24 +26,37 @@ __all__ = ["parse_coeffs", "parse_point_light", "load_sh", "load_reflectance", "
 
 
 def parse_coeffs(text: str | None, what: str = "coefficients") -> np.ndarray | None:
-    """``"0.5,-1,2"`` or a path to .npy/.txt/.json → 1-D float array (None stays None)."""
+    """``"0.5,-1,2"`` or a path to .npy/.txt/.csv/.json → 1-D float array (None stays None).  A text file may
+    separate its numbers by commas, spaces or line breaks.  Values must be finite."""
     if text is None or text == "":
         return None
     p = Path(text)
     if p.suffix.lower() in (".npy", ".txt", ".json", ".csv") and p.exists():
         try:
             if p.suffix.lower() == ".npy":
-                return np.asarray(np.load(p, allow_pickle=False), dtype=np.float64).reshape(-1)
-            if p.suffix.lower() == ".json":
-                return np.asarray(json.loads(p.read_text()), dtype=np.float64).reshape(-1)
-            return np.loadtxt(p, delimiter="," if p.suffix.lower() == ".csv" else None, ndmin=1).reshape(-1)
-        except (OSError, ValueError) as exc:
+                c = np.asarray(np.load(p, allow_pickle=False), dtype=np.float64).reshape(-1)
+            elif p.suffix.lower() == ".json":
+                c = np.asarray(json.loads(p.read_text()), dtype=np.float64).reshape(-1)
+            else:
+                c = np.array([float(t) for t in re.split(r"[,\s]+", p.read_text().strip()) if t], np.float64)
+        except (OSError, ValueError, TypeError) as exc:
             raise ReflectmmError(f"cannot read {what} ({exc})", p) from None
-    try:
-        return np.array(parse_list(text if "," in text else ",".join(text.split()), what, float), dtype=np.float64)
-    except ParamError:
-        raise ReflectmmError(f"{what}: expected comma-separated numbers or a .npy/.txt/.json file, got "
-                             f"'{text}'") from None
+        where: Path | None = p
+    else:
+        try:
+            c = np.array(parse_list(text if "," in text else ",".join(text.split()), what, float), np.float64)
+        except ParamError:
+            raise ReflectmmError(f"{what}: expected comma-separated numbers or a .npy/.txt/.csv/.json file, got "
+                                 f"'{text}'") from None
+        where = None
+    if not np.all(np.isfinite(c)):
+        raise ReflectmmError(f"{what}: the coefficients must be finite (got NaN or inf)", where)
+    return c
+
+
+#: How far a point light may be from the origin, per axis (1 km; the default intensity grows as the squared
+#: distance, which overflows float64 beyond ~1e154 mm).
+POINT_LIGHT_MAX_MM = 1e6
 
 
 def parse_point_light(text: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -55,8 +69,11 @@ def parse_point_light(text: str) -> tuple[np.ndarray, np.ndarray | None]:
         raise ReflectmmError(f"--point-light '{text}': expected x,y,z[:I] or x,y,z:r,g,b (numbers)") from None
     if p.shape != (3,) or (i is not None and i.size not in (1, 3)) or not np.all(np.isfinite(p)):
         raise ReflectmmError(f"--point-light '{text}': expected x,y,z[:I] or x,y,z:r,g,b")
-    if i is not None and np.any(i < 0):
-        raise ReflectmmError(f"--point-light '{text}': intensity must be ≥ 0")
+    if float(np.max(np.abs(p))) > POINT_LIGHT_MAX_MM:
+        raise ReflectmmError(f"--point-light '{text}': the light must be within {POINT_LIGHT_MAX_MM:g} mm of the "
+                             "origin on each axis")
+    if i is not None and (not np.all(np.isfinite(i)) or np.any(i < 0)):
+        raise ReflectmmError(f"--point-light '{text}': intensity must be finite and ≥ 0")
     return p, i
 
 
@@ -86,6 +103,8 @@ def load_sh(path: Path) -> np.ndarray:
     n = a.shape[-1] if a.ndim == 2 else 0
     if a.ndim != 2 or a.shape[0] != 3 or int(round(np.sqrt(n))) ** 2 != n:
         raise ReflectmmError(f"SH coefficients must be (3, (L+1)²), got {a.shape}", path)
+    if not np.all(np.isfinite(a)):
+        raise ReflectmmError("SH coefficients contain NaN or inf", path)
     return a
 
 
@@ -108,6 +127,9 @@ def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: 
         a, w, e = art["albedo"], art["weights"], art["exponents"]
         if coeffs:
             raise ReflectmmError("--coeffs applies to --model only")
+        for name, x in (("albedo", a), ("weights", w)):
+            if not np.all(np.isfinite(x)):
+                raise ReflectmmError(f"the maps' {name} contains NaN or inf", maps)
     else:
         from reflectmm_cli.model import sample_model
 
@@ -120,7 +142,11 @@ def load_reflectance(maps: Path | None, reflectance_model: Path | None, coeffs: 
             raise ReflectmmError(f"--coeffs: {beta.size} coefficients given, the model has {m}", model)
         if at == "vertex" and "vertex_albedo_mean" not in art.arrays:
             raise ReflectmmError("--reflectance vertex: the model has no per-vertex part", model)
-        a, w = sample_model(art.arrays, beta if beta.size else np.zeros(1), "vertex" if at == "vertex" else "uv")
+        with np.errstate(over="ignore", invalid="ignore"):
+            a, w = sample_model(art.arrays, beta if beta.size else np.zeros(1), "vertex" if at == "vertex" else "uv")
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(w))):
+            raise ReflectmmError(f"--coeffs: the model's reflectance at these coefficients is not finite (largest "
+                                 f"|β| {float(np.max(np.abs(beta))) if beta.size else 0.0:g} σ)", model)
         e = art["exponents"]
     a, w, e = np.asarray(a, np.float32), np.asarray(w, np.float32), np.asarray(e, np.float64).reshape(-1)
     if at == "vertex":
@@ -208,6 +234,9 @@ def render_face(face_model: Path, *, maps: Path | None = None, reflectance_model
         raise ReflectmmError("give exactly one light: --point-light, --envmap or --sh")
     fm = load_face_model(face_model)
     if geometry is not None:
+        if shape or exp:
+            raise ReflectmmError("--shape and --exp do not apply with --geometry (its fitted vertices are the face)",
+                                 geometry)
         g = read_artifact(geometry, "geometry")
         verts = np.asarray(g["vertices"], dtype=np.float64)
         if verts.shape != fm.mean_shape.shape:

@@ -156,7 +156,8 @@ class Default:
     Attributes:
         rule: ``output``: the upstream stage's output ``<ws>/<upstream>/<name><suffix>`` (name: ``name``, else the
             identity, else the upstream's name); for a ``many`` role, one per ``--ids`` identity (placed before
-            the given paths), else one for the identity.  ``all``: every ``*<suffix>`` the upstream wrote.  ``folder``: ``<ws>/<upstream>/``.
+            the given paths), else one for the identity.  ``all``: every ``*<suffix>`` the upstream wrote.
+            ``folder``: ``<ws>/<upstream>/``.
             ``face-model``: :func:`~reflectmm_cli.workspace.find_face_model`, consulting the first file of the roles
             ``capture`` and ``geometry`` name.  ``truth``: the workspace's truth folder (a ``many`` role), else
             ``<truth folder>/<id>.npz`` (:func:`~reflectmm_cli.workspace.find_truth_dir`, consulting ``capture``).
@@ -362,10 +363,14 @@ def _file_id(path: Path) -> tuple[int, int] | None:
 def check_no_overwrite(stage: Stage, ctx: StageContext) -> None:
     """Refuse, before anything is computed, a run whose output or side file (:meth:`Stage.expected_outputs` and
     ``side_files``) is one of its input files — the same path once symlinks, ``..`` and hard links are resolved,
-    whatever the paths were (ids, ``-o``, ``--input``).  One line naming the output, the input role and the file.
+    whatever the paths were (ids, ``-o``, ``--input``).  An NPZ input's EXR twin beside it (fit-reflectance writes
+    its maps as both) counts as that input.  One line naming the output, the input role and the file.
     :func:`run_stage` (the command line) and the recipe executors call it before ``stage.run``."""
     inputs: dict[Any, tuple[str, Path]] = {}
     explicit = {role: [Path(p) for p in paths if not Path(p).is_dir()] for role, paths in ctx.inputs.items()}
+    explicit = {role: paths + [q.with_suffix(".exr") for q in paths
+                               if q.suffix.lower() == ".npz" and q.with_suffix(".exr").is_file()]
+                for role, paths in explicit.items()}
     for files in (explicit, stage.files_to_hash(ctx)):
         for role, paths in files.items():
             for p in paths:

@@ -89,6 +89,9 @@ def run(ctx: StageContext) -> list[Path]:
     exposure = 1.0 if r["light"].get("type") == "none" else p.get("exposure")
     png = write_png(out.with_suffix(".png"), to_display(img, exposure=exposure, transfer=p["display"]))
     face = img[r["mask"]]
+    if not face.size:
+        log.warning("render: no face pixel in the %dx%d image (%s); check --camera, --shape and --exp", img.shape[1],
+                    img.shape[0], out)
     log.info("rendered %dx%d, %d face pixels, radiance max %.4g, median %.4g", img.shape[1], img.shape[0],
              int(r["mask"].sum()), float(face.max()) if face.size else 0.0,
              float(np.median(face)) if face.size else 0.0)

@@ -262,3 +262,106 @@ def test_render_and_export_fitted_geometry(cli, model_file, ws, tmp_path):
     write_artifact(tmp_path / "bad.npz", "geometry", {"vertices": np.zeros((5, 3))})
     r = cli("render", *common, "--geometry", tmp_path / "bad.npz", "-o", tmp_path / "b.exr")
     assert r.exit_code == 1 and "5 vertices" in r.stderr
+
+
+@pytest.mark.parametrize("camera, word", [
+    ("yaw=0,yaw=5", "yaw is given twice"),
+    ("dist=900,distance=1000", "distance is given twice"),
+    ("size=64x48,width=32", "width is given twice"),
+    ("distance=1e30", "distance must be ≤"),
+    ("focal=1e30", "focal must be ≤"),
+    ("size=100000x48", "width must be ≤"),
+])
+def test_render_camera_spec_refuses_twice_given_and_absurd_values(cli, model_file, ws, tmp_path, camera, word):
+    r = cli("render", "--face-model", model_file, "--maps", _maps(ws / "maps.npz"), "--point-light", "0,0,900",
+            "--camera", camera, "-o", tmp_path / "x.exr")
+    assert r.exit_code == 1 and word in r.stderr and "--camera" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.exr").exists()
+
+
+def test_camera_spec_reads_exponent_notation():
+    cam = parse_camera_spec("distance=1.2e3,focal=1.5e3,size=64x48")
+    assert cam.K[0, 0] == pytest.approx(1500.0) and np.linalg.norm(cam.t) == pytest.approx(1200.0)
+    assert (cam.width, cam.height) == (64, 48)
+
+
+@pytest.mark.parametrize("light, word", [
+    ("0,0,1e300", "within"),
+    ("0,0,900:nan", "finite"),
+    ("0,0,900:1,inf,1", "finite"),
+])
+def test_render_refuses_absurd_point_lights_without_numpy_warnings(cli, model_file, ws, tmp_path, light, word):
+    r = cli("render", "--face-model", model_file, "--maps", _maps(ws / "maps.npz"), "--point-light", light,
+            "-o", tmp_path / "x.exr")
+    assert r.exit_code == 1 and word in r.stderr and "RuntimeWarning" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_render_coefficients_must_be_finite_and_named(cli, model_file, ws, tmp_path):
+    from reflectmm_cli.model import fit_reflectance_pca, model_arrays
+
+    rng = np.random.default_rng(1)
+    albs = [rng.uniform(0.2, 0.7, (3, 16, 16)).astype(np.float32) for _ in range(4)]
+    wts = [rng.uniform(0.0, 0.2, (3, 16, 16)).astype(np.float32) for _ in range(4)]
+    write_artifact(tmp_path / "rm.npz", "reflectance-model",
+                   model_arrays(fit_reflectance_pca(albs, wts, EXPS, components=3)))
+    common = ["--face-model", model_file, "--point-light", "0,0,900", "-o", tmp_path / "x.exr"]
+    r = cli("render", *common, "--model", tmp_path / "rm.npz", "--coeffs", "nan")
+    assert r.exit_code == 1 and "--coeffs" in r.stderr and "finite" in r.stderr
+    r = cli("render", *common, "--model", tmp_path / "rm.npz", "--coeffs", "1e308,1e308")
+    assert r.exit_code == 1 and "--coeffs" in r.stderr and "rm.npz" in r.stderr and "RuntimeWarning" not in r.stderr
+    r = cli("render", *common, "--maps", _maps(ws / "maps.npz"), "--shape", "nan,0")
+    assert r.exit_code == 1 and "--shape" in r.stderr
+    bad = tmp_path / "nanmaps.npz"
+    alb = np.full((3, 8, 8), 0.5, np.float32)
+    alb[0, 3, 3] = np.nan
+    write_artifact(bad, "reflectance-maps", {"albedo": alb, "weights": np.zeros((3, 8, 8), np.float32),
+                                             "exponents": EXPS})
+    r = cli("render", *common, "--maps", bad)
+    assert r.exit_code == 1 and "nanmaps.npz" in r.stderr and "albedo" in r.stderr
+    np.save(tmp_path / "sh.npy", np.full((3, 9), np.nan))
+    r = cli("render", "--face-model", model_file, "--maps", _maps(ws / "maps.npz"), "--sh", tmp_path / "sh.npy",
+            "-o", tmp_path / "x.exr")
+    assert r.exit_code == 1 and "sh.npy" in r.stderr and "NaN" in r.stderr
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_render_reads_a_text_file_of_comma_separated_shape_coefficients(cli, model_file, ws, tmp_path):
+    (tmp_path / "shape.txt").write_text("1.5, -0.5,\n0.25\n")
+    (tmp_path / "shape_ws.txt").write_text("1.5 -0.5\n0.25\n")
+    common = ["--face-model", model_file, "--maps", _maps(ws / "maps.npz"), "--point-light", "0,0,900",
+              "--camera", "size=64x48,focal=200"]
+    assert cli("render", *common, "--shape", tmp_path / "shape.txt", "-o", tmp_path / "a.exr").exit_code == 0
+    assert cli("render", *common, "--shape", "1.5,-0.5,0.25", "-o", tmp_path / "b.exr").exit_code == 0
+    assert cli("render", *common, "--shape", tmp_path / "shape_ws.txt", "-o", tmp_path / "c.exr").exit_code == 0
+    a, b, c = (read_exr(tmp_path / f"{k}.exr")[0]["R"] for k in "abc")
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a, c)
+    mean = cli("render", *common, "-o", tmp_path / "m.exr")
+    assert mean.exit_code == 0 and not np.array_equal(read_exr(tmp_path / "m.exr")[0]["R"], a)
+
+
+def test_render_refuses_shape_with_a_fitted_geometry(cli, model_file, ws, tmp_path):
+    fm = load_face_model(model_file)
+    write_artifact(tmp_path / "g.npz", "geometry", {"vertices": fm.mean_shape.astype(np.float32)})
+    r = cli("render", "--face-model", model_file, "--maps", _maps(ws / "maps.npz"), "--point-light", "0,0,900",
+            "--geometry", tmp_path / "g.npz", "--shape", "1,2", "-o", tmp_path / "x.exr")
+    assert r.exit_code == 1 and "--shape" in r.stderr and "g.npz" in r.stderr
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_render_warns_when_no_face_pixel_is_rendered(cli, model_file, ws, tmp_path, reflectmm_log):
+    r = cli("render", "--face-model", model_file, "--maps", _maps(ws / "maps.npz"), "--point-light", "0,0,900",
+            "--camera", "size=4x4,focal=1", "-o", tmp_path / "x.exr")  # the face within one pixel, between rays
+    assert r.exit_code == 0
+    assert any("no face pixel" in m for m in reflectmm_log)
+
+
+def test_render_refuses_to_replace_the_exr_beside_its_maps(cli, model_file, ws, tmp_path):
+    maps = _maps(tmp_path / "m.npz")
+    exr = tmp_path / "m.exr"
+    exr.write_bytes(b"the maps' EXR twin")
+    r = cli("render", "--face-model", model_file, "--maps", maps, "--point-light", "0,0,900",
+            "--camera", "size=64x48,focal=200", "-o", exr)
+    assert r.exit_code == 1 and "would overwrite its own input 'maps'" in r.stderr
+    assert exr.read_bytes() == b"the maps' EXR twin"
