@@ -361,6 +361,23 @@ def _truth_at_size(a: np.ndarray, size: int, interpolation: str = "linear") -> n
     return warp_to_crop(a, A, size, interpolation=interpolation)
 
 
+def _landmarks_in_frame(inp: WildInput, img: np.ndarray, tr) -> np.ndarray:
+    """The image's landmarks, refused when far outside its frame; with a synth-wild truth ``tr`` of another
+    size than the image, the message says so (the image was resized after synth wild wrote it and its landmarks)."""
+    from reflectmm_cli.landmarks import check_in_frame, read_landmarks
+
+    h, w = img.shape[:2]
+    try:
+        return check_in_frame(read_landmarks(inp.landmarks), w, h, inp.landmarks)
+    except ReflectmmError as exc:
+        size = tuple(np.shape(tr["face_mask"])) if tr is not None and "face_mask" in tr.arrays else None
+        if size is None or size == (h, w):
+            raise
+        raise ReflectmmError(f"image is {w}x{h}, but its synth-wild truth is {size[1]}x{size[0]} and its landmarks "
+                             f"fall outside this frame: was the image resized after synth wild wrote it?",
+                             inp.image) from exc
+
+
 def _aligned_crop(inp: WildInput, img: np.ndarray, lm: np.ndarray, face_model, cfg: PrepareConfig, S: int
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The S×S crop of an image, its landmarks in crop pixels and the 2×3 image → crop transform.
@@ -467,7 +484,6 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
     from reflectmm_cli.geometry.camera import Camera
     from reflectmm_cli.geometry.gbuffer import gbuffer_from_raster, pack_gbuffers
     from reflectmm_cli.geometry.raycast import rasterize
-    from reflectmm_cli.landmarks import check_in_frame, read_landmarks
 
     S = int(cfg.size)
     K_crop = deep3d_camera().with_size(S, S).K
@@ -491,12 +507,12 @@ def prepare_wild_images(inputs: Sequence[WildInput], face_model, cfg: PrepareCon
                 raise ReflectmmError("image is all black (nothing to reconstruct)", inp.image)
             if (img == 255).all():
                 raise ReflectmmError("image is all white (saturated: nothing to reconstruct)", inp.image)
-            lm = check_in_frame(read_landmarks(inp.landmarks), img.shape[1], img.shape[0], inp.landmarks)
+            tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
+            lm = _landmarks_in_frame(inp, img, tr)
             span = np.nanmax(lm, 0) - np.nanmin(lm, 0)
             if not (span >= MIN_LANDMARK_SPAN_PX).all():
                 raise ReflectmmError(f"landmarks span {span[0]:.3g} x {span[1]:.3g} px: no face (they collapse to a "
                                      "point or a line)", inp.landmarks)
-            tr = _truth_for(truth_dir, inp.name) if truth_dir is not None else None
             encoding = tr.meta.get("encoding", cfg.encoding) if tr is not None else cfg.encoding
             crop, lm_c, A = _aligned_crop(inp, img, lm, face_model, cfg, S)
             lin = linearize(crop, encoding)

@@ -376,3 +376,24 @@ def test_from_truth_at_another_size_resamples_the_truth_layers(wild_small, tmp_p
     small = np.asarray(sh["truth_diffuse"], np.float32).mean(axis=(1, 2))
     np.testing.assert_allclose(small, full, rtol=0.05, atol=2e-3)  # the same picture, fewer pixels
     assert abs(sh["skin_mask"].mean() - shards[96]["skin_mask"].mean()) < 0.03
+
+
+def test_an_image_resized_after_synth_wild_is_named_as_the_problem(wild_small, tmp_path, cli):
+    """--from-truth on an image made smaller than synth wild wrote it (its landmarks and truth at the old size): the
+    refusal names the image and the size, not only the landmark file as if its points were wrong."""
+    import cv2
+
+    out, fm = wild_small
+    imgs = tmp_path / "images"
+    imgs.mkdir()
+    names = sorted(p.stem for p in (out / "images").iterdir())[:2]
+    for n in names:
+        shutil.copy(out / "images" / f"{n}.png", imgs / f"{n}.png")
+    small = cv2.imread(str(imgs / f"{names[1]}.png"))
+    cv2.imwrite(str(imgs / f"{names[1]}.png"), cv2.resize(small, (24, 24), interpolation=cv2.INTER_AREA))
+    res = cli("prepare-wild", "--images", imgs, "--landmarks", out / "landmarks", "--truth", out, "--from-truth",
+              "--size", 96, "--out", tmp_path / "shards")
+    assert res.exit_code == 1
+    line = next(x for x in res.stderr.splitlines() if f"{names[1]}.png" in x)
+    assert "24x24" in line and "resized" in line
+    assert open_shard(tmp_path / "shards" / "shard_00000.npz")["names"].tolist() == [names[0]]
