@@ -20,7 +20,8 @@ from reflectmm_cli.errors import ReflectmmError
 from .config import FinetuneConfig
 from .shards import ShardSet
 
-__all__ = ["FinetuneResult", "finetune", "check_inputs", "load_models", "Trainer", "CHECKPOINT_NAME", "LOG_NAME"]
+__all__ = ["FinetuneResult", "finetune", "check_inputs", "check_checkpoint", "load_models", "Trainer",
+           "CHECKPOINT_NAME", "LOG_NAME"]
 
 CHECKPOINT_NAME = "checkpoint.safetensors"
 LOG_NAME = "log.jsonl"
@@ -441,30 +442,15 @@ class Trainer:
         from safetensors import safe_open
 
         p = self.ckpt_path
-        if not p.is_file():
+        meta = check_checkpoint(p, self.cfg, len(self.train_idx))
+        if meta is None:
             return False
         try:
             with safe_open(str(p), "pt") as f:
-                meta = json.loads(f.metadata()["__meta__"])
                 tensors = {k: f.get_tensor(k) for k in f.keys()}
         except Exception as e:
             raise ReflectmmError(f"unreadable checkpoint ({type(e).__name__}: {e}); delete it to start over", p) \
                 from None
-        if meta.get("schema") != CHECKPOINT_SCHEMA:
-            raise ReflectmmError(f"not a finetune checkpoint (schema {meta.get('schema')!r})", p)
-        mine = self.cfg.to_dict()
-        if meta["config"] != mine:
-            diff = sorted(k for k in set(meta["config"]) | set(mine) if meta["config"].get(k) != mine.get(k)
-                          and k != "extra")
-            old_s = (meta["config"].get("extra") or {}).get("model_solve") or {}
-            new_s = (mine.get("extra") or {}).get("model_solve") or {}
-            diff += sorted(f"ls_{k}" for k in set(old_s) | set(new_s) if old_s.get(k) != new_s.get(k))
-            if not diff:
-                diff = ["extra"]
-            raise ReflectmmError(f"checkpoint was made with other settings ({', '.join(diff)}); use the same "
-                                 f"options or delete it", p)
-        if int(meta.get("n_train", -1)) != int(len(self.train_idx)):
-            raise ReflectmmError("checkpoint was made with other data (train split size differs)", p)
         if meta["phase"] == 2:
             self._enter_phase2()
             for k, v in self.params.named_parameters().items():
@@ -678,6 +664,47 @@ class _Progress:
 
         if self.tty:
             sys.stderr.write("\n")
+
+
+def _settings_diff(old: dict, new: dict) -> list[str]:
+    """The names of the settings in which two :meth:`FinetuneConfig.to_dict` differ, the solver first: a run of
+    ``--solver ls`` records its model solve (``extra["model_solve"]``, its ``ls_*`` options) and trains with
+    ``model_lr`` 0, so a switch of solver is named as such, not as the ``model_lr`` it implies."""
+    old_s = (old.get("extra") or {}).get("model_solve")
+    new_s = (new.get("extra") or {}).get("model_solve")
+    diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k) and k != "extra")
+    if (old_s is None) != (new_s is None):
+        return ["solver"] + [k for k in diff if k != "model_lr"]
+    old_s, new_s = old_s or {}, new_s or {}
+    diff += sorted(f"ls_{k}" for k in set(old_s) | set(new_s) if old_s.get(k) != new_s.get(k))
+    return diff or ["extra"]
+
+
+def check_checkpoint(path: str | Path, config: FinetuneConfig, n_train: int) -> dict | None:
+    """The meta of the checkpoint ``path`` if it was made with ``config`` on ``n_train`` training images; None when
+    there is no checkpoint. Otherwise a one-line error naming the settings that differ: ``--resume`` checks it
+    before the least-squares model solve (``--solver ls``), which runs before training, not only at training."""
+    from safetensors import safe_open
+
+    p = Path(path)
+    if not p.is_file():
+        return None
+    try:
+        with safe_open(str(p), "pt") as f:
+            meta = json.loads(f.metadata()["__meta__"])
+    except Exception as e:
+        raise ReflectmmError(f"unreadable checkpoint ({type(e).__name__}: {e}); delete it to start over", p) \
+            from None
+    if meta.get("schema") != CHECKPOINT_SCHEMA:
+        raise ReflectmmError(f"not a finetune checkpoint (schema {meta.get('schema')!r})", p)
+    mine = config.to_dict()
+    if meta["config"] != mine:
+        diff = _settings_diff(meta["config"], mine)
+        raise ReflectmmError(f"checkpoint was made with other settings ({', '.join(diff)}); use the same options or "
+                             "delete it", p)
+    if int(meta.get("n_train", -1)) != int(n_train):
+        raise ReflectmmError("checkpoint was made with other data (train split size differs)", p)
+    return meta
 
 
 def finetune(shards: ShardSet, model, light, config: FinetuneConfig, workdir: str | Path, *, device="cpu",

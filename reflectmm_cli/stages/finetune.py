@@ -193,7 +193,7 @@ def run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.finetune.identity import load_identity_net
     from reflectmm_cli.finetune.outputs import output_paths, write_finetune_outputs
     from reflectmm_cli.finetune.shards import load_shards
-    from reflectmm_cli.finetune.train import finetune, load_models
+    from reflectmm_cli.finetune.train import CHECKPOINT_NAME, check_checkpoint, finetune, load_models
     from reflectmm_cli.geometry.face_model import load_face_model
     from reflectmm_cli.workspace import find_face_model
 
@@ -221,14 +221,17 @@ def run(ctx: StageContext) -> list[Path]:
             and len(face_model.uv) != len(model.vertex_albedo_mean):  # checked before hours of training, not after
         raise ReflectmmError(f"has {len(face_model.uv)} vertices, the reflectance model {ctx.input('model')} "
                              f"{len(model.vertex_albedo_mean)}: not the face model it was built on", fm_path)
-    train_model, solve_report = model, None
     if p["solver"] == "ls":
-        mesh = (face_model.mean_shape, face_model.triangles) if face_model is not None else None
-        train_model, solve_report = _least_squares_update(model, light, shards, solve_config(p), ctx, mesh)
         # the encoder is trained on the solved model, which stays fixed; the solve's settings go with the run's
         # config, so that --resume refuses a checkpoint trained on a model solved otherwise
         solve = {k: v for k, v in dataclasses.asdict(solve_config(p)).items() if k != "shard_images"}  # sharding
         cfg = cfg.replace(model_lr=0.0, extra={**dict(cfg.extra), "model_solve": solve})  # gives the same solve
+    if p.get("resume"):  # a checkpoint of other settings is refused before the model solve, not after it
+        check_checkpoint(output_paths(out)["workdir"] / CHECKPOINT_NAME, cfg, len(shards.indices("train")))
+    train_model, solve_report = model, None
+    if p["solver"] == "ls":
+        mesh = (face_model.mean_shape, face_model.triangles) if face_model is not None else None
+        train_model, solve_report = _least_squares_update(model, light, shards, solve_config(p), ctx, mesh)
     res = finetune(shards, train_model, light, cfg, output_paths(out)["workdir"], device=ctx.device,
                    identity=identity, init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")),
                    phase1_encoder=_one(ctx, "phase1_encoder"), log=log.info, threads=p.get("threads"),

@@ -510,3 +510,24 @@ def test_resume_refuses_a_checkpoint_of_another_model_solve(cli, data, tmp_path)
     assert out.read_bytes() == before
     r = cli(*base, "--epochs1", "0", "--epochs2", "0", "-o", tmp_path / "e0.npz")
     assert r.exit_code == 0 and "the model is the model given (solved by --solver ls" in r.stderr, r.stderr
+
+
+
+
+
+
+def test_resume_names_a_switched_solver_and_refuses_before_the_model_solve(cli, data, tmp_path):
+    # the refusal named model_lr (which --solver ls sets to 0), not the solver; another --lr2 was refused only after
+    # the whole least-squares solve had run
+    out = tmp_path / "ls" / "m.npz"
+    base = ("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY, "--ls-rounds", "1",
+            "--ls-max-pixels", "200")
+    r = cli(*base, "--solver", "ls")
+    assert r.exit_code == 0, r.stderr
+    before = out.read_bytes()
+    r = cli(*base, "--solver", "sgd", "--resume")
+    assert r.exit_code == 1 and "checkpoint was made with other settings (solver);" in r.stderr, r.stderr
+    r = cli(*base, "--solver", "ls", "--lr2", "1e-3", "--resume")
+    assert r.exit_code == 1 and "checkpoint was made with other settings (lr2);" in r.stderr, r.stderr
+    assert "model solve:" not in r.stderr and out.read_bytes() == before, r.stderr
