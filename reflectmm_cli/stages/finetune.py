@@ -221,6 +221,7 @@ def run(ctx: StageContext) -> list[Path]:
             and len(face_model.uv) != len(model.vertex_albedo_mean):  # checked before hours of training, not after
         raise ReflectmmError(f"has {len(face_model.uv)} vertices, the reflectance model {ctx.input('model')} "
                              f"{len(model.vertex_albedo_mean)}: not the face model it was built on", fm_path)
+    _check_solver_options(p, model, face_model, fm_path)
     if p["solver"] == "ls":
         # the encoder is trained on the solved model, which stays fixed; the solve's settings go with the run's
         # config, so that --resume refuses a checkpoint trained on a model solved otherwise
@@ -245,6 +246,31 @@ def run(ctx: StageContext) -> list[Path]:
     return write_finetune_outputs(res, model, out, face_model=face_model, inputs=ctx.input_refs(out.parent),
                                   params=ctx.resolved_params(), producer=ctx.producer(), cache_key=ctx.cache_key,
                                   samples=p["samples"], seed=cfg.seed, log=log.info)
+
+
+def _check_solver_options(p: dict[str, Any], model, face_model, fm_path) -> None:
+    """The ``--ls-*`` options against the solver and the models, before anything is solved or trained: with
+    ``--solver sgd`` a warning that they are not used; with ``--solver ls`` a one-line error for more mesh harmonics
+    than the face model allows, and a warning for more bases to update than the model has."""
+    from reflectmm_cli.finetune.model_solve import SolveConfig
+
+    if p["solver"] != "ls":
+        unused = [f"--ls-{f.name.replace('_', '-')} {p['ls_' + f.name]}" for f in dataclasses.fields(SolveConfig)
+                  if p.get("ls_" + f.name) is not None and p["ls_" + f.name] != f.default]
+        if unused:
+            log.warning(f"finetune: warning: {', '.join(unused)}: option(s) of --solver ls, not used by --solver "
+                        f"{p['solver']}")
+        return
+    harmonics = p.get("ls_harmonics") or 0
+    if harmonics and face_model is not None:
+        V = int(len(face_model.mean_shape))
+        if harmonics > V - 2:  # the manifold harmonics of a V-vertex mesh: at most V - 2 (geometry/harmonics.py)
+            raise ReflectmmError(f"--ls-harmonics {harmonics}: the face model {fm_path} has {V} vertices, which "
+                                 f"give at most {max(V - 2, 0)} mesh harmonics")
+    bases = p.get("ls_update_bases")
+    if bases is not None and bases > model.n_components:
+        log.warning(f"finetune: warning: --ls-update-bases {bases} but the reflectance model has "
+                    f"{model.n_components} components; using {model.n_components}")
 
 
 def _check_map_options(p: dict[str, Any]) -> None:

@@ -512,7 +512,39 @@ def test_resume_refuses_a_checkpoint_of_another_model_solve(cli, data, tmp_path)
     assert r.exit_code == 0 and "the model is the model given (solved by --solver ls" in r.stderr, r.stderr
 
 
+def test_ls_harmonics_beyond_the_face_model_name_the_option(cli, data, tmp_path):
+    # the error came from the harmonics library ("mesh harmonics: count must be in 1..N") and named neither
+    out = tmp_path / "ft" / "m.npz"
+    r = cli("-q", "finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", out, *TINY, "--solver", "ls",
+            "--ls-harmonics", "100000")
+    V = len(read_artifact(data["face_model"], "face-model")["mean_shape"])
+    line = r.stderr.strip()
+    assert r.exit_code == 1 and len(line.splitlines()) == 1, r.stderr
+    assert f"--ls-harmonics 100000: the face model {data['face_model']} has {V} vertices" in line, line
+    assert f"at most {V - 2} mesh harmonics" in line and not (tmp_path / "ft").exists()
 
+
+def test_ls_options_given_to_the_sgd_solver_are_said_to_be_unused(cli, data, tmp_path, reflectmm_log):
+    base = ("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], *TINY, "--epochs1", "0", "--epochs2", "1")
+    r = cli(*base, "-o", tmp_path / "a.npz", "--ls-rounds", "7", "--ls-harmonics", "100000", "--ls-rounds", "7")
+    assert r.exit_code == 0, r.stderr
+    said = [m for m in reflectmm_log if "not used by --solver sgd" in m]
+    assert said == ["finetune: warning: --ls-rounds 7, --ls-harmonics 100000: option(s) of --solver ls, not used "
+                    "by --solver sgd"], reflectmm_log
+    reflectmm_log.clear()
+    r = cli(*base, "-o", tmp_path / "b.npz", "--ls-harmonics", "0")  # the off value is not a setting
+    assert r.exit_code == 0 and not [m for m in reflectmm_log if "not used" in m], reflectmm_log
+
+
+def test_ls_update_bases_beyond_the_model_is_capped_with_a_warning(cli, data, tmp_path, reflectmm_log):
+    r = cli("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], "-o", tmp_path / "m.npz", *TINY, "--solver", "ls",
+            "--ls-rounds", "1", "--ls-max-pixels", "200", "--ls-update-bases", "5000")
+    assert r.exit_code == 0, r.stderr
+    assert ("finetune: warning: --ls-update-bases 5000 but the reflectance model has 3 components; using 3"
+            in reflectmm_log), reflectmm_log
 
 
 
