@@ -43,7 +43,7 @@ from reflectmm_cli.threads import torch_threads
 
 from .model_solve import (SolveConfig, SolveProblem, SolveReport, _expand, _fit_coefficients, _harmonic_basis,
                           _pixel_basis, _render, _theta, fitted_problem, merge_problems, pull_norms, robust_weights,
-                          round_record, solve_model, vertex_arrays, warn_no_progress)
+                          round_record, solve_model, vertex_arrays, warn_no_progress, warn_robust_no_effect)
 
 __all__ = ["ShardTask", "run_shard", "normal_equations", "solve_normal_equations", "alternate_sharded",
            "shard_groups"]
@@ -337,4 +337,5 @@ def _rounds(run, train, val, theta0, basis, cfg: SolveConfig, keep_best: bool, s
         if not (v >= best[0]) or not keep_best:
             best = (v, [t.clone() for t in theta], rnd)
     report.best_round = best[2]
+    warn_robust_no_effect(cfg.robust, report)
     return report, best[1]

@@ -39,7 +39,7 @@ import numpy as np
 from reflectmm_cli.errors import ReflectmmError
 
 __all__ = ["PULL_SCALES", "SolveConfig", "pull_norms", "SolveProblem", "build_problem", "merge_problems",
-           "robust_weights", "solve_model", "alternate", "SolveReport", "with_solved"]
+           "robust_weights", "solve_model", "alternate", "SolveReport", "with_solved", "warn_robust_no_effect"]
 
 #: Scales of the L2 pull (:class:`SolveConfig`.pull_scale).
 PULL_SCALES = ("element", "relative")
@@ -478,6 +478,19 @@ def warn_no_progress(rnd: int, info: dict) -> None:
             "it; check --ls-pull (> 0) and --ls-cg-iterations", rnd, info["f_start"], info["f_end"])
 
 
+def warn_robust_no_effect(robust: float, report: SolveReport) -> None:
+    """One warning line when ``robust`` k > 0 left no pixel out in any round: with k so small that every pixel of
+    an image is an outlier, the image is kept whole (:func:`robust_weights` never drops a whole image), and with k
+    so large that none is, nothing is dropped either; the option then changed nothing."""
+    rounds = [r for r in report.rounds if "pixels_left_out" in r]
+    if robust > 0 and rounds and not any(r["pixels_left_out"] > 0 for r in rounds):
+        import logging
+
+        logging.getLogger("reflectmm").warning(
+            "model solve: --ls-robust %g left no pixel out in any round, so it had no effect (an image whose pixels "
+            "all lie beyond it is kept whole)", robust)
+
+
 def round_record(rnd: int, train_objective: np.ndarray, info: dict, val_objective: float, left_out: float) -> dict:
     """One round's entry of :attr:`SolveReport.rounds`."""
     return {"round": rnd, "train_refined_objective": float(np.mean(train_objective)), "solve_start": info["f_start"],
@@ -565,4 +578,5 @@ def alternate(model, light, shards, config: SolveConfig | None = None, *, refine
         if not (v >= best[0]) or not keep_best:  # lower, or no validation split (NaN): keep this round
             best = (v, [t.clone() for t in theta], rnd)
     report.best_round = best[2]
+    warn_robust_no_effect(cfg.robust, report)
     return vertex_arrays(best[1]), report

@@ -547,6 +547,20 @@ def test_ls_update_bases_beyond_the_model_is_capped_with_a_warning(cli, data, tm
             in reflectmm_log), reflectmm_log
 
 
+def test_a_robust_threshold_that_leaves_no_pixel_out_is_said(cli, data, tmp_path, reflectmm_log):
+    # k so small that every pixel of every image is an outlier: each image is kept whole, the option does nothing
+    base = ("finetune", "--model", data["init_path"], "--light-model", data["light_path"], "--data",
+            data["shards"][0], "--face-model", data["face_model"], *TINY, "--solver", "ls", "--ls-rounds", "1",
+            "--ls-max-pixels", "200")
+    r = cli(*base, "-o", tmp_path / "a.npz", "--ls-robust", "1e-9")
+    assert r.exit_code == 0, r.stderr
+    said = [m for m in reflectmm_log if "--ls-robust" in m]
+    assert said == ["model solve: --ls-robust 1e-09 left no pixel out in any round, so it had no effect (an image "
+                    "whose pixels all lie beyond it is kept whole)"], reflectmm_log
+    reflectmm_log.clear()
+    r = cli(*base, "-o", tmp_path / "b.npz", "--ls-robust", "2")
+    assert r.exit_code == 0 and not [m for m in reflectmm_log if "--ls-robust" in m], reflectmm_log
+
 
 def test_resume_names_a_switched_solver_and_refuses_before_the_model_solve(cli, data, tmp_path):
     # the refusal named model_lr (which --solver ls sets to 0), not the solver; another --lr2 was refused only after
