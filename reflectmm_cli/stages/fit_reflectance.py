@@ -62,11 +62,16 @@ SOLVER_PARAMS = (
                "(1 − observability/0.5)² (0 = off)."),
 )
 
+#: A sane flash radiant intensity, in linear pixel units × mm² (E = I / d², d in mm): the synthetic rig's is 4.5e6,
+#: 1 is the choice for real data of unknown intensity. Far outside, E·C overflows or underflows in the design matrix
+#: and every texel came out "ill-conditioned", blaming the exponents.
+FLASH_INTENSITY_RANGE = (1e-12, 1e12)
+
 PARAMS = (EXPONENTS,) + SOLVER_PARAMS + (
     _cfg("steps", "int", range=(1, 10 ** 7), help="Adam steps."),
-    Param("flash_intensity", "floats", None, range=(0.0, None), low_open=True,
-          help="Flash radiant intensity (one value or one per flash, comma separated); default: the "
-               "observations' values. Sets the global scale of C and W."),
+    Param("flash_intensity", "floats", None, range=FLASH_INTENSITY_RANGE,
+          help="Flash radiant intensity in linear pixel units x mm² (E = I/d²; one value or one per flash, comma "
+               "separated); default: the observations' values. Sets the global scale of C and W."),
     _cfg("cond_min", "float", range=(0.0, 1.0), help="Flag texels whose pooled conditioning is below this."),
     _cfg("seed", "int", range=SEED_RANGE, help="Seed of Adam's random flips."),
     _cfg("refine_normals", "int", range=(0, 100),

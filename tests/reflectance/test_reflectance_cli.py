@@ -189,6 +189,19 @@ def test_flash_intensity_errors_name_their_source(cli, tmp_path):
     assert r.exit_code == 1 and str(path) in r.stderr and "'flash_intensity' must be > 0" in r.stderr
 
 
+def test_absurd_flash_intensities_are_refused_up_front(cli, tmp_path):
+    # 1e300 and 1e-300 ran the fit, leaked a numpy RuntimeWarning (1e300) and ended in "no texel could be fitted:
+    # ... ill-conditioned for the lobes of exponents ...", blaming the exponents
+    ws = tmp_path / "ws"
+    _write_obs(ws)
+    for value, problem in (("1e300", "1e+300 is above the maximum 1e+12"),
+                           ("1e-300", "1e-300 is below the minimum 1e-12")):
+        r = cli("fit-reflectance", "--id", "042", "--workspace", ws, "--flash-intensity", value, "-o",
+                tmp_path / "x.npz")
+        assert r.exit_code == 1 and r.stderr.strip() == f"reflectmm: error: --flash-intensity: {problem}", r.stderr
+        assert not (tmp_path / "x.npz").exists()
+
+
 def test_fast_solver_settings_are_refused_with_adam(cli, tmp_path):
     # --solver adam --loss l2 wrote maps equal to the bit to the L1 run, with loss = "l2" in their params
     ws = tmp_path / "ws"
