@@ -85,6 +85,10 @@ def evaluate_truth(maps_path: Path | None, truth_path: Path, geometry_path: Path
         maps = read_artifact(maps_path, "reflectance-maps")
         _checked(maps, ("albedo", "weights"), maps_path, identity)
         _checked(truth, ("albedo",), truth_path, identity)
+        got, want = np.shape(truth["albedo"]), np.shape(maps["albedo"])
+        if got != want:  # the library's message names neither file
+            raise ReflectmmError(f"evaluate truth: albedo has shape {got}, the maps {maps_path} {want}: the UV sizes "
+                                 "must agree", truth_path)
         doc["reflectance"] = reflectance_errors(maps.arrays, truth.arrays)
     if geometry_path is not None:
         geo = read_artifact(geometry_path, "geometry")
