@@ -45,14 +45,24 @@ def _check_sets(text: str) -> None:
         raise ValueError(str(exc).split(": ", 1)[-1]) from None
 
 
+def _check_holdout(text: str) -> None:
+    """A comma list of flash ids, each named once (``05,05`` was taken as "held-out flashes 05, 05"). The param
+    stays a string (its recorded value and the cache keys of earlier runs are unchanged)."""
+    ids = parse_list(text, "holdout")
+    twice = sorted({x for x in ids if ids.count(x) > 1})
+    if twice:
+        raise ValueError(f"{', '.join(twice)} named more than once")
+
+
 #: Params written to the artifact's meta (all but execution details).
 REP_PARAMS = ("exponents_sets", "holdout", "baselines", "solver", "symmetry", "symmetry_mode", "loss", "prior",
               "prior_tail", "lpips_net", "space", "max_identities")
 
 PARAMS = (
     Param("exponents_sets", "str", "8;16;32;64;1,8,64", check=_check_sets,
-          help="Representations separated by ';' (a single exponent = global exponent, K = 1)."),
-    Param("holdout", "str", "05,09", help="Flash ids held out for re-rendering (all views)."),
+          help="Representations separated by ';' (a single exponent = global exponent, K = 1; 0 or 'diffuse' = "
+               "diffuse only)."),
+    Param("holdout", "str", "05,09", check=_check_holdout, help="Flash ids held out for re-rendering (all views)."),
     Param("baselines", "bool", True, option="--no-baselines",
           help="Skip 'diffuse only' and 'spec albedo + shininess 20'."),
 ) + SOLVER_PARAMS + (

@@ -67,6 +67,17 @@ def test_evaluate_representation_counts_an_identity_once(ggx_ws, cli, tmp_path):
     assert r.exit_code == 1 and "identity 000 is given twice" in r.stderr and not (tmp_path / "x.npz").exists()
 
 
+def test_evaluate_representation_holdout_names_each_flash_once(ggx_ws, cli, tmp_path):
+    # "05,05" was taken as "held-out flashes 05, 05"; "" said "holdout: empty list", not the option
+    for value, msg in (("05,05", "--holdout: 05 named more than once"), ("", "--holdout: empty list")):
+        r = cli("evaluate", "representation", "--ids", "000", "--workspace", ggx_ws, "--holdout", value,
+                "-o", tmp_path / "x.npz")
+        assert r.exit_code == 1 and r.stderr.strip() == f"reflectmm: error: {msg}", r.stderr
+        assert not (tmp_path / "x.npz").exists()
+    r = cli("evaluate", "representation", "--help")
+    assert "0 or 'diffuse' = diffuse only" in " ".join(r.stdout.split())
+
+
 def test_evaluate_truth_cli(ggx_ws, cli):
     r = cli("-q", "evaluate", "truth", "--id", "001", "--workspace", ggx_ws)
     assert r.exit_code == 0, r.stderr
