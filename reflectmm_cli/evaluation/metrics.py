@@ -16,6 +16,7 @@ All images are (H,W,3) (or (H,W)) float arrays; ``mask`` (H,W) bool selects the 
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -307,6 +308,16 @@ def _is_safetensors(p: Path) -> bool:
     return len(head) == 9 and head[8:9] == b"{" and 2 <= int.from_bytes(head[:8], "little") <= p.stat().st_size
 
 
+def _torch_load_reason(exc: Exception) -> str:
+    """The reason of a failed ``torch.load``, short: the weights-only unpickler's own words (not torch's paragraph
+    on the ``weights_only`` default around them), else the first sentence of the message."""
+    text = " ".join(str(exc).split())
+    if "WeightsUnpickler error:" in text:
+        reason = text.split("WeightsUnpickler error:", 1)[1].split(" Check the documentation", 1)[0].strip()
+        return f"not loadable with weights_only=True: {reason[:120]}"
+    return text.split(". ", 1)[0][:160] or "empty or truncated file"
+
+
 def load_lpips(path: str | Path | None, net: str = "alex") -> LPIPS | None:
     """An :class:`LPIPS` with weights from ``path``, or None when no path is given (LPIPS is then reported as off,
     never estimated). The one loader of every verb: a safetensors file (the documented layout,
@@ -329,10 +340,12 @@ def load_lpips(path: str | Path | None, net: str = "alex") -> LPIPS | None:
                                  f"{' '.join(str(exc).split())[:160]})", p) from None
         return LPIPS(net).load_state_dict(state, source=p)
     try:
-        state = torch.load(p, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns about pickle protocols on stderr, beside the one-line error
+            warnings.simplefilter("ignore")
+            state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a bad file
         raise ReflectmmError(f"cannot read LPIPS weights as safetensors or a torch state dict "
-                             f"({type(exc).__name__}: {' '.join(str(exc).split())[:200]})", p) from None
+                             f"({type(exc).__name__}: {_torch_load_reason(exc)})", p) from None
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict):

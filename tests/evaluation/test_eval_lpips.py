@@ -90,6 +90,21 @@ def test_loading_errors_are_one_line(tmp_path):
         load_lpips(p)
 
 
+def test_a_junk_torch_file_is_refused_in_one_short_line(tmp_path):
+    # torch's paragraph on the weights_only default (400 characters) was the whole reason given
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"garbage\n")
+    with pytest.raises(ReflectmmError) as e:
+        load_lpips(junk)
+    msg = str(e.value)
+    assert msg.startswith(f"{junk}: cannot read LPIPS weights as safetensors or a torch state dict (") and \
+        "In PyTorch 2.6" not in msg and len(msg) - len(str(junk)) < 160, msg
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(ReflectmmError, match=r"\(EOFError: empty or truncated file\)$"):
+        load_lpips(empty)
+
+
 def test_lpips_enters_both_protocols(tmp_path):
     model = load_lpips(save_lpips_safetensors(LPIPS("alex").random_state_dict(1),
                                                           tmp_path / "w.safetensors"))
