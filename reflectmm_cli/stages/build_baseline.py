@@ -101,6 +101,9 @@ def load_truths(paths: list[Path]) -> tuple[list[dict[str, np.ndarray]], list[st
         arrs = {k: np.asarray(art.arrays[k]) for k in ("albedo", "spec_albedo", "uv_mask", "vertex_albedo",
                                                        "vertex_spec_albedo") if k in art.arrays}
         truth_maps(arrs, str(p))
+        if out and np.shape(arrs["albedo"]) != np.shape(out[0]["albedo"]):  # the PCA would say "build-pca: <id>"
+            raise ReflectmmError(f"build-baseline: albedo has shape {np.shape(arrs['albedo'])}, but "
+                                 f"{np.shape(out[0]['albedo'])} in {paths[0]}: the truths must share one UV size", p)
         out.append(arrs)
         ids.append(str(art.meta.get("identity", Path(p).stem)))
     return out, ids
