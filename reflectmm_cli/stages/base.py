@@ -171,6 +171,8 @@ class Default:
             ``{option}`` and ``{<role>}`` (the first path of that role) are filled in.  Empty: ``{option}: not given
             and {path} does not exist`` (for a search: ``{option}: not given and none found in {workspace}``).
         capture, geometry: the roles whose first file a search consults.
+        wild: a role whose first path, when it is a folder (a ``synth wild`` folder), is consulted first by the
+            ``face-model`` search: its ``face_model.npz`` (:func:`~reflectmm_cli.workspace.wild_face_model`).
         needs: roles that must be present for the default to be looked for.
         group: roles of one group are passed all together or not at all, given ones included (a role whose
             default is not found drops the group).
@@ -187,6 +189,7 @@ class Default:
     missing: str = ""
     capture: str | None = None
     geometry: str | None = None
+    wild: str | None = None
     needs: tuple[str, ...] = ()
     group: str | None = None
     unless: tuple[str, Any] | None = None

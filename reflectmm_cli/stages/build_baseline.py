@@ -21,6 +21,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
+from reflectmm_cli.workspace import WORKSPACE_FACE_MODELS
 
 VERB = "build-baseline"
 
@@ -29,7 +30,9 @@ INPUTS = (
     Input('truth', 'ground-truth NPZ files or their folder', upstream='synth-multipie', many=True, help='identities to build the baseline from',
           default=Default('truth')),
     Input('face_model', 'face-model artifact or BFM .mat', upstream='synth-multipie', help='the mesh and its UVs',
-          default=Default('face-model', missing='build-baseline: no --face-model given and none found in {workspace}')),
+          default=Default('face-model', wild='truth', missing=(
+              "build-baseline: no --face-model given and none found (looked for face_model.npz in the --truth folder "
+              "{truth}, and for " + ", ".join(WORKSPACE_FACE_MODELS) + " in {workspace}); pass --face-model"))),
     Input('like', 'reflectance-model', upstream='build-pca',
           help='kind oracle: a model of this size (its component count caps --components; its UV size and lobe '
                'exponents are used and checked)'),

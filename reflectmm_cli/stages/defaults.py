@@ -19,7 +19,7 @@ from reflectmm_cli.artifacts import check_schema, read_meta
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.stages.base import Input, Stage
 from reflectmm_cli.workspace import (WORKSPACE_TRUTH_DIRS, files_in, find_face_model, find_fit_rig, find_rig,
-                                     find_truth_dir, list_artifacts, stage_dir, stage_output)
+                                     find_truth_dir, list_artifacts, stage_dir, stage_output, wild_face_model)
 
 __all__ = ["default_inputs", "default_paths", "NO_TRUTH"]
 
@@ -70,7 +70,9 @@ def default_paths(inp: Input, workspace: Path, identity: str | None = None, ids:
     geometry = _first(found, d.geometry)  # read first, as find_face_model does
     capture = _first(found, d.capture, "capture")
     if d.rule == "face-model":
-        fm = find_face_model(ws, capture=capture, geometry=geometry)
+        wild = found.get(d.wild) if d.wild else None
+        fm = (wild_face_model(None, wild[0]) if wild and Path(wild[0]).is_dir() else None) \
+            or find_face_model(ws, capture=capture, geometry=geometry)
         return ([fm], None) if fm is not None else ([], ws)
     if d.rule == "truth":
         td = find_truth_dir(ws, capture=capture)

@@ -138,3 +138,26 @@ def test_build_baseline_oracle(wild, cli, tmp_path):
     r = cli("build-baseline", "--kind", "oracle", "--truth", wild, "--face-model", fm, "--like", fewer, "-w",
             tmp_path, "-o", bad)
     assert r.exit_code != 0 and "another face model?" in r.stderr and not bad.exists()
+
+
+def test_build_baseline_oracle_finds_the_synth_wild_folders_face_model(wild, cli, tmp_path):
+    # without --face-model it looked in the workspace only ("none found in <ws>"), although the synth wild folder
+    # given as --truth holds its face_model.npz, as prepare-wild finds it
+    tr = _truth(wild)
+    args = ("build-baseline", "--kind", "oracle", "--truth", wild, "--components", str(len(tr["train"]) - 1),
+            "--uv-size", "8", "--no-preview", "-w", tmp_path)
+    r = cli(*args, "-o", tmp_path / "found.npz")
+    assert r.exit_code == 0, r.stderr
+    r = cli(*args, "--face-model", wild / "face_model.npz", "-o", tmp_path / "given.npz")
+    assert r.exit_code == 0, r.stderr
+    found, given = read_artifact(tmp_path / "found.npz", MODEL_KIND), read_artifact(tmp_path / "given.npz", MODEL_KIND)
+    assert found.meta["face_model"] == given.meta["face_model"]
+    for k in given.arrays:
+        np.testing.assert_array_equal(found[k], given[k], err_msg=k)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    r = cli("build-baseline", "--truth", empty, "-w", empty, "-o", tmp_path / "x.npz")
+    assert r.exit_code == 1 and r.stderr.strip() == (
+        f"reflectmm: error: build-baseline: no --face-model given and none found (looked for face_model.npz in the "
+        f"--truth folder {empty}, and for face_model.npz, synth/face_model.npz, synth-multipie/face_model.npz in "
+        f"{empty}); pass --face-model"), r.stderr
