@@ -42,7 +42,8 @@ __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_
            "face_model_from_geometry", "find_face_model", "find_rig", "calibrated_rig", "find_fit_rig",
            "CALIBRATED_RIG_SIGMAS", "CALIBRATED_RIG_FLASH_ROUNDS", "RigCalibration", "rig_calibration",
            "find_truth_dir",
-           "files_in", "list_artifacts", "face_model_recorded_by", "find_wild_truth", "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
+           "files_in", "check_given_once", "list_artifacts", "face_model_recorded_by", "find_wild_truth",
+           "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
 #: File name of a dataset's / workspace's face model.
 FACE_MODEL_NAME = "face_model.npz"
@@ -107,6 +108,19 @@ def files_in(folder: Path, suffix: str = ".npz") -> list[Path]:
     """The ``*<suffix>`` files of a folder (sorted; hidden temp files left out); none if it is not a folder."""
     folder = Path(folder)
     return sorted(p for p in folder.glob(f"*{suffix}") if not p.name.startswith(".")) if folder.is_dir() else []
+
+
+def check_given_once(paths, reason: str, where: str = "") -> None:
+    """Refuse a file given twice once the paths are resolved (a folder and one of its files, one file twice, a link
+    to it), where it would count twice: ``<path>: <where>given twice (also as <first path>): <reason>``."""
+    from reflectmm_cli.errors import ReflectmmError
+
+    seen: dict[Path, Path] = {}
+    for p in paths:
+        key = Path(p).resolve()
+        if key in seen:
+            raise ReflectmmError(f"{where}given twice (also as {seen[key]}): {reason}", p)
+        seen[key] = Path(p)
 
 
 def list_artifacts(workspace: Path, stage: str, suffix: str = ".npz") -> list[Path]:

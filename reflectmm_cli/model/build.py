@@ -10,6 +10,7 @@ import numpy as np
 from reflectmm_cli.artifacts import read_artifact
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.progress import progress
+from reflectmm_cli.workspace import check_given_once
 
 from .pca import add_vertex_model, fit_reflectance_pca
 
@@ -25,13 +26,8 @@ def load_maps(paths: list[Path]):
     the shared (K,) exponents."""
     ids, albedos, weights, masks, flagged = [], [], [], [], []
     exps = None
-    seen: dict[Path, Path] = {}
+    check_given_once(paths, "each identity's maps count once in the model")
     for p in progress(paths, desc="maps", unit="map"):
-        key = Path(p).resolve()
-        if key in seen:
-            raise ReflectmmError(f"given twice (also as {seen[key]}): each identity's maps count once in the model",
-                                 p)
-        seen[key] = Path(p)
         art = read_artifact(p, "reflectance-maps")
         e = np.asarray(art["exponents"], np.float64).reshape(-1)
         if exps is None:

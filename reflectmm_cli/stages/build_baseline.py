@@ -21,7 +21,7 @@ from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
-from reflectmm_cli.workspace import WORKSPACE_FACE_MODELS
+from reflectmm_cli.workspace import WORKSPACE_FACE_MODELS, check_given_once
 
 VERB = "build-baseline"
 
@@ -84,12 +84,7 @@ def truth_files(paths: list[Path], ids: list[str] | None) -> list[Path]:
             raise ReflectmmError(f"build-baseline: no truth file for identity '{missing[0]}' "
                                  f"(have {', '.join(sorted(by)) or 'none'})")
         files = [by[i] for i in ids]
-    seen: dict[Path, Path] = {}
-    for f in files:  # a folder and one of its files, or a file twice: that identity would count twice
-        if f.resolve() in seen:
-            raise ReflectmmError(f"build-baseline: given twice (also as {seen[f.resolve()]}): each identity counts "
-                                 "once", f)
-        seen[f.resolve()] = f
+    check_given_once(files, "each identity counts once", "build-baseline: ")  # e.g. a folder and one of its files
     return files
 
 

@@ -192,6 +192,11 @@ def test_build_baseline_counts_an_identity_once(world, cli, tmp_path):
     r = cli("build-baseline", "--kind", "diffuse-only", "--components", "2", "--truth", ws / "truth", "--truth",
             ws / "truth" / f"{TRAIN[0]}.npz", "--face-model", ws / "face_model.npz", "-o", tmp_path / "b.npz")
     assert r.exit_code == 1 and "given twice" in r.stderr and not (tmp_path / "b.npz").exists(), r.stderr
+    one = ws / "truth" / f"{TRAIN[0]}.npz"  # one file twice: said so, not "the maps are all identical"
+    r = cli("-q", "build-baseline", "--truth", one, "--truth", one, "--face-model", ws / "face_model.npz", "-o",
+            tmp_path / "b.npz")
+    assert r.exit_code == 1 and r.stderr.strip() == (f"reflectmm: error: {one}: build-baseline: given twice (also as "
+                                                     f"{one}): each identity counts once"), r.stderr
 
 
 def test_build_baseline_names_a_truth_of_another_uv_size(world, cli, tmp_path):
