@@ -121,7 +121,8 @@ def test_evaluate_truth_refuses_what_gave_wrong_or_nan_tables(ggx_ws, cli, tmp_p
     half = {k: (np.asarray(v)[..., ::2, ::2] if np.ndim(v) >= 2 else v) for k, v in truth1.arrays.items()}
     write_artifact(tmp_path / "t16.npz", "synth-truth", half)  # another UV size: the message named no file
     cases.append((("--truth", tmp_path / "t16.npz"), f"{tmp_path / 't16.npz'}: evaluate truth: albedo has shape "
-                  f"(3, 16, 16), the maps {ggx_ws / 'fit-reflectance' / '001.npz'} (3, 32, 32): the UV sizes must agree"))
+                  f"(3, 16, 16), the maps {ggx_ws / 'fit-reflectance' / '001.npz'} (3, 32, 32): the UV sizes "
+                  "must agree"))
     for extra, msg in cases:
         r = cli(*base, *extra)
         assert r.exit_code == 1 and msg in r.stderr and "internal error" not in r.stderr, (extra, r.stderr)

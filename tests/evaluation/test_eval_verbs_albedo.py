@@ -206,7 +206,8 @@ def test_build_baseline_names_a_truth_of_another_uv_size(world, cli, tmp_path):
     write_artifact(mixed / "t0.npz", "synth-truth", t0, extra_meta={"identity": "t0"})
     half = {k: v[..., ::2, ::2] for k, v in world["truths"][TRAIN[1]].items()}
     write_artifact(mixed / "t1.npz", "synth-truth", half, extra_meta={"identity": "t1"})
-    r = cli("build-baseline", "--truth", mixed, "--face-model", world["ws"] / "face_model.npz", "-o", tmp_path / "b.npz")
+    r = cli("build-baseline", "--truth", mixed, "--face-model", world["ws"] / "face_model.npz", "-o",
+            tmp_path / "b.npz")
     assert r.exit_code == 1 and r.stderr.strip().splitlines()[-1] == (
         f"reflectmm: error: {mixed / 't1.npz'}: build-baseline: albedo has shape (3, 8, 8), but (3, {S}, {S}) in "
         f"{mixed / 't0.npz'}: the truths must share one UV size"), r.stderr
