@@ -26,6 +26,8 @@ stages.  See docs/recipes.md for the full semantics.
 
 from __future__ import annotations
 
+import difflib
+import math
 import re
 import sys
 from dataclasses import dataclass, field
@@ -44,9 +46,10 @@ RECIPE_MAJOR = 1
 
 ALL_FOUND = "all found"
 
-_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+#: a stage name: no dot, which would make a reference such as ``@a.output.output`` ambiguous
+_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_-]*$")
 #: ``@stage.output``, ``@stage.outputs.<name>``, ``@stage.dir`` or ``@stage.dir/sub/path``.
-_REF_RE = re.compile(r"^@(?P<stage>[A-Za-z0-9_][A-Za-z0-9_.-]*?)\.(?P<what>output|outputs\.(?P<name>[^/]+)|dir)"
+_REF_RE = re.compile(r"^@(?P<stage>[A-Za-z0-9_][A-Za-z0-9_-]*)\.(?P<what>output|outputs\.(?P<name>[^/]+)|dir)"
                      r"(?P<sub>/.*)?$")
 
 _STAGE_KEYS = {"verb", "params", "inputs", "foreach", "resources", "priority", "help", "description"}
@@ -133,6 +136,22 @@ def parse_ref(value: str, where: str, path: Path) -> Ref | None:
     if what == "output" and m.group("sub"):
         raise ReflectmmError(f"{where}: {value!r}: a sub-path is only allowed after @stage.dir", path)
     return Ref(m.group("stage"), what, None, m.group("sub"))
+
+
+#: the resource names the docs and the shipped recipes use; a worker may declare others (``dask worker --resources``)
+_KNOWN_RESOURCES = ("cpus", "memory", "gpus")
+_COUNT_RESOURCES = ("cpus", "gpus")
+
+
+def _check_resource_name(name: str, where: str, path: Path) -> None:
+    """A resource name close to a known one but not it (``cpu``, ``mem``) is a typo that Dask would never match
+    with a worker's resources, so the table would be ignored without a word: refused, naming the right key."""
+    if name in _KNOWN_RESOURCES:
+        return
+    close = difflib.get_close_matches(name.lower(), _KNOWN_RESOURCES, n=1, cutoff=0.6)
+    if close:
+        raise ReflectmmError(f"{where} resources.{name}: not a resource name; did you mean {close[0]!r}? "
+                             f"(the usual names: {', '.join(_KNOWN_RESOURCES)})", path)
 
 
 def _type_error(where: str, expected: str, got: Any, path: Path) -> ReflectmmError:
@@ -242,8 +261,9 @@ def _build(doc: dict[str, Any], path: Path) -> Recipe:
     stages: dict[str, StageSpec] = {}
     for sname, sdoc in stages_doc.items():
         where = f"[stages.{sname}]"
-        if not _NAME_RE.match(sname) or sname.startswith("."):
-            raise ReflectmmError(f"{where}: bad stage name (letters, digits, _ . - only)", path)
+        if not _NAME_RE.match(sname):
+            raise ReflectmmError(f"{where}: bad stage name (letters, digits, _ and - only; a dot would make "
+                                 f"references such as @{sname}.output ambiguous)", path)
         if not isinstance(sdoc, dict):
             raise _type_error(where, "a table", sdoc, path)
         unknown = set(sdoc) - _STAGE_KEYS
@@ -284,9 +304,10 @@ def _build(doc: dict[str, Any], path: Path) -> Recipe:
                                          f'or "{ALL_FOUND}", got {foreach!r}', path)
                 foreach = ALL_FOUND
             elif isinstance(foreach, list):
-                if not all(isinstance(i, (str, int)) for i in foreach):
-                    raise _type_error(f"{where} foreach", "a list of id strings", foreach, path)
-                foreach = [str(i) for i in foreach]
+                bad = next((i for i in foreach if not isinstance(i, str)), None)
+                if bad is not None:
+                    raise ReflectmmError(f"{where} foreach: ids are strings such as \"001\", got "
+                                         f"{type(bad).__name__} {bad!r} (quote it: \"{bad}\")", path)
                 dup = sorted({i for i in foreach if foreach.count(i) > 1})
                 if dup:
                     raise ReflectmmError(f"{where} foreach: duplicate id(s) {', '.join(dup)}", path)
@@ -300,8 +321,13 @@ def _build(doc: dict[str, Any], path: Path) -> Recipe:
         if not isinstance(resources, dict):
             raise _type_error(f"{where} resources", "a table { cpus = 1, memory = \"4GB\" }", resources, path)
         for rk, rv in resources.items():
+            _check_resource_name(rk, where, path)
             if isinstance(rv, bool) or not isinstance(rv, (int, float, str)):
                 raise _type_error(f"{where} resources.{rk}", "a number or a size like \"4GB\"", rv, path)
+            if isinstance(rv, str) and rk in _COUNT_RESOURCES:
+                raise _type_error(f"{where} resources.{rk}", "a number", rv, path)
+            if isinstance(rv, float) and not math.isfinite(rv):
+                raise ReflectmmError(f"{where} resources.{rk}: must be a finite number, got {rv}", path)
             if isinstance(rv, str):
                 from dask.utils import parse_bytes
 

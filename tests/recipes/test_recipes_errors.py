@@ -87,10 +87,26 @@ def test_unknown_verb(ws):
     (HEAD + '[stages.a]\nverb = "checksum"\nforeach = { file = "nope.txt" }\n', "foreach file not found"),
     (HEAD + '[stages.a]\nverb = "checksum"\nresources = { memory = "lots" }\n', "cannot read 'lots' as a size"),
     (HEAD + '[stages.a]\nverb = "checksum"\nresources = { cpus = -1 }\n', "resources.cpus: must be >= 0"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nresources = { cpus = nan }\n', "resources.cpus: must be a finite"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nresources = { memory = inf }\n', "resources.memory: must be a finite"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nresources = { cpus = "4GB" }\n', "resources.cpus: expected a number"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nresources = { cpu = 1 }\n', "resources.cpu: not a resource name; did you mean 'cpus'"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nresources = { mem = "2GB" }\n', "did you mean 'memory'"),
+    (HEAD + '[stages.a]\nverb = "checksum"\nforeach = [1, 2]\n', 'ids are strings such as "001", got int 1'),
+    (HEAD + '[stages.a]\nverb = "checksum"\nforeach = [["001"]]\n', "ids are strings such as"),
+    (HEAD + '[stages."a.output"]\nverb = "checksum"\n', "[stages.a.output]: bad stage name"),
+    (HEAD + '[stages.a]\nverb = "checksum"\n[stages.b]\nverb = "checksum"\ninputs = { files = "@a.output.output" }\n',
+     "malformed reference"),
 ])
 def test_malformed_recipes(ws, text, what):
     msg = err(ws, text)
     assert what in msg and str(ws / "r.toml") in msg
+
+
+def test_custom_resource_names_are_kept(ws):
+    """A name a cluster's workers may declare (not a near miss of cpus, memory, gpus) stays allowed."""
+    p = write(ws, HEAD + '[stages.a]\nverb = "checksum"\nresources = { cpus = 1, gpus = 1, licence = 1 }\n')
+    assert load_recipe(p).stages["a"].resources == {"cpus": 1, "gpus": 1, "licence": 1}
 
 
 def test_missing_recipe_file(ws):
