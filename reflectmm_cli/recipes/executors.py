@@ -447,7 +447,26 @@ def executor_kind(executor: str = "auto", jobs: int = 1, scheduler: str | None =
         raise ReflectmmError(f"unknown executor '{executor}' (auto, serial, pool, dask)")
     if scheduler and kind != "dask":
         raise ReflectmmError("--scheduler needs --executor dask")
+    if scheduler:
+        check_scheduler_address(scheduler)
     return kind
+
+
+def check_scheduler_address(scheduler: str) -> None:
+    """Refuse an address Dask cannot read (``notaurl``, ``tcp://host`` without a port) before anything is planned
+    or run, so ``--dry-run`` says what the run would; whether a scheduler answers there is known only on connect."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    try:
+        scheme, loc = parse_address(scheduler)
+        if scheme not in backends:
+            raise ValueError(f"unknown scheme {scheme!r}")
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            parse_host_port(loc)
+    except (ValueError, TypeError) as exc:
+        raise ReflectmmError(f"--scheduler {scheduler}: not a scheduler address such as tcp://HOST:8786 "
+                             f"({exc})") from None
 
 
 class OrderedMap:

@@ -22,7 +22,7 @@ from typing import Any, Iterator
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.recipes.executors import BLOCKED as R_BLOCKED
 from reflectmm_cli.recipes.executors import FAILED as R_FAILED
-from reflectmm_cli.recipes.executors import OK, Executor, TaskSpec, make_executor
+from reflectmm_cli.recipes.executors import OK, Executor, TaskSpec, executor_kind, make_executor
 from reflectmm_cli.recipes.plan import (BLOCKED, DEFERRED, ERROR, FAILED, RUN, RUNLOG_FILE, SKIP, Plan, make_plan,
                                         load_hash_memo, save_hash_memo, state_dir, write_record)
 from reflectmm_cli.recipes.plan import RUNNING as RUNNING_PRIOR
@@ -150,6 +150,8 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
     """
     if not isinstance(recipe, Recipe):
         recipe = load_recipe(recipe)
+    if not isinstance(executor, Executor):
+        executor_kind(executor, jobs, scheduler)  # a dry run refuses what the run would (--scheduler notaurl)
     workspace = Path(workspace).resolve()
     workspace.mkdir(parents=True, exist_ok=True)
     if dry_run:
@@ -157,6 +159,7 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
         t0 = time.perf_counter()
         plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo)
         plan_seconds = time.perf_counter() - t0
+        _warn_force_outside_only(force, only)
         _save_memo(workspace, memo)
         rows = [TaskOutcome(t.stage_name, t.identity, t.action, t.reason, t.cache_key,
                             outputs=[str(p) for p in t.outputs]) for t in plan.selected()]
@@ -168,6 +171,7 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
         t0 = time.perf_counter()
         plan = make_plan(recipe, workspace, force=force, only=only, ids=ids, hash_memo=memo)
         plan_seconds = time.perf_counter() - t0
+        _warn_force_outside_only(force, only)
         if locked is not True:  # read-only workspace: only a run with nothing to do may go on
             todo = [t.tid for t in plan.selected() if t.action == RUN] + list(plan.deferred)
             if todo:
@@ -176,6 +180,14 @@ def run_recipe(recipe: Recipe | str | Path, workspace: str | Path, *, dry_run: b
                                      f"another --workspace", workspace)
         return _warn_empty(_run_locked(recipe, workspace, memo, plan, plan_seconds, force=force, only=only,
                                        ids=ids, executor=executor, jobs=jobs, scheduler=scheduler))
+
+
+def _warn_force_outside_only(force: str | None, only: str | None) -> None:
+    """``--only A --force=B``: only A's tasks run, so B is not forced; said once, after the plan has checked both
+    names."""
+    if only is not None and force not in (None, "*", only):
+        log.warning("--force=%s: stage %s is not selected by --only %s, so it is not forced (nothing of it runs)",
+                    force, force, only)
 
 
 def _warn_empty(report: RunReport) -> RunReport:

@@ -83,6 +83,28 @@ def test_scheduler_needs_dask(cli, ws):
     assert r.exit_code == 1 and "--scheduler needs --executor dask" in r.stderr
 
 
+def test_dry_run_checks_the_scheduler_as_the_run_does(cli, ws):
+    r = cli("run", ws / "recipe.toml", "-w", ws, "-n", "--executor", "serial", "--scheduler", "tcp://127.0.0.1:1")
+    assert r.exit_code == 1 and "--scheduler needs --executor dask" in r.stderr and r.stdout == ""
+    for bad in ("notaurl", "tcp://127.0.0.1", "foo://h:1"):
+        r = cli("run", ws / "recipe.toml", "-w", ws, "-n", "--scheduler", bad)
+        assert r.exit_code == 1 and r.stdout == "", bad
+        line = r.stderr.strip()
+        assert "\n" not in line and f"--scheduler {bad}: not a scheduler address such as tcp://HOST:8786" in line
+    r = cli("run", ws / "recipe.toml", "-w", ws, "-n", "--scheduler", "tcp://127.0.0.1:1")
+    assert r.exit_code == 0  # a well-formed address: whether a scheduler answers there is known on connect
+
+
+def test_force_outside_only_is_a_warning(cli, ws, reflectmm_log):
+    r = cli("run", ws / "recipe.toml", "-w", ws, "-n", "--only", "manifest", "--force=summary")
+    assert r.exit_code == 0
+    assert [m for m in reflectmm_log if "--force" in m] == [
+        "--force=summary: stage summary is not selected by --only manifest, so it is not forced (nothing of it runs)"]
+    reflectmm_log.clear()
+    r = cli("run", ws / "recipe.toml", "-w", ws, "-n", "--only", "manifest", "--force=manifest")
+    assert r.exit_code == 0 and not [m for m in reflectmm_log if "--force" in m]
+
+
 def test_force_before_the_recipe_still_means_force_all(cli, ws):
     r = cli("run", "-w", ws, "-n", "--force", ws / "recipe.toml")
     assert r.exit_code == 0 and [ln.split(None, 3)[3] for ln in r.stdout.splitlines()[2:]] == ["forced"] * 5
