@@ -79,12 +79,13 @@ def read_raw(path: str | Path) -> tuple[np.ndarray, int]:
 
 def read_image(path: str | Path, transfer: Transfer, rotate: int = 0,
                window: tuple[int, int, int, int] | None = None,
-               expect_size: tuple[int, int] | None = None) -> Image:
+               expect_size: tuple[int, int] | None = None,
+               expect_what: str = "the capture's first shot") -> Image:
     """Read one shot, mark saturated pixels and linearise it.
 
     ``window = (x0, y0, w, h)`` keeps only that part of the (rotated) frame; ``expect_size = (W, H)`` refuses a
-    frame of another size (error naming the file).  RAW files are linear by construction: ``transfer`` is ignored
-    for them (documented).
+    frame of another size (error naming the file and ``expect_what``, the shot that set the size).  RAW files are
+    linear by construction: ``transfer`` is ignored for them (documented).
     """
     path = Path(path)
     if path.suffix.lower() in RAW_EXTS:
@@ -97,7 +98,7 @@ def read_image(path: str | Path, transfer: Transfer, rotate: int = 0,
         codes = _rotate(codes, rotate)
     H, W = codes.shape[:2]
     if expect_size is not None and (W, H) != tuple(expect_size):
-        raise ReflectmmError(f"image is {W}x{H}, but the other views are {expect_size[0]}x{expect_size[1]}", path)
+        raise ReflectmmError(f"image is {W}x{H}, but {expect_what} is {expect_size[0]}x{expect_size[1]}", path)
     if window is not None:
         x0, y0, w, h = window
         codes = codes[y0:y0 + h, x0:x0 + w]

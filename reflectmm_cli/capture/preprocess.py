@@ -20,7 +20,8 @@ import numpy as np
 
 from reflectmm_cli.artifacts import sha256_file
 from reflectmm_cli.capture.images import ROTATIONS, read_image, rotate_points
-from reflectmm_cli.capture.layout import DEFAULT_FLASHES, DEFAULT_VIEWS, ShotPlan, plan_identity
+from reflectmm_cli.capture.layout import (DEFAULT_FLASHES, DEFAULT_VIEWS, RAISED_FLASH_CAMERA, ROOM_SHOT, ShotPlan,
+                                          plan_identity, shot_stem)
 from reflectmm_cli.capture.transfer import Transfer, parse_transfer
 from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
@@ -73,8 +74,22 @@ def parse_rotate(items) -> dict[str, int]:
             deg = -1
         if deg not in ROTATIONS:
             raise ParamError(f"--rotate {k}={v}: degrees must be 0, 90, 180 or 270 (clockwise); camera {k} has {v}")
+        if str(k) in out:  # the last would win without a word
+            raise ParamError(f"--rotate {k}={v}: camera {k} is given twice ({k}={out[str(k)]} before)")
         out[str(k)] = deg
     return out
+
+
+def check_rotate_cameras(rotate: Mapping[str, int], views, flashes) -> None:
+    """Refuse a rotated camera that is not among the views (a typo would leave the right camera unrotated), before
+    any image is read. ``views`` None stands for the default views: the paper's 9 and the raised camera of every
+    raised flash in ``flashes`` (:func:`~reflectmm_cli.capture.layout.default_views`)."""
+    if views is None:
+        views = list(DEFAULT_VIEWS) + [RAISED_FLASH_CAMERA[f] for f in flashes if f in RAISED_FLASH_CAMERA]
+    for cam in rotate:
+        if cam not in views:
+            raise ReflectmmError(f"--rotate {cam}={rotate[cam]}: camera {cam} is not among the views "
+                                 f"({', '.join(views)})")
 
 
 def _crop_box(box, width: int, height: int, margin: float):
@@ -131,7 +146,7 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
     if opts.crop not in CROP_MODES:
         raise ReflectmmError(f"--crop {opts.crop!r}: expected one of {', '.join(CROP_MODES)}")
     for cam in opts.rotate:
-        if cam not in opts.views:
+        if cam not in opts.views:  # a raised camera of the default views left out for want of shots
             log.debug("rotate: camera %s is not among the selected views", cam)
     plan = plan_identity(root, identity, session=opts.session, recording=opts.recording, views=opts.views,
                          flashes=opts.flashes, landmarks_dir=opts.landmarks_dir)
@@ -148,7 +163,8 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
     landmarks = np.full((V, N_LANDMARKS, 2), np.nan, dtype=np.float32)
     bits_seen: set[int] = set()
     for vi in range(V):
-        img = read_image(plan.images[vi][0], transfer, rots[vi], expect_size=size)
+        img = read_image(plan.images[vi][0], transfer, rots[vi], expect_size=size,
+                         expect_what=f"the room shot of view {plan.views[0]}")
         size = size or img.size
         bits_seen.add(img.bits)
         rooms.append(img)
@@ -163,6 +179,10 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
             landmarks[vi] = check_in_frame(pts, *img.size, lp)
     W, H = size
     have_lm = np.isfinite(landmarks).all(axis=(1, 2))
+    if opts.landmarks_dir is not None and not have_lm.any():
+        log.warning("%s: no landmark file for identity %s in any of its %d views (such as %s_lm.pts): the capture "
+                    "has no landmarks", opts.landmarks_dir, plan.identity, V,
+                    shot_stem(plan.identity, plan.session, plan.recording, plan.views[0], ROOM_SHOT))
     mode = opts.crop
     if mode == "auto":
         mode = "landmarks" if have_lm.all() else "signal"
@@ -188,8 +208,9 @@ def preprocess_identity(root: str | Path, identity: str, opts: CaptureOptions | 
             rlin = r.linear if win is None else r.linear[win[1]:win[1] + ch, win[0]:win[0] + cw]
             rsat = r.saturated if win is None else r.saturated[win[1]:win[1] + ch, win[0]:win[0] + cw]
             room[vi] = rlin
+            same = f"the room shot of the same view ({plan.views[vi]})"
             shots = pool.map(lambda path, rot=rots[vi], win=win: read_image(path, transfer, rot, window=win,
-                                                                               expect_size=size),
+                                                                               expect_size=size, expect_what=same),
                              plan.images[vi][1:])
             for fi, fl in enumerate(shots):
                 bits_seen.add(fl.bits)

@@ -77,3 +77,12 @@ def parse_transfer(spec: str) -> Transfer:
             return Transfer("linear", 1.0)
         return Transfer(f"gamma:{gv:g}" if gv != 1.2 else "gamma1.2", gv)
     raise ReflectmmError(f"--transfer {spec!r}: expected one of gamma1.2, srgb, linear, gamma:G")
+
+
+def check_transfer(spec: str) -> None:
+    """A param's check: ValueError (``'gamma:0': gamma must be ...``) for a spec :func:`parse_transfer` refuses, so
+    the value is refused with the other params, before any data is read."""
+    try:
+        parse_transfer(spec)
+    except ReflectmmError as exc:
+        raise ValueError(f"{spec!r}: {str(exc).split(': ', 1)[-1]}") from None

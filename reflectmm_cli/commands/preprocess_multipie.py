@@ -10,7 +10,9 @@ import click
 from reflectmm_cli.capture.layout import discover_identities
 from reflectmm_cli.commands._common import (emit, given_params, id_callback, json_option, output_option, param_options,
                                             parse_ids, run_stage_cli, workspace_option)
+from reflectmm_cli.capture.preprocess import check_rotate_cameras
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.stages import get_stage
 from reflectmm_cli.stages.preprocess_multipie import PARAMS, VERB
 
 log = logging.getLogger("reflectmm")
@@ -36,15 +38,20 @@ def preprocess_multipie_cmd(root, identity, ids, id_file, all_ids, landmarks_dir
     An identity that lacks required shots is skipped with a reason and the others are processed; the command
     then exits non-zero after writing the successful identities.
     """
+    params = given_params(kw, PARAMS)
+    p = get_stage(VERB).context(workspace=workspace, params=params).params  # option errors before any data is read
+    check_rotate_cameras(p.get("rotate", {}), p.get("views"), p["flashes"])  # once, not once per identity
     idents = ([identity] if identity else []) + parse_ids(ids, id_file)
     if all_ids:
+        if identity or ids is not None or id_file is not None:
+            raise click.UsageError("--all takes every identity found under --root: give it without --id, --ids "
+                                   "or --id-file")
         idents += discover_identities(root)
     idents = list(dict.fromkeys(idents))
     if not idents:
         raise click.UsageError("give --id, --ids, --id-file or --all")
     if output is not None and len(idents) > 1:
         raise click.UsageError("--output needs exactly one identity")
-    params = given_params(kw, PARAMS)
     inputs = {"root": [root]}
     if landmarks_dir is not None:
         inputs["landmarks"] = [landmarks_dir]
@@ -62,6 +69,8 @@ def preprocess_multipie_cmd(root, identity, ids, id_file, all_ids, landmarks_dir
     emit(written, as_json, {"failed": dict(failed)} if as_json else None)
     if failed:
         reasons = "; ".join(f"{i}: {msg}" for i, msg in failed)
+        if len(failed) == len(idents):
+            raise ReflectmmError(f"all {len(idents)} identities failed, nothing was written — {reasons}")
         raise ReflectmmError(f"{len(failed)} of {len(idents)} identities failed, the others were written — "
                              f"{reasons}")
 

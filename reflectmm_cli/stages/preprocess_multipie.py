@@ -9,8 +9,9 @@ from pathlib import Path
 from reflectmm_cli.artifacts import atomic_write_bytes, write_artifact
 from reflectmm_cli.capture.layout import (DEFAULT_FLASHES, DEFAULT_VIEWS, default_views, discover_identities,
                                           plan_identity)
-from reflectmm_cli.capture.preprocess import (CROP_MODES, CaptureOptions, contact_sheet, encode_png, parse_rotate,
-                                              preprocess_identity, source_refs)
+from reflectmm_cli.capture.preprocess import (CROP_MODES, CaptureOptions, check_rotate_cameras, contact_sheet,
+                                              encode_png, parse_rotate, preprocess_identity, source_refs)
+from reflectmm_cli.capture.transfer import check_transfer
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.params import Param
 from reflectmm_cli.stages.base import Input, Stage, StageContext
@@ -26,7 +27,8 @@ PARAMS = (
           help="Cameras, comma separated (default: the paper's 9 views, plus 08_1 / 19_1 when flashes 14 / 18 are "
                "used and their shots exist: they place those flashes; unwrap-uv leaves them out)."),
     Param("flashes", "strs", list(DEFAULT_FLASHES), help="Flash shots, comma separated."),
-    Param("transfer", "str", "gamma1.2", help="Pixel value -> linear: gamma1.2 (x**1.2), srgb, linear, or gamma:G."),
+    Param("transfer", "str", "gamma1.2", check=check_transfer,
+          help="Pixel value -> linear: gamma1.2 (x**1.2), srgb, linear, or gamma:G."),
     Param("rotate", "custom", {}, convert=parse_rotate, multiple=True, metavar="CAM=DEG",
           help="Rotate a camera's images clockwise by 90/180/270 degrees after reading (repeatable)."),
     Param("crop", "str", "auto", choices=tuple(CROP_MODES),
@@ -63,6 +65,7 @@ def options_from_ctx(ctx: StageContext) -> CaptureOptions:
     p = ctx.params
     lm = ctx.inputs.get("landmarks") or []
     lm_dir = Path(lm[0]) if lm else None
+    check_rotate_cameras(p["rotate"], p.get("views"), p["flashes"])  # before the default views look at the data
     return CaptureOptions(session=p["session"], recording=p["recording"], views=_views(ctx, lm_dir),
                           flashes=tuple(p["flashes"]), transfer=p["transfer"], rotate=dict(p["rotate"]),
                           landmarks_dir=lm_dir, crop=p["crop"], crop_margin=p["crop_margin"])

@@ -361,3 +361,84 @@ def test_signal_crop_of_a_noisy_capture_is_a_face_window(tmp_path):
     for v in range(2):
         x0, y0 = a["crop_origin"][v]
         assert x0 <= 105 and x0 + cw >= 195 and y0 <= 60 and y0 + ch >= 180
+
+
+def test_rotate_camera_twice_or_not_a_view_is_refused_before_reading(tmp_path, cli, reflectmm_log):
+    make_tree(tmp_path / "mp", ("001",))
+    with pytest.raises(ParamError, match=r"--rotate 05_1=180: camera 05_1 is given twice \(05_1=90 before\)"):
+        parse_rotate(["05_1=90", "05_1=180"])
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--id", "001", "--rotate", "05_1=90", "--rotate", "05_1=180")
+    assert res.exit_code == 1 and "rotate: camera 05_1 is given twice (05_1=90 before)" in res.stderr
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--ids", "001,002", "--rotate", "99_9=90")
+    assert res.exit_code == 1 and res.stderr.count("\n") == 1
+    assert "--rotate 99_9=90: camera 99_9 is not among the views (13_0, 05_1, 08_1)" in res.stderr
+    # without --views the default views (the paper's 9 and the raised cameras of the flashes used) are checked,
+    # before the data is looked at (which would warn that 08_1 / 19_1 lack shots)
+    res = cli("preprocess-multipie", "--root", tmp_path / "mp", "-w", tmp_path / "ws", "--id", "001",
+              "--rotate", "99_9=90")
+    assert res.exit_code == 1 and "camera 99_9 is not among the views (09_0, " in res.stderr and not reflectmm_log
+    assert not (tmp_path / "ws" / "preprocess-multipie").exists()
+
+
+def test_transfer_is_checked_with_the_options(tmp_path, cli, reflectmm_log):
+    make_tree(tmp_path / "mp", ("001",))
+    res = cli("preprocess-multipie", "--root", tmp_path / "mp", "-w", tmp_path / "ws", "--id", "001",
+              "--transfer", "gamma:0")
+    assert res.exit_code == 1 and not reflectmm_log  # no warning about the data's raised cameras first
+    assert res.stderr.strip() == ("reflectmm: error: --transfer: 'gamma:0': gamma must be a positive number "
+                                  "(e.g. gamma:2.2)")
+
+
+def test_all_with_ids_is_refused(tmp_path, cli):
+    make_tree(tmp_path / "mp", ("001", "002"))
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--all", "--id", "001")
+    assert res.exit_code == 2 and "--all takes every identity found under --root" in res.stderr
+    assert not (tmp_path / "ws").exists()
+
+
+def test_nothing_written_is_not_said_to_be_partly_written(tmp_path, cli):
+    make_tree(tmp_path / "mp", ("001", "002"))
+    res = run(cli, tmp_path / "mp", tmp_path / "ws", "--ids", "001,002", "--flashes", "05,07,09")
+    assert res.exit_code == 1
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("reflectmm: error: all 2 identities failed, nothing was written — 001: ")
+    assert "the others were written" not in res.stderr
+
+
+def test_wrong_size_flash_shot_names_its_own_view(tmp_path, cli):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    bad = shot_file(root, "001", "05_1", "07")
+    write_png(bad, np.zeros((30, 40, 3), np.uint8))
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert res.exit_code == 1
+    assert f"{bad}: image is 40x30, but the room shot of the same view (05_1) is 48x32" in res.stderr
+    write_png(bad, np.zeros((32, 48, 3), np.uint8))
+    bad = shot_file(root, "001", "08_1", "00")
+    write_png(bad, np.zeros((30, 40, 3), np.uint8))
+    res = run(cli, root, tmp_path / "ws", "--id", "001")
+    assert f"{bad}: image is 40x30, but the room shot of view 13_0 is 48x32" in res.stderr
+
+
+def test_landmarks_folder_without_this_identity_warns(tmp_path, reflectmm_log):
+    root = tmp_path / "mp"
+    make_tree(root, ("001",))
+    (tmp_path / "lms").mkdir()
+    opts = CaptureOptions(views=VIEWS, flashes=FLASHES, landmarks_dir=tmp_path / "lms")
+    _, _, rep = preprocess_identity(root, "001", opts)
+    assert rep["landmark_views"] == 0
+    assert reflectmm_log == [f"{tmp_path / 'lms'}: no landmark file for identity 001 in any of its 3 views (such as "
+                             "001_01_01_130_00_lm.pts): the capture has no landmarks"]
+
+
+def test_a_16bit_shot_among_8bit_ones_is_scaled_by_its_own_depth(tmp_path):
+    """Each file is decoded by its own bit depth (code / 65535 or / 255): a 16-bit shot in an 8-bit tree gives
+    the same linear values as its 8-bit version, within the 8-bit quantisation."""
+    root = tmp_path / "mp"
+    truth = make_tree(root, ("001",), views=("05_1",), flashes=("07",))["001"]
+    opts = CaptureOptions(views=("05_1",), flashes=("07",), crop="none")
+    a8, _, _ = preprocess_identity(root, "001", opts)
+    write_png(shot_file(root, "001", "05_1", "07"), encode_linear(truth["flash"][0, 0], parse_transfer("gamma1.2"), 16))
+    a16, _, _ = preprocess_identity(root, "001", opts)
+    assert int(a8["bits"]) == 8 and int(a16["bits"]) == 16
+    np.testing.assert_allclose(a16["olat"].astype(np.float64), a8["olat"].astype(np.float64), atol=4e-3)
