@@ -165,7 +165,7 @@ class Param:
         check: extra validation of the canonical value; raises ValueError with a message.
         convert: ``custom`` kind: value (CLI string(s) or recipe value) → canonical JSON-able value.
         multiple: the option may be repeated (``custom`` kind; the function gets the tuple).
-        none_word: a string meaning "None" (e.g. ``"all"`` cameras).
+        none_word: a string meaning "None" (e.g. ``"all"`` cameras); an empty list is refused, not taken for it.
         metavar: click metavar.
         aliases: further option names (``-n``).
         allow_empty: a list kind may be empty (``""`` on the command line, ``[]`` in a recipe), e.g. "no rounds".
@@ -227,8 +227,11 @@ class Param:
     def _coerce(self, v: Any) -> Any:
         if v is None:
             return None
-        if self.none_word is not None and isinstance(v, str) and v.strip().lower() in (self.none_word, ""):
-            return None
+        if self.none_word is not None and isinstance(v, str):
+            if v.strip().lower() == self.none_word:
+                return None
+            if not v.strip():  # not a short way to say "all": an empty $VAR would render everything
+                raise ValueError(f"empty list (name at least one, or '{self.none_word}')")
         k = self.kind
         if k == "int":
             x = _as_int(v)

@@ -255,12 +255,15 @@ def test_identity_does_not_depend_on_the_count(model_set, tmp_path):
     (["--flashes", "07,31"], "no flash '31'"),
     (["--image-size", "640by480"], "WxH"),
     (["--first-id", "999", "-n", "2"], "3-digit"),
+    (["--cameras", ""], "--cameras: empty list (name at least one, or 'all')"),
+    (["--flashes", " "], "--flashes: empty list (name at least one, or 'all')"),
 ])
 def test_bad_options_fail_with_one_line(args, message, tmp_path):
     r = CliRunner().invoke(main, ["synth", "multipie", "--out", str(tmp_path / "x"), "--face-vertices", "400",
                                   *args], catch_exceptions=False)
     assert r.exit_code == 1
     assert message in r.stderr and r.stderr.count("\n") == 1
+    assert not (tmp_path / "x").exists()
 
 
 def test_stage_outputs_are_what_the_run_writes(model_set):
