@@ -11,6 +11,7 @@ shader sees).
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -32,6 +33,8 @@ from reflectmm_cli.synth.wild_light import SplitMap, _hammersley, ggx_view_albed
 __all__ = ["WildConfig", "WildSkin", "head_pose_rotation", "sample_wild_skin", "WildScene", "sample_scene",
            "IdentityGeometry", "vertex_ambient_occlusion", "vertex_lobe_visibility", "identity_expression",
            "render_wild", "reference_radiance", "encode_codes", "synth_wild", "ENCODINGS"]
+
+log = logging.getLogger("reflectmm")
 
 ENCODINGS = ("gamma1.2", "srgb")
 ROUGHNESS_RANGE = (0.05, 0.9)   # GGX α: p=64 ↔ α≈0.17 and p=1 ↔ α≈0.8 (α = √(2/(p+2))), so both ends lie outside
@@ -607,6 +610,17 @@ def identity_split(n_identities: int, seed: int, fractions=(0.8, 0.1, 0.1)) -> n
     return out
 
 
+def _warn_empty_splits(cfg: WildConfig, n_id: int, splits: np.ndarray) -> None:
+    """A split with a positive fraction that gets no identity (too few identities to cut): said before rendering,
+    as what evaluates the test identities (build-baseline oracle, the evaluations) finds none later."""
+    empty = [name for name, f in zip(("val", "test"), cfg.split) if f > 0 and name not in splits]
+    if empty:
+        ipi = int(cfg.images_per_identity)
+        log.warning("synth wild: %d image(s) make %d identit%s, too few to split: no %s identity (-n %d or more, "
+                    "with %d image(s) per identity, gives every split at least one)", cfg.count, n_id,
+                    "y" if n_id == 1 else "ies", " or ".join(empty), 2 * ipi + 1, ipi)
+
+
 def _thumb(img_u8: np.ndarray, w: int = 112) -> np.ndarray:
     import cv2
 
@@ -633,14 +647,15 @@ def synth_wild(out_dir: str | Path, cfg: WildConfig, *, face_model=None, progres
     fm_path = save_face_model(model, out / "face_model.npz", params={"face_vertices": cfg.face_vertices})
     params = cfg.to_params()
     prod = producer or {"stage": "synth-wild"}
+    n_id = -(-cfg.count // cfg.images_per_identity)
+    splits = identity_split(n_id, cfg.seed, cfg.split)
+    _warn_empty_splits(cfg, n_id, splits)
     n_env = int(cfg.envmaps)   # images depend on (seed, index) only, not on --count
     write_envmaps(out / "envmaps", n_env, cfg.seed, cfg.envmap_width, contact_sheet=False)
     t_env = time.perf_counter()
     envs = [split_map(make_envmap(cfg.seed, i, cfg.envmap_width)[0], prefilter_width=cfg.prefilter_width)
             for i in prog(range(n_env), desc="prefilter maps", unit="map")]
     t_env = time.perf_counter() - t_env
-    n_id = -(-cfg.count // cfg.images_per_identity)
-    splits = identity_split(n_id, cfg.seed, cfg.split)
     skins: dict[int, WildSkin] = {}
     geom: IdentityGeometry | None = None
     names, ids, spl, envi, poses, occl = [], [], [], [], [], []

@@ -163,3 +163,18 @@ def test_wild_two_lobe_skin_keeps_the_specular_albedo(small_face):
     assert np.all(two.roughness[two.skin] < one.roughness[two.skin] + 1e-6)
     assert np.all(two.roughness_broad[two.skin] > one.roughness[two.skin] - 1e-6)
     assert 0.3 <= two.lobe_mix.min() and two.lobe_mix.max() <= 0.97 and "two_lobe" in two.params
+
+
+def test_too_few_identities_to_split_warn(tmp_path, reflectmm_log):
+    """-n 2 with 2 images per identity is one identity: all train, no test identity for the evaluations."""
+    from reflectmm_cli.geometry import procedural_face_model
+
+    fm = procedural_face_model(grid=(31, 25), n_shape=2, n_exp=2, seed=2)
+    cfg = WildConfig(count=2, size=32, images_per_identity=2, envmaps=1, envmap_width=16, prefilter_width=8,
+                     uv_size=16, ao_rays=1, spec_rays=1)
+    synth_wild(tmp_path, cfg, face_model=fm)
+    man = read_artifact(tmp_path / "manifest.npz", "wild-manifest")
+    assert set(man["split"].tolist()) == {"train"}
+    assert reflectmm_log == ["synth wild: 2 image(s) make 1 identity, too few to split: no val or test identity "
+                             "(-n 5 or more, with 2 image(s) per identity, gives every split at least one)"]
+    assert set(identity_split(3, 0)) == {"train", "val", "test"}  # the count the warning names is enough
