@@ -338,6 +338,8 @@ def load_face_model(path, **kwargs) -> FaceModel:
     path = Path(path)
     if not path.exists():
         raise ReflectmmError("file not found", path)
+    if path.is_dir():
+        raise ReflectmmError("is a directory, expected a face model (a face-model artifact or a BFM .mat file)", path)
     if path.suffix.lower() == ".npz":
         return face_model_from_artifact(read_artifact(path, "face-model"))
     keys = _mat_keys(path)
@@ -431,6 +433,7 @@ def detect_unit_scale(points: np.ndarray) -> tuple[float, str]:
 def _units(points: np.ndarray, units: str | float | None, path: Path) -> tuple[float, str]:
     named = {"um": 1e-3, "micrometres": 1e-3, "mm": 1.0, "millimetres": 1.0, "dm": 100.0, "decimetres": 100.0,
              "m": 1000.0, "metres": 1000.0}
+    _check_finite(points, "mean_shape", path)  # a NaN extent would read as metres first
     if units is None or units == "auto":
         scale, name = detect_unit_scale(points)
         log.info("%s: coordinates look like %s (bounding-box diagonal %.4g); scaling by %g to mm",

@@ -257,6 +257,46 @@ def test_load_bfm09_errors(small, tmp_path):
         load_face_model(tmp_path / "z.mat")
 
 
+def test_nan_mean_shape_is_refused_before_the_units_are_guessed(small, tmp_path):
+    """An all-NaN mean shape has a NaN extent, which read as metres ('scaling by 1000') before the NaN error."""
+    import logging
+
+    msgs = []
+
+    class _Catch(logging.Handler):
+        def emit(self, record):
+            msgs.append(record.getMessage())
+
+    logger = logging.getLogger("reflectmm")
+    handler, level = _Catch(level=logging.DEBUG), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    try:
+        for key in ("shapeMU", "meanshape"):
+            if key == "shapeMU":
+                _write_bfm09(tmp_path / "n.mat", small, np.random.default_rng(0))
+            else:
+                n = small.n_vertices
+                scipy.io.savemat(str(tmp_path / "n.mat"), {"meanshape": np.zeros((1, 3 * n)),
+                                                           "idBase": np.zeros((3 * n, 2)),
+                                                           "exBase": np.zeros((3 * n, 2))})
+            d = scipy.io.loadmat(str(tmp_path / "n.mat"))
+            d[key] = np.full_like(d[key], np.nan, dtype=np.float64)
+            scipy.io.savemat(str(tmp_path / "n.mat"), {k: v for k, v in d.items() if not k.startswith("__")})
+            with pytest.raises(ReflectmmError, match=r"n.mat: face model: mean_shape has \d+ NaN or infinite"):
+                load_face_model(tmp_path / "n.mat")
+            assert not [m for m in msgs if "look like" in m], msgs
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def test_a_directory_is_not_a_face_model(tmp_path):
+    (tmp_path / "fm").mkdir()
+    with pytest.raises(ReflectmmError, match=r"fm: is a directory, expected a face model \(a face-model artifact"):
+        load_face_model(tmp_path / "fm")
+
+
 def test_load_bfm_front(small, tmp_path):
     rng = np.random.default_rng(5)
     n = small.n_vertices
