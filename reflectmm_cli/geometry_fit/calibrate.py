@@ -1160,9 +1160,11 @@ def align_to(cal_centers: np.ndarray, true_centers: np.ndarray) -> tuple[np.ndar
 
 # --------------------------------------------------------------------------- from capture artifacts
 
-def landmarks_from_captures(capture_paths: Sequence[str | Path], views: Sequence[str] | None = None
-                            ) -> tuple[np.ndarray, list[str], list[str], np.ndarray]:
+def landmarks_from_captures(capture_paths: Sequence[str | Path], views: Sequence[str] | None = None,
+                            purpose: str = "the calibration") -> tuple[np.ndarray, list[str], list[str], np.ndarray]:
     """Stack the landmarks of ``capture`` artifacts (preprocess-multipie outputs) of several identities.
+
+    ``purpose`` names what they are for in the refusals (an identity given twice, one without landmarks).
 
     Returns (landmarks (N, C, 68, 2) full-frame px with NaN where an identity lacks a view, identities (N,),
     camera names (C,) — the union of the captures' views in first-seen order, or ``views`` —, image size (C, 2)).
@@ -1194,13 +1196,13 @@ def landmarks_from_captures(capture_paths: Sequence[str | Path], views: Sequence
         ident = str(rep.get("identity") or art.meta.get("params", {}).get("id") or Path(p).stem)
         if ident in first_path:
             raise ReflectmmError(f"identity {ident} is given twice (also {first_path[ident]}): each identity counts "
-                                 "once in the calibration", p)
+                                 f"once in {purpose}", p)
         first_path[ident] = p
         used = [k for k, v in enumerate(vn) if views is None or v in names]
         if not any([check_view_landmarks(lm[k], vn[k], W, H, p) for k in used]):  # every view checked
             among = f" of {', '.join(names)}" if views else ""
-            raise ReflectmmError(f"identity {ident} has no landmarks in any view{among}: it cannot take part in the "
-                                 "calibration; leave it out", p)
+            raise ReflectmmError(f"identity {ident} has no landmarks in any view{among}: it cannot take part in "
+                                 f"{purpose}; leave it out", p)
         per.append((ident, vn, lm))
     if not per:
         raise ReflectmmError("calibrate-rig: no capture artifacts given")

@@ -65,7 +65,8 @@ def _views(captures: list[Path], geometries: list[Path], n_vertices: int):
         if ident in geos:
             raise ReflectmmError(f"a second geometry of identity {ident} (the first: {geos[ident].path})", g)
         geos[ident] = art
-    lm, idents, cams, _ = landmarks_from_captures(captures)  # (N, C, 68, 2), NaN where a capture lacks a view
+    # (N, C, 68, 2), NaN where a capture lacks a view
+    lm, idents, cams, _ = landmarks_from_captures(captures, purpose="the embedding")
     views = []
     for c, ident, lm_i in zip(captures, idents, lm):
         if ident not in geos:

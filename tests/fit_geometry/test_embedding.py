@@ -257,3 +257,16 @@ def test_mutated_points_never_give_non_finite_offsets_or_corrections():
         assert not np.isnan(out[fin]).any()
 
     check()
+
+
+def test_a_capture_given_twice_is_refused_in_the_embeddings_words(tmp_path):
+    """The check is calibrate-rig's; its message named the calibration."""
+    from reflectmm_cli.artifacts import write_artifact
+    from reflectmm_cli.stages.face_model_embed import _views
+
+    cap = write_artifact(tmp_path / "c.npz", "capture", {
+        "view_names": np.array(["05_1"]), "landmarks": np.full((1, 68, 2), 20.0), "image_size": np.array([64, 48])},
+        extra_meta={"report": {"identity": "001"}})
+    with pytest.raises(ReflectmmError, match=r"identity 001 is given twice \(also .*c.npz\): each identity counts "
+                                             r"once in the embedding$"):
+        _views([cap, cap], [], 100)
