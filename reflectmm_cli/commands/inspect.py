@@ -61,6 +61,18 @@ def _page_arrays(path: Path) -> list[dict[str, Any]]:
     return [array_summary(name, decode_blob(rec)) for name, rec in iter_blobs(read_bundle(path) or {})]
 
 
+def _check_npz_like(path: Path) -> None:
+    """A file that is neither named .npz nor a zip archive (a safetensors encoder, a TOML rig, a PNG) is not of a
+    type inspect reads: said so, with its suffix, instead of "not an NPZ artifact (not a zip archive)"."""
+    if path.suffix.lower() == ".npz":
+        return
+    with open(path, "rb") as f:
+        if f.read(2) == b"PK":  # a zip, maybe truncated: the NPZ reader says what is wrong with it
+            return
+    raise ArtifactError(f"not a supported artifact type ({path.suffix or 'no suffix'}; inspect reads NPZ and EXR "
+                        f"artifacts and viewer HTML pages)", path)
+
+
 def inspect_artifact(path: str | Path) -> dict[str, Any]:
     """Library function: a JSON-able description of one artifact; raises ReflectmmError if it is not one."""
     path = Path(path)
@@ -81,6 +93,7 @@ def inspect_artifact(path: str | Path) -> dict[str, Any]:
         meta = read_meta(path)
         arrays = _page_arrays(path)
     else:
+        _check_npz_like(path)
         fmt = "npz"
         with _open_npz(path) as npz:
             meta = _meta_from_npz(npz, path)

@@ -149,6 +149,22 @@ def test_inspect_reports_each_bad_file_and_still_inspects_the_good_ones(cli, tmp
         assert line.startswith("reflectmm: error: ") and what in line
 
 
+def test_inspect_names_a_file_type_it_does_not_read(cli, tmp_path):
+    files = [tmp_path / "enc.safetensors", tmp_path / "rig.toml", tmp_path / "img.png", tmp_path / "noext"]
+    for f in files:
+        f.write_bytes(b"\x89PNG\r\n" if f.suffix == ".png" else b"[a]\nb = 1\n")
+    r = cli("inspect", *files)
+    assert r.exit_code == 1
+    errs = r.stderr.strip().splitlines()
+    assert len(errs) == len(files)
+    for f, suffix in zip(files, (".safetensors", ".toml", ".png", "no suffix")):
+        assert f"reflectmm: error: {f}: not a supported artifact type ({suffix}; inspect reads NPZ and EXR " \
+               "artifacts and viewer HTML pages)" in errs
+    zipped = tmp_path / "art.bin"  # an artifact under another name is still read
+    zipped.write_bytes(write_artifact(tmp_path / "a.npz", "render", {"x": np.arange(2)}).read_bytes())
+    assert cli("inspect", zipped).exit_code == 0
+
+
 def test_inspect_shows_newer_schema_with_a_note(cli, tmp_path):
     p = write_artifact(tmp_path / "n.npz", "geometry", {"x": np.zeros(1)},
                        extra_meta={"schema": f"reflectmm.geometry/{SCHEMA_MAJOR['geometry'] + 1}"})
