@@ -105,12 +105,15 @@ def test_bare_words_are_strings():
     assert parse_override("a.b=true", BASIC_PATH)[2] is True  # a TOML value first
 
 
-def test_stage_names_with_dots(tmp_path):
+def test_stage_names_with_dots_are_refused(tmp_path):
+    """A dot in a stage name made @fit.v2.output and --set fit.v2.x=1 read two ways: such a name is refused."""
     doc = 'schema = "reflectmm.recipe/1"\n[stages."fit.v2"]\nverb = "checksum"\ninputs = { files = "x" }\n'
-    r = parse_recipe_text(doc, tmp_path / "r.toml", ["fit.v2.fail_if_contains=Q"])
-    assert r.stages["fit.v2"].params == {"fail_if_contains": "Q"}
+    with pytest.raises(ReflectmmError, match=r"\[stages.fit.v2\]: bad stage name"):
+        parse_recipe_text(doc, tmp_path / "r.toml", ["fit.v2.fail_if_contains=Q"])
     with pytest.raises(ReflectmmError, match="no stage 'fit'"):
         parse_recipe_text(doc, tmp_path / "r.toml", ["fit.fail_if_contains=Q"])
+    r = parse_recipe_text(doc.replace('"fit.v2"', "fit-v2"), tmp_path / "r.toml", ["fit-v2.fail_if_contains=Q"])
+    assert r.stages["fit-v2"].params == {"fail_if_contains": "Q"}
 
 
 BASIC_PATH = __import__("pathlib").Path("recipe.toml")
