@@ -74,6 +74,9 @@ def load_models(model_path, light_path):
     art = read_artifact(model_path, MODEL_KIND)
     _check_finite(art.arrays, model_path)
     model = model_from_arrays(art.arrays, art.meta.get("stats"), path=model_path)
+    if model.vertex_albedo_mean is None:
+        raise ReflectmmError("the reflectance model has no per-vertex part (build it with build-pca --face-model); "
+                             "finetuning and reconstruction shade per vertex", model_path)
     lart = read_artifact(light_path, LIGHT_MODEL_KIND)
     _check_finite(lart.arrays, light_path)
     light = light_model_from_arrays(lart.arrays)

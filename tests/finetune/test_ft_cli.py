@@ -577,3 +577,17 @@ def test_resume_names_a_switched_solver_and_refuses_before_the_model_solve(cli, 
     r = cli(*base, "--solver", "ls", "--lr2", "1e-3", "--resume")
     assert r.exit_code == 1 and "checkpoint was made with other settings (lr2);" in r.stderr, r.stderr
     assert "model solve:" not in r.stderr and out.read_bytes() == before, r.stderr
+
+
+def test_a_model_without_its_per_vertex_part_is_refused_naming_the_file(cli, data, tmp_path):
+    init = read_artifact(data["init_path"], "reflectance-model")
+    arrays = {k: v for k, v in init.arrays.items() if not k.startswith("vertex_")}
+    uv_only = write_artifact(tmp_path / "uv_only.npz", "reflectance-model", arrays,
+                             extra_meta={"stats": init.meta.get("stats")})
+    r = cli("finetune", "--model", uv_only, "--light-model", data["light_path"], "--data", data["shards"][0], "-o",
+            tmp_path / "ft" / "m.npz", *TINY)
+    assert r.exit_code == 1 and "uv_only.npz" in r.stderr and "no per-vertex part" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = cli("reconstruct", "--refine", "--refine-from", "zero", "--model", uv_only, "--light-model",
+            data["light_path"], "--data", data["shards"][0], "-o", tmp_path / "rec.npz")
+    assert r.exit_code == 1 and "uv_only.npz" in r.stderr and not (tmp_path / "rec.npz").exists()
