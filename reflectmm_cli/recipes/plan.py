@@ -198,6 +198,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
     deferred: list[str] = []
     empty: list[str] = []
     unplanned: set[str] = set()  # deferred stages outside --only: they would not run, so they wait for nothing
+    recipe_ids: set[str] = set()  # every identity of the per-identity stages, before --ids selects
     for name in order:
         spec, stage = recipe.stages[name], stages[name]
         outside = only is not None and only != name
@@ -215,6 +216,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
         if spec.per_identity and not stage_ids:
             empty.append(name)
         if ids is not None and spec.per_identity:
+            recipe_ids.update(i for i in stage_ids if i is not None)
             wanted = set(ids)
             stage_ids = [i for i in stage_ids if i in wanted]
         stage_tasks[name] = []
@@ -239,9 +241,13 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
     if ids is not None and not deferred:
         known = {t.identity for t in tasks.values()}
         unknown = [i for i in ids if i not in known]
+        named = ", ".join(unknown[:10]) + (" ..." if len(unknown) > 10 else "")
+        if unknown and len(unknown) == len(ids):  # a typo: the run would do the shared stages and exit 0
+            have = sorted(recipe_ids)
+            raise ReflectmmError(f"--ids: no stage has identit{'y' if len(unknown) == 1 else 'ies'} {named} (the "
+                                 f"recipe's: {', '.join(have[:10]) + (' ...' if len(have) > 10 else '') or 'none'})")
         if unknown:
-            log.warning("--ids: no stage has identit%s %s", "y" if len(unknown) == 1 else "ies",
-                        ", ".join(unknown[:10]) + (" ..." if len(unknown) > 10 else ""))
+            log.warning("--ids: no stage has identit%s %s", "y" if len(unknown) == 1 else "ies", named)
     return Plan(recipe, workspace, tasks, stage_tasks, deferred, empty)
 
 

@@ -52,6 +52,14 @@ def test_only_and_ids(cli, ws):
     assert "summary" in r.stderr and "not selected by --only" in r.stderr
 
 
+def test_ids_that_no_stage_has_are_refused_and_a_partly_unknown_list_warned(cli, ws, reflectmm_log):
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--ids", "777", "--dry-run")
+    assert r.exit_code == 1 and "--ids: no stage has identity 777" in r.stderr and "001" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--ids", "002,777", "--dry-run")
+    assert r.exit_code == 0 and any("no stage has identity 777" in m for m in reflectmm_log)
+
+
 def test_failure_lines_and_exit_status(cli, ws):
     (ws / "data" / "004" / "a.txt").write_text("BAD")
     r = cli("run", ws / "recipe.toml", "-w", ws)
