@@ -45,9 +45,9 @@ INPUTS = (
 )
 
 
-def _views(ctx: StageContext, landmarks_dir: Path | None) -> tuple[str, ...]:
+def _views(ctx: StageContext, landmarks_dir: Path | None, say_notes: bool = True) -> tuple[str, ...]:
     """The views param, or the default: the paper's 9 + 08_1 / 19_1 when flashes 14 / 18 are used
-    (:func:`reflectmm_cli.capture.layout.default_views`)."""
+    (:func:`reflectmm_cli.capture.layout.default_views`); its notes are logged when ``say_notes``."""
     p = ctx.params
     if p.get("views") is not None:
         return tuple(p.get("views"))
@@ -55,18 +55,19 @@ def _views(ctx: StageContext, landmarks_dir: Path | None) -> tuple[str, ...]:
         return DEFAULT_VIEWS
     views, notes = default_views(ctx.input("root"), ctx.identity, tuple(p["flashes"]), session=p["session"],
                                  recording=p["recording"], landmarks_dir=landmarks_dir)
-    for n in notes:
+    for n in notes if say_notes else ():
         log.warning("preprocess-multipie: %s", n)
     return views
 
 
-def options_from_ctx(ctx: StageContext) -> CaptureOptions:
-    """The library's CaptureOptions from the resolved params and the optional landmarks input."""
+def options_from_ctx(ctx: StageContext, say_notes: bool = True) -> CaptureOptions:
+    """The library's CaptureOptions from the resolved params and the optional landmarks input.  ``say_notes``:
+    log what the default views left out (the run does; the cache key, computed first, does not repeat it)."""
     p = ctx.params
     lm = ctx.inputs.get("landmarks") or []
     lm_dir = Path(lm[0]) if lm else None
     check_rotate_cameras(p["rotate"], p.get("views"), p["flashes"])  # before the default views look at the data
-    return CaptureOptions(session=p["session"], recording=p["recording"], views=_views(ctx, lm_dir),
+    return CaptureOptions(session=p["session"], recording=p["recording"], views=_views(ctx, lm_dir, say_notes),
                           flashes=tuple(p["flashes"]), transfer=p["transfer"], rotate=dict(p["rotate"]),
                           landmarks_dir=lm_dir, crop=p["crop"], crop_margin=p["crop_margin"])
 
@@ -84,7 +85,7 @@ def _outputs(ctx: StageContext) -> list[Path]:
 
 def _input_files(ctx: StageContext) -> dict[str, list[Path]]:
     """Only this identity's source images and landmark files key the cache."""
-    opts = options_from_ctx(ctx)
+    opts = options_from_ctx(ctx, say_notes=False)
     try:
         plan = plan_identity(ctx.input("root"), _require_identity(ctx), session=opts.session,
                              recording=opts.recording, views=opts.views, flashes=opts.flashes,

@@ -442,3 +442,17 @@ def test_a_16bit_shot_among_8bit_ones_is_scaled_by_its_own_depth(tmp_path):
     a16, _, _ = preprocess_identity(root, "001", opts)
     assert int(a8["bits"]) == 8 and int(a16["bits"]) == 16
     np.testing.assert_allclose(a16["olat"].astype(np.float64), a8["olat"].astype(np.float64), atol=4e-3)
+
+
+def test_a_note_of_the_default_views_is_said_once(tmp_path, cli, reflectmm_log):
+    """Flash 14 without a room shot of its raised camera 08_1: the note was logged three times per identity (the
+    cache key and the run each worked the default views out)."""
+    from reflectmm_cli.capture.layout import DEFAULT_VIEWS
+
+    root = tmp_path / "mp"
+    make_tree(root, ("001",), views=DEFAULT_VIEWS, flashes=("07", "14"), size=(24, 16))
+    r = cli("preprocess-multipie", "--root", root, "--flashes", "07,14", "--crop", "none", "--workspace",
+            tmp_path / "ws", "--id", "001")
+    assert r.exit_code == 0, r.stderr
+    notes = [m for m in reflectmm_log if "camera 08_1 has no room shot" in m]
+    assert len(notes) == 1, reflectmm_log
