@@ -230,6 +230,105 @@ def load_recipe(path: str | Path, overrides: tuple[str, ...] | list[str] = ()) -
     return parse_recipe_text(text, path, overrides)
 
 
+def _parse_foreach(foreach: Any, where: str, path: Path) -> Any:
+    """A stage's ``foreach``: None, a list of id strings, ``{ file = "ids.txt" }`` or "all found" (checked)."""
+    if foreach is not None:
+        if isinstance(foreach, str):
+            if foreach.strip().lower() != ALL_FOUND:
+                raise ReflectmmError(f'{where} foreach: expected a list of ids, {{ file = "ids.txt" }} '
+                                     f'or "{ALL_FOUND}", got {foreach!r}', path)
+            foreach = ALL_FOUND
+        elif isinstance(foreach, list):
+            bad = next((i for i in foreach if not isinstance(i, str)), None)
+            if bad is not None:
+                raise ReflectmmError(f"{where} foreach: ids are strings such as \"001\", got "
+                                     f"{type(bad).__name__} {bad!r} (quote it: \"{bad}\")", path)
+            dup = sorted({i for i in foreach if foreach.count(i) > 1})
+            if dup:
+                raise ReflectmmError(f"{where} foreach: duplicate id(s) {', '.join(dup)}", path)
+        elif isinstance(foreach, dict):
+            if set(foreach) != {"file"} or not isinstance(foreach["file"], str):
+                raise ReflectmmError(f'{where} foreach: expected {{ file = "ids.txt" }}, got {foreach!r}',
+                                     path)
+        else:
+            raise _type_error(f"{where} foreach", 'a list, { file = ... } or "all found"', foreach, path)
+    return foreach
+
+
+def _parse_resources(sdoc: dict[str, Any], where: str, path: Path) -> dict[str, Any]:
+    """A stage's ``resources`` table: known names, finite non-negative counts, sizes Dask can read."""
+    resources = sdoc.get("resources", {})
+    if not isinstance(resources, dict):
+        raise _type_error(f"{where} resources", "a table { cpus = 1, memory = \"4GB\" }", resources, path)
+    for rk, rv in resources.items():
+        _check_resource_name(rk, where, path)
+        if isinstance(rv, bool) or not isinstance(rv, (int, float, str)):
+            raise _type_error(f"{where} resources.{rk}", "a number or a size like \"4GB\"", rv, path)
+        if isinstance(rv, str) and rk in _COUNT_RESOURCES:
+            raise _type_error(f"{where} resources.{rk}", "a number", rv, path)
+        if isinstance(rv, float) and not math.isfinite(rv):
+            raise ReflectmmError(f"{where} resources.{rk}: must be a finite number, got {rv}", path)
+        if isinstance(rv, str):
+            from dask.utils import parse_bytes
+
+            try:
+                parse_bytes(rv)
+            except (ValueError, TypeError):
+                raise ReflectmmError(f"{where} resources.{rk}: cannot read {rv!r} as a size "
+                                     f"(e.g. \"512MB\", \"4GB\")", path) from None
+        elif rv < 0:
+            raise ReflectmmError(f"{where} resources.{rk}: must be >= 0, got {rv}", path)
+    return dict(resources)
+
+
+def _build_stage(sname: str, sdoc: Any, defaults: dict[str, Any], path: Path) -> StageSpec:
+    """One ``[stages.<name>]`` table → its :class:`StageSpec` (the recipe's ``[defaults]`` under its params)."""
+    where = f"[stages.{sname}]"
+    if not _NAME_RE.match(sname):
+        raise ReflectmmError(f"{where}: bad stage name (letters, digits, _ and - only; a dot would make "
+                             f"references such as @{sname}.output ambiguous)", path)
+    if not isinstance(sdoc, dict):
+        raise _type_error(where, "a table", sdoc, path)
+    unknown = set(sdoc) - _STAGE_KEYS
+    if unknown:
+        raise ReflectmmError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} "
+                             f"(allowed: {', '.join(sorted(_STAGE_KEYS))})", path)
+    verb = sdoc.get("verb", sname)
+    if not isinstance(verb, str):
+        raise _type_error(f"{where} verb", "a string", verb, path)
+    params = sdoc.get("params", {})
+    if not isinstance(params, dict):
+        raise _type_error(f"{where} params", "a table", params, path)
+    merged = {**defaults, **params}
+    param_refs = {}
+    for k, v in merged.items():
+        if isinstance(v, str):
+            ref = parse_ref(v, f"{where} params.{k}", path)
+            if ref is not None:
+                param_refs[k] = ref
+    inputs_doc = sdoc.get("inputs", {})
+    if not isinstance(inputs_doc, dict):
+        raise _type_error(f"{where} inputs", "a table { role = ... }", inputs_doc, path)
+    inputs: dict[str, list[Ref | str]] = {}
+    for role, val in inputs_doc.items():
+        items = val if isinstance(val, list) else [val]
+        out: list[Ref | str] = []
+        for it in items:
+            if not isinstance(it, str):
+                raise _type_error(f"{where} inputs.{role}", "a path string or a list of them", it, path)
+            ref = parse_ref(it, f"{where} inputs.{role}", path)
+            out.append(ref if ref is not None else it)
+        inputs[role] = out
+    foreach = _parse_foreach(sdoc.get("foreach"), where, path)
+    resources = _parse_resources(sdoc, where, path)
+    priority = sdoc.get("priority", 0)
+    if isinstance(priority, bool) or not isinstance(priority, int):
+        raise _type_error(f"{where} priority", "an integer", priority, path)
+    if not -999 <= priority <= 999:
+        raise ReflectmmError(f"{where} priority: must be between -999 and 999, got {priority}", path)
+    return StageSpec(sname, verb, merged, inputs, foreach, resources, param_refs, frozenset(params), priority)
+
+
 def _build(doc: dict[str, Any], path: Path) -> Recipe:
     schema = doc.get("schema")
     if schema is None:
@@ -260,91 +359,7 @@ def _build(doc: dict[str, Any], path: Path) -> Recipe:
 
     stages: dict[str, StageSpec] = {}
     for sname, sdoc in stages_doc.items():
-        where = f"[stages.{sname}]"
-        if not _NAME_RE.match(sname):
-            raise ReflectmmError(f"{where}: bad stage name (letters, digits, _ and - only; a dot would make "
-                                 f"references such as @{sname}.output ambiguous)", path)
-        if not isinstance(sdoc, dict):
-            raise _type_error(where, "a table", sdoc, path)
-        unknown = set(sdoc) - _STAGE_KEYS
-        if unknown:
-            raise ReflectmmError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} "
-                                 f"(allowed: {', '.join(sorted(_STAGE_KEYS))})", path)
-        verb = sdoc.get("verb", sname)
-        if not isinstance(verb, str):
-            raise _type_error(f"{where} verb", "a string", verb, path)
-        params = sdoc.get("params", {})
-        if not isinstance(params, dict):
-            raise _type_error(f"{where} params", "a table", params, path)
-        merged = {**defaults, **params}
-        param_refs = {}
-        for k, v in merged.items():
-            if isinstance(v, str):
-                ref = parse_ref(v, f"{where} params.{k}", path)
-                if ref is not None:
-                    param_refs[k] = ref
-        inputs_doc = sdoc.get("inputs", {})
-        if not isinstance(inputs_doc, dict):
-            raise _type_error(f"{where} inputs", "a table { role = ... }", inputs_doc, path)
-        inputs: dict[str, list[Ref | str]] = {}
-        for role, val in inputs_doc.items():
-            items = val if isinstance(val, list) else [val]
-            out: list[Ref | str] = []
-            for it in items:
-                if not isinstance(it, str):
-                    raise _type_error(f"{where} inputs.{role}", "a path string or a list of them", it, path)
-                ref = parse_ref(it, f"{where} inputs.{role}", path)
-                out.append(ref if ref is not None else it)
-            inputs[role] = out
-        foreach = sdoc.get("foreach")
-        if foreach is not None:
-            if isinstance(foreach, str):
-                if foreach.strip().lower() != ALL_FOUND:
-                    raise ReflectmmError(f'{where} foreach: expected a list of ids, {{ file = "ids.txt" }} '
-                                         f'or "{ALL_FOUND}", got {foreach!r}', path)
-                foreach = ALL_FOUND
-            elif isinstance(foreach, list):
-                bad = next((i for i in foreach if not isinstance(i, str)), None)
-                if bad is not None:
-                    raise ReflectmmError(f"{where} foreach: ids are strings such as \"001\", got "
-                                         f"{type(bad).__name__} {bad!r} (quote it: \"{bad}\")", path)
-                dup = sorted({i for i in foreach if foreach.count(i) > 1})
-                if dup:
-                    raise ReflectmmError(f"{where} foreach: duplicate id(s) {', '.join(dup)}", path)
-            elif isinstance(foreach, dict):
-                if set(foreach) != {"file"} or not isinstance(foreach["file"], str):
-                    raise ReflectmmError(f'{where} foreach: expected {{ file = "ids.txt" }}, got {foreach!r}',
-                                         path)
-            else:
-                raise _type_error(f"{where} foreach", 'a list, { file = ... } or "all found"', foreach, path)
-        resources = sdoc.get("resources", {})
-        if not isinstance(resources, dict):
-            raise _type_error(f"{where} resources", "a table { cpus = 1, memory = \"4GB\" }", resources, path)
-        for rk, rv in resources.items():
-            _check_resource_name(rk, where, path)
-            if isinstance(rv, bool) or not isinstance(rv, (int, float, str)):
-                raise _type_error(f"{where} resources.{rk}", "a number or a size like \"4GB\"", rv, path)
-            if isinstance(rv, str) and rk in _COUNT_RESOURCES:
-                raise _type_error(f"{where} resources.{rk}", "a number", rv, path)
-            if isinstance(rv, float) and not math.isfinite(rv):
-                raise ReflectmmError(f"{where} resources.{rk}: must be a finite number, got {rv}", path)
-            if isinstance(rv, str):
-                from dask.utils import parse_bytes
-
-                try:
-                    parse_bytes(rv)
-                except (ValueError, TypeError):
-                    raise ReflectmmError(f"{where} resources.{rk}: cannot read {rv!r} as a size "
-                                         f"(e.g. \"512MB\", \"4GB\")", path) from None
-            elif rv < 0:
-                raise ReflectmmError(f"{where} resources.{rk}: must be >= 0, got {rv}", path)
-        priority = sdoc.get("priority", 0)
-        if isinstance(priority, bool) or not isinstance(priority, int):
-            raise _type_error(f"{where} priority", "an integer", priority, path)
-        if not -999 <= priority <= 999:
-            raise ReflectmmError(f"{where} priority: must be between -999 and 999, got {priority}", path)
-        stages[sname] = StageSpec(sname, verb, merged, inputs, foreach, dict(resources), param_refs,
-                                  frozenset(params), priority)
+        stages[sname] = _build_stage(sname, sdoc, defaults, path)
 
     recipe = Recipe(path, name, dict(defaults), stages)
     for spec in stages.values():
