@@ -226,14 +226,17 @@ _STAGED: ContextVar[list[tuple[Path, Path]] | None] = ContextVar("reflectmm_stag
 
 
 @contextmanager
-def committed_together() -> Iterator[None]:
+def committed_together(last: str | Path | None = None) -> Iterator[None]:
     """Commit every atomic write of the block (:func:`write_artifact`, :func:`write_png`, :func:`write_exr`,
     :func:`atomic_write_bytes` ...) together, only when the whole block succeeds.
 
     Inside the block each file is written to its temporary file as usual but not renamed; at the end the targets
-    are checked (none may be a folder) and renamed one after the other, in the order written.  If anything in the
-    block raises, no target is touched and the temporary files are removed: a run's outputs never mix files of a
-    failed run with the previous run's.  A nested block joins the outer one.
+    are checked (none may be a folder) and renamed one after the other, in the order written, except ``last``
+    (a stage's primary output, the file whose cache key says the outputs are up to date), which is renamed after
+    all the others.  If anything in the block raises, no target is touched and the temporary files are removed: a
+    run's outputs never mix files of a failed run with the previous run's.  If the renames themselves are cut short
+    (a kill, a file that cannot be replaced), ``last`` is still the previous run's, so its key calls for a rerun.
+    A nested block joins the outer one (and its ``last``).
     """
     if _STAGED.get() is not None:
         yield
@@ -245,6 +248,9 @@ def committed_together() -> Iterator[None]:
         for _, target in staged:
             if target.is_dir():
                 raise ReflectmmError("cannot write: a folder is in the way", target)
+        if last is not None:
+            final = os.path.abspath(last)
+            staged.sort(key=lambda pair: os.path.abspath(pair[1]) == final)  # stable: the others keep their order
         for i, (tmp, target) in enumerate(staged):
             try:
                 os.replace(tmp, target)

@@ -51,6 +51,9 @@ class TaskSpec:
     #: :func:`~reflectmm_cli.recipes.recipe.task_priorities`: the stage's declared priority, its chain length, then
     #: its downstream stages); it never changes a result
     priority: int = 0
+    #: the planner's ``[size, mtime_ns, sha256]`` of the input files ``key_doc`` was computed from, by path: the
+    #: worker checks them (by stat) when the task starts and again before its outputs are committed
+    inputs_used: dict[str, Any] = field(default_factory=dict)
 
 
 def _result(spec: TaskSpec, status: str, *, outputs: list[str] | None = None, cache_key: str | None = None,
@@ -84,7 +87,7 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
     blocked = blocked_by(spec, list(upstream))
     if blocked is not None:
         return blocked
-    from reflectmm_cli.stages import cache_key_doc, check_no_overwrite, get_stage, key_of_doc
+    from reflectmm_cli.stages import cache_key_doc, check_no_overwrite, get_stage, key_of_doc, run_committed
 
     t0 = time.perf_counter()
     doc = spec.key_doc
@@ -97,17 +100,28 @@ def execute_task(spec: TaskSpec, *upstream: dict[str, Any]) -> dict[str, Any]:
         stage = get_stage(spec.verb)
         ctx = spec.ctx.with_patterns_expanded()  # a pattern into an upstream folder matches now
         check_no_overwrite(stage, ctx)
+        used: dict[str, Any] = {}
         if doc is None:
             # the inputs' digests go back with the result into the workspace's hash memo, so the next plan does
             # not hash these files again (a worker process has no access to the planner's memo)
-            doc = cache_key_doc(stage, ctx, hashes)
+            doc = cache_key_doc(stage, ctx, hashes, used)
+        else:
+            # the key the planner computed describes the inputs as they were then: checked by stat (a file that
+            # changed since is hashed again), so the outputs are never keyed by inputs that were not read
+            memo = {k: list(v) for k, v in spec.inputs_used.items()}
+            now = cache_key_doc(stage, ctx, memo, used)
+            if key_of_doc(now) != key_of_doc(doc):
+                log.warning("%s: an input changed after the run was planned; its outputs are keyed by the inputs as "
+                            "they are now", spec.tid)
+                hashes.update({k: v for k, v in memo.items() if spec.inputs_used.get(k) != v})
+                doc = now
         key = key_of_doc(doc)
         ctx = ctx.with_(cache_key=key)
         if ctx.device and ctx.device != "cpu":
             from reflectmm_cli.stages import resolve_device
 
             ctx = ctx.with_(device=resolve_device(ctx.device))
-        written = [str(p) for p in (stage.run(ctx) or [])]
+        written = [str(p) for p in run_committed(stage, ctx, used)]
         missing = [str(p) for p in stage.expected_outputs(ctx) if not Path(p).exists()]
         if missing:
             raise ReflectmmError(f"stage '{spec.verb}' finished without writing {missing[0]}")

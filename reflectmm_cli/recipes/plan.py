@@ -110,6 +110,8 @@ class Task:
     outputs: list[Path] = field(default_factory=list)
     selected: bool = True
     outputs_error: str | None = None
+    #: the memo entries ``[size, mtime_ns, sha256]`` of the input files ``key_doc`` was computed from
+    inputs_used: dict[str, Any] = field(default_factory=dict)
 
     def row(self) -> dict[str, Any]:
         return {"stage": self.stage_name, "id": self.identity, "action": self.action, "reason": self.reason,
@@ -499,11 +501,12 @@ def _decide(t: Task, stage: Stage, tasks: dict[str, Task], workspace: Path, memo
         t.action, t.reason = ERROR, t.outputs_error
         return
     try:
-        doc = cache_key_doc(stage, t.ctx, memo)
+        used: dict[str, Any] = {}
+        doc = cache_key_doc(stage, t.ctx, memo, used)
     except (FileNotFoundError, ReflectmmError) as exc:
         t.action, t.reason = ERROR, f"cannot hash inputs: {exc}"
         return
-    t.key_doc, t.cache_key = doc, key_of_doc(doc)
+    t.key_doc, t.cache_key, t.inputs_used = doc, key_of_doc(doc), used
     if forced:
         return
     missing = [p for p in t.outputs if not Path(p).exists()]

@@ -377,7 +377,7 @@ def _outcomes_from_plan(plan: Plan, outcomes: dict[str, TaskOutcome], runlog: Ru
         elif t.action == RUN and t.tid in runnable:
             key_doc = t.key_doc
             batch.append(TaskSpec(t.tid, t.verb, t.ctx, [d for d in t.deps if d in runnable], key_doc,
-                                  t.resources, priority=priorities.get(t.stage_name, 0)))
+                                  t.resources, priority=priorities.get(t.stage_name, 0), inputs_used=t.inputs_used))
             continue
         else:
             continue

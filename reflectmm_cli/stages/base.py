@@ -20,6 +20,8 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import stat
+import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
@@ -400,26 +402,89 @@ def walk_files(folder: Path) -> list[Path]:
                   if q.is_file() and not any(part.startswith(".") for part in q.relative_to(folder).parts))
 
 
-def file_digest(path: Path, cache: dict[str, Any] | None = None) -> str:
-    """sha256 of a file, memoised in ``cache`` by (path, size, mtime_ns) when given."""
+def file_digest(path: Path, cache: dict[str, Any] | None = None, used: dict[str, Any] | None = None) -> str:
+    """sha256 of a file, memoised in ``cache`` by (path, size, mtime_ns) when given.  ``used`` (with ``cache``)
+    collects the entries ``[size, mtime_ns, sha256]`` of the files digested, by resolved path."""
     if cache is None:
         return sha256_file(path)
     st = os.stat(path)
     key = str(Path(path).resolve())
     hit = cache.get(key)
     if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
-        return hit[2]
-    digest = sha256_file(path)
-    cache[key] = [st.st_size, st.st_mtime_ns, digest]
+        digest = hit[2]
+    else:
+        digest = sha256_file(path)
+        cache[key] = [st.st_size, st.st_mtime_ns, digest]
+    if used is not None:
+        used[key] = cache[key]
     return digest
 
 
-def cache_key_doc(stage: Stage, ctx: StageContext, hash_cache: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The document whose canonical JSON the cache key hashes (the planner compares its parts to say why)."""
+def cache_key_doc(stage: Stage, ctx: StageContext, hash_cache: dict[str, Any] | None = None,
+                  used: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The document whose canonical JSON the cache key hashes (the planner compares its parts to say why).
+    ``used`` (with ``hash_cache``) collects the memo entries of the input files, for
+    :func:`check_inputs_unchanged`."""
     files = stage.files_to_hash(ctx)
-    digests = {role: [file_digest(p, hash_cache) for p in paths] for role, paths in sorted(files.items())}
+    digests = {role: [file_digest(p, hash_cache, used) for p in paths] for role, paths in sorted(files.items())}
     return {"hash": CACHE_HASH_VERSION, "verb": stage.verb, "stage_version": stage.version,
             "identity": ctx.identity, "params": stage.key_params(ctx), "inputs": digests}
+
+
+def check_inputs_unchanged(entries: Mapping[str, Any]) -> None:
+    """Refuse a task's outputs when one of its input files changed or went away while it ran (another process
+    wrote it): ``entries`` are the ``[size, mtime_ns, sha256]`` memo entries the cache key was computed from
+    (:func:`cache_key_doc` ``used``).  Called before the outputs are committed, so nothing is written under a key
+    that does not describe what was read."""
+    for path, (size, mtime_ns, _) in entries.items():
+        try:
+            st = os.stat(path)
+        except FileNotFoundError:
+            raise ReflectmmError("input removed while the task ran; nothing written — rerun", path) from None
+        if stat.S_ISREG(st.st_mode) and (st.st_size, st.st_mtime_ns) != (size, mtime_ns):  # not a pipe's reads
+            raise ReflectmmError("input changed while the task ran (another process wrote it); nothing written — "
+                                 "rerun", path)
+
+
+def check_outputs_writable(stage: Stage, ctx: StageContext) -> None:
+    """Refuse, before computing, a task whose outputs could not be written: for each output folder (or its nearest
+    existing ancestor, where the folder is yet to be made) a probe file is created and removed.  One line naming an
+    output, the folder and the system's reason, as the writer would say it after the work."""
+    from reflectmm_cli.artifacts import _raise_write_error
+
+    folders: dict[Path, Path] = {}
+    for o in stage.expected_outputs(ctx):
+        folders.setdefault(Path(os.path.abspath(o)).parent, Path(o))
+    for folder, output in folders.items():
+        probe_in = folder
+        while not probe_in.exists() and probe_in.parent != probe_in:
+            probe_in = probe_in.parent
+        if not probe_in.is_dir():
+            continue  # a file in the way: the writer says so, naming it
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=".reflectmm-probe.", dir=probe_in)
+            os.close(fd)
+            os.unlink(tmp)
+        except OSError as exc:
+            _raise_write_error(exc, output)  # named as its writer would: the output, and the folder refused
+            raise
+
+
+def run_committed(stage: Stage, ctx: StageContext, inputs_used: Mapping[str, Any]) -> list[Path]:
+    """Run a stage so that a failed or interrupted run loses nothing: the output folders are checked writable before
+    computing (:func:`check_outputs_writable`); every file the run writes is committed together at its end
+    (:func:`~reflectmm_cli.artifacts.committed_together`), the primary output — the one whose cache key vouches for
+    the others — last; and not at all when an input changed while it ran (``inputs_used``, the memo entries its key
+    was computed from: :func:`check_inputs_unchanged`).  The command line and every recipe executor run stages
+    through it.  Returns the paths the stage says it wrote."""
+    from reflectmm_cli.artifacts import committed_together
+
+    check_outputs_writable(stage, ctx)
+    outputs = stage.expected_outputs(ctx)
+    with committed_together(last=outputs[0] if outputs else None):
+        written = list(stage.run(ctx) or [])
+        check_inputs_unchanged(inputs_used)
+    return written
 
 
 def key_of_doc(doc: Mapping[str, Any]) -> str:

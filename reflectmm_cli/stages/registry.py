@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.base import Stage, StageContext, check_no_overwrite, compute_cache_key, resolve_device
+from reflectmm_cli.stages.base import (Stage, StageContext, cache_key_doc, check_no_overwrite, key_of_doc, resolve_device,
+                                       run_committed)
 from reflectmm_cli.workspace import default_workspace
 
 #: verb → module name under reflectmm_cli.stages (the built-in stages, in pipeline order).
@@ -117,5 +118,6 @@ def run_stage(stage: "Stage | str", *, workspace: Path | None = None, identity: 
             if not Path(p).exists():
                 raise ReflectmmError(f"input '{role}' not found", p)
     check_no_overwrite(stage, ctx)
-    ctx = ctx.with_(cache_key=compute_cache_key(stage, ctx))
-    return list(stage.run(ctx) or [])
+    used: dict[str, Any] = {}
+    ctx = ctx.with_(cache_key=key_of_doc(cache_key_doc(stage, ctx, {}, used)))
+    return run_committed(stage, ctx, used)

@@ -131,3 +131,16 @@ def test_newer_artifact_is_not_overwritten(cli, data):
     r = cli("run", data / "r.toml", "-w", data)
     assert r.exit_code == 1 and "refuses to overwrite" in r.stderr
     assert out.read_bytes() == before
+
+
+def test_an_output_folder_that_cannot_be_written_is_found_before_computing(cli, data, monkeypatch, tmp_path):
+    import reflectmm_cli.stages.checksum as checksum
+
+    out_dir = tmp_path / "ro"
+    out_dir.mkdir()
+    computed = []
+    real = checksum.checksum_files
+    monkeypatch.setattr(checksum, "checksum_files", lambda paths: computed.append(paths) or real(paths))
+    _read_only(monkeypatch, out_dir)
+    line = _one_error_line(cli("checksum", data / "data", "-o", out_dir / "sub" / "out.npz"))
+    assert "out.npz: cannot write: permission denied" in line and not computed

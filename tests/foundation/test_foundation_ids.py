@@ -8,6 +8,7 @@ read or written.  A run whose output or side file is one of its input files is r
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -207,3 +208,70 @@ def test_committed_together_writes_all_or_nothing(tmp_path):
         write_png(a, np.ones((2, 2)))
         write_artifact(b, "x", {"v": np.zeros(2)})
     assert a.read_bytes() != old and b.is_file()
+
+
+def test_committed_together_renames_the_primary_last(tmp_path, monkeypatch):
+    """The file whose cache key vouches for the others is renamed after them: a run cut short while renaming leaves
+    the previous primary, so the next plan reruns the task instead of trusting a mix of old and new files."""
+    primary, exr, png = tmp_path / "m.npz", tmp_path / "m.exr", tmp_path / "m_prev.png"
+    order: list[str] = []
+    real_replace = os.replace
+
+    def record(src, dst):
+        order.append(Path(dst).name)
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", record)
+    with committed_together(last=primary):
+        write_png(png, np.zeros((2, 2)))
+        write_artifact(primary, "x", {"v": np.zeros(2)})
+        write_png(exr.with_suffix(".b.png"), np.zeros((2, 2)))
+    assert order == ["m_prev.png", "m.b.png", "m.npz"]
+    old = primary.read_bytes()
+
+    def refuse_second(src, dst):  # a secondary that cannot be replaced (an immutable file, a kill)
+        if Path(dst).name == "m.b.png":
+            raise OSError(errno.EPERM, "Operation not permitted")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", refuse_second)
+    with pytest.raises(ReflectmmError, match="m.b.png: cannot write: operation not permitted"):
+        with committed_together(last=primary):
+            write_artifact(primary, "x", {"v": np.ones(2)})
+            write_png(exr.with_suffix(".b.png"), np.ones((2, 2)))
+    assert primary.read_bytes() == old
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+def test_a_failed_verb_keeps_every_previous_output(cli, tmp_path, monkeypatch):
+    """render writes its EXR (the primary) and then a PNG: a PNG that cannot be written used to leave the new EXR
+    over the previous one, with exit 1."""
+    import reflectmm_cli.artifacts as artifacts
+
+    assert cli("face-model", "create", "--out", tmp_path / "fm.npz", "--vertices", "800").exit_code == 0
+    maps = tmp_path / "maps.npz"
+    write_artifact(maps, "reflectance-maps", {"albedo": np.full((3, 8, 8), 0.5, np.float32),
+                                              "weights": np.zeros((3, 8, 8), np.float32),
+                                              "exponents": np.array([1.0, 8.0, 64.0])})
+    out = tmp_path / "r.exr"
+    common = ["render", "--face-model", tmp_path / "fm.npz", "--maps", maps, "--camera", "size=32x24,focal=80",
+              "-o", out]
+    assert cli(*common, "--point-light", "0,0,900").exit_code == 0
+    before = {p.name: p.read_bytes() for p in (out, out.with_suffix(".png"))}
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    real_png = artifacts.write_png
+
+    def png_fails(path, *a, **k):
+        with artifacts.atomic_path(path) as tmp:
+            Path(tmp).write_bytes(b"partial")
+            full()
+        return real_png(path, *a, **k)
+
+    monkeypatch.setattr(artifacts, "write_png", png_fails)
+    r = cli(*common, "--point-light", "300,0,900")
+    assert r.exit_code == 1 and "no space left on the device" in r.stderr and "r.png" in r.stderr
+    assert {p.name: p.read_bytes() for p in (out, out.with_suffix(".png"))} == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]

@@ -270,3 +270,65 @@ def test_an_executor_that_takes_no_specs_from_on_result_still_runs_every_task(tm
     assert rep.ok and {t.tid: t.status for t in rep.tasks} == {
         "manifest/002": "ok", "manifest/004": "ok", "found/002": "ok", "found/004": "ok"}
     assert sorted(ex.ran) == ["found/002", "found/004", "manifest/002", "manifest/004"]
+
+
+def test_an_input_changed_while_the_task_runs_writes_nothing(cli, tmp_path, monkeypatch):
+    """Another process rewrites an input while the stage computes: the outputs would carry a key that does not
+    describe what was read, so none is written (the previous output is kept) and the error names the input."""
+    import reflectmm_cli.stages.checksum as checksum
+
+    f = tmp_path / "x.txt"
+    f.write_text("first")
+    out = tmp_path / "m.npz"
+    assert cli("checksum", f, "-o", out).exit_code == 0
+    before = out.read_bytes()
+    real = checksum.checksum_files
+
+    def rewritten_meanwhile(paths):
+        res = real(paths)
+        f.write_text("written by another process")
+        return res
+
+    monkeypatch.setattr(checksum, "checksum_files", rewritten_meanwhile)
+    r = cli("checksum", f, "-o", out)
+    assert r.exit_code == 1 and "x.txt: input changed while the task ran" in r.stderr
+    assert out.read_bytes() == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_a_task_keys_its_outputs_by_the_inputs_it_read_not_those_it_was_planned_with(tmp_path, reflectmm_log):
+    """An input replaced between planning and the task's start: the planner's key described the old file, which
+    would make the output look up to date once the old file is back. The worker checks the planned inputs by stat
+    and keys the outputs by what it reads."""
+    from reflectmm_cli.artifacts import read_meta
+    from reflectmm_cli.recipes import TaskSpec, execute_task
+    from reflectmm_cli.stages import cache_key_doc, get_stage, key_of_doc
+
+    f = tmp_path / "x.txt"
+    f.write_text("as planned")
+    stage = get_stage("checksum")
+    ctx = stage.context(workspace=tmp_path, inputs={"files": [f]})
+    used: dict = {}
+    planned = cache_key_doc(stage, ctx, {}, used)
+    f.write_text("replaced before the task started")
+    st = os.stat(f)
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    res = execute_task(TaskSpec("checksum", "checksum", ctx, key_doc=planned, inputs_used=used))
+    now = key_of_doc(cache_key_doc(stage, ctx))
+    assert res["status"] == "ok" and res["cache_key"] == now != key_of_doc(planned)
+    assert read_meta(tmp_path / "checksum" / "checksum.npz")["cache_key"] == now
+    assert any("an input changed after the run was planned" in m for m in reflectmm_log)
+    # unchanged inputs: the planner's key is used as it is, without hashing the files again
+    calls = []
+    import reflectmm_cli.stages.base as base
+
+    real = base.sha256_file
+    base.sha256_file = lambda p, *a: calls.append(p) or real(p, *a)
+    try:
+        used2: dict = {}
+        doc2 = cache_key_doc(stage, ctx, {}, used2)
+        calls.clear()
+        res = execute_task(TaskSpec("checksum", "checksum", ctx, key_doc=doc2, inputs_used=used2))
+    finally:
+        base.sha256_file = real
+    assert res["status"] == "ok" and res["cache_key"] == key_of_doc(doc2) and calls == []
