@@ -267,6 +267,18 @@ def committed_together(last: str | Path | None = None) -> Iterator[None]:
         _fsync_dir(folder)
 
 
+@contextmanager
+def written_at_once() -> Iterator[None]:
+    """Inside :func:`committed_together`, a block whose atomic writes are renamed at once, as outside it: the work
+    files of a long run (finetune's checkpoints and log), which a resumed run reads after a kill and the run itself
+    reads back.  The block's own outputs can still be grouped by a :func:`committed_together` inside it."""
+    token = _STAGED.set(None)
+    try:
+        yield
+    finally:
+        _STAGED.reset(token)
+
+
 # errors of the file system, not of the data: reported as one line naming the file being written
 _WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG, errno.EIO,
                  errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG}

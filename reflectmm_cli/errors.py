@@ -20,5 +20,10 @@ class ReflectmmError(Exception):
         super().__init__(message)
 
 
+class WrittenThenFailed(ReflectmmError):
+    """A stage wrote what it could and fails for the rest ("3 of 40 images skipped; the others were written"): the
+    runner commits the files it wrote (:func:`~reflectmm_cli.stages.base.run_committed`), then reports the error."""
+
+
 class ArtifactError(ReflectmmError):
     """An artifact is missing, truncated, corrupt, of the wrong kind or too new."""

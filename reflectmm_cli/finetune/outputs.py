@@ -173,7 +173,7 @@ def write_finetune_outputs(result, initial, out: Path, *, face_model=None, input
     writes no sample PNGs; a preview PNG this run does not write (an earlier run's) is removed after the commit."""
     from reflectmm_cli.artifacts import committed_together
 
-    with committed_together():
+    with committed_together(last=out):
         written = _write_outputs(result, initial, out, face_model=face_model, inputs=inputs, params=params,
                                  producer=producer, cache_key=cache_key, samples=samples, seed=seed, log=log)
     paths = output_paths(out)

@@ -28,7 +28,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 from reflectmm_cli import __version__
 from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
-from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.errors import ReflectmmError, WrittenThenFailed
 from reflectmm_cli.params import Param, ParamError, closest_name, resolve_params
 from reflectmm_cli.workspace import check_id, stage_output
 
@@ -475,15 +475,22 @@ def run_committed(stage: Stage, ctx: StageContext, inputs_used: Mapping[str, Any
     computing (:func:`check_outputs_writable`); every file the run writes is committed together at its end
     (:func:`~reflectmm_cli.artifacts.committed_together`), the primary output — the one whose cache key vouches for
     the others — last; and not at all when an input changed while it ran (``inputs_used``, the memo entries its key
-    was computed from: :func:`check_inputs_unchanged`).  The command line and every recipe executor run stages
-    through it.  Returns the paths the stage says it wrote."""
+    was computed from: :func:`check_inputs_unchanged`).  A stage that raises
+    :class:`~reflectmm_cli.errors.WrittenThenFailed` has its files committed before the error is reported.  The
+    command line and every recipe executor run stages through it.  Returns the paths the stage says it wrote."""
     from reflectmm_cli.artifacts import committed_together
 
     check_outputs_writable(stage, ctx)
     outputs = stage.expected_outputs(ctx)
+    partial: WrittenThenFailed | None = None
     with committed_together(last=outputs[0] if outputs else None):
-        written = list(stage.run(ctx) or [])
+        try:
+            written = list(stage.run(ctx) or [])
+        except WrittenThenFailed as exc:  # what it wrote is kept, then the error is reported
+            partial = exc
         check_inputs_unchanged(inputs_used)
+    if partial is not None:
+        raise partial
     return written
 
 

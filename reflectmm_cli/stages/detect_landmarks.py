@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from reflectmm_cli.detection import DETECTORS, EXPOSURES
-from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.errors import ReflectmmError, WrittenThenFailed
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
 from reflectmm_cli.stages.base import Input, Stage, StageContext
@@ -128,8 +128,8 @@ def run(ctx: StageContext) -> list[Path]:
     if errors:
         why = (f" ({unreadable} could not be read: --allow-missing covers images without a face, not bad files)"
                if ctx.params.get("allow_missing") else "")
-        raise ReflectmmError(f"{len(errors)} of {len(images)} image(s) without landmarks (listed above){why}; "
-                             "the others were written")
+        raise WrittenThenFailed(f"{len(errors)} of {len(images)} image(s) without landmarks (listed above){why}; "
+                                "the others were written")
     return written
 
 

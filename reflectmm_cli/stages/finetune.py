@@ -190,6 +190,15 @@ def _one(ctx: StageContext, role: str) -> Path | None:
 
 
 def run(ctx: StageContext) -> list[Path]:
+    """The stage's run.  Its checkpoints and log are written at once (a resume after a kill reads them); its outputs
+    are committed together by :func:`~reflectmm_cli.finetune.outputs.write_finetune_outputs`, the model last."""
+    from reflectmm_cli.artifacts import written_at_once
+
+    with written_at_once():
+        return _run(ctx)
+
+
+def _run(ctx: StageContext) -> list[Path]:
     from reflectmm_cli.finetune.identity import load_identity_net
     from reflectmm_cli.finetune.outputs import output_paths, write_finetune_outputs
     from reflectmm_cli.finetune.shards import load_shards

@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import fields
 from pathlib import Path
 
-from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.errors import ReflectmmError, WrittenThenFailed
 from reflectmm_cli.finetune.data import ENCODINGS, PrepareConfig
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log
@@ -162,8 +162,8 @@ def run(ctx: StageContext) -> list[Path]:
                 msg += f" ({np.median(rep['vertex_error_centred_mm']):.1f} mm after removing the mean offset)"
         log.info(msg)
     if errors and not ctx.params["allow_skipped"]:
-        raise ReflectmmError(f"{VERB} {ctx.identity}: {len(errors)} image(s) skipped (listed above); "
-                             "the others were written" + ("" if path else " (none succeeded)"))
+        raise WrittenThenFailed(f"{VERB} {ctx.identity}: {len(errors)} image(s) skipped (listed above); "
+                                "the others were written" + ("" if path else " (none succeeded)"))
     return [path] if path else []
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.errors import ReflectmmError, WrittenThenFailed
 from reflectmm_cli.params import Param
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
@@ -141,8 +141,8 @@ def run(ctx: StageContext) -> list[Path]:
                                  producer=ctx.producer(), cache_key=ctx.cache_key,
                                  extra_meta={"skipped": errors} if images else None)
     if errors and not p["allow_skipped"]:
-        raise ReflectmmError(f"reconstruct: {len(errors)} image(s) skipped (listed above; the others are written "
-                             f"to {out}; --allow-skipped to accept)")
+        raise WrittenThenFailed(f"reconstruct: {len(errors)} image(s) skipped (listed above; the others are written "
+                                f"to {out}; --allow-skipped to accept)")
     return paths
 
 

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
 from reflectmm_cli.errors import ReflectmmError
-from reflectmm_cli.stages.base import (Stage, StageContext, cache_key_doc, check_no_overwrite, key_of_doc, resolve_device,
-                                       run_committed)
+from reflectmm_cli.stages.base import (Stage, StageContext, cache_key_doc, check_no_overwrite, key_of_doc,
+                                       resolve_device, run_committed)
 from reflectmm_cli.workspace import default_workspace
 
 #: verb → module name under reflectmm_cli.stages (the built-in stages, in pipeline order).
