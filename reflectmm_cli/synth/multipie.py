@@ -389,8 +389,11 @@ def _write_png_codes(path: Path, img: np.ndarray) -> Path:
 def _refuse_stale(out: Path, cfg: SynthConfig, cams, fls) -> None:
     """Refuse an output folder that holds images, landmarks or truth this run would not overwrite (an earlier
     run's other identities, cameras or flashes): preprocess-multipie would read them as part of this data set,
-    and one capture was built from two different faces.  Nothing is deleted: the folder may be a real data set."""
-    have = [p for d in ("data", "truth") if (out / d).is_dir() for p in (out / d).rglob("*") if p.is_file()]
+    and one capture was built from two different faces.  Nothing is deleted: the folder may be a real data set.
+    Hidden files and folders are not data set files and are not looked at: a killed run leaves the temporary
+    ``.NAME.*.tmp`` file of its last atomic write, and the rerun must still resume."""
+    have = [p for d in ("data", "truth") if (out / d).is_dir() for p in (out / d).rglob("*")
+            if p.is_file() and not any(part.startswith(".") for part in p.relative_to(out / d).parts)]
     if not have:
         return
     mine: set[Path] = set()
