@@ -201,6 +201,9 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
     empty: list[str] = []
     unplanned: set[str] = set()  # deferred stages outside --only: they would not run, so they wait for nothing
     recipe_ids: set[str] = set()  # every identity of the per-identity stages, before --ids selects
+    # each stage's identities before --ids selects (None: not known, an upstream stage was left without tasks by
+    # --ids): a stage that takes its identities from its upstream has them, even when --ids leaves it no task
+    all_ids: dict[str, list[str | None] | None] = {}
     for name in order:
         spec, stage = recipe.stages[name], stages[name]
         outside = only is not None and only != name
@@ -210,11 +213,15 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
         selected = (only is None or only == name)
         if ids is not None and not spec.per_identity and per_id_closure[name]:
             selected = False  # an aggregate over identities is never built from a --ids subset
-        stage_ids = _stage_ids(recipe, spec, stage, workspace, tasks, stage_tasks, hash_memo)
+        stage_ids = _stage_ids(recipe, spec, stage, workspace, tasks, stage_tasks, hash_memo, all_ids)
         if stage_ids is _DEFER:
             _defer(name, outside, deferred, unplanned)
             continue
+        if stage_ids is _NARROWED:  # --ids left its upstream without tasks: none for it either, and not "empty"
+            all_ids[name], stage_tasks[name] = None, []
+            continue
         _check_ids(stage_ids, spec, recipe.path)
+        all_ids[name] = list(stage_ids)
         if spec.per_identity and not stage_ids:
             empty.append(name)
         if ids is not None and spec.per_identity:
@@ -254,6 +261,7 @@ def make_plan(recipe: Recipe, workspace: Path, *, force: str | None = None, only
 
 
 _DEFER = object()
+_NARROWED = object()  # the stage's identities cannot be known because --ids left an upstream stage without tasks
 
 
 def _check_defaults(recipe: Recipe, stages: dict[str, Stage]) -> None:
@@ -306,7 +314,12 @@ def _check_ids(stage_ids: list[str | None], spec: StageSpec, recipe_path: Path |
 
 
 def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, tasks: dict[str, Task],
-               stage_tasks: dict[str, list[str]], memo: dict[str, Any] | None) -> Any:
+               stage_tasks: dict[str, list[str]], memo: dict[str, Any] | None,
+               all_ids: dict[str, list[str | None] | None]) -> Any:
+    """The stage's identities before --ids selects (``[None]`` for an aggregate), or :data:`_DEFER` (known once
+    upstream outputs exist), or :data:`_NARROWED`."""
+    narrowed = any(all_ids.get(u) is None or (all_ids[u] and not stage_tasks.get(u)) for u in spec.upstream()
+                   if recipe.stages[u].per_identity)
     fe = spec.foreach
     if fe is None:
         return [None]
@@ -340,6 +353,8 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
         except _PlanError as exc:
             if pending:
                 return _DEFER
+            if narrowed:
+                return _NARROWED
             raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": {exc}', recipe.path) from None
         try:
             found = stage.discover_ids(ctx.with_(inputs=inputs))
@@ -353,7 +368,7 @@ def _stage_ids(recipe: Recipe, spec: StageSpec, stage: Stage, workspace: Path, t
             return [str(i) for i in found]  # none found: Plan.empty, reported by the runner
     for u in spec.upstream():
         if recipe.stages[u].per_identity:
-            return [tasks[t].identity for t in stage_tasks.get(u, [])]
+            return _NARROWED if all_ids.get(u) is None else list(all_ids[u])
     raise ReflectmmError(f'[stages.{spec.name}] foreach = "{ALL_FOUND}": verb \'{spec.verb}\' did not discover '
                          f"identities and no upstream stage runs per identity; list the ids", recipe.path)
 

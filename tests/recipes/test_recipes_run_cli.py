@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from recipe_testdata import IDS
 
 
@@ -128,3 +129,42 @@ def test_artifact_made_by_hand_is_recognised_by_the_recipe(cli, ws):
     r = cli("run", ws / "hand.toml", "-w", ws, "-n")
     rows = {ln.split(None, 3)[1]: ln.split(None, 3)[3] for ln in r.stdout.splitlines()[2:]}
     assert rows == {"001": "no output", "002": "up to date"}
+
+
+@pytest.mark.parametrize("discovers", [True, False], ids=["verb-may-discover", "verb-takes-upstream-ids"])
+def test_ids_leaving_a_stage_without_tasks_is_not_an_empty_foreach(cli, ws, reflectmm_log, monkeypatch, discovers):
+    # `held-again` takes its identities from `held` (003, 004); --ids 001 leaves both without tasks, which is
+    # what was asked, not "foreach matched no identity". A verb without discover_ids (fit-geometry, unwrap-uv)
+    # goes straight to the upstream's ids; checksum first resolves its inputs to try its own discovery
+    if not discovers:
+        import dataclasses
+
+        from reflectmm_cli.recipes import plan
+
+        real = plan.get_stage
+        monkeypatch.setattr(plan, "get_stage", lambda verb: dataclasses.replace(real(verb), discover_ids=None))
+    (ws / "recipe.toml").write_text("""
+schema = "reflectmm.recipe/1"
+[stages.manifest]
+verb = "checksum"
+foreach = ["001", "002"]
+inputs = { files = "data/{id}" }
+
+[stages.held]
+verb = "checksum"
+foreach = ["003", "004"]
+inputs = { files = "data/{id}" }
+
+[stages.held-again]
+verb = "checksum"
+foreach = "all found"
+inputs = { files = "@held.output" }
+""")
+    for extra in (("--dry-run",), ()):
+        r = cli("run", ws / "recipe.toml", "-w", ws, "--only", "manifest", "--ids", "001", *extra)
+        assert r.exit_code == 0, r.stderr
+        assert "foreach matched no identity" not in r.stderr
+        assert not any("foreach matched no identity" in m for m in reflectmm_log)
+    r = cli("run", ws / "recipe.toml", "-w", ws, "--ids", "003", "--json")
+    assert r.exit_code == 0, r.stderr
+    assert [(t["stage"], t["id"]) for t in json.loads(r.stdout)["tasks"]] == [("held", "003"), ("held-again", "003")]
