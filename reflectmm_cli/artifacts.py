@@ -589,10 +589,27 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], meta: Mappin
         if not out.open(str(tmp), spec):
             raise ReflectmmError(f"cannot open EXR for writing: {out.geterror()}", path)
         ok = out.write_image(data)
-        out.close()
-        if not ok:
-            raise ReflectmmError(f"cannot write EXR: {out.geterror()}", path)
+        closed = out.close()
+        if not (ok and closed):
+            _raise_exr_write_error(_oiio_error(out), tmp, path, data.nbytes)
     return path
+
+
+def _raise_exr_write_error(msg: str, tmp: Path, target: Path, nbytes: int) -> None:
+    """A failed OpenImageIO write of ``tmp`` (the temporary file of ``target``) as one line naming ``target``.
+
+    OpenImageIO reports a full disk as text ("Failed to write pixel data ...") without the errno, so the folder's
+    free space is looked at while the partial file still holds its share: less than the uncompressed pixels
+    (an upper bound of what the write needed) is the documented ``no space left on the device [errno 28]``."""
+    try:
+        st = os.statvfs(tmp.parent)
+        free = (st.f_bfree if os.geteuid() == 0 else st.f_bavail) * st.f_frsize
+    except (OSError, AttributeError):  # pragma: no cover - no statvfs: report OpenImageIO's text
+        free = None
+    if free is not None and free < nbytes:
+        _raise_write_error(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)), target)
+    text = " ".join(_first_line(msg).replace(str(tmp), str(target)).split())
+    raise ReflectmmError(f"cannot write EXR: {text}", target)
 
 
 def _oiio_error(obj) -> str:

@@ -144,3 +144,48 @@ def test_an_output_folder_that_cannot_be_written_is_found_before_computing(cli, 
     _read_only(monkeypatch, out_dir)
     line = _one_error_line(cli("checksum", data / "data", "-o", out_dir / "sub" / "out.npz"))
     assert "out.npz: cannot write: permission denied" in line and not computed
+
+
+class _FailingExrOutput:
+    """An OpenImageIO writer that fails as on a full disk: text naming the temporary file, no errno."""
+
+    def __init__(self, name):
+        self.name = name
+
+    def open(self, name, spec):
+        Path(name).write_bytes(b"partial")
+        return True
+
+    def write_image(self, data):
+        return False
+
+    def close(self):
+        return True
+
+    def geterror(self):
+        return f'Failed OpenEXR write: Failed to write pixel data to image file "{self.name}". File output failed.'
+
+
+@pytest.mark.parametrize("free_bytes", [0, 1 << 40], ids=["disk-full", "other-failure"])
+def test_exr_write_failure_names_the_output_and_a_full_disk(tmp_path, monkeypatch, free_bytes):
+    from types import SimpleNamespace
+
+    from reflectmm_cli import artifacts
+    from reflectmm_cli.errors import ReflectmmError
+
+    real = artifacts._oiio()
+    fake = SimpleNamespace(ImageSpec=real.ImageSpec, geterror=real.geterror,
+                           ImageOutput=SimpleNamespace(create=_FailingExrOutput))
+    monkeypatch.setattr(artifacts, "_oiio", lambda: fake)
+    monkeypatch.setattr(os, "statvfs", lambda p: SimpleNamespace(f_bfree=free_bytes // 4096,
+                                                                 f_bavail=free_bytes // 4096, f_frsize=4096))
+    out = tmp_path / "full.exr"
+    with pytest.raises(ReflectmmError) as err:
+        artifacts.write_exr(out, {"albedo.R": np.zeros((8, 8))}, {"a": 1})
+    msg = str(err.value)
+    assert "\n" not in msg and ".full.exr." not in msg and msg.startswith(f"{out}: cannot write"), msg
+    if free_bytes == 0:
+        assert msg == f"{out}: cannot write: no space left on the device [errno 28]"
+    else:  # not a matter of space: OpenImageIO's text, naming the output instead of the temporary file
+        assert "Failed to write pixel data" in msg and str(out) in msg
+    assert list(tmp_path.iterdir()) == []  # the temporary file is removed
