@@ -21,10 +21,14 @@ from .config import FinetuneConfig
 from .shards import ShardSet
 
 __all__ = ["FinetuneResult", "finetune", "check_inputs", "check_checkpoint", "load_models", "Trainer",
-           "CHECKPOINT_NAME", "LOG_NAME"]
+           "CHECKPOINT_NAME", "LOG_NAME", "PARTIAL_LOG_NAME"]
 
 CHECKPOINT_NAME = "checkpoint.safetensors"
+#: the JSONL log of the last run that finished training
 LOG_NAME = "log.jsonl"
+#: the JSONL log of the run in progress (or interrupted: ``--resume`` continues it); it replaces :data:`LOG_NAME`
+#: when that run finishes training, so an interrupted rerun leaves the previous run's log as it was
+PARTIAL_LOG_NAME = "log.partial.jsonl"
 CHECKPOINT_SCHEMA = "reflectmm.finetune-checkpoint/1"
 
 #: Memory (MiB) for the per-image SH bases of the G-buffer pixels kept across steps (648 B per pixel at order 8,
@@ -415,6 +419,11 @@ class Trainer:
 
     @property
     def log_path(self) -> Path:
+        """The log this run appends to (:data:`PARTIAL_LOG_NAME`), :data:`LOG_NAME` once it has finished."""
+        return self.workdir / PARTIAL_LOG_NAME
+
+    @property
+    def finished_log_path(self) -> Path:
         return self.workdir / LOG_NAME
 
     def save_checkpoint(self):
@@ -475,9 +484,11 @@ class Trainer:
         self.opt.load_state_dict(sd)
         self.pos = (int(meta["plan_index"]), int(meta["step"]))
         self.global_step = int(meta["global_step"])
-        # the log keeps what happened up to the checkpoint
-        if self.log_path.is_file():
-            lines = [ln for ln in self.log_path.read_text().splitlines() if ln.strip()]
+        # the log keeps what happened up to the checkpoint: the interrupted run's, or (a checkpoint of a run that
+        # finished, or of a reflectmm that wrote no partial log) the finished log, copied to go on from
+        src = self.log_path if self.log_path.is_file() else self.finished_log_path
+        if src.is_file():
+            lines = [ln for ln in src.read_text().splitlines() if ln.strip()]
             kept = [ln for ln in lines if json.loads(ln)["global_step"] <= self.global_step]
             self.history = [json.loads(ln) for ln in kept]
             from reflectmm_cli.artifacts import atomic_write_text
@@ -525,13 +536,23 @@ class Trainer:
             self._end_epoch_checkpoint()
             if stop_after is not None and self.global_step >= stop_after:
                 return True
+        self._finish_log()
         return False
 
     def _start_log(self) -> None:
-        """A run from the very start begins a new JSONL log (a resumed one appends to the kept part)."""
+        """A run from the very start begins a new JSONL log (a resumed one appends to the kept part). The
+        previous run's finished log stays until this run finishes (:meth:`_finish_log`)."""
         self.workdir.mkdir(parents=True, exist_ok=True)
         if self.global_step == 0 and self.pos == (0, 0) and self.log_path.exists():
             self.log_path.unlink()
+
+    def _finish_log(self) -> None:
+        """Training has finished: this run's log replaces the previous run's (one rename)."""
+        import os
+
+        if not self.log_path.exists():  # no step at all (0 epochs): an empty log, as before
+            self.log_path.write_text("")
+        os.replace(self.log_path, self.finished_log_path)
 
     def _epoch_order(self, phase: int, ep: int) -> np.ndarray:
         """The training images of epoch ``ep`` of ``phase`` in their shuffled order (a function of seed, phase and

@@ -69,6 +69,27 @@ def test_resume_equals_uninterrupted(data, tmp_path):
                  progress=False, resume=True)
 
 
+def test_an_interrupted_rerun_keeps_the_previous_runs_log(data, tmp_path):
+    ss = load_shards(data["shards"])
+    cfg = FinetuneConfig(epochs1=1, epochs2=1, checkpoint_every=2, **TINY)
+    finetune(ss, data["truth"], data["light"], cfg, tmp_path, threads=1, progress=False)
+    log, partial = tmp_path / "log.jsonl", tmp_path / "log.partial.jsonl"
+    good = log.read_text()
+    assert good and not partial.exists()
+    # a rerun with another setting is interrupted, twice: the finished run's log stays as it was
+    other = cfg.replace(lr1=1e-3)
+    for _ in range(2):
+        b = finetune(ss, data["truth"], data["light"], other, tmp_path, threads=1, progress=False, stop_after=3)
+        assert b.stopped_early and log.read_text() == good
+        steps = [json.loads(ln) for ln in partial.read_text().splitlines()]
+        assert [h["global_step"] for h in steps if h["type"] == "step"] == [1, 2, 3]
+    # resuming goes on from the interrupted run's log (kept up to its checkpoint) and, finished, replaces the old
+    b = finetune(ss, data["truth"], data["light"], other, tmp_path, threads=1, progress=False, resume=True)
+    assert not partial.exists() and log.read_text() != good
+    assert [json.loads(ln) for ln in log.read_text().splitlines()] == b.history
+    assert [h["global_step"] for h in b.history if h["type"] == "step"] == list(range(1, b.steps + 1))
+
+
 def _phase2_photo(r, kind, key, last):
     """Mean of a photometric error over the last ``last`` epochs of phase 2 (steps: training batches; val)."""
     ep = max(h["epoch"] for h in r.history if h["type"] == kind and h["phase"] == 2)

@@ -152,12 +152,18 @@ def test_start_log_restarts_the_log_only_at_the_very_start(trainer):
     tr = trainer()
     tr.workdir.mkdir(parents=True)
     tr.log_path.write_text("{}\n")
+    tr.finished_log_path.write_text('{"finished": 1}\n')
     tr.global_step, tr.pos = 2, (1, 0)  # a resumed run keeps its log
     tr._start_log()
     assert tr.log_path.read_text() == "{}\n"
     tr.global_step, tr.pos = 0, (0, 0)
     tr._start_log()
     assert not tr.log_path.exists()
+    # the log of the last run that finished is replaced only when this run finishes
+    assert tr.finished_log_path.read_text() == '{"finished": 1}\n'
+    tr.log_path.write_text("{}\n")
+    tr._finish_log()
+    assert tr.finished_log_path.read_text() == "{}\n" and not tr.log_path.exists()
 
 
 def _rec(terms):
