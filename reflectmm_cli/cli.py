@@ -16,6 +16,7 @@ import click
 from reflectmm_cli import __version__
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.progress import configure_logging
+from reflectmm_cli.signals import TERMINATED_EXIT, Terminated, terminate_as_interrupt
 
 
 #: The verbs: command name → module of reflectmm_cli.commands (the only place that imports them).
@@ -107,7 +108,9 @@ class _Group(click.Group):
     def invoke(self, ctx: click.Context):
         verbose = ctx.params.get("verbose", 0)
         try:
-            return super().invoke(ctx)
+            # SIGTERM (a scheduler's timeout, scancel) unwinds like Ctrl-C: atomic writes remove their temporary files
+            with terminate_as_interrupt():
+                return super().invoke(ctx)
         except ReflectmmError as exc:
             if verbose:
                 traceback.print_exc(file=sys.stderr)
@@ -125,6 +128,9 @@ class _Group(click.Group):
             except (OSError, ValueError):
                 pass
             ctx.exit(141)
+        except Terminated:
+            click.echo("reflectmm: terminated (SIGTERM)", err=True)
+            ctx.exit(TERMINATED_EXIT)
         except KeyboardInterrupt:
             click.echo("reflectmm: interrupted", err=True)
             ctx.exit(130)

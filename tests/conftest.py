@@ -63,3 +63,38 @@ def reflectmm_log():
         yield msgs
     finally:
         logger.removeHandler(handler)
+
+
+#: runs the CLI (``python SCRIPT VERB ...``) with every NPZ member write slowed down: each write first leaves a
+#: marker file named by its pid in ``$MARKERS``, so a test knows that a temporary file is half written, then sleeps
+#: a minute. At module level, so the pool's workers get it too (the forkserver imports the main script).
+SLOW_WRITES = """
+import os, sys, time, zipfile
+from pathlib import Path
+
+_writestr = zipfile.ZipFile.writestr
+
+
+def _slow(self, *args, **kwargs):
+    Path(os.environ["MARKERS"], str(os.getpid())).write_text("writing")
+    time.sleep(60)
+    return _writestr(self, *args, **kwargs)
+
+
+zipfile.ZipFile.writestr = _slow
+
+if __name__ == "__main__":
+    from reflectmm_cli.cli import main
+
+    sys.argv[0] = "reflectmm"
+    main()
+"""
+
+
+@pytest.fixture
+def slow_writes(tmp_path):
+    """(script, markers folder): see :data:`SLOW_WRITES`; pass ``MARKERS=<markers folder>`` in the environment."""
+    script, markers = tmp_path / "slow_writes.py", tmp_path / "markers"
+    script.write_text(SLOW_WRITES)
+    markers.mkdir()
+    return script, markers

@@ -230,3 +230,38 @@ def test_progress_is_plain_lines_when_stderr_is_not_a_terminal(capsys):
     list(progress(range(5)))
     assert capsys.readouterr().err == ""
     configure_logging(0)
+
+
+# --------------------------------------------------------------------------- signals
+
+def test_sigterm_while_a_verb_writes_says_so_and_leaves_no_temporary_file(tmp_path, slow_writes):
+    # a batch scheduler's timeout or scancel: the process died silently (143), leaving `.out.npz.XXXX.tmp`
+    import os
+    import signal
+    import time
+
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "a.txt").write_text("hello")
+    out = tmp_path / "out" / "out.npz"
+    out.parent.mkdir()
+    out.write_bytes(b"the previous result")
+    script, markers = slow_writes
+    proc = subprocess.Popen([sys.executable, str(script), "checksum", str(tmp_path / "data"), "-o", str(out)],
+                            env={**os.environ, "MARKERS": str(markers)}, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(markers.iterdir()) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert any(out.parent.glob(".out.npz.*")), "the temporary file was not being written"
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143, stderr
+    assert stderr.strip().splitlines() == ["reflectmm: terminated (SIGTERM)"], stderr
+    assert stdout == ""
+    assert sorted(p.name for p in out.parent.iterdir()) == ["out.npz"]  # no temporary file left
+    assert out.read_bytes() == b"the previous result"
