@@ -27,6 +27,7 @@ from typing import Any, Callable
 
 from reflectmm_cli import __version__
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.signals import call_terminable, install_worker_handler
 from reflectmm_cli.stages import StageContext
 from reflectmm_cli.threads import cpu_share, limit_process_threads
 
@@ -243,19 +244,24 @@ def _worker_init(parent_pid: int, parent_start: str | None, period: float = 0.5,
                  ) -> None:
     """Pool worker initializer: the worker dies with the run that started it, even under ``kill -9``, and holds
     itself to ``threads`` threads (its share of the CPUs: :func:`reflectmm_cli.threads.limit_process_threads`).
+    SIGTERM (a scheduler's, to the whole group, or the run's own on an interrupt: :meth:`PoolExecutor.terminate`)
+    unwinds the task it runs, so its atomic writes remove their temporary files, and ends the worker.
 
     A worker's parent is the forkserver, so Linux's PR_SET_PDEATHSIG covers the forkserver's death only; a
     daemon thread watches the run's own process (pid + start time, so a recycled pid does not fool it) and
     exits the worker once it is gone. The resource tracker then sees its last writer close and exits too.
+    The death signal is SIGTERM, not SIGKILL: a group SIGTERM ends the forkserver at once, and a SIGKILL would then
+    cut short the clean-up of the task the worker is unwinding.
     """
     import threading
 
+    install_worker_handler()
     if sys.platform.startswith("linux"):
         try:
             import ctypes
 
             libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+            libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
         except (OSError, AttributeError):  # pragma: no cover - no libc symbol: the watchdog still works
             pass
     threading.Thread(target=_die_with, args=(parent_pid, parent_start, period), daemon=True,
@@ -286,7 +292,38 @@ class PoolExecutor(Executor):
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
+    #: how long :meth:`terminate` waits for the workers to clean up before it kills them
+    TERMINATE_GRACE = 10.0
+
+    def terminate(self) -> None:
+        """Stop the workers now (an interrupt: Ctrl-C or SIGTERM of the run's process): SIGTERM to each, whose
+        handler unwinds the running task — removing its temporary files — and ends the worker; what is left after
+        :attr:`TERMINATE_GRACE` seconds is killed. Their tasks are not finished and get no result."""
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        procs = [p for p in (getattr(pool, "_processes", None) or {}).values() if p.is_alive()]
+        for p in procs:
+            try:
+                p.terminate()
+            except OSError:  # pragma: no cover - already gone
+                pass
+        pool.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + self.TERMINATE_GRACE
+        for p in procs:
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
+
     def run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
+        try:
+            return self._run(specs, on_result)
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM of this process only: do not wait for the running tasks
+            self.terminate()
+            raise
+
+    def _run(self, specs: list[TaskSpec], on_result: OnResult) -> dict[str, dict[str, Any]]:
         results: dict[str, dict[str, Any]] = {}
         pending = list(specs)
         running: dict[Any, TaskSpec] = {}
@@ -303,7 +340,7 @@ class PoolExecutor(Executor):
                     results[spec.tid] = blocked
                     pending += on_result(blocked) or []
                 else:
-                    running[pool.submit(execute_task, spec)] = spec
+                    running[pool.submit(call_terminable, execute_task, spec)] = spec
             if not running:
                 if pending:  # deps outside the batch would never finish
                     raise ReflectmmError(f"internal: task {pending[0].tid} waits on unknown {pending[0].deps}")
@@ -520,9 +557,12 @@ class OrderedMap:
             if self._pool is None:
                 self._pool = PoolExecutor(self.jobs)
             pool = self._pool._get_pool()
-            futures = [pool.submit(fn, x) for x in items]
+            futures = [pool.submit(call_terminable, fn, x) for x in items]
             try:
                 return [f.result() for f in futures]
+            except KeyboardInterrupt:  # do not wait for the running items
+                self._pool.terminate()
+                raise
             except BrokenProcessPool:
                 self.close()
                 raise ReflectmmError("a worker process died (out of memory?) while mapping "
