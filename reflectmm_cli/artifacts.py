@@ -466,11 +466,20 @@ def _open_npz(path: Path):
         raise ArtifactError(f"truncated or corrupt NPZ ({type(exc).__name__}: {exc})", path) from None
 
 
+def _npz_member(npz, name: str, path: Path) -> np.ndarray:
+    """One array of an open NPZ.  A member whose .npy header is damaged comes back from numpy as raw bytes: that
+    is a corrupt member, said in one line naming the file."""
+    a = npz[name]
+    if not isinstance(a, np.ndarray):
+        raise ArtifactError(f"truncated or corrupt NPZ member '{name}' (not an .npy array)", path)
+    return a
+
+
 def _meta_from_npz(npz, path: Path) -> dict[str, Any]:
     if META_KEY not in npz.files:
         raise ArtifactError("not a reflectmm artifact (no __meta__ entry)", path)
     try:
-        meta = json.loads(str(npz[META_KEY].reshape(-1)[0]))
+        meta = json.loads(str(_npz_member(npz, META_KEY, path).reshape(-1)[0]))
     except CORRUPT_ERRORS as exc:
         raise ArtifactError(f"corrupt __meta__ entry ({exc})", path) from None
     if not isinstance(meta, dict):
@@ -539,7 +548,7 @@ def read_artifact(path: str | Path, kind: str | None = None, members: Collection
         try:
             for name in npz.files:
                 if name != META_KEY and (wanted is None or name in wanted):
-                    arrays[name] = npz[name]
+                    arrays[name] = _npz_member(npz, name, path)
         except CORRUPT_ERRORS as exc:
             raise ArtifactError(f"truncated or corrupt NPZ member ({type(exc).__name__}: "
                                 f"{str(exc).splitlines()[0] if str(exc) else ''})", path) from None

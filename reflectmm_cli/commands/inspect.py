@@ -17,8 +17,8 @@ from typing import Any
 import click
 import numpy as np
 
-from reflectmm_cli.artifacts import (META_KEY, SCHEMA_MAJOR, _meta_from_npz, _open_npz, parse_schema, read_exr,
-                                     read_meta)
+from reflectmm_cli.artifacts import (META_KEY, SCHEMA_MAJOR, _meta_from_npz, _npz_member, _open_npz, parse_schema,
+                                     read_exr, read_meta)
 from reflectmm_cli.commands._common import json_option, silence_stdout
 from reflectmm_cli.errors import ArtifactError, ReflectmmError
 
@@ -100,7 +100,7 @@ def inspect_artifact(path: str | Path) -> dict[str, Any]:
             try:
                 for name in npz.files:
                     if name != META_KEY:
-                        arrays.append(array_summary(name, npz[name]))
+                        arrays.append(array_summary(name, _npz_member(npz, name, path)))
             except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
                 raise ArtifactError(f"truncated or corrupt NPZ member ({exc})", path) from None
     kind, major = parse_schema(meta.get("schema"), path)

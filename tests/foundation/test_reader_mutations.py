@@ -119,3 +119,20 @@ def test_mutated_files_give_a_one_line_error_or_a_valid_read(files, kind):
         check_reader(read, data, target, m)
 
     run()
+
+
+@pytest.mark.parametrize("member", ["__meta__.npy", "v.npy"])
+def test_a_member_that_is_not_an_npy_array_is_a_one_line_error(tmp_path, member):
+    """A valid zip whose member has lost its .npy header: numpy hands back raw bytes, which reached
+    ``.reshape`` as an internal error (found by the mutations above)."""
+    import zipfile
+
+    from reflectmm_cli.artifacts import read_artifact, write_artifact
+
+    good = write_artifact(tmp_path / "a.npz", "x", {"v": np.arange(4.0)})
+    bad = tmp_path / "b.npz"
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(bad, "w") as dst:
+        for info in src.infolist():
+            dst.writestr(info.filename, b"\0" * 16 if info.filename == member else src.read(info.filename))
+    with pytest.raises(ReflectmmError, match=f"b.npz: truncated or corrupt NPZ member '{member[:-4]}'"):
+        read_artifact(bad, "x")
