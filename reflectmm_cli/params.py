@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["Param", "ParamError", "parse_list", "parse_ids", "resolve_params", "closest_name"]
+__all__ = ["Param", "ParamError", "parse_list", "parse_ids", "resolve_params", "closest_name", "named_twice"]
 
 #: Parameter kinds: scalars, comma lists, ``WxH`` sizes, and ``custom`` (a ``convert`` function).
 KINDS = ("int", "float", "str", "bool", "floats", "ints", "strs", "size", "path", "custom")
@@ -262,7 +262,7 @@ class Param:
                     self._bounds(x)
             if k == "strs" and self.check is None:  # a name twice would count its view or flash twice (a param
                 # with its own check, e.g. the methods, says so in its own words)
-                twice = sorted({x for x in out if out.count(x) > 1})
+                twice = named_twice(out)
                 if twice:
                     raise ValueError(f"{', '.join(twice)} named more than once")
             return out
@@ -292,6 +292,13 @@ class Param:
         once; a tuple default becomes a list)."""
         default = getattr(config, name)
         return cls(name, kind, list(default) if isinstance(default, tuple) else default, **kw)
+
+
+def named_twice(items: Iterable[Any]) -> list[str]:
+    """The items of a list that occur more than once, sorted (as strings): a view, flash, identity or id named
+    twice would count twice wherever it is used."""
+    items = [str(x) for x in items]
+    return sorted({x for x in items if items.count(x) > 1})
 
 
 def closest_name(name: str, names: Iterable[str]) -> str | None:

@@ -42,7 +42,7 @@ __all__ = ["ID_RULE", "check_id", "check_inside", "default_workspace", "resolve_
            "face_model_from_geometry", "find_face_model", "find_rig", "calibrated_rig", "find_fit_rig",
            "CALIBRATED_RIG_SIGMAS", "CALIBRATED_RIG_FLASH_ROUNDS", "RigCalibration", "rig_calibration",
            "find_truth_dir",
-           "files_in", "check_given_once", "list_artifacts", "face_model_recorded_by", "find_wild_truth",
+           "files_in", "walk_files", "check_given_once", "list_artifacts", "face_model_recorded_by", "find_wild_truth",
            "wild_face_model", "FACE_MODEL_NAME", "WORKSPACE_FACE_MODELS", "WORKSPACE_TRUTH_DIRS"]
 
 #: File name of a dataset's / workspace's face model.
@@ -108,6 +108,14 @@ def files_in(folder: Path, suffix: str = ".npz") -> list[Path]:
     """The ``*<suffix>`` files of a folder (sorted; hidden temp files left out); none if it is not a folder."""
     folder = Path(folder)
     return sorted(p for p in folder.glob(f"*{suffix}") if not p.name.startswith(".")) if folder.is_dir() else []
+
+
+def walk_files(folder: Path) -> list[Path]:
+    """Files under ``folder``, recursively, sorted; hidden files and hidden folders (``.reflectmm/``,
+    temporary ``.name.*.tmp`` files of atomic writes) are skipped."""
+    folder = Path(folder)
+    return sorted(q for q in folder.rglob("*")
+                  if q.is_file() and not any(part.startswith(".") for part in q.relative_to(folder).parts))
 
 
 def check_given_once(paths, reason: str, where: str = "") -> None:

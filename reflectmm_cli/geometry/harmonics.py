@@ -19,7 +19,7 @@ import numpy as np
 
 from reflectmm_cli.errors import ReflectmmError
 
-__all__ = ["cotangent_laplacian", "mesh_harmonics"]
+__all__ = ["cotangent_laplacian", "max_mesh_harmonics", "mesh_harmonics"]
 
 
 def cotangent_laplacian(vertices, triangles):
@@ -55,6 +55,12 @@ def cotangent_laplacian(vertices, triangles):
     return L, sp.diags(mass).tocsr()
 
 
+def max_mesh_harmonics(n_vertices: int) -> int:
+    """The most manifold harmonics :func:`mesh_harmonics` computes for a mesh of ``n_vertices`` vertices (V − 2: the
+    shift-invert eigensolver needs k < V − 1)."""
+    return max(int(n_vertices) - 2, 0)
+
+
 def mesh_harmonics(vertices, triangles, count: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``count`` lowest manifold harmonics of a mesh.
 
@@ -68,8 +74,8 @@ def mesh_harmonics(vertices, triangles, count: int) -> tuple[np.ndarray, np.ndar
     L, M = cotangent_laplacian(vertices, triangles)
     V = L.shape[0]
     Q = int(count)
-    if not 1 <= Q < V - 1:
-        raise ReflectmmError(f"mesh harmonics: count must be in 1..{V - 2}, got {Q}")
+    if not 1 <= Q <= max_mesh_harmonics(V):
+        raise ReflectmmError(f"mesh harmonics: count must be in 1..{max_mesh_harmonics(V)}, got {Q}")
     # shift-invert just below 0 (L is only semidefinite), in units of the mesh's typical eigenvalue
     scale = float(L.diagonal().mean() / M.diagonal().mean())
     lam, phi = sla.eigsh(L, k=Q, M=M, sigma=-1e-6 * scale, which="LM", v0=np.ones(V))

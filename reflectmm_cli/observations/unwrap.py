@@ -30,6 +30,7 @@ from reflectmm_cli.capture.images import check_finite_images
 from reflectmm_cli.color import encode_display
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.geometry.camera import project
+from reflectmm_cli.params import named_twice
 from reflectmm_cli.shading.brdf import DEFAULT_EXPONENTS
 from reflectmm_cli.threads import default_threads
 
@@ -311,7 +312,7 @@ def _placed_by_landmarks(geometry: Mapping[str, np.ndarray], keys: Sequence[str]
 def _positions(have, select: Sequence[str], what: str, capture_path=None) -> list[int]:
     """Indices of the names ``select`` in the capture's names ``have``; a one-line error names those missing."""
     have = [str(x) for x in np.asarray(have).reshape(-1)]
-    twice = sorted({x for x in select if list(select).count(x) > 1})
+    twice = named_twice(select)
     if twice:
         raise ReflectmmError(f"{what} {', '.join(twice)} named more than once: each would count again in the "
                              "reflectance fit", capture_path)

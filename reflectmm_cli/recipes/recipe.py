@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from reflectmm_cli.errors import ReflectmmError
+from reflectmm_cli.params import named_twice
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -243,7 +244,7 @@ def _parse_foreach(foreach: Any, where: str, path: Path) -> Any:
             if bad is not None:
                 raise ReflectmmError(f"{where} foreach: ids are strings such as \"001\", got "
                                      f"{type(bad).__name__} {bad!r} (quote it: \"{bad}\")", path)
-            dup = sorted({i for i in foreach if foreach.count(i) > 1})
+            dup = named_twice(foreach)
             if dup:
                 raise ReflectmmError(f"{where} foreach: duplicate id(s) {', '.join(dup)}", path)
         elif isinstance(foreach, dict):

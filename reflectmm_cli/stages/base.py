@@ -30,7 +30,7 @@ from reflectmm_cli import __version__
 from reflectmm_cli.artifacts import canonical_json, input_ref, sha256_file
 from reflectmm_cli.errors import ReflectmmError, WrittenThenFailed
 from reflectmm_cli.params import Param, ParamError, closest_name, resolve_params
-from reflectmm_cli.workspace import check_id, stage_output
+from reflectmm_cli.workspace import check_id, stage_output, walk_files  # walk_files: re-exported
 
 #: Bump when the way cache keys are computed changes (invalidates every cache).
 CACHE_HASH_VERSION = 1
@@ -394,14 +394,6 @@ def check_no_overwrite(stage: Stage, ctx: StageContext) -> None:
                                  f"give another output path (-o/--out) or id", out)
 
 
-def walk_files(folder: Path) -> list[Path]:
-    """Files under ``folder``, recursively, sorted; hidden files and hidden folders (``.reflectmm/``,
-    temporary ``.name.*.tmp`` files of atomic writes) are skipped."""
-    folder = Path(folder)
-    return sorted(q for q in folder.rglob("*")
-                  if q.is_file() and not any(part.startswith(".") for part in q.relative_to(folder).parts))
-
-
 def file_digest(path: Path, cache: dict[str, Any] | None = None, used: dict[str, Any] | None = None) -> str:
     """sha256 of a file, memoised in ``cache`` by (path, size, mtime_ns) when given.  ``used`` (with ``cache``)
     collects the entries ``[size, mtime_ns, sha256]`` of the files digested, by resolved path."""
@@ -446,14 +438,14 @@ def check_inputs_unchanged(entries: Mapping[str, Any]) -> None:
                                  "rerun", path)
 
 
-def check_outputs_writable(stage: Stage, ctx: StageContext) -> None:
-    """Refuse, before computing, a task whose outputs could not be written: for each output folder (or its nearest
-    existing ancestor, where the folder is yet to be made) a probe file is created and removed.  One line naming an
-    output, the folder and the system's reason, as the writer would say it after the work."""
+def check_outputs_writable(outputs: Iterable[Path]) -> None:
+    """Refuse, before computing, a task whose ``outputs`` could not be written: for each output folder (or its
+    nearest existing ancestor, where the folder is yet to be made) a probe file is created and removed.  One line
+    naming an output, the folder and the system's reason, as the writer would say it after the work."""
     from reflectmm_cli.artifacts import _raise_write_error
 
     folders: dict[Path, Path] = {}
-    for o in stage.expected_outputs(ctx):
+    for o in outputs:
         folders.setdefault(Path(os.path.abspath(o)).parent, Path(o))
     for folder, output in folders.items():
         probe_in = folder
@@ -480,8 +472,8 @@ def run_committed(stage: Stage, ctx: StageContext, inputs_used: Mapping[str, Any
     command line and every recipe executor run stages through it.  Returns the paths the stage says it wrote."""
     from reflectmm_cli.artifacts import committed_together
 
-    check_outputs_writable(stage, ctx)
     outputs = stage.expected_outputs(ctx)
+    check_outputs_writable(outputs)
     partial: WrittenThenFailed | None = None
     with committed_together(last=outputs[0] if outputs else None):
         try:

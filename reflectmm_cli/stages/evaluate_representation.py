@@ -11,7 +11,7 @@ import numpy as np
 from reflectmm_cli.artifacts import atomic_write_text, read_artifact, write_artifact, write_png
 from reflectmm_cli.errors import ReflectmmError
 from reflectmm_cli.evaluation.documents import EVAL_KIND
-from reflectmm_cli.params import Param, parse_list
+from reflectmm_cli.params import Param, named_twice, parse_list
 from reflectmm_cli.progress import log, progress
 from reflectmm_cli.stages.base import Default, Input, Stage, StageContext
 from reflectmm_cli.stages.fit_reflectance import SOLVER_PARAMS, check_solver_settings
@@ -48,8 +48,7 @@ def _check_sets(text: str) -> None:
 def _check_holdout(text: str) -> None:
     """A comma list of flash ids, each named once (``05,05`` was taken as "held-out flashes 05, 05"). The param
     stays a string (its recorded value and the cache keys of earlier runs are unchanged)."""
-    ids = parse_list(text, "holdout")
-    twice = sorted({x for x in ids if ids.count(x) > 1})
+    twice = named_twice(parse_list(text, "holdout"))
     if twice:
         raise ValueError(f"{', '.join(twice)} named more than once")
 

@@ -231,17 +231,18 @@ def _run(ctx: StageContext) -> list[Path]:
         raise ReflectmmError(f"has {len(face_model.uv)} vertices, the reflectance model {ctx.input('model')} "
                              f"{len(model.vertex_albedo_mean)}: not the face model it was built on", fm_path)
     _check_solver_options(p, model, face_model, fm_path)
-    if p["solver"] == "ls":
+    solve_cfg = solve_config(p) if p["solver"] == "ls" else None
+    if solve_cfg is not None:
         # the encoder is trained on the solved model, which stays fixed; the solve's settings go with the run's
         # config, so that --resume refuses a checkpoint trained on a model solved otherwise
-        solve = {k: v for k, v in dataclasses.asdict(solve_config(p)).items() if k != "shard_images"}  # sharding
+        solve = {k: v for k, v in dataclasses.asdict(solve_cfg).items() if k != "shard_images"}  # sharding
         cfg = cfg.replace(model_lr=0.0, extra={**dict(cfg.extra), "model_solve": solve})  # gives the same solve
     if p.get("resume"):  # a checkpoint of other settings is refused before the model solve, not after it
         check_checkpoint(output_paths(out)["workdir"] / CHECKPOINT_NAME, cfg, len(shards.indices("train")))
     train_model, solve_report = model, None
-    if p["solver"] == "ls":
+    if solve_cfg is not None:
         mesh = (face_model.mean_shape, face_model.triangles) if face_model is not None else None
-        train_model, solve_report = _least_squares_update(model, light, shards, solve_config(p), ctx, mesh)
+        train_model, solve_report = _least_squares_update(model, light, shards, solve_cfg, ctx, mesh)
     res = finetune(shards, train_model, light, cfg, output_paths(out)["workdir"], device=ctx.device,
                    identity=identity, init_weights=_one(ctx, "init_weights"), resume=bool(p.get("resume")),
                    phase1_encoder=_one(ctx, "phase1_encoder"), log=log.info, threads=p.get("threads"),
@@ -272,10 +273,12 @@ def _check_solver_options(p: dict[str, Any], model, face_model, fm_path) -> None
         return
     harmonics = p.get("ls_harmonics") or 0
     if harmonics and face_model is not None:
+        from reflectmm_cli.geometry.harmonics import max_mesh_harmonics
+
         V = int(len(face_model.mean_shape))
-        if harmonics > V - 2:  # the manifold harmonics of a V-vertex mesh: at most V - 2 (geometry/harmonics.py)
+        if harmonics > max_mesh_harmonics(V):
             raise ReflectmmError(f"--ls-harmonics {harmonics}: the face model {fm_path} has {V} vertices, which "
-                                 f"give at most {max(V - 2, 0)} mesh harmonics")
+                                 f"give at most {max_mesh_harmonics(V)} mesh harmonics")
     bases = p.get("ls_update_bases")
     if bases is not None and bases > model.n_components:
         log.warning(f"finetune: warning: --ls-update-bases {bases} but the reflectance model has "

@@ -392,8 +392,9 @@ def _refuse_stale(out: Path, cfg: SynthConfig, cams, fls) -> None:
     and one capture was built from two different faces.  Nothing is deleted: the folder may be a real data set.
     Hidden files and folders are not data set files and are not looked at: a killed run leaves the temporary
     ``.NAME.*.tmp`` file of its last atomic write, and the rerun must still resume."""
-    have = [p for d in ("data", "truth") if (out / d).is_dir() for p in (out / d).rglob("*")
-            if p.is_file() and not any(part.startswith(".") for part in p.relative_to(out / d).parts)]
+    from reflectmm_cli.workspace import walk_files
+
+    have = [p for d in ("data", "truth") if (out / d).is_dir() for p in walk_files(out / d)]
     if not have:
         return
     mine: set[Path] = set()
